@@ -1,0 +1,31 @@
+# `make demo` and `make test` bootstrap .venv on a fresh machine, then run.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+export OPENBLAS_NUM_THREADS := 1
+
+.PHONY: demo test bench venv clean
+
+venv: $(STAMP)
+
+# torch is pinned to the CPU build that pip finds locally (see DEVELOPERS.md);
+# installing it first keeps pip from resolving a multi-GB CUDA build.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet torch==2.13.0
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python tools/demo.py demo-out
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python tools/bench/run_all.py
+
+clean:
+	rm -rf $(VENV) demo-out .pytest_cache

@@ -1,0 +1,21 @@
+"""User-facing errors: each says what is wrong and what to do, in one line.
+
+The CLI prints a :class:`LabrigError` without a traceback and exits with code 2;
+anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class LabrigError(Exception):
+    """A problem the user can fix; the message says how."""
+
+    exit_code = 2
+
+
+class RecordingError(LabrigError):
+    """A recording file cannot be opened or used."""
+
+
+class RecordingFault(LabrigError):
+    """Recording stopped early (disk full, write failure); recorded data was kept."""

@@ -1,0 +1,44 @@
+"""Compression codecs for recording streams, as h5py dataset keyword arguments.
+
+``gzip`` and ``lzf`` are built into h5py; the others come from hdf5plugin, whose
+import registers the filters with HDF5. A reader of a file written with an
+hdf5plugin codec must ``import hdf5plugin`` too (labrig's reader does).
+tools/bench/bench_writer.py measures them side by side.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import hdf5plugin
+
+#: The codec for bulk streams (camera events), chosen by tools/bench/bench_writer.py.
+DEFAULT_BULK_CODEC = "blosc2-lz4"
+#: The codec for every other stream: small, and readable by any HDF5 reader.
+PORTABLE_CODEC = "gzip"
+
+
+def _blosc2(cname: str, clevel: int) -> dict[str, Any]:
+    return dict(hdf5plugin.Blosc2(cname=cname, clevel=clevel, filters=hdf5plugin.Blosc2.BITSHUFFLE))
+
+
+CODECS: dict[str, Callable[[], dict[str, Any]]] = {
+    "none": lambda: {},
+    "gzip": lambda: {"compression": "gzip", "compression_opts": 4, "shuffle": True},
+    "lzf": lambda: {"compression": "lzf", "shuffle": True},
+    "zstd": lambda: dict(hdf5plugin.Zstd(clevel=3)),
+    "lz4": lambda: dict(hdf5plugin.LZ4()),
+    "bitshuffle-lz4": lambda: dict(hdf5plugin.Bitshuffle(cname="lz4")),
+    "blosc2-lz4": lambda: _blosc2("lz4", 5),
+    "blosc2-zstd": lambda: _blosc2("zstd", 3),
+}
+
+
+def codec_kwargs(name: str) -> dict[str, Any]:
+    """h5py ``create_dataset`` keyword arguments for a codec name."""
+    try:
+        return CODECS[name]()
+    except KeyError:
+        known = ", ".join(CODECS)
+        raise ValueError(f"unknown codec {name!r}; choose one of: {known}") from None

@@ -1,0 +1,94 @@
+"""Finalizing a recording: final clock models, exit status, and the commit rules.
+
+Used by the writer on a clean close and by ``labrig recover`` on a crashed file.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from labrig.clock import ClockModel, fit_lower_envelope, fit_triggers, match_trigger_edges, unwrap_counter
+from labrig.recording import schema
+from labrig.recording.layout import stream_group
+
+#: A camera trigger edge pairs with a known host edge within this distance.
+TRIGGER_MATCH_TOLERANCE_US = 20_000.0
+
+
+def committed_rows(f: h5py.File) -> dict[str, int] | None:
+    """Per-stream rows guaranteed on disk by the last commit (``None``: no commit yet)."""
+    commits = f.get(schema.COMMITS_PATH)
+    if commits is None or commits["rows"].shape[0] == 0:
+        return None
+    last = commits["rows"][-1]
+    return {name: int(n) for name, n in zip(commits.attrs["streams"], last)}
+
+
+def fit_clock_models(f: h5py.File, rows: dict[str, int] | None = None) -> dict[str, ClockModel]:
+    """Refit every device's clock model over the whole recording."""
+
+    def column(stream: str, name: str) -> np.ndarray:
+        ds = stream_group(f, stream)[name]
+        n = ds.shape[0] if rows is None else min(ds.shape[0], rows.get(stream, ds.shape[0]))
+        return ds[:n]
+
+    models: dict[str, ClockModel] = {}
+    ft_device = unwrap_counter(column("ft", "t_device_us"), 32)
+    if ft_device.size:
+        models["ft"] = fit_lower_envelope(ft_device, column("ft", "t_host_us"))
+
+    cam_device, cam_host = column("event_packets", "t_device_us"), column("event_packets", "t_host_us")
+    envelope = fit_lower_envelope(cam_device, cam_host) if cam_device.size else None
+    camera = _fit_camera_triggers(column, envelope)
+    if camera is not None:
+        models["camera"] = camera.with_residuals(cam_device, cam_host)
+    return models
+
+
+def _fit_camera_triggers(column, envelope: ClockModel | None) -> ClockModel | None:  # type: ignore[no-untyped-def]
+    edges_dev, edges_pol = column("triggers", "t_device_us"), column("triggers", "polarity")
+    known_host, known_pol = column("trigger_out", "t_host_us"), column("trigger_out", "polarity")
+    if edges_dev.size == 0 or known_host.size == 0:
+        return envelope
+    if envelope is None:
+        if edges_dev.size != known_host.size:
+            return None
+        return fit_triggers(edges_dev, known_host)
+    pairs_dev: list[np.ndarray] = []
+    pairs_host: list[np.ndarray] = []
+    for polarity in (0, 1):
+        dev, host = edges_dev[edges_pol == polarity], known_host[known_pol == polarity]
+        spacing = np.diff(np.sort(host)).min() / 2 if host.size > 1 else TRIGGER_MATCH_TOLERANCE_US
+        di, hi = match_trigger_edges(dev, host, envelope, min(spacing, TRIGGER_MATCH_TOLERANCE_US))
+        pairs_dev.append(dev[di])
+        pairs_host.append(host[hi])
+    dev, host = np.concatenate(pairs_dev), np.concatenate(pairs_host)
+    return fit_triggers(dev, host, fallback=envelope) if dev.size else envelope
+
+
+def finalize_file(
+    path: Path,
+    exit_status: str,
+    reason: str,
+    online_models: dict[str, ClockModel] | None = None,
+    rows: dict[str, int] | None = None,
+) -> dict[str, ClockModel]:
+    """Store the final clock models and exit status in a closed recording file."""
+    with h5py.File(path, "r+") as f:
+        models = fit_clock_models(f, rows)
+        for device, model in models.items():
+            group = f["clock"].require_group(device)
+            for key, value in model.to_attrs().items():
+                group.attrs[key] = value
+            online = (online_models or {}).get(device)
+            if online is not None:
+                group.attrs["online_drift_ppm"] = online.drift_ppm
+        f.attrs["exit_status"] = exit_status
+        f.attrs["exit_reason"] = reason
+        f.attrs["finalized"] = True
+        f.attrs["ended"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    return models

@@ -1,0 +1,126 @@
+"""A recording's summary as plain data (what ``labrig inspect`` prints).
+
+Keys are stable and carry their units; ``--json`` prints this dict as is.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from labrig.clock import unwrap_counter
+from labrig.recording.reader import Recording
+
+AXES = ("x", "y", "z")
+#: Residual latency above which a clock is reported as suspicious, us.
+HIGH_LATENCY_US = 10_000.0
+#: A gap between F/T samples longer than this many nominal periods is reported.
+FT_GAP_PERIODS = 5
+
+
+def summarize(rec: Recording) -> dict[str, Any]:
+    attrs = rec.attrs
+    phases = rec.phases()
+    start_us = min([0] + [p.t_start_us for p in phases])
+    end_us = rec.end_us()
+    duration_s = max(0.0, (end_us - start_us) / 1e6)
+    n_events = rec.n_events
+    _, counts = rec.event_counts(bin_ms=10.0)
+
+    summary: dict[str, Any] = {
+        "file": str(rec.path),
+        "schema_version": attrs.get("schema_version"),
+        "labrig_version": attrs.get("labrig_version"),
+        "created": attrs.get("created"),
+        "indenter": attrs.get("indenter", ""),
+        "exit_status": rec.exit_status,
+        "exit_reason": attrs.get("exit_reason", ""),
+        "finalized": rec.finalized,
+        "duration_s": duration_s,
+        "events": n_events,
+        "event_rate_hz": n_events / duration_s if duration_s > 0 else 0.0,
+        "event_rate_peak_hz": float(counts.max() / 0.010) if counts.size else 0.0,
+        "triggers": rec.rows("triggers"),
+        "ft_samples": rec.rows("ft"),
+        "cnc_samples": rec.rows("cnc"),
+        "gcode_lines": rec.rows("gcode"),
+    }
+    warnings: list[str] = []
+    summary.update(_ft_summary(rec, warnings))
+    summary.update(_cnc_summary(rec))
+    summary["phases"] = [
+        {"name": p.name, "start_s": p.t_start_us / 1e6, "end_s": p.t_end_us / 1e6, "duration_s": p.duration_s}
+        for p in phases
+    ]
+    summary["clock"] = {
+        device: {
+            "method": m.method,
+            "drift_ppm": m.drift_ppm,
+            "pairs": m.n_pairs,
+            "triggers": m.n_triggers,
+            "residual_p50_us": m.residual_p50_us,
+            "residual_p99_us": m.residual_p99_us,
+            "residual_max_us": m.residual_max_us,
+        }
+        for device, m in sorted(rec.clock_models.items())
+    }
+    summary["dropped"] = _dropped(rec)
+
+    if not rec.finalized:
+        warnings.append(f"not finalized: the recorder stopped unexpectedly; run `labrig recover {rec.path}`")
+    if rec.exit_status == "aborted":
+        warnings.append(f"aborted: {summary['exit_reason'] or 'no reason given'}")
+    for stream, rows in summary["dropped"].items():
+        warnings.append(f"{rows} {stream} rows dropped by the recorder")
+    for device, clock in summary["clock"].items():
+        if clock["residual_p99_us"] > HIGH_LATENCY_US:
+            warnings.append(f"{device}: 99 % of samples arrived more than {clock['residual_p99_us'] / 1000:.1f} ms late")
+    summary["warnings"] = warnings
+    return summary
+
+
+def _ft_summary(rec: Recording, warnings: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if rec.rows("ft") == 0:
+        for i, axis in enumerate(AXES):
+            out[f"f{axis}_min_n"] = out[f"f{axis}_max_n"] = None
+            out[f"t{axis}_min_nm"] = out[f"t{axis}_max_nm"] = None
+        out["ft_rate_hz"] = 0.0
+        return out
+    force = rec.column("ft", "force_n")
+    torque = rec.column("ft", "torque_nm")
+    for i, axis in enumerate(AXES):
+        out[f"f{axis}_min_n"] = float(force[:, i].min())
+        out[f"f{axis}_max_n"] = float(force[:, i].max())
+        out[f"t{axis}_min_nm"] = float(torque[:, i].min())
+        out[f"t{axis}_max_nm"] = float(torque[:, i].max())
+    device_us = unwrap_counter(rec.column("ft", "t_device_us"), 32)
+    steps = np.diff(device_us)
+    period_us = float(np.median(steps)) if steps.size else 0.0
+    out["ft_rate_hz"] = 1e6 / period_us if period_us > 0 else 0.0
+    if steps.size and period_us > 0:
+        gaps = steps > FT_GAP_PERIODS * period_us
+        if gaps.any():
+            warnings.append(f"{int(gaps.sum())} gaps in F/T data, longest {steps.max() / 1000:.1f} ms")
+    flagged = int((rec.column("ft", "status") != 0).sum())
+    if flagged:
+        warnings.append(f"{flagged} F/T samples flagged by the sensor (overrange, invalid or throttled)")
+    return out
+
+
+def _cnc_summary(rec: Recording) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    position = rec.column("cnc", "position_mm") if rec.rows("cnc") else np.zeros((0, 3))
+    for i, axis in enumerate(AXES):
+        out[f"cnc_{axis}_min_mm"] = float(position[:, i].min()) if len(position) else None
+        out[f"cnc_{axis}_max_mm"] = float(position[:, i].max()) if len(position) else None
+    return out
+
+
+def _dropped(rec: Recording) -> dict[str, int]:
+    drops = rec.stream("drops")
+    totals: dict[str, int] = {}
+    for stream, rows in zip(drops["stream"], drops["rows"]):
+        totals[stream.decode()] = totals.get(stream.decode(), 0) + int(rows)
+    return totals
