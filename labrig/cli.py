@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Annotated, Any
 
+import click
 import typer
 from rich.console import Console
 from rich.table import Table
@@ -136,14 +137,26 @@ def recover(
 
 def main() -> None:
     """Console entry point: user errors print one line and exit 2, no traceback."""
+    from labrig.recording.writer import exit_process
+
+    code = 0
     try:
-        app()
+        app(standalone_mode=False)
     except LabrigError as exc:
         err_console.print(f"[red]error:[/] {exc}", soft_wrap=True, highlight=False)
-        raise SystemExit(exc.exit_code) from None
+        code = exc.exit_code
+    except click.exceptions.Abort:
+        err_console.print("[yellow]interrupted[/]")
+        code = 130
+    except click.exceptions.ClickException as exc:
+        exc.show()
+        code = exc.exit_code
+    except click.exceptions.Exit as exc:
+        code = exc.exit_code
     except KeyboardInterrupt:
         err_console.print("[yellow]interrupted[/]")
-        raise SystemExit(130) from None
+        code = 130
+    exit_process(code)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ clock models fitted on the fly.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -62,7 +63,21 @@ def open_h5(path: str | os.PathLike[str]) -> h5py.File:
                 return h5py.File(p, "r", swmr=True)
             except OSError as exc2:
                 raise RecordingError(f"{p} cannot be opened: {_first_line(exc2)}") from None
-        raise RecordingError(f"{p} is damaged or truncated ({_first_line(exc)}); run `labrig recover {p}`") from None
+        hint = f"; run `labrig recover {p}`" if p.name.endswith(".partial") else "; it cannot be read"
+        message = f"{p} is truncated or damaged ({_first_line(exc)}){hint}"
+        short = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", str(exc))
+        if short:
+            raise TruncatedRecording(message, int(short[1]), int(short[2])) from None
+        raise RecordingError(message) from None
+
+
+class TruncatedRecording(RecordingError):
+    """The file ends before where its superblock says (a write failed mid-flush)."""
+
+    def __init__(self, message: str, eof: int, stored_eof: int) -> None:
+        super().__init__(message)
+        self.eof = eof
+        self.stored_eof = stored_eof
 
 
 def _first_line(exc: BaseException) -> str:

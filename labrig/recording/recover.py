@@ -19,7 +19,7 @@ from labrig.errors import RecordingError
 from labrig.recording import schema
 from labrig.recording.finalize import committed_rows, finalize_file
 from labrig.recording.layout import PARTIAL_SUFFIX, final_path, stream_path
-from labrig.recording.reader import Recording, open_h5
+from labrig.recording.reader import Recording, TruncatedRecording, open_h5
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ def resolve_partial(path: Path) -> Path:
 def recover(path: str | os.PathLike[str], *, keep_partial: bool = False) -> RecoveryResult:
     """Finalize a crashed recording; returns where the recovered file is."""
     source = resolve_partial(Path(path))
-    with open_h5(source) as src:
+    with _open_source(source) as src:
         if src.attrs.get("schema") != schema.SCHEMA_NAME:
             raise RecordingError(f"{source} is not a labrig recording")
         if bool(src.attrs.get("finalized", False)):
@@ -66,6 +66,19 @@ def recover(path: str | os.PathLike[str], *, keep_partial: bool = False) -> Reco
     if not keep_partial:
         source.unlink()
     return RecoveryResult(target, rows, lost)
+
+
+def _open_source(source: Path) -> h5py.File:
+    """Open the crashed file; if a failed flush left it shorter than its
+    superblock says, extend it (sparse zeros past the end, no existing byte
+    changes) so HDF5 opens it. Only committed rows are trusted anyway."""
+    try:
+        return open_h5(source)
+    except TruncatedRecording as short:
+        if not source.name.endswith(PARTIAL_SUFFIX) or short.stored_eof <= short.eof:
+            raise
+        os.truncate(source, short.stored_eof)
+        return open_h5(source)
 
 
 def _copy_truncated(src: h5py.File, work: Path, rows: dict[str, int]) -> dict[str, int]:

@@ -26,9 +26,11 @@ import queue
 import resource
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+import sys
+from typing import Any, NoReturn
 
 import h5py
 import numpy as np
@@ -43,6 +45,23 @@ from labrig.recording.finalize import finalize_file
 from labrig.recording.layout import create_layout, partial_path, stream_group
 
 Columns = dict[str, npt.NDArray[Any]]
+
+#: Files whose close failed after a write failure. HDF5 cannot shut down
+#: cleanly with such a file open (it crashes at interpreter exit), so they are
+#: kept referenced and :func:`exit_process` skips HDF5's shutdown.
+_FAULTED_FILES: list[h5py.File] = []
+
+
+def exit_process(code: int) -> NoReturn:
+    """Exit with ``code``, skipping HDF5's shutdown if a write failure broke it.
+
+    The data is safe on disk either way; this only avoids a crash at exit.
+    """
+    if _FAULTED_FILES:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 @dataclass
@@ -138,6 +157,10 @@ class RecordingWriter:
     """Write one recording from several producer threads.
 
     Use as a context manager, or call :meth:`open` and :meth:`close`.
+    ``min_free_bytes``: stop cleanly when less than this (plus twice the data
+    about to be written) is left on the disk or under the file-size limit;
+    ``None`` disables the guard. ``on_commit`` is called from the writer thread
+    with the per-stream row counts after each complete flush.
     All ``t_host_us`` values are in the recording's time base: host
     microseconds since ``t0_host_ns`` (see :mod:`labrig.clock`).
     """
@@ -152,8 +175,9 @@ class RecordingWriter:
         extra_streams: tuple[schema.StreamSpec, ...] = (),
         queue_batches: int = 4096,
         flush_interval_s: float = 0.5,
-        min_free_bytes: int = 64 << 20,
+        min_free_bytes: int | None = 64 << 20,
         overwrite: bool = False,
+        on_commit: Callable[[dict[str, int]], None] | None = None,
     ) -> None:
         self.path = Path(path)
         self.partial = partial_path(self.path)
@@ -164,6 +188,7 @@ class RecordingWriter:
         self.specs = {s.name: s for s in schema.CORE_STREAMS + tuple(extra_streams)}
         self.flush_interval_s = flush_interval_s
         self.min_free_bytes = min_free_bytes
+        self.on_commit = on_commit
         self.overwrite = overwrite
         self.t0_host_ns = 0
         self.stats = {name: StreamStats() for name in self.specs}
@@ -374,7 +399,7 @@ class RecordingWriter:
                 assert self._file is not None
                 self._file.close()
             except Exception:
-                pass
+                _FAULTED_FILES.append(self._file)
             return
         assert self._file is not None
         self._file.close()
@@ -469,9 +494,11 @@ class RecordingWriter:
         commits["t_host_us"].resize((n + 1,))
         commits["t_host_us"][n:] = t
         self._file.flush()
+        if self.on_commit is not None:
+            self.on_commit({str(k): v for k, v in zip(commits.attrs["streams"], counts[0].tolist())})
 
     def _check_space(self, batches: list[Columns]) -> None:
-        if self._fault_reason:
+        if self._fault_reason or self.min_free_bytes is None:
             return
         needed = sum(a.nbytes for b in batches for a in b.values())
         headroom = _write_headroom(self.partial)

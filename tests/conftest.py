@@ -1,0 +1,24 @@
+"""Shared fixtures. Slow artefacts are built once per test run."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from labrig.testing.synthetic import SyntheticRun, record_synthetic  # noqa: E402
+
+#: A short synthetic run used by many tests (about 1.5 M events).
+SMALL_RUN = SyntheticRun(duration_s=3.0, peak_event_rate_hz=8e5, seed=11)
+
+
+@pytest.fixture(scope="session")
+def small_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finalized synthetic recording (read-only: copy it before changing it)."""
+    path = tmp_path_factory.mktemp("recordings") / "small.h5"
+    record_synthetic(path, SMALL_RUN)
+    return path

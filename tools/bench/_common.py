@@ -1,0 +1,151 @@
+"""Shared helpers of the recording benchmarks: a replayed camera-packet pool, producers, output.
+
+Event generation in numpy is not what the benchmarks measure, so a pool of
+camera packets (``pool_s`` of a SyntheticRun whose idle/peak rates give the
+requested mean rate) is made before timing, then replayed with time offsets.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
+from labrig.testing.synthetic import SyntheticRun
+
+#: Idle event rate as a fraction of the peak rate (SyntheticRun's default is 1 %).
+IDLE_FRACTION = 0.01
+#: Bytes of one event as produced: x, y (uint16), p (uint8), t_device_us (int64).
+RAW_EVENT_BYTES = 13
+#: Default cap on camera events put but not yet written: 4 event chunks (~13 ms at 10 Mev/s).
+MAX_IN_FLIGHT_EVENTS = 4 << 15
+
+Packet = tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16], npt.NDArray[np.uint8], npt.NDArray[np.int64], int]
+
+
+@dataclass(frozen=True)
+class PacketPool:
+    """Camera packets of ``duration_s`` of one synthetic run, replayable end to end."""
+
+    run: SyntheticRun
+    packets: list[Packet]
+    duration_s: float
+
+    @property
+    def n_events(self) -> int:
+        return sum(len(p[0]) for p in self.packets)
+
+    def replay_events(self, duration_s: float) -> int:
+        """Events in ``duration_s`` of replay (the packets :meth:`replay` yields)."""
+        n = self.n_packets(duration_s)
+        per_pool, rest = divmod(n, len(self.packets))
+        return per_pool * self.n_events + sum(len(p[0]) for p in self.packets[:rest])
+
+    def n_packets(self, duration_s: float) -> int:
+        return int(round(duration_s * 1e6 / self.run.packet_us))
+
+    def replay(self, writer: RecordingWriter, duration_s: float, max_in_flight: int = 0) -> None:
+        """Put ``duration_s`` of packets into ``writer``, shifting device and host times per lap.
+
+        ``max_in_flight`` > 0: wait while more events than that are put but not yet written,
+        so the writer sees live-sized batches instead of the whole run at once.
+        """
+        pool_us = int(round(self.duration_s * 1e6))
+        rate = 1 + self.run.camera_clock.drift_ppm * 1e-6
+        n = len(self.packets)
+        put = 0
+        for i in range(self.n_packets(duration_s)):
+            lap, j = divmod(i, n)
+            x, y, p, t_dev, t_host = self.packets[j]
+            while max_in_flight and put - writer.stats["events"].rows_written > max_in_flight:
+                time.sleep(0.0005)
+            writer.put_events(x, y, p, t_dev + int(round(lap * pool_us * rate)), t_host + lap * pool_us)
+            put += len(x)
+
+
+def make_pool(mean_rate_hz: float, pool_s: float = 1.0, seed: int = 0) -> PacketPool:
+    """Pre-generate ``pool_s`` of camera packets whose mean event rate is ``mean_rate_hz``."""
+    probe = SyntheticRun(duration_s=pool_s, peak_event_rate_hz=1.0, idle_event_rate_hz=0.0)
+    starts = np.arange(0, int(pool_s * 1e6), probe.packet_us, dtype=np.float64)
+    shape = float(probe.event_rate_hz(starts).mean())  # mean rate per 1 Hz of peak rate
+    peak = mean_rate_hz / (shape + IDLE_FRACTION)
+    run = SyntheticRun(duration_s=pool_s, peak_event_rate_hz=peak, idle_event_rate_hz=IDLE_FRACTION * peak, seed=seed)
+    return PacketPool(run, list(run.camera_packets()), pool_s)
+
+
+def record(
+    path: Path,
+    pool: PacketPool,
+    duration_s: float,
+    *,
+    bulk_codec: str | None = None,
+    queue_batches: int = 4096,
+    max_in_flight: int = MAX_IN_FLIGHT_EVENTS,
+) -> tuple[RecordingResult, float]:
+    """Record ``duration_s`` (camera replay + F/T + CNC producer threads); (result, wall s open->close)."""
+    side = SyntheticRun(duration_s=duration_s, seed=pool.run.seed)
+    ft = list(side.ft_batches())
+    cnc = list(side.cnc_samples())
+    kwargs: dict[str, Any] = {"queue_batches": queue_batches}
+    if bulk_codec is not None:
+        kwargs["bulk_codec"] = bulk_codec
+    metadata = RecordingMetadata(indenter="sphere", extra={"benchmark": True})
+
+    t_start = time.perf_counter()
+    writer = RecordingWriter(path, metadata, **kwargs).open()
+    threads = [
+        threading.Thread(target=pool.replay, args=(writer, duration_s, max_in_flight), name="bench-camera"),
+        threading.Thread(target=_put_all, args=(writer, "ft", ft), name="bench-ft"),
+        threading.Thread(target=_put_all, args=(writer, "cnc", cnc), name="bench-cnc"),
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    result = writer.close()
+    return result, time.perf_counter() - t_start
+
+
+def _put_all(writer: RecordingWriter, stream: str, items: list[dict[str, Any]]) -> None:
+    for item in items:
+        writer.put(stream, **item)
+
+
+def raw_bytes(result: RecordingResult) -> int:
+    """Uncompressed bytes of every row written (events dominate)."""
+    from labrig.recording.schema import CORE_STREAMS
+
+    itemsize = {s.name: sum(c.np_dtype.itemsize * int(np.prod(c.shape)) for c in s.columns) for s in CORE_STREAMS}
+    return sum(itemsize[name] * rows for name, rows in result.rows.items())
+
+
+def file_size(path: Path) -> int:
+    return os.stat(path).st_size
+
+
+def emit(title: str, columns: list[str], rows: list[list[str]], notes: list[str]) -> None:
+    """Print an aligned table (rich) and its notes."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title, title_justify="left")
+    for i, name in enumerate(columns):
+        table.add_column(name, justify="left" if i == 0 else "right")
+    for row in rows:
+        table.add_row(*row)
+    console = Console(width=max(140, Console().width), highlight=False)
+    console.print(table)
+    for note in notes:
+        console.print(note, soft_wrap=True)
+
+
+def print_json(figures: dict[str, Any]) -> None:
+    print(json.dumps(figures, indent=2, sort_keys=True))
