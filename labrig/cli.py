@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 from typing import Annotated, Any
 
-import click
 import typer
 from rich.console import Console
 from rich.table import Table
@@ -29,7 +28,15 @@ JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as J
 
 
 def _print_json(data: Any) -> None:
-    sys.stdout.write(json.dumps(data, indent=2, sort_keys=False) + "\n")
+    sys.stdout.write(json.dumps(data, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "item"):  # numpy scalars
+        return value.item()
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"cannot write {type(value).__name__} as JSON")
 
 
 def _version(value: bool) -> None:
@@ -141,17 +148,11 @@ def main() -> None:
 
     code = 0
     try:
-        app(standalone_mode=False)
+        app()
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     except LabrigError as exc:
         err_console.print(f"[red]error:[/] {exc}", soft_wrap=True, highlight=False)
-        code = exc.exit_code
-    except click.exceptions.Abort:
-        err_console.print("[yellow]interrupted[/]")
-        code = 130
-    except click.exceptions.ClickException as exc:
-        exc.show()
-        code = exc.exit_code
-    except click.exceptions.Exit as exc:
         code = exc.exit_code
     except KeyboardInterrupt:
         err_console.print("[yellow]interrupted[/]")

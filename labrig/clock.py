@@ -175,8 +175,9 @@ class ClockModel:
 
     @classmethod
     def from_attrs(cls, attrs: dict[str, object]) -> ClockModel:
-        known = {f for f in cls.__dataclass_fields__}
-        return cls(**{k: v for k, v in attrs.items() if k in known})  # type: ignore[arg-type]
+        known = set(cls.__dataclass_fields__)
+        plain = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in attrs.items() if k in known}
+        return cls(**plain)  # type: ignore[arg-type]
 
 
 def _replace(model: ClockModel, **changes: object) -> ClockModel:

@@ -1,0 +1,87 @@
+"""`labrig inspect` and `labrig recover` as a user runs them (a real subprocess)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+
+SUMMARY_KEYS = {
+    "duration_s", "events", "event_rate_hz", "ft_samples", "phases", "exit_status", "dropped", "warnings", "clock",
+    "fx_min_n", "fx_max_n", "fy_min_n", "fy_max_n", "fz_min_n", "fz_max_n",
+}
+
+
+def labrig(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "labrig.cli", *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+def test_inspect_prints_a_summary_and_json(small_recording: Path, tmp_path: Path) -> None:
+    text = labrig("inspect", small_recording)
+    assert text.returncode == 0, text.stderr
+    assert "complete" in text.stdout and "normal_down" in text.stdout and "triggers" in text.stdout
+
+    plot = tmp_path / "overview.png"
+    result = labrig("inspect", small_recording, "--json", "--plot", plot)
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert SUMMARY_KEYS <= set(summary)
+    assert summary["exit_status"] == "complete" and summary["dropped"] == {} and summary["warnings"] == []
+    assert summary["events"] > 1_000_000 and summary["ft_samples"] == 2400
+    assert 2.9 < summary["duration_s"] < 3.1
+    assert summary["fz_min_n"] < -10 < summary["fz_max_n"]
+    assert [p["name"] for p in summary["phases"]][:2] == ["approach", "normal_down"]
+    assert summary["clock"]["camera"]["method"] == "triggers"
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and plot.stat().st_size > 20_000
+
+
+def newer_schema(path: Path, source: Path) -> Path:
+    shutil.copy(source, path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = "2.0"
+    return path
+
+
+def plain_hdf5(path: Path, _: Path) -> Path:
+    with h5py.File(path, "w") as f:
+        f["data"] = [1, 2, 3]
+    return path
+
+
+def truncated(path: Path, source: Path) -> Path:
+    data = source.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return path
+
+
+BAD_FILES = {
+    "missing": (lambda p, s: p, "no such file"),
+    "directory": (lambda p, s: (p.mkdir(), p)[1], "is a directory"),
+    "empty": (lambda p, s: (p.write_bytes(b""), p)[1], "empty"),
+    "text": (lambda p, s: (p.write_text("x,y,p,t\n1,2,0,5\n"), p)[1], "not an HDF5 file"),
+    "truncated": (truncated, "truncated"),
+    "plain-hdf5": (plain_hdf5, "not a labrig recording"),
+    "newer-schema": (newer_schema, "newer than this labrig reads"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_FILES))
+def test_bad_input_gives_one_line_and_exit_2(kind: str, small_recording: Path, tmp_path: Path) -> None:
+    make, expected = BAD_FILES[kind]
+    path = make(tmp_path / f"{kind}.h5", small_recording)
+    result = labrig("inspect", path)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:")
+    assert expected in result.stderr
+
+
+def test_recover_refuses_a_finalized_recording(small_recording: Path) -> None:
+    result = labrig("recover", small_recording)
+    assert result.returncode == 2 and "already finalized" in result.stderr and "Traceback" not in result.stderr
