@@ -82,7 +82,8 @@ def _print_summary(s: dict[str, Any]) -> None:
     overview.add_column()
     overview.add_row("indenter", s["indenter"] or "-")
     overview.add_row("duration", f"{s['duration_s']:.3f} s")
-    overview.add_row("events", f"{s['events']:,}  ({s['event_rate_hz'] / 1e6:.3f} Mev/s mean, {s['event_rate_peak_hz'] / 1e6:.3f} peak)")
+    rates = f"{s['event_rate_hz'] / 1e6:.3f} Mev/s mean, {s['event_rate_peak_hz'] / 1e6:.3f} peak"
+    overview.add_row("events", f"{s['events']:,}  ({rates})")
     overview.add_row("triggers", str(s["triggers"]))
     overview.add_row("F/T", f"{s['ft_samples']:,} samples at {s['ft_rate_hz']:.0f} Hz")
     overview.add_row("CNC", f"{s['cnc_samples']:,} status samples, {s['gcode_lines']} G-code lines")

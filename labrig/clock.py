@@ -94,7 +94,7 @@ def unwrap_counter(raw: npt.ArrayLike, bits: int) -> npt.NDArray[np.int64]:
         return values
     period = np.int64(1) << bits
     steps = np.diff(values)
-    wraps = np.concatenate(([0], np.cumsum(steps < -(period // 2))))
+    wraps = np.concatenate(([0], np.cumsum(steps < -(period // 2)))).astype(np.int64)
     return values + wraps * period
 
 
@@ -348,8 +348,9 @@ def match_trigger_edges(
     order = np.argsort(host)
     host_sorted = host[order]
     predicted = coarse.to_host_us(dev)
-    j = np.clip(np.searchsorted(host_sorted, predicted), 1, host_sorted.size - 1) if host_sorted.size > 1 else np.zeros(dev.size, dtype=np.int64)
+    j = np.zeros(dev.size, dtype=np.int64)
     if host_sorted.size > 1:
+        j = np.clip(np.searchsorted(host_sorted, predicted), 1, host_sorted.size - 1)
         left_closer = np.abs(predicted - host_sorted[j - 1]) <= np.abs(host_sorted[j] - predicted)
         j = np.where(left_closer, j - 1, j)
     distance = np.abs(host_sorted[j] - predicted)

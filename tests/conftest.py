@@ -6,11 +6,11 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from pathlib import Path  # noqa: E402
+from pathlib import Path
 
-import pytest  # noqa: E402
+import pytest
 
-from labrig.testing.synthetic import SyntheticRun, record_synthetic  # noqa: E402
+from labrig.testing.synthetic import SyntheticRun, record_synthetic
 
 #: A short synthetic run used by many tests (about 1.5 M events).
 SMALL_RUN = SyntheticRun(duration_s=3.0, peak_event_rate_hz=8e5, seed=11)

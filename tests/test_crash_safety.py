@@ -7,13 +7,12 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-
 from crash_child import expected_events
+
 from labrig.errors import RecordingError
 from labrig.recording import Recording, recover
 from labrig.recording.layout import partial_path

@@ -8,8 +8,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-
 from conftest import SMALL_RUN
+
 from labrig.clock import ManualClock, unwrap_counter
 from labrig.errors import RecordingError
 from labrig.recording import Recording, RecordingMetadata, RecordingWriter
@@ -23,7 +23,7 @@ def all_camera_packets(run: SyntheticRun) -> tuple[np.ndarray, ...]:
 
 
 def test_every_stream_round_trips(small_recording: Path) -> None:
-    x, y, p, t_dev = all_camera_packets(SMALL_RUN)
+    x, _, _, t_dev = all_camera_packets(SMALL_RUN)
     ft = list(SMALL_RUN.ft_batches())
     with Recording(small_recording) as rec:
         assert rec.finalized and rec.exit_status == "complete"
@@ -143,7 +143,8 @@ def test_writer_refuses_to_overwrite_and_rejects_bad_rows(tmp_path: Path) -> Non
 
 
 def test_online_clock_model_is_available_while_recording(tmp_path: Path) -> None:
-    run = SyntheticRun(duration_s=1.0, peak_event_rate_hz=1e5, trigger_period_s=0, ft_clock=DeviceClock(origin_us=0, drift_ppm=50))
+    ft_clock = DeviceClock(origin_us=0, drift_ppm=50)
+    run = SyntheticRun(duration_s=1.0, peak_event_rate_hz=1e5, trigger_period_s=0, ft_clock=ft_clock)
     with RecordingWriter(tmp_path / "live.h5", flush_interval_s=0.05) as writer:
         for batch in run.ft_batches():
             writer.put("ft", **batch)

@@ -9,7 +9,7 @@ tools/bench/bench_writer.py measures them side by side.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import hdf5plugin
 
@@ -19,7 +19,7 @@ DEFAULT_BULK_CODEC = "blosc2-lz4"
 PORTABLE_CODEC = "gzip"
 
 
-def _blosc2(cname: str, clevel: int) -> dict[str, Any]:
+def _blosc2(cname: Literal["lz4", "zstd"], clevel: int) -> dict[str, Any]:
     return dict(hdf5plugin.Blosc2(cname=cname, clevel=clevel, filters=hdf5plugin.Blosc2.BITSHUFFLE))
 
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-from labrig.recording.reader import Recording  # noqa: E402
+from labrig.recording.reader import Recording
 
 PHASE_COLORS = ("#dbe9f6", "#fde6cf", "#e3f1dc", "#f3dcef", "#fff6c9", "#e0e0e0")
 
@@ -30,7 +30,8 @@ def plot_overview(rec: Recording, out: str | os.PathLike[str]) -> Path:
     ax_force.set_ylabel("force (N)")
 
     if rec.rows("cnc"):
-        ax_z.step(rec.column("cnc", "t_host_us") / 1e6, rec.column("cnc", "position_mm")[:, 2], where="post", color="#9467bd", lw=1.0)
+        t_s = rec.column("cnc", "t_host_us") / 1e6
+        ax_z.step(t_s, rec.column("cnc", "position_mm")[:, 2], where="post", color="#9467bd", lw=1.0)
     ax_z.set_ylabel("CNC Z (mm)")
     ax_z.set_xlabel("time (s, host clock since start)")
 
@@ -40,7 +41,9 @@ def plot_overview(rec: Recording, out: str | os.PathLike[str]) -> Path:
         for ax in (ax_rate, ax_force, ax_z):
             ax.axvspan(phase.t_start_us / 1e6, phase.t_end_us / 1e6, color=color, alpha=0.7, lw=0, zorder=0)
         mid = (phase.t_start_us + phase.t_end_us) / 2e6
-        ax_rate.annotate(phase.name, (mid, 1.0), xycoords=("data", "axes fraction"), ha="center", va="bottom", fontsize=7, rotation=20)
+        ax_rate.annotate(
+            phase.name, (mid, 1.0), xycoords=("data", "axes fraction"), ha="center", va="bottom", fontsize=7, rotation=20
+        )
     status = rec.exit_status + ("" if rec.finalized else ", not finalized")
     fig.suptitle(f"{rec.path.name}  ({rec.attrs.get('indenter') or 'no indenter'}; {status})", fontsize=10)
     out_path = Path(out)

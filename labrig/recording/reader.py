@@ -114,7 +114,8 @@ class Recording:
             raise RecordingError(f"{self.path} has an unreadable schema_version {version!r}") from None
         if major > schema.SCHEMA_MAJOR:
             raise RecordingError(
-                f"{self.path} uses recording format {version}, newer than this labrig reads ({schema.SCHEMA_VERSION}); upgrade labrig"
+                f"{self.path} uses recording format {version}, newer than this labrig reads "
+                f"({schema.SCHEMA_VERSION}); upgrade labrig"
             )
 
     def _row_counts(self) -> dict[str, int]:
@@ -259,7 +260,7 @@ class Recording:
         if start_bin < 0 or first_row.size == 0:
             return np.zeros(0), np.zeros(0, np.int64)
         bin_us = int(self.file["streams/events"].attrs["index_bin_us"])
-        step = max(1, int(round(bin_ms * 1000 / bin_us)))
+        step = max(1, round(bin_ms * 1000 / bin_us))
         edges = np.append(first_row[::step], self.n_events)
         counts = np.diff(edges)
         device_start = (start_bin + np.arange(counts.size) * step) * bin_us

@@ -83,7 +83,7 @@ def summarize(rec: Recording) -> dict[str, Any]:
 def _ft_summary(rec: Recording, warnings: list[str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if rec.rows("ft") == 0:
-        for i, axis in enumerate(AXES):
+        for axis in AXES:
             out[f"f{axis}_min_n"] = out[f"f{axis}_max_n"] = None
             out[f"t{axis}_min_nm"] = out[f"t{axis}_max_nm"] = None
         out["ft_rate_hz"] = 0.0

@@ -24,12 +24,12 @@ import errno
 import os
 import queue
 import resource
+import sys
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-import sys
 from typing import Any, NoReturn
 
 import h5py
@@ -37,7 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig import __version__
-from labrig.clock import ClockModel, CounterUnwrapper, HostClock, MonotonicClock, NS_PER_US, OnlineClockFit
+from labrig.clock import NS_PER_US, ClockModel, CounterUnwrapper, HostClock, MonotonicClock, OnlineClockFit
 from labrig.errors import RecordingError, RecordingFault
 from labrig.recording import schema
 from labrig.recording.codecs import DEFAULT_BULK_CODEC, PORTABLE_CODEC, codec_kwargs
@@ -239,7 +239,7 @@ class RecordingWriter:
         if exc is None:
             self.result = self.close()
         else:
-            reason = "interrupted by the user" if isinstance(exc, KeyboardInterrupt) else f"{exc_type.__name__}: {exc}"
+            reason = "interrupted by the user" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
             self.result = self.close(schema.EXIT_ABORTED, reason, raise_on_fault=False)
 
     def close(self, exit_status: str = schema.EXIT_COMPLETE, reason: str = "", *, raise_on_fault: bool = True) -> RecordingResult:
@@ -465,8 +465,8 @@ class RecordingWriter:
         with self._drop_lock:
             drops, self._drops_pending = self._drops_pending, []
         if drops:
-            t, stream, rows, reason = zip(*drops)
-            self._write_small("drops", {"t_host_us": t, "stream": stream, "rows": rows, "reason": reason})
+            t, stream, counts, reason = zip(*drops)
+            self._write_small("drops", {"t_host_us": t, "stream": stream, "rows": counts, "reason": reason})
         if self._phases.dirty:
             assert self._file is not None
             group = stream_group(self._file, "phases")

@@ -116,7 +116,7 @@ class SyntheticRun:
 
     # -- streams (each yields batches in host-receive order) ------------------
 
-    def camera_packets(self) -> Iterator[tuple[npt.NDArray[Any], ...]]:
+    def camera_packets(self) -> Iterator[tuple[Any, ...]]:
         """(x, y, p, t_device_us, t_host_us) per USB packet of ``packet_us``."""
         rng = np.random.default_rng(self.seed)
         centres = _marker_centres()
