@@ -1,0 +1,160 @@
+"""The pinhole camera with OpenCV distortion: projection and back-projection.
+
+Frames and units: points in the gel frame (mm) are mapped into the OpenCV
+camera frame (x right, y down, z along the optical axis; mm) by the
+gel->camera pose ``p_cam = R @ p_gel + t`` (R from a Rodrigues vector, rad).
+Normalised coordinates are ``(x/z, y/z)`` in the camera frame; the OpenCV
+model (k1 k2 p1 p2 k3) distorts them, and ``u = fx x_d + cx``,
+``v = fy y_d + cy`` gives pixels with the origin at the top-left pixel's
+centre. Undistortion inverts the distortion by fixed-point iteration
+(OpenCV's scheme, iterated to convergence), which converges for the mild
+distortion of a real lens inside the image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import RigConfig
+from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix
+
+__all__ = ["CameraModel", "distort_normalized", "matrix_to_rotvec", "rotvec_to_matrix", "undistort_normalized"]
+
+Array = npt.NDArray[np.float64]
+
+
+def distort_normalized(xy: npt.ArrayLike, distortion: tuple[float, ...]) -> Array:
+    """Apply OpenCV (k1, k2, p1, p2, k3) distortion to (N, 2) normalised coordinates."""
+    xy = np.asarray(xy, dtype=np.float64)
+    k1, k2, p1, p2, k3 = distortion
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
+def undistort_normalized(
+    xy_distorted: npt.ArrayLike, distortion: tuple[float, ...], *, tol: float = 1e-14, max_iter: int = 100
+) -> Array:
+    """Invert :func:`distort_normalized` by fixed-point iteration (to ``tol`` in normalised units)."""
+    xyd = np.asarray(xy_distorted, dtype=np.float64)
+    k1, k2, p1, p2, k3 = distortion
+    xy = xyd.copy()
+    for _ in range(max_iter):
+        x, y = xy[..., 0], xy[..., 1]
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        new = np.stack([(xyd[..., 0] - dx) / radial, (xyd[..., 1] - dy) / radial], axis=-1)
+        change = float(np.max(np.abs(new - xy), initial=0.0))
+        xy = new
+        if change < tol:
+            break
+    return xy
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Intrinsics (px), distortion (k1 k2 p1 p2 k3) and the gel->camera pose (rad, mm)."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    distortion: tuple[float, float, float, float, float]
+    gel_to_camera_rotvec_rad: tuple[float, float, float]
+    gel_to_camera_translation_mm: tuple[float, float, float]
+    width_px: int = 1280
+    height_px: int = 720
+
+    @classmethod
+    def from_rig(cls, rig: RigConfig) -> CameraModel:
+        """The rig's true (simulated) camera: ``rig.sim.camera`` on the ``rig.camera`` sensor."""
+        cam = rig.sim.camera
+        return cls(
+            fx_px=float(cam.fx_px),
+            fy_px=float(cam.fy_px),
+            cx_px=float(cam.cx_px),
+            cy_px=float(cam.cy_px),
+            distortion=tuple(float(d) for d in cam.distortion),  # type: ignore[arg-type]
+            gel_to_camera_rotvec_rad=tuple(float(r) for r in cam.gel_to_camera_rotvec_rad),  # type: ignore[arg-type]
+            gel_to_camera_translation_mm=tuple(float(t) for t in cam.gel_to_camera_translation_mm),  # type: ignore[arg-type]
+            width_px=rig.camera.width_px,
+            height_px=rig.camera.height_px,
+        )
+
+    @cached_property
+    def gel_to_camera(self) -> Pose:
+        """The gel frame in the camera frame: ``p_cam = R @ p_gel + t`` (mm)."""
+        return Pose(rotvec_to_matrix(self.gel_to_camera_rotvec_rad), np.asarray(self.gel_to_camera_translation_mm, float))
+
+    @property
+    def matrix(self) -> Array:
+        """The 3x3 intrinsic matrix K (px)."""
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    # -- forward ---------------------------------------------------------------------------------
+
+    def normalized_to_pixels(self, xy_norm: npt.ArrayLike) -> Array:
+        """Undistorted normalised coordinates (N, 2) -> distorted pixel coordinates (N, 2)."""
+        xyd = distort_normalized(xy_norm, self.distortion)
+        return np.stack([self.fx_px * xyd[..., 0] + self.cx_px, self.fy_px * xyd[..., 1] + self.cy_px], axis=-1)
+
+    def project_camera(self, points_cam_mm: npt.ArrayLike) -> Array:
+        """Camera-frame points (N, 3) mm -> pixels (N, 2); points must have z > 0."""
+        p = np.asarray(points_cam_mm, dtype=np.float64)
+        return self.normalized_to_pixels(p[..., :2] / p[..., 2:3])
+
+    def project(self, points_mm: npt.ArrayLike, pose: Pose | None = None) -> Array:
+        """Points (N, 3) mm in the gel frame (or in the frame ``pose`` maps into the camera) -> pixels (N, 2)."""
+        return self.project_camera((pose or self.gel_to_camera).apply(points_mm))
+
+    # -- backward --------------------------------------------------------------------------------
+
+    def pixels_to_normalized(self, xy_px: npt.ArrayLike) -> Array:
+        """Pixels (N, 2) -> undistorted normalised coordinates (N, 2), by iterative undistortion."""
+        xy = np.asarray(xy_px, dtype=np.float64)
+        xyd = np.stack([(xy[..., 0] - self.cx_px) / self.fx_px, (xy[..., 1] - self.cy_px) / self.fy_px], axis=-1)
+        return undistort_normalized(xyd, self.distortion)
+
+    def pixel_rays(self, xy_px: npt.ArrayLike) -> Array:
+        """Unit viewing rays (N, 3) in the camera frame through the pixels (N, 2)."""
+        xy = self.pixels_to_normalized(xy_px)
+        rays = np.concatenate([xy, np.ones((*xy.shape[:-1], 1))], axis=-1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+    def backproject_to_plane(self, xy_px: npt.ArrayLike, z_mm: float = 0.0, pose: Pose | None = None) -> Array:
+        """Points (N, 3) on the plane z = ``z_mm`` of the gel frame (or of ``pose``'s frame) seen by the pixels.
+
+        The ray from the camera centre through each pixel is intersected with
+        the plane; the result is in that frame's coordinates (mm).
+        """
+        frame = pose or self.gel_to_camera
+        rays_cam = self.pixel_rays(xy_px)
+        inv = frame.inverse()
+        origin = inv.translation_mm  # camera centre in the frame
+        rays = inv.rotate(rays_cam)
+        s = (z_mm - origin[2]) / rays[..., 2]
+        return origin + s[..., None] * rays
+
+    def jacobian_px_per_mm(self, points_mm: npt.ArrayLike, pose: Pose | None = None) -> Array:
+        """d(pixel)/d(point) at points (N, 3) of the gel frame (or ``pose``'s frame): (N, 2, 3), px per mm.
+
+        Central differences (step 1e-4 mm); columns 0 and 1 give the image of a
+        small patch of the frame's x-y plane, e.g. a marker disc.
+        """
+        p = np.asarray(points_mm, dtype=np.float64)
+        h = 1e-4
+        cols = []
+        for axis in range(3):
+            step = np.zeros(3)
+            step[axis] = h
+            cols.append((self.project(p + step, pose) - self.project(p - step, pose)) / (2 * h))
+        return np.stack(cols, axis=-1)

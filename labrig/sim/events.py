@@ -1,0 +1,341 @@
+"""The DVS pixel model: log-intensity change detection with noise, over the ROI pixels.
+
+Model (after ESIM and v2e, as summarised in the shared reference notes, events.md section 8). Per pixel:
+
+* **Log intensity** ``L = log(eps + I)``, I the linear intensity in [0, 1],
+  eps = 1e-3 (ESIM's default).
+* **Thresholds** ``C_on``, ``C_off`` drawn once per pixel from
+  N(threshold, threshold_sigma), clamped >= 0.01 (v2e), in ln units.
+* **Photoreceptor** first-order low-pass ``tau dLf/dt = L - Lf`` with
+  ``tau = 1 / (2 pi cutoff_hz)``, the same for all intensities (v2e's
+  intensity-dependent bandwidth is not modelled); cutoff_hz <= 0 disables it.
+  Between two render steps the input L ramps linearly, Lf is advanced by the
+  exact solution for a ramp, and Lf is taken linear in time between the steps.
+* **Change detection** with a memorised reference R and a leak drift:
+  ``D(t) = Lf(t) - R + k (t - t_start)``, ``k = leak_rate_hz * C_on`` per
+  second, so a quiet pixel makes an ON event every 1 / leak_rate_hz seconds
+  (v2e's leak, without its per-pixel rate spread and jitter). An ON event
+  each time D reaches C_on (R += C_on), an OFF event each time it reaches
+  -C_off (R -= C_off); several crossings in one step give several events,
+  their times interpolated linearly between the steps and floored to whole
+  microseconds. Pixels start in the leak's steady state, D uniform in
+  [0, C_on) (or in [-C_off, C_on) without leak), so leak events are not synchronised.
+* **Refractory period** (ESIM semantics): R follows every crossing, but an
+  event closer than ``refractory_us`` (rounded up to whole us) to the pixel's
+  last emitted event is dropped.
+* **Shot noise**: Poisson events at ``shot_noise_rate_hz`` per pixel in total,
+  half ON and half OFF, uniform in time, leaving R unchanged; one that would
+  fall within the refractory period of another event of its pixel is dropped.
+
+Cost: a step updates only the pixels given to it plus the pixels whose
+low-pass has not settled (|Lf - L| > settle_log). Quiet pixels' leak events
+come from a schedule of their next leak times (scanned once per 0.1 s of sim
+time); shot noise is sampled as one Poisson count for the array. Random
+numbers come from one numpy Generator: the same seed and inputs give
+byte-identical events. Times are integer microseconds of the sim's world time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import RigConfig
+from labrig.sim.pixels import unique_indices
+
+Array = npt.NDArray[np.float64]
+Index = npt.NDArray[np.int64]
+
+#: One CD event: sensor pixel x, y; polarity p (1 ON, 0 OFF); time t (us).
+EVENT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "u1"), ("t", "<i8")])
+
+_NEVER_US = -(2**62)
+
+
+@dataclass(frozen=True)
+class EventParams:
+    """Pixel model parameters: thresholds in ln units, times in us, rates in Hz per pixel."""
+
+    threshold_on: float = 0.22
+    threshold_off: float = 0.22
+    threshold_sigma: float = 0.03
+    refractory_us: float = 300.0
+    cutoff_hz: float = 800.0
+    leak_rate_hz: float = 0.05
+    shot_noise_rate_hz: float = 0.05
+    eps: float = 1e-3
+    settle_log: float = 1e-4
+    leak_epoch_us: int = 100_000
+
+    @classmethod
+    def from_rig(cls, rig: RigConfig) -> EventParams:
+        ev = rig.sim.events
+        return cls(
+            threshold_on=ev.threshold_on,
+            threshold_off=ev.threshold_off,
+            threshold_sigma=ev.threshold_sigma,
+            refractory_us=ev.refractory_us,
+            cutoff_hz=ev.cutoff_hz,
+            leak_rate_hz=ev.leak_rate_hz,
+            shot_noise_rate_hz=ev.shot_noise_rate_hz,
+        )
+
+    def noiseless(self) -> EventParams:
+        """The same pixel without leak, shot noise or refractory period."""
+        return replace(self, leak_rate_hz=0.0, shot_noise_rate_hz=0.0, refractory_us=0.0)
+
+
+def make_events(x: npt.ArrayLike, y: npt.ArrayLike, p: npt.ArrayLike, t: npt.ArrayLike) -> npt.NDArray[np.void]:
+    """A structured event array (:data:`EVENT_DTYPE`) from its columns."""
+    x = np.asarray(x)
+    out = np.empty(x.size, dtype=EVENT_DTYPE)
+    out["x"], out["y"], out["p"], out["t"] = x, y, p, t
+    return out
+
+
+class EventSensor:
+    """Stateful DVS pixels over a width x height window whose top-left pixel is sensor (x0, y0).
+
+    Pixel indices are flat, row-major in the window: ``(y - y0) * width + (x - x0)``.
+    """
+
+    def __init__(
+        self,
+        params: EventParams,
+        width: int,
+        height: int,
+        initial_intensity: npt.ArrayLike,
+        *,
+        x0: int = 0,
+        y0: int = 0,
+        t_us: int = 0,
+        seed: int = 0,
+    ) -> None:
+        self.params, self.width, self.height, self.x0, self.y0 = params, width, height, x0, y0
+        n = width * height
+        intensity = np.asarray(initial_intensity, dtype=np.float64).ravel()
+        if intensity.size != n:
+            raise ValueError(f"initial_intensity has {intensity.size} values, not {width}x{height}")
+        self.rng = np.random.default_rng(seed)
+        p = params
+        self.c_on = np.maximum(self.rng.normal(p.threshold_on, p.threshold_sigma, n), 0.01)
+        self.c_off = np.maximum(self.rng.normal(p.threshold_off, p.threshold_sigma, n), 0.01)
+        self.t_us = int(t_us)
+        self._t_start_us = int(t_us)
+        self.log_input = np.log(p.eps + intensity)
+        self.log_filtered = self.log_input.copy()
+        u = self.rng.random(n)
+        d0 = u * self.c_on if p.leak_rate_hz > 0 else -self.c_off + u * (self.c_on + self.c_off)
+        self.reference = self.log_filtered - d0
+        self.last_event_us = np.full(n, _NEVER_US, dtype=np.int64)
+        self._refractory_us = int(np.ceil(p.refractory_us)) if p.refractory_us > 0 else 0
+        self._active = np.empty(0, dtype=np.int64)
+        self._scratch = np.zeros(n, dtype=np.int64)
+        self._next_leak_us = np.full(n, np.inf)
+        if p.leak_rate_hz > 0:
+            self._next_leak_us = self.t_us + (self.c_on - d0) / (p.leak_rate_hz * self.c_on) * 1e6
+        self._leak_epoch_end_us = -np.inf
+        self._leak_candidates = np.empty(0, dtype=np.int64)
+
+    @classmethod
+    def from_rig(
+        cls, rig: RigConfig, initial_intensity: npt.ArrayLike, *, t_us: int = 0, seed: int = 0, params: EventParams | None = None
+    ) -> EventSensor:
+        """Pixels over the rig's ROI with the rig's event parameters (or ``params``)."""
+        roi = rig.roi
+        return cls(
+            params or EventParams.from_rig(rig),
+            roi.width_px,
+            roi.height_px,
+            initial_intensity,
+            x0=roi.x0_px,
+            y0=roi.y0_px,
+            t_us=t_us,
+            seed=seed,
+        )
+
+    @property
+    def size(self) -> int:
+        return self.width * self.height
+
+    def step(self, t0_us: int, t1_us: int, pixel_indices: npt.ArrayLike, new_intensity: npt.ArrayLike) -> npt.NDArray[np.void]:
+        """Advance from t0_us (the sensor's current time) to t1_us; return the events (EVENT_DTYPE) sorted by t.
+
+        ``pixel_indices`` (distinct flat window indices) get ``new_intensity``
+        (linear, [0, 1]) at t1_us, ramping from their previous value; all other
+        pixels keep theirs.
+        """
+        t0_us, t1_us = int(t0_us), int(t1_us)
+        if t0_us != self.t_us or t1_us <= t0_us:
+            raise ValueError(f"step must go forward from the sensor time {self.t_us} us, not {t0_us} -> {t1_us} us")
+        pixels = np.asarray(pixel_indices, dtype=np.int64).ravel()
+        log_new = np.log(self.params.eps + np.asarray(new_intensity, dtype=np.float64).ravel())
+        noise = self._sample_shot_noise(t0_us, t1_us)
+        signal = self._update(t0_us, t1_us, pixels, log_new)
+        leak = self._quiet_leak(t1_us)
+        pix, pol, t = self._merge_noise(
+            np.concatenate([signal[0], leak[0]]),
+            np.concatenate([signal[1], leak[1]]),
+            np.concatenate([signal[2], leak[2]]),
+            noise,
+        )
+        self.t_us = t1_us
+        # Sort by (t, pixel, polarity) through one int64 key; equal keys are identical events.
+        order = np.argsort(((t - t0_us) * self.size + pix) * 2 + pol)
+        pix, pol, t = pix[order], pol[order], t[order]
+        y, x = np.divmod(pix, self.width)
+        return make_events(x + self.x0, y + self.y0, pol, t)
+
+    # -- signal ------------------------------------------------------------------------------------
+
+    def _update(self, t0_us: int, t1_us: int, pixels: Index, log_new: Array) -> tuple[Index, npt.NDArray[np.uint8], Index]:
+        """Advance the given and the unsettled pixels; return their events (pixel, polarity, t)."""
+        p = self.params
+        dt_us = t1_us - t0_us
+        upd = pixels if self._active.size == 0 else unique_indices(np.concatenate([pixels, self._active]), self._scratch)
+        u0 = self.log_input[upd]
+        self.log_input[pixels] = log_new
+        u1 = self.log_input[upd]
+        y0 = self.log_filtered[upd]
+        if p.cutoff_hz > 0:
+            # Exact low-pass response to an input ramping from u0 to u1: y1 = e y0 + a u1 + b u0.
+            decay = float(np.exp(-dt_us * 2 * np.pi * p.cutoff_hz * 1e-6))
+            beta = (1 - decay) / (dt_us * 2 * np.pi * p.cutoff_hz * 1e-6)
+            y1 = decay * y0 + (1 - beta) * u1 + (beta - decay) * u0
+        else:
+            y1 = u1
+        c_on = self.c_on[upd]
+        offset = -self.reference[upd]  # D = L_filtered - R + k (t - t_start)
+        if p.leak_rate_hz > 0:
+            k = p.leak_rate_hz * 1e-6 * c_on  # leak drift, ln units per us
+            offset += k * (t0_us - self._t_start_us)
+            d0 = y0 + offset
+            d1 = y1 + offset + k * dt_us
+        else:
+            d0 = y0 + offset
+            d1 = y1 + offset
+        fire = np.flatnonzero((d1 >= c_on) | (d1 <= -self.c_off[upd]))
+        self.log_filtered[upd] = y1
+        self._active = upd[np.abs(y1 - u1) > p.settle_log]
+
+        who = upd[fire]
+        d0_f, d1_f, c_on_f, c_off_f = d0[fire], d1[fire], c_on[fire], self.c_off[who]
+        rising = d1_f > d0_f
+        c = np.where(rising, c_on_f, c_off_f)
+        count = np.floor(np.abs(d1_f) / c)
+        jump = np.where(rising, count, -count) * c
+        self.reference[who] += jump
+        if p.leak_rate_hz > 0:
+            # Next leak event of each updated pixel, if it stays quiet from now on.
+            d1[fire] -= jump
+            nxt = t1_us + (c_on - d1) / k
+            self._next_leak_us[upd] = nxt
+            soon = upd[nxt < self._leak_epoch_end_us]
+            if soon.size:
+                self._leak_candidates = np.concatenate([self._leak_candidates, soon])
+
+        step = np.maximum(np.abs(d1_f - d0_f), 1e-12)
+        first = np.where(rising, c_on_f - d0_f, d0_f + c_off_f)
+        t_first = t0_us + first / step * dt_us
+        spacing = c / step * dt_us
+        count_i = count.astype(np.int64)
+        j0, every = self._refractory_pattern(t_first, spacing, self.last_event_us[who])
+        kept = np.where(j0 < count_i, (count_i - 1 - j0) // every + 1, 0)
+        # Expand to one row per kept event: event i of a pixel is its crossing j0 + i * every.
+        owner = np.repeat(np.arange(who.size), kept)
+        i = np.arange(owner.size) - np.repeat(np.cumsum(kept) - kept, kept)
+        t = t_first[owner] + (j0[owner] + i * every[owner]) * spacing[owner]
+        t_int = np.clip(np.floor(t + 1e-6).astype(np.int64), t0_us, t1_us)
+        has = kept > 0
+        last = t_first[has] + (j0[has] + (kept[has] - 1) * every[has]) * spacing[has]
+        self.last_event_us[who[has]] = np.clip(np.floor(last + 1e-6).astype(np.int64), t0_us, t1_us)
+        return who[owner], rising[owner].astype(np.uint8), t_int
+
+    def _refractory_pattern(self, t_first: Array, spacing: Array, last_us: Index) -> tuple[Index, Index]:
+        """First kept crossing j0 and keep-every-n of evenly spaced crossings under the refractory period."""
+        r = self._refractory_us
+        if r == 0:
+            return np.zeros(t_first.size, dtype=np.int64), np.ones(t_first.size, dtype=np.int64)
+        allowed = (last_us + r).astype(np.float64)
+        j0 = np.maximum(np.ceil((allowed - t_first) / spacing), 0.0)
+        j0 = np.where(t_first + j0 * spacing < allowed, j0 + 1, j0)
+        every = np.maximum(np.ceil(r / spacing), 1.0)
+        every = np.where(every * spacing < r, every + 1, every)
+        return np.minimum(j0, 2**40).astype(np.int64), np.minimum(every, 2**40).astype(np.int64)
+
+    # -- leak of quiet pixels ----------------------------------------------------------------------
+
+    def _quiet_leak(self, t1_us: int) -> tuple[Index, npt.NDArray[np.uint8], Index]:
+        """ON leak events of pixels not updated this step whose next leak time is <= t1_us."""
+        p = self.params
+        empty = (np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64))
+        if p.leak_rate_hz <= 0:
+            return empty
+        if t1_us >= self._leak_epoch_end_us:
+            self._leak_epoch_end_us = float(t1_us + p.leak_epoch_us)
+            self._leak_candidates = np.flatnonzero(self._next_leak_us < self._leak_epoch_end_us)
+        out_pix, out_t = [], []
+        period_us = 1e6 / p.leak_rate_hz
+        cand = self._leak_candidates
+        while True:
+            due = np.unique(cand[self._next_leak_us[cand] <= t1_us])
+            if due.size == 0:
+                break
+            t = self._next_leak_us[due]
+            t_int = np.floor(t + 1e-6).astype(np.int64)
+            ok = t >= self.last_event_us[due] + self._refractory_us
+            self.reference[due] += self.c_on[due]
+            self._next_leak_us[due] = t + period_us
+            self.last_event_us[due[ok]] = t_int[ok]
+            out_pix.append(due[ok])
+            out_t.append(t_int[ok])
+            cand = due
+        if not out_pix:
+            return empty
+        pix = np.concatenate(out_pix)
+        return pix, np.ones(pix.size, dtype=np.uint8), np.concatenate(out_t)
+
+    # -- shot noise --------------------------------------------------------------------------------
+
+    def _sample_shot_noise(self, t0_us: int, t1_us: int) -> tuple[Index, npt.NDArray[np.uint8], Index, Index]:
+        """Shot-noise events (pixel, polarity, t) and their pixels' last event time at the step's start."""
+        rate = self.params.shot_noise_rate_hz
+        n = int(self.rng.poisson(self.size * rate * (t1_us - t0_us) * 1e-6)) if rate > 0 else 0
+        pix = self.rng.integers(0, self.size, n)
+        pol = self.rng.integers(0, 2, n).astype(np.uint8)
+        t = t0_us + np.floor(self.rng.random(n) * (t1_us - t0_us)).astype(np.int64)
+        return pix, pol, t, self.last_event_us[pix].copy()
+
+    def _merge_noise(
+        self, pix: Index, pol: npt.NDArray[np.uint8], t: Index, noise: tuple[Index, npt.NDArray[np.uint8], Index, Index]
+    ) -> tuple[Index, npt.NDArray[np.uint8], Index]:
+        """Add the shot-noise events that keep clear of every other event of their pixel by the refractory period."""
+        n_pix, n_pol, n_t, n_last = noise
+        if n_pix.size == 0:
+            return pix, pol, t
+        r = self._refractory_us
+        if r > 0:
+            keep = n_t >= n_last + r
+            # Clear of this step's other events (signal, leak, other noise) of the same pixel.
+            mark = self._scratch
+            mark[pix] = 0
+            mark[n_pix] = -1
+            near = mark[pix] == -1
+            all_pix = np.concatenate([pix[near], n_pix])
+            all_t = np.concatenate([t[near], n_t])
+            is_noise = np.concatenate([np.zeros(int(near.sum()), bool), np.ones(n_pix.size, bool)])
+            order = np.lexsort((all_t, all_pix))
+            sp, st = all_pix[order], all_t[order]
+            gap_prev = np.full(sp.size, np.iinfo(np.int64).max)
+            gap_next = gap_prev.copy()
+            same = sp[1:] == sp[:-1]
+            gap_prev[1:][same] = (st[1:] - st[:-1])[same]
+            gap_next[:-1][same] = (st[1:] - st[:-1])[same]
+            clear = np.empty(sp.size, bool)
+            clear[order] = (gap_prev >= r) & (gap_next >= r)
+            keep &= clear[is_noise]
+            n_pix, n_pol, n_t = n_pix[keep], n_pol[keep], n_t[keep]
+            np.maximum.at(self.last_event_us, n_pix, n_t)
+        return np.concatenate([pix, n_pix]), np.concatenate([pol, n_pol]), np.concatenate([t, n_t])

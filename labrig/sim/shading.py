@@ -1,0 +1,110 @@
+"""Slope shading of the membrane under the LED ring, from a depth field on a gel-frame grid.
+
+Model: the LED ring lights the membrane at grazing angles all round, so a
+tilted patch of membrane scatters more light towards the camera whatever the
+tilt's direction. The relative brightness is ``S = 1 + slope_gain * |grad d|``
+with ``d`` the depth field (mm, either sign: only the slope magnitude counts)
+and ``|grad d|`` the surface slope (mm/mm, dimensionless). Flat membrane has S = 1.
+
+Small-displacement approximation: the membrane point seen by a pixel is taken
+where the pixel's ray meets the undeformed surface z = 0 (the rest
+back-projection), not where it meets the deformed surface; the error is the
+lateral surface displacement (below ~1 mm), small against the width of a
+contact's slope field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class DepthField:
+    """Surface depth ``depth_mm[iy, ix]`` (mm) on the regular gel-frame grid ``x_mm`` (nx,), ``y_mm`` (ny,)."""
+
+    x_mm: Array
+    y_mm: Array
+    depth_mm: Array
+
+    def __post_init__(self) -> None:
+        if self.depth_mm.shape != (len(self.y_mm), len(self.x_mm)) or len(self.x_mm) < 2 or len(self.y_mm) < 2:
+            raise ValueError(f"depth_mm must be (ny, nx) = ({len(self.y_mm)}, {len(self.x_mm)}) with nx, ny >= 2")
+
+    @cached_property
+    def slope(self) -> Array:
+        """Surface slope magnitude |grad depth| (dimensionless) at the grid nodes, (ny, nx)."""
+        d = np.asarray(self.depth_mm, dtype=np.float64)
+        gy, gx = np.gradient(d, np.asarray(self.y_mm, float), np.asarray(self.x_mm, float))
+        return np.hypot(gx, gy)
+
+    def slope_bbox_mm(self, tol: float) -> tuple[float, float, float, float] | None:
+        """(x0, x1, y0, y1) gel-frame box (mm) holding every node with slope > tol, grown by one node; None if flat."""
+        rows, cols = np.nonzero(self.slope > tol)
+        if rows.size == 0:
+            return None
+        nx, ny = len(self.x_mm), len(self.y_mm)
+        i0, i1 = max(int(cols.min()) - 1, 0), min(int(cols.max()) + 1, nx - 1)
+        j0, j1 = max(int(rows.min()) - 1, 0), min(int(rows.max()) + 1, ny - 1)
+        return float(self.x_mm[i0]), float(self.x_mm[i1]), float(self.y_mm[j0]), float(self.y_mm[j1])
+
+    def grid_key(self) -> tuple[float, float, int, float, float, int]:
+        """The grid's geometry (x0, x1, nx, y0, y1, ny): fields with equal keys share a :class:`GridLookup`."""
+        x, y = self.x_mm, self.y_mm
+        return float(x[0]), float(x[-1]), len(x), float(y[0]), float(y[-1]), len(y)
+
+    def sample_slope(self, xy_mm: npt.ArrayLike) -> Array:
+        """Bilinearly interpolated slope at gel points (N, 2) mm; 0 outside the grid."""
+        return GridLookup.build(self.grid_key(), xy_mm).sample(self.slope, slice(None))
+
+
+@dataclass(frozen=True, eq=False)
+class GridLookup:
+    """Bilinear interpolation weights of fixed query points on a regular grid, reusable across fields.
+
+    ``base`` is the flat index of each point's lower-left node (-1: outside the grid);
+    ``tx``, ``ty`` its fractional offsets in grid cells.
+    """
+
+    base: npt.NDArray[np.int64]
+    tx: Array
+    ty: Array
+    nx: int
+
+    @classmethod
+    def build(cls, grid_key: tuple[float, float, int, float, float, int], xy_mm: npt.ArrayLike) -> GridLookup:
+        """Weights for points (N, 2) mm on the grid described by :meth:`DepthField.grid_key`."""
+        x0, x1, nx, y0, y1, ny = grid_key
+        xy = np.asarray(xy_mm, dtype=np.float64)
+        fx = (xy[:, 0] - x0) / (x1 - x0) * (nx - 1)
+        fy = (xy[:, 1] - y0) / (y1 - y0) * (ny - 1)
+        inside = (fx >= 0) & (fx <= nx - 1) & (fy >= 0) & (fy <= ny - 1)
+        ix = np.clip(np.floor(fx).astype(np.int64), 0, nx - 2)
+        iy = np.clip(np.floor(fy).astype(np.int64), 0, ny - 2)
+        base = np.where(inside, iy * nx + ix, -1)
+        return cls(base, np.clip(fx - ix, 0.0, 1.0), np.clip(fy - iy, 0.0, 1.0), nx)
+
+    def reshape(self, *shape: int) -> GridLookup:
+        """The same lookup with its points arranged in ``shape`` (e.g. an image), for slicing."""
+        return GridLookup(self.base.reshape(shape), self.tx.reshape(shape), self.ty.reshape(shape), self.nx)
+
+    def sample(self, grid_values: Array, points: npt.NDArray[np.int64] | slice | tuple[slice, ...]) -> Array:
+        """Interpolate ``grid_values`` (ny, nx) at the points selected by ``points`` (any numpy index); 0 outside."""
+        base = self.base[points]
+        inside = base >= 0
+        b = np.where(inside, base, 0)
+        tx, ty = self.tx[points], self.ty[points]
+        v = grid_values.ravel()
+        low = v[b] + (v[b + 1] - v[b]) * tx
+        high = v[b + self.nx] + (v[b + self.nx + 1] - v[b + self.nx]) * tx
+        return np.where(inside, low + (high - low) * ty, 0.0)
+
+
+def slope_shading(slope: npt.ArrayLike, slope_gain: float) -> Array:
+    """Relative membrane brightness ``1 + slope_gain * slope`` (dimensionless)."""
+    return 1.0 + slope_gain * np.asarray(slope, dtype=np.float64)
