@@ -28,7 +28,21 @@ RAW_EVENT_BYTES = 13
 #: Default cap on camera events put but not yet written: 4 event chunks (~13 ms at 10 Mev/s).
 MAX_IN_FLIGHT_EVENTS = 4 << 15
 
+#: Side producers (F/T, CNC) may run this far ahead of the camera replay, in data time (us).
+SIDE_LEAD_US = 10_000
+
 Packet = tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16], npt.NDArray[np.uint8], npt.NDArray[np.int64], int]
+
+
+class DataClock:
+    """Host data time (us) the camera replay has reached; the other producers follow it."""
+
+    def __init__(self) -> None:
+        self.us = float("-inf")
+
+    def wait_until(self, t_us: float) -> None:
+        while t_us > self.us + SIDE_LEAD_US:
+            time.sleep(0.001)
 
 
 @dataclass(frozen=True)
@@ -50,15 +64,17 @@ class PacketPool:
         return per_pool * self.n_events + sum(len(p[0]) for p in self.packets[:rest])
 
     def n_packets(self, duration_s: float) -> int:
-        return int(round(duration_s * 1e6 / self.run.packet_us))
+        return round(duration_s * 1e6) // int(self.run.packet_us)
 
-    def replay(self, writer: RecordingWriter, duration_s: float, max_in_flight: int = 0) -> None:
+    def replay(self, writer: RecordingWriter, duration_s: float, max_in_flight: int = 0, clock: DataClock | None = None) -> None:
         """Put ``duration_s`` of packets into ``writer``, shifting device and host times per lap.
 
         ``max_in_flight`` > 0: wait while more events than that are put but not yet written,
         so the writer sees live-sized batches instead of the whole run at once.
+        ``clock`` is advanced to each packet's host time, for the other producers.
         """
-        pool_us = int(round(self.duration_s * 1e6))
+        clock = clock or DataClock()
+        pool_us = round(self.duration_s * 1e6)
         rate = 1 + self.run.camera_clock.drift_ppm * 1e-6
         n = len(self.packets)
         put = 0
@@ -67,8 +83,10 @@ class PacketPool:
             x, y, p, t_dev, t_host = self.packets[j]
             while max_in_flight and put - writer.stats["events"].rows_written > max_in_flight:
                 time.sleep(0.0005)
-            writer.put_events(x, y, p, t_dev + int(round(lap * pool_us * rate)), t_host + lap * pool_us)
+            writer.put_events(x, y, p, t_dev + round(lap * pool_us * rate), t_host + lap * pool_us)
             put += len(x)
+            clock.us = t_host + lap * pool_us
+        clock.us = float("inf")
 
 
 def make_pool(mean_rate_hz: float, pool_s: float = 1.0, seed: int = 0) -> PacketPool:
@@ -90,7 +108,11 @@ def record(
     queue_batches: int = 4096,
     max_in_flight: int = MAX_IN_FLIGHT_EVENTS,
 ) -> tuple[RecordingResult, float]:
-    """Record ``duration_s`` (camera replay + F/T + CNC producer threads); (result, wall s open->close)."""
+    """Record ``duration_s`` (camera replay + F/T + CNC producer threads); (result, wall s open->close).
+
+    F/T and CNC producers keep pace with the camera replay's data time (at most
+    SIDE_LEAD_US ahead), so all streams arrive interleaved as in a live run.
+    """
     side = SyntheticRun(duration_s=duration_s, seed=pool.run.seed)
     ft = list(side.ft_batches())
     cnc = list(side.cnc_samples())
@@ -99,12 +121,13 @@ def record(
         kwargs["bulk_codec"] = bulk_codec
     metadata = RecordingMetadata(indenter="sphere", extra={"benchmark": True})
 
+    clock = DataClock()
     t_start = time.perf_counter()
     writer = RecordingWriter(path, metadata, **kwargs).open()
     threads = [
-        threading.Thread(target=pool.replay, args=(writer, duration_s, max_in_flight), name="bench-camera"),
-        threading.Thread(target=_put_all, args=(writer, "ft", ft), name="bench-ft"),
-        threading.Thread(target=_put_all, args=(writer, "cnc", cnc), name="bench-cnc"),
+        threading.Thread(target=pool.replay, args=(writer, duration_s, max_in_flight, clock), name="bench-camera"),
+        threading.Thread(target=_put_all, args=(writer, clock, "ft", ft), name="bench-ft"),
+        threading.Thread(target=_put_all, args=(writer, clock, "cnc", cnc), name="bench-cnc"),
     ]
     for thread in threads:
         thread.start()
@@ -114,8 +137,10 @@ def record(
     return result, time.perf_counter() - t_start
 
 
-def _put_all(writer: RecordingWriter, stream: str, items: list[dict[str, Any]]) -> None:
+def _put_all(writer: RecordingWriter, clock: DataClock, stream: str, items: list[dict[str, Any]]) -> None:
+    """Put items in data time alongside the camera replay (not all at once)."""
     for item in items:
+        clock.wait_until(float(np.max(item["t_host_us"])))
         writer.put(stream, **item)
 
 

@@ -149,7 +149,10 @@ def main(argv: list[str] | None = None) -> None:
     args = vars(parse_args(argv))
     as_json = args.pop("json")
     figures = run(**args, progress=not as_json)
-    print_json(figures) if as_json else render(figures)
+    if as_json:
+        print_json(figures)
+    else:
+        render(figures)
 
 
 if __name__ == "__main__":

@@ -146,7 +146,10 @@ def main(argv: list[str] | None = None) -> None:
     t = time.perf_counter()
     figures = run(**args)
     figures["bench_wall_s"] = time.perf_counter() - t
-    print_json(figures) if as_json else render(figures)
+    if as_json:
+        print_json(figures)
+    else:
+        render(figures)
 
 
 if __name__ == "__main__":
