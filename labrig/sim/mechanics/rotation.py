@@ -1,0 +1,69 @@
+"""Rotating tangential fields of axisymmetric contacts about the tip.
+
+For an axisymmetric indenter the solution for a shift along angle phi is the
+solution along x rotated: q_phi(x) = R(phi) q_0(R(-phi) x). Fields live on a
+square box centred on the tip (odd size). Multiples of 90 degrees are exact
+array rotations; other angles resample bilinearly (tables resample the
+friction utilisation q / (mu p), see ``tables._rotate``).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.floating]
+
+
+def rotate_vector_field(field: Array, angle_rad: float, valid: npt.NDArray[np.bool_] | None = None) -> Array:
+    """(2, n, n) vector field on a tip-centred square box, rotated by ``angle_rad`` (counter-clockwise).
+
+    With ``valid`` (n, n), the bilinear weights are renormalised over valid
+    source cells (a normalised convolution), so values next to the edge of the
+    valid region are not diluted by the invalid cells beyond it.
+    """
+    _, ny, nx = field.shape
+    if ny != nx or ny % 2 == 0:
+        raise ValueError("rotation needs a square, odd-sized box centred on the tip")
+    quarter = angle_rad / (np.pi / 2)
+    turns = round(quarter)
+    if abs(quarter - turns) < 1e-9:
+        return _rotate_quarter(field, turns % 4)
+    index, weight = _sampler(ny, round(angle_rad, 12))
+    if valid is not None:
+        masked = weight * valid.ravel()[index]
+        total = masked.sum(axis=0)
+        weight = (masked / np.where(total > 0, total, 1)).astype(np.float32)
+    flat = field.reshape(2, -1)
+    sampled = np.einsum("kn,ckn->cn", weight, flat[:, index]).reshape(field.shape)
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.stack([c * sampled[0] - s * sampled[1], s * sampled[0] + c * sampled[1]]).astype(field.dtype)
+
+
+def _rotate_quarter(field: Array, turns: int) -> Array:
+    # rows are +y and columns +x, so a counter-clockwise turn is np.rot90's clockwise one
+    out = np.rot90(field, k=-turns, axes=(1, 2))
+    vx, vy = out[0], out[1]
+    for _ in range(turns):
+        vx, vy = -vy, vx
+    return np.ascontiguousarray(np.stack([vx, vy]))
+
+
+@lru_cache(maxsize=16)
+def _sampler(n: int, angle_rad: float) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.float32]]:
+    """Bilinear gather (4, n*n) indices and weights: value at x from the unrotated field at R(-angle) x."""
+    half = n // 2
+    j, i = np.meshgrid(np.arange(n) - half, np.arange(n) - half)
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    src_x, src_y = c * j + s * i + half, -s * j + c * i + half
+    x0, y0 = np.floor(src_x).astype(int), np.floor(src_y).astype(int)
+    fx, fy = src_x - x0, src_y - y0
+    index, weight = [], []
+    for dy, dx, w in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy), (1, 1, fx * fy)):
+        yy, xx = y0 + dy, x0 + dx
+        valid = (yy >= 0) & (yy < n) & (xx >= 0) & (xx < n)
+        index.append(np.where(valid, yy * n + xx, 0).ravel())
+        weight.append(np.where(valid, w, 0.0).ravel())
+    return np.array(index), np.array(weight, dtype=np.float32)

@@ -1,0 +1,381 @@
+"""Precomputed contact tables for real-time use, cached on disk.
+
+One :class:`ContactTable` holds, for one indenter, gel, mode and grid:
+
+* normal solutions over the indentation depth (0 to the indenter's
+  ``max_depth_mm`` in ``depth_step_mm`` steps): the surface ``depth_mm`` field
+  (uz, into the gel, whole grid) and the pressure (on a box around the contact);
+* monotonic tangential solutions at every ``shear_depth_stride``-th depth
+  (default: every depth), over the shift along one direction. The shift is
+  normalised per depth by the gross-slip shift s_gs (the shift at which the
+  last stick point vanishes under the full-slip traction mu p). The fractions
+  s / s_gs are spaced so that Mindlin's Q / (mu P) = 1 - (1 - s / s_gs)^(3/2)
+  steps uniformly (k / K), and lookups interpolate linearly in that
+  coordinate: a Hertzian contact's force is linear in it and other shapes are
+  close (linear steps in s would make the initial stiffness a secant, ~5 %
+  low). Beyond s_gs the traction is taken as mu p along the shift (the solver
+  gives |Q| 0.1-0.3 % below mu P there: the local slip directions fan out
+  slightly), the gel surface stays put and only the rigid slip grows, so
+  nothing more is stored.
+
+Lookups (:meth:`ContactTable.fields`, ~1-3 ms at 0.1 mm) interpolate
+linearly in depth and in that shift coordinate, superpose monotonic terms
+for a shear history (Masing, see :mod:`history`), clip the traction to mu p,
+rotate it for axisymmetric indenters (forces rotate exactly), and get the
+in-plane surface displacement by one FFT convolution of the traction with the
+stored tangential kernel window (so it is consistent with the returned
+traction). Stiffening (:mod:`stiffening`) is applied at lookup: it is not
+part of the cached data. Interpolating between depths blurs the contact edge
+by the edge's motion over one depth step (fields there are a blend of two
+contact sizes); forces match direct solves to < 1 %.
+
+The grid is local: centred on the indenter tip, aligned with the gel axes
+(no indenter yaw), ``size_mm`` wide; the gel is treated as laterally infinite
+(its edges are not modelled). Fields are float32; forces are from float64
+sums. Tables are cached as ``.npz`` files under ``$LABRIG_CACHE`` (default
+``~/.cache/labrig``)/contact_tables, keyed by a hash of every input and
+:data:`TABLE_VERSION`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import GelConfig, RigConfig
+from labrig.indenters import Indenter
+from labrig.sim.mechanics.convolution import SurfaceConvolver
+from labrig.sim.mechanics.grid import Grid
+from labrig.sim.mechanics.history import ShearHistory
+from labrig.sim.mechanics.influence import check_mode
+from labrig.sim.mechanics.kernels import Box
+from labrig.sim.mechanics.rotation import rotate_vector_field
+from labrig.sim.mechanics.stiffening import stiffening_factor
+from labrig.sim.mechanics.table_build import compute_table, to_mindlin
+from labrig.sim.mechanics.tangential import STICK_MARGIN
+
+#: Bump when the numerics or the file layout change: old cache files are then ignored.
+TABLE_VERSION = 1
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ContactFields:
+    """Contact state at one (depth, shift), on the table's grid (float32 fields).
+
+    Gel frame directions; x_mm, y_mm are the cell-centre axes relative to the
+    indenter tip. ``depth_mm`` is uz (positive into the gel, negative where the
+    surface bulges out); ``ux_mm``, ``uy_mm`` the in-plane surface
+    displacement; ``traction_mpa`` (2, ny, nx) and ``force_n`` = (Fx, Fy, Fz)
+    are what the indenter applies to the gel (Fz > 0 pressing).
+    """
+
+    x_mm: F64
+    y_mm: F64
+    depth_mm: F32
+    ux_mm: F32
+    uy_mm: F32
+    pressure_mpa: F32
+    traction_mpa: F32
+    contact_mask: npt.NDArray[np.bool_]
+    stick_mask: npt.NDArray[np.bool_]
+    force_n: F64
+
+
+class ContactTable:
+    """Tabulated normal and tangential contact of one indenter; build with :meth:`build`."""
+
+    def __init__(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], stiffening: float = 0.0) -> None:
+        self.meta = meta
+        self.stiffening = float(stiffening)
+        self.depths_mm: F64 = arrays["depths_mm"]
+        self.depth_fields: F32 = arrays["depth_fields"]  # (nd, ny, nx)
+        self.pressure: F32 = arrays["pressure"]  # (nd, by, bx) on self.box
+        self.normal_force_n: F64 = arrays["normal_force_n"]  # (nd,)
+        self.shear_rows: npt.NDArray[np.int64] = arrays["shear_rows"]  # (nt,) indices into depths_mm
+        self.slip_shift_mm: F64 = arrays["slip_shift_mm"]  # (nt,) gross-slip shift per shear depth
+        self.fractions: F64 = arrays["fractions"]  # (nk,) shift / slip shift
+        self.traction: F32 = arrays["traction"]  # (nt, nk, 2, by, bx) along the table direction
+        self.shear_force_n: F64 = arrays["shear_force_n"]  # (nt, nk, 2)
+        self.window: F64 = arrays["window"]  # tangential coefficients, box -> whole grid
+        self.grid = Grid(meta["spacing_mm"], *meta["grid_shape"])
+        self.box = Box(*meta["box"])
+        self.shear_depths_mm = self.depths_mm[self.shear_rows]
+        self._mindlin = to_mindlin(self.fractions)
+        angle = np.deg2rad(meta["direction_deg"])
+        self.direction = np.array([np.cos(angle), np.sin(angle)])
+        self._convolver: SurfaceConvolver | None = None
+
+    # ------------------------------------------------------------------ building
+
+    @classmethod
+    def build(
+        cls,
+        indenter: Indenter,
+        gel: GelConfig,
+        *,
+        mode: str = "layer",
+        spacing_mm: float = 0.1,
+        size_mm: float = 24.0,
+        direction_deg: float = 0.0,
+        depth_step_mm: float = 0.05,
+        max_depth_mm: float | None = None,
+        shear_depth_stride: int = 1,
+        shear_steps: int = 10,
+        stiffening: float = 0.0,
+        cache_dir: str | Path | None = None,
+        use_cache: bool = True,
+    ) -> ContactTable:
+        """The table for ``indenter`` on ``gel``: from the disk cache, or computed and cached.
+
+        ``direction_deg`` is the shear direction in the gel frame (ignored for
+        axisymmetric indenters, whose tables are rotated at lookup).
+        ``stiffening`` is applied at lookup and is not part of the cache key.
+        """
+        check_mode(mode)
+        max_depth = indenter.max_depth_mm if max_depth_mm is None else float(max_depth_mm)
+        spec = {
+            "version": TABLE_VERSION,
+            "indenter": _indenter_spec(indenter),
+            "gel": {k: getattr(gel, k) for k in ("thickness_mm", "youngs_modulus_mpa", "poisson_ratio", "friction")},
+            "mode": mode,
+            "spacing_mm": float(spacing_mm),
+            "grid_shape": list(Grid.centred(size_mm, spacing_mm).shape),
+            "direction_deg": 0.0 if indenter.axisymmetric else float(direction_deg) % 360.0,
+            "depth_step_mm": float(depth_step_mm),
+            "max_depth_mm": max_depth,
+            "shear_depth_stride": int(shear_depth_stride),
+            "shear_steps": int(shear_steps),
+        }
+        key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:20]
+        path = table_cache_dir(cache_dir) / f"{indenter.name}-{mode}-{key}.npz"
+        if use_cache and path.exists():
+            try:
+                return cls.load(path, stiffening=stiffening)
+            except (OSError, ValueError, KeyError):
+                pass  # a damaged cache file: rebuild it
+        start = time.perf_counter()
+        meta, arrays = compute_table(indenter, gel, spec)
+        meta.update(spec=spec, key=key, build_seconds=time.perf_counter() - start)
+        table = cls(meta, arrays, stiffening)
+        if use_cache:
+            table.save(path)
+        return table
+
+    @classmethod
+    def from_rig(cls, indenter: Indenter, rig: RigConfig, **options: Any) -> ContactTable:
+        """:meth:`build` with the gel, mode, grid spacing and stiffening of a rig configuration."""
+        mechanics = rig.sim.mechanics
+        options.setdefault("mode", mechanics.mode)
+        options.setdefault("spacing_mm", mechanics.grid_spacing_mm)
+        options.setdefault("stiffening", mechanics.stiffening)
+        return cls.build(indenter, rig.gel, **options)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the table as an uncompressed ``.npz`` (atomically)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        arrays = {name: getattr(self, name) for name in _ARRAYS}
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=np.array(json.dumps(self.meta)), **arrays)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, stiffening: float = 0.0) -> ContactTable:
+        with np.load(path) as data:
+            meta = json.loads(str(data["meta"]))
+            if meta.get("spec", {}).get("version") != TABLE_VERSION:
+                raise ValueError(f"{path}: table version {meta.get('spec', {}).get('version')} != {TABLE_VERSION}")
+            arrays = {name: data[name] for name in _ARRAYS}
+        return cls(meta, arrays, stiffening)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(getattr(self, name).nbytes for name in _ARRAYS)
+
+    # ------------------------------------------------------------------ lookups
+
+    @property
+    def axisymmetric(self) -> bool:
+        return bool(self.meta["spec"]["indenter"]["axisymmetric"])
+
+    @property
+    def friction(self) -> float:
+        return float(self.meta["spec"]["gel"]["friction"])
+
+    def fields(
+        self, depth_mm: float, shift_mm: float | npt.ArrayLike = 0.0, history: ShearHistory | None = None
+    ) -> ContactFields:
+        """Contact state at indentation ``depth_mm`` and indenter shift ``shift_mm``.
+
+        ``shift_mm``: a scalar along the table direction (negative = opposite),
+        or a gel-frame 2-vector (any direction for axisymmetric indenters, else
+        parallel to the table direction). With ``history`` the shift path is
+        tracked (feed every step in order) and Masing superposition applies;
+        without it the loading is monotonic from zero. Depths <= 0 give an
+        unloaded gel; depths beyond the table raise ValueError.
+        """
+        depth = float(depth_mm)
+        if depth > self.depths_mm[-1] + 1e-9:
+            raise ValueError(f"depth {depth:.3f} mm is beyond this table's {self.depths_mm[-1]:.3f} mm")
+        along, angle = self._resolve_shift(shift_mm, history)
+        terms = history.advance(along) if history is not None else ((1.0, along),)
+        row, weight = _bracket(self.depths_mm, depth)
+        depth_field = _lerp(self.depth_fields, row, weight)
+        pressure = _lerp(self.pressure, row, weight)
+        bound = (self.friction * pressure).astype(np.float32)
+        traction = np.zeros((2, *self.box.shape), dtype=np.float32)
+        if depth > 0:
+            for w, s in terms:
+                if s != 0 and w != 0:
+                    traction += np.float32(w) * self._monotonic_traction(depth, s)
+            traction = _clip(traction, bound)
+        area = self.grid.cell_area_mm2
+        shear_force = traction.sum(axis=(1, 2), dtype=np.float64) * area
+        if angle:
+            traction, shear_force = _rotate(traction, bound, angle, shear_force, area)
+        u = self._tangential_convolver()(traction)
+        factor = stiffening_factor(depth, self.meta["spec"]["gel"]["thickness_mm"], self.stiffening)
+        magnitude = np.hypot(traction[0], traction[1])
+        in_contact = pressure > 0
+        force = np.array([*shear_force, _lerp(self.normal_force_n, row, weight)])
+        return ContactFields(
+            x_mm=self.grid.x_mm,
+            y_mm=self.grid.y_mm,
+            depth_mm=depth_field,
+            ux_mm=u[0],
+            uy_mm=u[1],
+            pressure_mpa=self._on_grid(pressure * np.float32(factor)),
+            traction_mpa=self._on_grid(traction * np.float32(factor)),
+            contact_mask=self._on_grid(in_contact),
+            stick_mask=self._on_grid(in_contact & (magnitude < (1 - STICK_MARGIN) * bound)),
+            force_n=force * factor,
+        )
+
+    def _monotonic_traction(self, depth: float, shift: float) -> F32:
+        """Monotonic traction (box, float32) at ``depth`` for a signed shift along the table direction."""
+        j, v = _bracket(self.shear_depths_mm, depth)
+        out = np.zeros((2, *self.box.shape), dtype=np.float32)
+        for row, w in ((j, 1 - v), (j + 1, v)):
+            if w == 0 or row >= len(self.shear_rows) or self.slip_shift_mm[row] <= 0:
+                continue
+            k, f = _bracket(self._mindlin, float(to_mindlin(min(abs(shift) / self.slip_shift_mm[row], 1.0))))
+            out += np.float32(w * np.sign(shift)) * _lerp(self.traction[row], k, f)
+        return out
+
+    def _resolve_shift(self, shift_mm: float | npt.ArrayLike, history: ShearHistory | None) -> tuple[float, float]:
+        """(signed shift along the table direction, rotation angle in rad) for a scalar or vector shift."""
+        shift = np.asarray(shift_mm, dtype=np.float64)
+        if shift.ndim == 0:
+            return float(shift), 0.0
+        shift = shift.reshape(2)
+        size = float(np.hypot(*shift))
+        if history is not None:
+            if history.axis is None and size > 0:
+                history.axis = (shift[0] / size, shift[1] / size)
+            axis = np.array(history.axis) if history.axis is not None else self.direction
+            along = float(shift @ axis)
+            if np.hypot(*(shift - along * axis)) > 1e-9 + 1e-6 * size:
+                raise ValueError("a shear history needs shifts along one axis (the first non-zero shift's)")
+        elif size == 0:
+            return 0.0, 0.0
+        else:
+            axis, along = shift / size, size
+        turn = float(np.arctan2(axis[1], axis[0]) - np.arctan2(self.direction[1], self.direction[0]))
+        turn = (turn + np.pi) % (2 * np.pi) - np.pi
+        if abs(turn) > np.pi / 2 + 1e-12:  # opposite half-plane: F is odd in the shift
+            turn -= np.copysign(np.pi, turn)
+            along = -along
+        if abs(turn) > 1e-9 and not self.axisymmetric:
+            raise ValueError(
+                f"this table shears along {self.meta['direction_deg']:.1f} deg; build one for this direction"
+            )
+        return along, (turn if abs(turn) > 1e-9 else 0.0)
+
+    def _tangential_convolver(self) -> SurfaceConvolver:
+        if self._convolver is None:
+            self._convolver = SurfaceConvolver(self.window, self.box.shape, self.grid.shape, dtype=np.float32)
+        return self._convolver
+
+    def _on_grid(self, box_field: np.ndarray) -> np.ndarray:
+        out = np.zeros((*box_field.shape[:-2], *self.grid.shape), dtype=box_field.dtype)
+        out[(..., *self.box.slices)] = box_field
+        return out
+
+
+#: The arrays a table file holds (attribute names of ContactTable).
+_ARRAYS = (
+    "depths_mm", "depth_fields", "pressure", "normal_force_n", "shear_rows",
+    "slip_shift_mm", "fractions", "traction", "shear_force_n", "window",
+)
+
+
+def table_cache_dir(cache_dir: str | Path | None = None) -> Path:
+    """Where tables are cached: ``cache_dir``, else $LABRIG_CACHE, else ~/.cache/labrig; plus /contact_tables."""
+    root = cache_dir or os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
+    return Path(root) / "contact_tables"
+
+
+def _indenter_spec(indenter: Indenter) -> dict[str, Any]:
+    spec: dict[str, Any] = {"kind": indenter.kind, "axisymmetric": indenter.axisymmetric}
+    spec.update({k: v for k, v in indenter.geometry.items() if k != "file"})
+    if indenter._heightmap is not None:
+        spec["heightmap_sha256"] = hashlib.sha256(np.ascontiguousarray(indenter._heightmap).tobytes()).hexdigest()
+    return spec
+
+
+def _rotate(traction: F32, bound: F32, angle: float, force_n: F64, area: float) -> tuple[F32, F64]:
+    """Rotate an axisymmetric contact's traction by ``angle``: (field, force).
+
+    The force rotates exactly. The field is resampled as the utilisation
+    q / (mu p) (bounded by 1, constant in slip zones) over the contact, times
+    mu p, then scaled to the exact force magnitude and clipped to mu p again
+    (the field's sum then misses the force by the clipped part, < 0.1 %).
+    """
+    in_contact = bound > 0
+    utilisation = traction / np.where(in_contact, bound, 1)
+    rotated = rotate_vector_field(utilisation, angle, valid=in_contact) * bound
+    size = float(np.hypot(*rotated.sum(axis=(1, 2), dtype=np.float64))) * area
+    if size > 0:
+        rotated = _clip(rotated * np.float32(np.hypot(*force_n) / size), bound)
+    c, s = np.cos(angle), np.sin(angle)
+    return rotated, np.array([c * force_n[0] - s * force_n[1], s * force_n[0] + c * force_n[1]])
+
+
+def _bracket(axis: npt.NDArray[np.floating], value: float) -> tuple[int, float]:
+    """(i, w) with value = (1 - w) axis[i] + w axis[i + 1], clamped to the axis."""
+    if value <= axis[0]:
+        return 0, 0.0
+    if value >= axis[-1]:
+        return len(axis) - 1, 0.0
+    i = int(np.searchsorted(axis, value, side="right")) - 1
+    return i, float((value - axis[i]) / (axis[i + 1] - axis[i]))
+
+
+def _lerp(stack: np.ndarray, i: int, w: float) -> np.ndarray:
+    if w == 0.0:
+        return stack[i].copy()
+    a = stack.dtype.type
+    return stack[i] * a(1 - w) + stack[i + 1] * a(w)
+
+
+def _clip(traction: F32, bound: F32) -> F32:
+    """Scale each traction vector into its Coulomb disc |q| <= bound."""
+    magnitude = np.hypot(traction[0], traction[1])
+    over = magnitude > bound
+    if not over.any():
+        return traction
+    scale = np.where(over, bound / np.where(over, magnitude, 1), 1).astype(traction.dtype)
+    return traction * scale
