@@ -14,7 +14,7 @@ from typing import Any, Literal
 import hdf5plugin
 
 #: The codec for bulk streams (camera events), chosen by tools/bench/bench_writer.py.
-DEFAULT_BULK_CODEC = "blosc2-lz4"
+DEFAULT_BULK_CODEC = "bitshuffle-lz4"
 #: The codec for every other stream: small, and readable by any HDF5 reader.
 PORTABLE_CODEC = "gzip"
 

@@ -46,6 +46,9 @@ from labrig.recording.layout import create_layout, partial_path, stream_group
 
 Columns = dict[str, npt.NDArray[Any]]
 
+#: Chunks of a bulk stream gathered before writing them (at 10 Mev/s: ~26 ms).
+BULK_WRITE_CHUNKS = 8
+
 #: Files whose close failed after a write failure. HDF5 cannot shut down
 #: cleanly with such a file open (it crashes at interpreter exit), so they are
 #: kept referenced and :func:`exit_process` skips HDF5's shutdown.
@@ -208,6 +211,12 @@ class RecordingWriter:
         self._event_index = _EventIndex(schema.EVENT_INDEX_BIN_US)
         self._closed = False
         self.result: RecordingResult | None = None
+        self._datasets: dict[str, dict[str, h5py.Dataset]] = {}
+        self._pending: dict[str, list[Columns]] = {name: [] for name in self.specs}
+        self._pending_rows = dict.fromkeys(self.specs, 0)
+        #: Rows gathered before a write: several chunks for bulk streams, so the
+        #: fixed cost of a write is paid rarely (writes still happen at every flush).
+        self._write_rows = {name: s.chunk_rows * (BULK_WRITE_CHUNKS if s.bulk else 1) for name, s in self.specs.items()}
 
     # -- lifecycle ---------------------------------------------------------
 
@@ -225,6 +234,10 @@ class RecordingWriter:
         except OSError as exc:
             raise RecordingError(f"cannot create {self.partial}: {exc}") from None
         create_layout(self._file, self.specs.values(), self._root_attrs(), self.metadata.calibration, self.bulk_codec)
+        self._datasets = {
+            name: {key: ds for key, ds in stream_group(self._file, name).items() if isinstance(ds, h5py.Dataset)}
+            for name in self.specs
+        }
         self._file.swmr_mode = True
         self._thread = threading.Thread(target=self._run, name=f"labrig-writer:{self.path.name}", daemon=True)
         self._thread.start()
@@ -358,8 +371,6 @@ class RecordingWriter:
     # -- writer thread -----------------------------------------------------
 
     def _run(self) -> None:
-        pending: dict[str, list[Columns]] = {name: [] for name in self.specs}
-        pending_rows = dict.fromkeys(self.specs, 0)
         next_flush = time.monotonic() + self.flush_interval_s
         try:
             while True:
@@ -367,22 +378,18 @@ class RecordingWriter:
                 self._wake.wait(timeout=max(0.0, min(0.05, next_flush - time.monotonic())))
                 self._wake.clear()
                 for name, q in self._queues.items():
-                    while True:
+                    # Take only what is queued now (round robin, so a busy camera
+                    # cannot starve the F/T stream); pending is written as it
+                    # reaches a write's worth, so memory stays bounded.
+                    for _ in range(q.qsize()):
                         try:
                             batch = q.get_nowait()
                         except queue.Empty:
                             break
-                        pending[name].append(batch)
-                        pending_rows[name] += len(batch[self.specs[name].columns[0].name])
-                for name in self.specs:
-                    if pending_rows[name] >= self.specs[name].chunk_rows:
-                        self._write(name, pending[name])
-                        pending[name], pending_rows[name] = [], 0
+                        self._add_pending(name, batch)
                 if stopping or self._fault_reason or time.monotonic() >= next_flush:
                     for name in self.specs:
-                        if pending[name]:
-                            self._write(name, pending[name])
-                            pending[name], pending_rows[name] = [], 0
+                        self._write_pending(name)
                     self._apply_phases()
                     self._flush_and_commit()
                     next_flush = time.monotonic() + self.flush_interval_s
@@ -404,6 +411,17 @@ class RecordingWriter:
         assert self._file is not None
         self._file.close()
 
+    def _add_pending(self, name: str, batch: Columns) -> None:
+        self._pending[name].append(batch)
+        self._pending_rows[name] += len(batch[self.specs[name].columns[0].name])
+        if self._pending_rows[name] >= self._write_rows[name]:
+            self._write_pending(name)
+
+    def _write_pending(self, name: str) -> None:
+        if self._pending[name]:
+            batches, self._pending[name], self._pending_rows[name] = self._pending[name], [], 0
+            self._write(name, batches)
+
     def _write(self, name: str, batches: list[Columns], *, guarded: bool = True) -> None:
         """Append batches to a stream; ``guarded`` writes stop when the disk runs low."""
         assert self._file is not None
@@ -414,12 +432,12 @@ class RecordingWriter:
             self._count_drop(name, rows, "disk-full")
             return
         spec = self.specs[name]
-        group = stream_group(self._file, spec.name)
         first_row = self.stats[name].rows_written
-        columns = {c.name: np.concatenate([b[c.name] for b in batches]) for c in spec.columns}
+        columns = {c.name: np.concatenate([b[c.name] for b in batches]) if len(batches) > 1 else batches[0][c.name]
+                   for c in spec.columns}
         n = len(columns[spec.columns[0].name])
         for c in spec.columns:
-            ds = group[c.name]
+            ds = self._datasets[name][c.name]
             ds.resize((first_row + n, *c.shape))
             ds[first_row:] = columns[c.name]
         self.stats[name].rows_written = first_row + n
@@ -431,13 +449,15 @@ class RecordingWriter:
     def _after_events(self, batches: list[Columns], t_device_us: npt.NDArray[np.int64], first_row: int) -> None:
         assert self._file is not None
         group = self._file["streams/events"]
+        had_start = self._event_index.start_bin >= 0
         index_rows = self._event_index.extend(t_device_us, first_row)
         if index_rows.size:
-            ds = group["index_first_row"]
+            ds = self._datasets["events"]["index_first_row"]
             n = ds.shape[0]
             ds.resize((n + index_rows.size,))
             ds[n:] = index_rows
-            group["index_start_bin"][0] = self._event_index.start_bin
+            if not had_start:
+                group["index_start_bin"][0] = self._event_index.start_bin
         end_rows, t_dev, t_host = [], [], []
         row = first_row
         for b in batches:
@@ -448,8 +468,12 @@ class RecordingWriter:
                 t_dev.append(int(b["t_device_us"][-1]))
                 t_host.append(int(b["_t_host_us"][0]))
         if end_rows:
-            packets = {"end_row": np.array(end_rows), "t_device_us": np.array(t_dev), "t_host_us": np.array(t_host)}
-            self._write("event_packets", [packets])
+            packets = {
+                "end_row": np.array(end_rows, np.int64),
+                "t_device_us": np.array(t_dev, np.int64),
+                "t_host_us": np.array(t_host, np.int64),
+            }
+            self._add_pending("event_packets", packets)
             self._online["camera"].add(packets["t_device_us"], packets["t_host_us"])
 
     def _apply_phases(self) -> None:

@@ -25,8 +25,8 @@ from labrig.testing.synthetic import SyntheticRun
 IDLE_FRACTION = 0.01
 #: Bytes of one event as produced: x, y (uint16), p (uint8), t_device_us (int64).
 RAW_EVENT_BYTES = 13
-#: Default cap on camera events put but not yet written: 4 event chunks (~13 ms at 10 Mev/s).
-MAX_IN_FLIGHT_EVENTS = 4 << 15
+#: Default cap on camera events put but not yet written (~100 ms at 10 Mev/s, the buffering a camera driver has).
+MAX_IN_FLIGHT_EVENTS = 1 << 20
 
 #: Side producers (F/T, CNC) may run this far ahead of the camera replay, in data time (us).
 SIDE_LEAD_US = 10_000
