@@ -1,0 +1,362 @@
+"""The virtual rig: indenter pose -> contact -> markers -> camera image -> events.
+
+:class:`VirtualRig` advances a simulated sensor through world time (integer
+microseconds from the rig's start) while a tool path (machine mm) drives the
+indenter. It produces what the devices would see (camera events, trigger
+edges, the wrench on the F/T sensor) and what only a simulation knows (marker
+positions, the depth field, per-marker forces).
+
+Time stepping
+-------------
+* Mechanics are quasi-static and solved as often as the motion needs: the next
+  solve comes when the tool has moved ``solve_step_mm`` (0.02 mm), within 2 to
+  50 ms. Contact fields come from the precomputed
+  :class:`~labrig.sim.mechanics.ContactTable` (one lookup per solve).
+* Marker 3D positions are interpolated linearly between the two solves that
+  bracket a render time.
+* Renders (and event sensor steps) are adaptive: a step is as long as keeps
+  every marker's image motion under ``max_step_px`` (0.2 px), estimated from the
+  bracketing solves. The slope shading of the membrane changes at solve times.
+
+Contact kinematics
+------------------
+The indenter tip is mapped into the gel frame through the rig's true gel pose.
+Depth = -z of the tip. At first contact the tip's (x, y) becomes the contact
+anchor: the contact fields are centred there (small-displacement description
+in reference coordinates), and the tip's in-plane motion since then is the
+tangential shift, fed through a Masing :class:`ShearHistory`. In gross slip the
+anchor is dragged so the shift never exceeds the table's slip shift. Lifting
+off clears the anchor and the history. Indenter yaw relative to the gel and the
+gel's tilt are ignored in the contact shape (both are below a degree).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import RigConfig
+from labrig.frames import Pose, rotvec_to_matrix, wrench_about
+from labrig.indenters import Indenter
+from labrig.sim.camera import CameraModel
+from labrig.sim.events import EVENT_DTYPE, EventSensor
+from labrig.sim.mechanics import ContactFields, ContactTable, ShearHistory
+from labrig.sim.motion import gel_in_machine
+from labrig.sim.optics import Renderer
+from labrig.sim.shading import DepthField
+
+ToolPath = Callable[[npt.ArrayLike], npt.NDArray[np.float64]]
+
+#: A shear axis is fixed once the tip has moved this far in-plane from the anchor, mm.
+SHEAR_AXIS_MM = 1e-3
+#: Within this distance of the anchor the tangential state is unloaded, mm.
+SHEAR_RESET_MM = 1e-5
+
+#: Interval of the true-marker samples, us (>= 1 kHz).
+TRUTH_MARKER_INTERVAL_US = 1000
+
+
+@dataclass(frozen=True)
+class Solve:
+    """The quasi-static contact state at one world time."""
+
+    t_us: int
+    tip_gel_mm: npt.NDArray[np.float64]
+    depth_mm: float
+    markers_mm: npt.NDArray[np.float64]
+    force_on_gel_n: npt.NDArray[np.float64]
+    centre_of_pressure_mm: npt.NDArray[np.float64]
+    marker_forces_n: npt.NDArray[np.float64]
+    fields: ContactFields | None
+    anchor_mm: npt.NDArray[np.float64] | None
+
+
+@dataclass
+class RigOutput:
+    """What one :meth:`VirtualRig.advance` produced (world times, us)."""
+
+    events: npt.NDArray[np.void]
+    triggers: list[tuple[int, int]] = field(default_factory=list)
+    solves: list[Solve] = field(default_factory=list)
+    truth_t_us: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    truth_markers_mm: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    truth_markers_px: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0, 2), np.float32))
+    renders: int = 0
+
+
+class VirtualRig:
+    """A simulated sensor under a CNC-driven indenter. Deterministic under ``seed``."""
+
+    def __init__(
+        self,
+        rig: RigConfig,
+        indenter: Indenter,
+        *,
+        seed: int = 0,
+        table: ContactTable | None = None,
+        solve_step_mm: float = 0.02,
+        min_solve_interval_us: int = 2_000,
+        max_solve_interval_us: int = 50_000,
+        max_render_interval_us: int = 10_000,
+    ) -> None:
+        self.rig = rig
+        self.indenter = indenter
+        self.camera = CameraModel.from_rig(rig)
+        self.table = table if table is not None else ContactTable.from_rig(indenter, rig)
+        self.gel_in_machine: Pose = gel_in_machine(rig, truth=True)
+        self.machine_to_gel = self.gel_in_machine.inverse()
+        pose = rig.sim.rig_pose
+        #: F/T sensor axes in the gel frame; its origin rides with the tool.
+        self.ft_axes_in_gel = rotvec_to_matrix(pose.ft_axes_in_gel_rotvec_rad)
+        self.ft_origin_from_tip_mm = np.asarray(pose.ft_origin_in_gel_mm, dtype=np.float64)
+        self.rest_mm = rig.markers.rest_positions_mm()
+        self.cells = _marker_cells(rig)
+        self.renderer = Renderer(rig, self.camera)
+        self.renderer.render_full(self.rest_mm, None)
+        self.sensor = EventSensor.from_rig(rig, self.renderer.image, t_us=0, seed=seed)
+        self.solve_step_mm = solve_step_mm
+        self.min_solve_interval_us = min_solve_interval_us
+        self.max_solve_interval_us = max_solve_interval_us
+        self.max_render_interval_us = max_render_interval_us
+        self.max_step_px = rig.sim.events.max_step_px
+        self.t_us = 0
+        self._history = ShearHistory()
+        self._anchor: npt.NDArray[np.float64] | None = None
+        self._shear_axis: npt.NDArray[np.float64] | None = None
+        self._depth_field: DepthField | None = None
+        self._prev: Solve | None = None
+        self._next: Solve | None = None
+        self._pending_triggers: list[tuple[int, int]] = []
+        self._next_truth_us = 0
+
+    # -- clocks and triggers ---------------------------------------------------
+
+    def camera_time_us(self, t_world_us: npt.ArrayLike) -> npt.NDArray[np.int64]:
+        """The camera's own timestamps for world times (offset and drift)."""
+        clock = self.rig.sim.camera_clock
+        t = np.asarray(t_world_us, dtype=np.float64)
+        return (clock.origin_us + np.floor(t * (1 + clock.drift_ppm * 1e-6))).astype(np.int64)
+
+    def trigger(self, t_world_us: int, polarity: int) -> None:
+        """An edge on the camera's trigger input (the CNC output toggled)."""
+        self._pending_triggers.append((int(t_world_us), int(polarity)))
+
+    # -- mechanics ---------------------------------------------------------------
+
+    def solve(self, t_us: int, tool_machine_mm: npt.ArrayLike) -> Solve:
+        """Contact state for a tool position; updates the contact history."""
+        tip_machine = np.asarray(tool_machine_mm, dtype=np.float64).reshape(3) + np.asarray(self.indenter.tool_offset_mm)
+        tip = self.machine_to_gel.apply(tip_machine)
+        depth = max(0.0, -float(tip[2]))
+        if depth <= 0.0:
+            self._anchor = None
+            self._shear_axis = None
+            self._history.reset()
+            return self._rest_solve(t_us, tip)
+        if depth > self.table.depths_mm[-1]:
+            raise ValueError(
+                f"the {self.indenter.name} indenter is {depth:.2f} mm deep, beyond the gel model's "
+                f"{self.table.depths_mm[-1]:.2f} mm (its max_depth_mm)"
+            )
+        if self._anchor is None:
+            self._anchor = tip[:2].copy()
+        shift = self._shear_shift(tip[:2] - self._anchor)
+        limit = self._slip_shift_mm(depth)
+        size = float(np.hypot(*shift))
+        if limit > 0 and size > limit:  # gross slip: the contact is dragged along
+            self._anchor = tip[:2] - shift * (limit / size)
+            shift = tip[:2] - self._anchor
+        fields = self.table.fields(depth, shift, self._history)
+        markers = self._displaced_markers(fields, self._anchor)
+        force = np.asarray(fields.force_n, dtype=np.float64)
+        force_on_gel = np.array([force[0], force[1], -force[2]])  # gel frame: pressing is -z
+        cop = self._centre_of_pressure(fields, self._anchor)
+        return Solve(t_us, tip, depth, markers, force_on_gel, cop, self._marker_forces(fields, self._anchor),
+                     fields, self._anchor.copy())
+
+    def _shear_shift(self, shift: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """The in-plane shift along the current shear axis (Masing needs one axis).
+
+        The axis is the direction of the first shift beyond SHEAR_AXIS_MM; the
+        component across it is dropped (tilt, CNC jitter). Back within
+        SHEAR_RESET_MM of the anchor, a new axis may start.
+        """
+        size = float(np.hypot(*shift))
+        if size < SHEAR_RESET_MM:
+            if self._history.direction == 0 or abs(self._history.last_mm) < SHEAR_RESET_MM:
+                self._shear_axis = None
+                self._history.reset()
+            return np.zeros(2)
+        if self._shear_axis is None:
+            if size < SHEAR_AXIS_MM:
+                return np.zeros(2)
+            self._shear_axis = shift / size
+            self._history.reset()
+            self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
+        return float(shift @ self._shear_axis) * self._shear_axis
+
+    def _rest_solve(self, t_us: int, tip: npt.NDArray[np.float64]) -> Solve:
+        zeros = np.zeros(3)
+        return Solve(t_us, tip, 0.0, self.rest_mm.copy(), zeros, np.array([tip[0], tip[1], 0.0]),
+                     np.zeros((len(self.rest_mm), 3)), None, None)
+
+    def _slip_shift_mm(self, depth: float) -> float:
+        depths = np.asarray(self.table.shear_depths_mm)
+        slips = np.asarray(self.table.slip_shift_mm)
+        return float(np.interp(depth, depths[: len(slips)], slips)) if len(slips) else 0.0
+
+    def _displaced_markers(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        local = self.rest_mm[:, :2] - anchor
+        ux = _bilinear(fields.x_mm, fields.y_mm, fields.ux_mm, local)
+        uy = _bilinear(fields.x_mm, fields.y_mm, fields.uy_mm, local)
+        uz = -_bilinear(fields.x_mm, fields.y_mm, fields.depth_mm, local)
+        return self.rest_mm + np.stack([ux, uy, uz], axis=1)
+
+    def _centre_of_pressure(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        p = fields.pressure_mpa
+        total = float(p.sum())
+        if total <= 0:
+            return np.array([anchor[0], anchor[1], 0.0])
+        x = float((p.sum(axis=0) * fields.x_mm).sum() / total) + anchor[0]
+        y = float((p.sum(axis=1) * fields.y_mm).sum() / total) + anchor[1]
+        return np.array([x, y, 0.0])
+
+    def _marker_forces(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """Traction integrated over each marker's cell (N, gel frame, on the gel)."""
+        col = np.floor((fields.x_mm + anchor[0] - self.cells.x0_mm) / self.cells.pitch_mm).astype(int)
+        row = np.floor((fields.y_mm + anchor[1] - self.cells.y0_mm) / self.cells.pitch_mm).astype(int)
+        col = np.where((col >= 0) & (col < self.cells.cols), col, -1)
+        row = np.where((row >= 0) & (row < self.cells.rows), row, -1)
+        cell = np.where((row[:, None] >= 0) & (col[None, :] >= 0), row[:, None] * self.cells.cols + col[None, :], -1)
+        keep = cell >= 0
+        n = self.cells.rows * self.cells.cols
+        area = (fields.x_mm[1] - fields.x_mm[0]) * (fields.y_mm[1] - fields.y_mm[0])
+        out = np.zeros((n, 3))
+        index = cell[keep]
+        out[:, 0] = np.bincount(index, fields.traction_mpa[0][keep], minlength=n) * area
+        out[:, 1] = np.bincount(index, fields.traction_mpa[1][keep], minlength=n) * area
+        out[:, 2] = -np.bincount(index, fields.pressure_mpa[keep], minlength=n) * area
+        return out
+
+    def ft_wrench(self, solve: Solve) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(force N, torque N m) the F/T sensor measures, in its own axes.
+
+        The sensor carries the indenter, so it feels the reaction of the force
+        on the gel, applied at the centre of pressure, about its own origin.
+        """
+        force_on_indenter = -solve.force_on_gel_n
+        origin = solve.tip_gel_mm + self.ft_origin_from_tip_mm
+        torque = wrench_about(force_on_indenter, solve.centre_of_pressure_mm, origin)
+        to_ft = self.ft_axes_in_gel.T
+        return to_ft @ force_on_indenter, to_ft @ torque
+
+    # -- time stepping ------------------------------------------------------------
+
+    def advance(self, t_end_us: int, tool_path: ToolPath) -> RigOutput:
+        """Simulate from the current time to ``t_end_us`` with the tool on ``tool_path``."""
+        t_end_us = int(t_end_us)
+        if t_end_us < self.t_us:
+            raise ValueError("the virtual rig cannot go back in time")
+        out = RigOutput(events=np.zeros(0, EVENT_DTYPE))
+        chunks: list[npt.NDArray[np.void]] = []
+        truth_t: list[int] = []
+        truth_mm: list[npt.NDArray[np.float64]] = []
+        if self._prev is None:
+            self._prev = self.solve(self.t_us, tool_path(self.t_us)[0])
+            out.solves.append(self._prev)
+        while self.t_us < t_end_us:
+            assert self._prev is not None
+            if self._next is None or self.t_us >= self._next.t_us:
+                if self._next is not None:
+                    self._prev = self._next
+                t_next = self._next_solve_time(self._prev, tool_path)
+                self._next = self.solve(t_next, tool_path(t_next)[0])
+                out.solves.append(self._next)
+                self._depth_field = self._shading_field(self._prev)
+            step = self._step_us()
+            t1 = min(self.t_us + step, self._next.t_us, t_end_us)
+            markers = self._markers_at(t1)
+            while self._next_truth_us <= t1:
+                truth_t.append(self._next_truth_us)
+                truth_mm.append(self._markers_at(self._next_truth_us))
+                self._next_truth_us += TRUTH_MARKER_INTERVAL_US
+            update = self.renderer.render(markers, self._depth_field)
+            chunks.append(self.sensor.step(self.t_us, t1, update.indices, update.intensity))
+            out.renders += 1
+            self.t_us = t1
+        if chunks:
+            out.events = np.concatenate(chunks)
+        out.triggers, self._pending_triggers = self._pending_triggers, []
+        if truth_t:
+            out.truth_t_us = np.array(truth_t, np.int64)
+            mm = np.array(truth_mm)
+            out.truth_markers_mm = mm.astype(np.float32)
+            out.truth_markers_px = self.camera.project(mm.reshape(-1, 3)).reshape(len(truth_t), -1, 2).astype(np.float32)
+        return out
+
+    def _next_solve_time(self, prev: Solve, tool_path: ToolPath) -> int:
+        """The latest time, within [min, max] solve intervals, before the tool
+        moves more than ``solve_step_mm`` (quasi-static solves as often as the
+        motion needs)."""
+        candidates = prev.t_us + np.geomspace(self.min_solve_interval_us, self.max_solve_interval_us, 8).astype(np.int64)
+        moved = np.linalg.norm(tool_path(candidates) - tool_path(prev.t_us)[0], axis=1)
+        ok = candidates[moved <= self.solve_step_mm]
+        return int(ok[-1]) if ok.size else int(candidates[0])
+
+    def _markers_at(self, t_us: int) -> npt.NDArray[np.float64]:
+        prev, nxt = self._prev, self._next
+        assert prev is not None
+        if nxt is None or nxt.t_us == prev.t_us:
+            return prev.markers_mm
+        w = (t_us - prev.t_us) / (nxt.t_us - prev.t_us)
+        return prev.markers_mm + w * (nxt.markers_mm - prev.markers_mm)
+
+    def _step_us(self) -> int:
+        """Longest render step keeping every marker's image motion under max_step_px."""
+        prev, nxt = self._prev, self._next
+        assert prev is not None and nxt is not None
+        motion = self.camera.project(nxt.markers_mm) - self.camera.project(prev.markers_mm)
+        px = float(np.max(np.hypot(motion[:, 0], motion[:, 1])))
+        if px <= 1e-9:
+            return self.max_render_interval_us
+        return int(np.clip(self.max_step_px / px * (nxt.t_us - prev.t_us), 1, self.max_render_interval_us))
+
+    def _shading_field(self, solve: Solve) -> DepthField | None:
+        if solve.fields is None or solve.anchor_mm is None:
+            return None
+        f = solve.fields
+        return DepthField(f.x_mm + solve.anchor_mm[0], f.y_mm + solve.anchor_mm[1], np.asarray(f.depth_mm, np.float64))
+
+
+@dataclass(frozen=True)
+class _Cells:
+    x0_mm: float
+    y0_mm: float
+    pitch_mm: float
+    rows: int
+    cols: int
+
+
+def _marker_cells(rig: RigConfig) -> _Cells:
+    m = rig.markers
+    return _Cells(-m.cols * m.pitch_mm / 2, -m.rows * m.pitch_mm / 2, m.pitch_mm, m.rows, m.cols)
+
+
+def _bilinear(
+    x_mm: npt.NDArray[np.float64], y_mm: npt.NDArray[np.float64], values: npt.NDArray[np.floating], xy: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """Sample a field on a regular grid at points (N, 2); zero outside the grid."""
+    dx, dy = x_mm[1] - x_mm[0], y_mm[1] - y_mm[0]
+    fx = (xy[:, 0] - x_mm[0]) / dx
+    fy = (xy[:, 1] - y_mm[0]) / dy
+    inside = (fx >= 0) & (fx <= len(x_mm) - 1) & (fy >= 0) & (fy <= len(y_mm) - 1)
+    i0 = np.clip(np.floor(fx).astype(int), 0, len(x_mm) - 2)
+    j0 = np.clip(np.floor(fy).astype(int), 0, len(y_mm) - 2)
+    wx, wy = np.clip(fx - i0, 0, 1), np.clip(fy - j0, 0, 1)
+    v = values
+    out = (v[j0, i0] * (1 - wx) * (1 - wy) + v[j0, i0 + 1] * wx * (1 - wy)
+           + v[j0 + 1, i0] * (1 - wx) * wy + v[j0 + 1, i0 + 1] * wx * wy)
+    return np.where(inside, out, 0.0)
