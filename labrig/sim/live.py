@@ -1,0 +1,173 @@
+"""Run the virtual rig live on the host clock, straight into a recording.
+
+The rig simulates world time in chunks; each chunk's data is published when
+the host clock reaches the chunk's end (as real devices deliver data after it
+happened), stamped with host receive times. If simulating a chunk takes longer
+than the chunk lasts, the rig falls behind: the lag (host time at publication
+minus the chunk's end) is measured and reported.
+
+This path skips the device byte protocols: the pty twins (GRBL, Bota, EVK4)
+replace these direct puts when they land, with the same timing rules.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.clock import HostClock, MonotonicClock
+from labrig.config import RigConfig
+from labrig.indenters import Indenter
+from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
+from labrig.sim.motion import PiecewiseLinearPath
+from labrig.sim.rig import RigOutput, Solve, VirtualRig
+from labrig.sim.truth import network_grid_gel_mm, truth_streams
+
+FT_RATE_HZ = 800.0
+CNC_RATE_HZ = 10.0
+#: The simulated F/T sensor's clock (its twin will own this).
+FT_CLOCK_ORIGIN_US = 2_000_000_000
+FT_CLOCK_DRIFT_PPM = -60.0
+
+
+@dataclass(frozen=True)
+class LiveResult:
+    recording: RecordingResult
+    sim_duration_s: float
+    wall_s: float
+    max_lag_ms: float
+    late_chunks: int
+    chunks: int
+    events: int
+
+
+def record_live(
+    path: str | Path,
+    rig: RigConfig,
+    indenter: Indenter,
+    tool_path: PiecewiseLinearPath,
+    *,
+    seed: int = 0,
+    chunk_us: int = 10_000,
+    realtime: bool = True,
+    clock: HostClock | None = None,
+    virtual_rig: VirtualRig | None = None,
+) -> LiveResult:
+    """Simulate ``tool_path`` and record it; paced to the host clock when ``realtime``."""
+    vr = virtual_rig or VirtualRig(rig, indenter, seed=seed)
+    clock = clock or MonotonicClock()
+    n_markers = len(vr.rest_mm)
+    grid_gel = network_grid_gel_mm(rig, vr.camera)
+    metadata = RecordingMetadata(
+        indenter=indenter.name,
+        protocol_toml="# scripted probing path on the virtual rig\n",
+        rig_toml=rig.text,
+        extra={"virtual_rig": True, "seed": seed},
+    )
+    duration_us = int(tool_path.duration_us)
+    phase_starts = {int(start): name for name, start, _ in tool_path.phases}
+    ft_period_us = 1e6 / FT_RATE_HZ
+    next_ft_us, next_cnc_us, trigger_level = 0.0, 0.0, 0
+    max_lag_us, late, chunks, events = 0.0, 0, 0, 0
+    wall0 = time.perf_counter()
+    with RecordingWriter(path, metadata, clock=clock, extra_streams=truth_streams(n_markers)) as writer:
+        start_ns = writer.t0_host_ns
+        last_solve: Solve | None = None
+        for t0 in range(0, duration_us, chunk_us):
+            t1 = min(t0 + chunk_us, duration_us)
+            for t_phase, name in phase_starts.items():
+                if t0 <= t_phase < t1:
+                    trigger_level ^= 1
+                    vr.trigger(t_phase, trigger_level)
+                    writer.phase_begin(name, t_phase)
+                    writer.put("trigger_out", t_host_us=t_phase, polarity=trigger_level)
+            out = vr.advance(t1, tool_path)
+            if realtime:
+                wait_ns = start_ns + t1 * 1000 - clock.now_ns()
+                if wait_ns > 0:
+                    time.sleep(wait_ns / 1e9)
+            now_us = writer.host_us()
+            lag = now_us - t1 if realtime else 0
+            max_lag_us = max(max_lag_us, lag)
+            late += lag > chunk_us
+            chunks += 1
+            events += len(out.events)
+            receive_us = max(now_us, t1) if realtime else t1
+            solves = ([last_solve] if last_solve is not None else []) + out.solves
+            _publish_chunk(writer, vr, out, receive_us)
+            next_ft_us = _publish_ft(writer, vr, solves, next_ft_us, t1, ft_period_us, receive_us)
+            while next_cnc_us < t1:
+                writer.put("cnc", t_host_us=receive_us, position_mm=tool_path(next_cnc_us)[0],
+                           feed_mm_min=0.0, state=b"Run")
+                next_cnc_us += 1e6 / CNC_RATE_HZ
+            _publish_truth(writer, vr, out, grid_gel, receive_us)
+            if out.solves:
+                last_solve = out.solves[-1]
+        writer.phase_end(duration_us)
+    return LiveResult(writer.result, duration_us / 1e6, time.perf_counter() - wall0, max_lag_us / 1000,  # type: ignore[arg-type]
+                      late, chunks, events)
+
+
+def _publish_chunk(writer: RecordingWriter, vr: VirtualRig, out: RigOutput, receive_us: int) -> None:
+    ev = out.events
+    if len(ev):
+        writer.put_events(ev["x"], ev["y"], ev["p"], vr.camera_time_us(ev["t"]), receive_us)
+    for t_world, polarity in out.triggers:
+        writer.put("triggers", t_device_us=vr.camera_time_us(t_world), polarity=polarity, channel=0)
+
+
+def _publish_ft(
+    writer: RecordingWriter, vr: VirtualRig, solves: list[Solve], next_us: float, t1: int, period_us: float, receive_us: int
+) -> float:
+    times = np.arange(next_us, t1, period_us)
+    if times.size == 0 or not solves:
+        return next_us
+    t_solve = np.array([s.t_us for s in solves], dtype=np.float64)
+    forces, torques = zip(*(vr.ft_wrench(s) for s in solves))
+    force = np.stack([np.interp(times, t_solve, np.array(forces)[:, i]) for i in range(3)], axis=1)
+    torque = np.stack([np.interp(times, t_solve, np.array(torques)[:, i]) for i in range(3)], axis=1)
+    device = (FT_CLOCK_ORIGIN_US + np.floor(times * (1 + FT_CLOCK_DRIFT_PPM * 1e-6))).astype(np.int64) % (1 << 32)
+    writer.put(
+        "ft",
+        t_device_us=device.astype(np.uint32),
+        t_host_us=np.full(times.size, receive_us, np.int64),
+        force_n=force,
+        torque_nm=torque,
+        status=np.zeros(times.size, np.uint16),
+        temperature_c=np.full(times.size, 30.0, np.float32),
+    )
+    return float(times[-1] + period_us)
+
+
+def _publish_truth(
+    writer: RecordingWriter, vr: VirtualRig, out: RigOutput, grid_gel: npt.NDArray[np.float64], receive_us: int
+) -> None:
+    if out.truth_t_us.size:
+        writer.put("truth/markers", t_host_us=out.truth_t_us, position_mm=out.truth_markers_mm,
+                   position_px=out.truth_markers_px)
+    for s in out.solves:
+        writer.put("truth/contact", t_host_us=s.t_us, indentation_mm=s.depth_mm, tip_mm=s.tip_gel_mm,
+                   force_n=s.force_on_gel_n, centre_of_pressure_mm=s.centre_of_pressure_mm)
+        writer.put("truth/marker_forces", t_host_us=s.t_us, force_n=s.marker_forces_n[None])
+        depth, mask = _depth_on_grid(s, grid_gel)
+        writer.put("truth/depth", t_host_us=s.t_us, depth_mm=depth[None], contact_mask=mask[None])
+
+
+def _depth_on_grid(solve: Solve, grid_gel: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8]]:
+    shape = grid_gel.shape[:2]
+    if solve.fields is None or solve.anchor_mm is None:
+        return np.zeros(shape, np.float32), np.zeros(shape, np.uint8)
+    f = solve.fields
+    local = grid_gel.reshape(-1, 2) - solve.anchor_mm
+    col = np.rint((local[:, 0] - f.x_mm[0]) / (f.x_mm[1] - f.x_mm[0])).astype(int)
+    row = np.rint((local[:, 1] - f.y_mm[0]) / (f.y_mm[1] - f.y_mm[0])).astype(int)
+    inside = (col >= 0) & (col < len(f.x_mm)) & (row >= 0) & (row < len(f.y_mm))
+    depth = np.zeros(local.shape[0], np.float32)
+    mask = np.zeros(local.shape[0], np.uint8)
+    depth[inside] = f.depth_mm[row[inside], col[inside]]
+    mask[inside] = f.contact_mask[row[inside], col[inside]]
+    return depth.reshape(shape), mask.reshape(shape)
