@@ -1,0 +1,125 @@
+"""Serving device twins on pseudo-terminals, so real drivers open them as serial ports.
+
+A twin is a byte-level state machine with two methods (see :class:`SerialTwin`):
+``receive(data, now_us)`` takes what the host wrote, ``transmit(now_us)``
+returns what the device has sent by ``now_us`` (paced by its baud rate and its
+own timing). :class:`TwinServer` runs any number of twins in one thread, each
+on its own pty, on the host clock. Drivers see ordinary serial ports
+(``/dev/pts/N``); nothing bypasses the bytes.
+
+Pseudo-terminals have no modem lines: setting DTR or RTS on one fails with
+ENOTTY, which drivers must tolerate (a real port resets some boards on DTR).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import select
+import threading
+import tty
+from typing import Protocol
+
+from labrig.clock import HostClock, MonotonicClock
+
+
+class SerialTwin(Protocol):
+    """A device twin speaking bytes."""
+
+    def receive(self, data: bytes, now_us: int) -> None:
+        """Bytes the host wrote, arriving at ``now_us`` (host clock, us)."""
+
+    def transmit(self, now_us: int) -> bytes:
+        """Bytes the device has sent by ``now_us`` and not yet returned."""
+
+
+class PtyPort:
+    """One pseudo-terminal: the twin holds the master end; ``path`` is the serial port."""
+
+    def __init__(self) -> None:
+        self.master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.path = os.ttyname(self._slave)
+        os.set_blocking(self.master, False)
+
+    def read(self) -> bytes:
+        try:
+            return os.read(self.master, 65536)
+        except BlockingIOError:
+            return b""
+        except OSError as exc:  # EIO: no client has the port open
+            if exc.errno == errno.EIO:
+                return b""
+            raise
+
+    def write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            try:
+                n = os.write(self.master, view)
+            except BlockingIOError:
+                select.select([], [self.master], [], 0.01)
+                continue
+            view = view[n:]
+
+    def close(self) -> None:
+        for fd in (self.master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+class TwinServer:
+    """Serve twins on ptys from one thread until stopped. Use as a context manager."""
+
+    def __init__(self, twins: dict[str, SerialTwin], clock: HostClock | None = None, tick_s: float = 0.0005) -> None:
+        self.twins = twins
+        self.clock = clock or MonotonicClock()
+        self.tick_s = tick_s
+        self.ports = {name: PtyPort() for name in twins}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="labrig-twins", daemon=True)
+        self.error: BaseException | None = None
+
+    @property
+    def paths(self) -> dict[str, str]:
+        return {name: port.path for name, port in self.ports.items()}
+
+    def now_us(self) -> int:
+        return self.clock.now_ns() // 1000
+
+    def start(self) -> TwinServer:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        for port in self.ports.values():
+            port.close()
+
+    def __enter__(self) -> TwinServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _run(self) -> None:
+        masters = {port.master: name for name, port in self.ports.items()}
+        try:
+            while not self._stop.is_set():
+                readable, _, _ = select.select(list(masters), [], [], self.tick_s)
+                now = self.now_us()
+                for fd in readable:
+                    name = masters[fd]
+                    data = self.ports[name].read()
+                    if data:
+                        self.twins[name].receive(data, now)
+                for name, twin in self.twins.items():
+                    out = twin.transmit(self.now_us())
+                    if out:
+                        self.ports[name].write(out)
+        except BaseException as exc:  # surfaced to the owner; the thread must not die silently
+            self.error = exc
+            raise
