@@ -143,6 +143,118 @@ def recover(
         console.print(f"  [yellow]{stream}: {rows:,} rows past the last commit were not trusted[/]")
 
 
+sim_app = typer.Typer(help="The virtual rig: simulated probing runs and its precomputed contact tables.", no_args_is_help=True)
+app.add_typer(sim_app, name="sim")
+
+RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
+IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]
+
+
+def _load_rig_and_indenters(rig_path: Path | None, indenters_path: Path | None) -> tuple[Any, dict[str, Any]]:
+    from labrig.config import DEFAULT_RIG, load_rig
+    from labrig.indenters import DEFAULT_INDENTERS, load_indenters
+
+    return load_rig(rig_path or DEFAULT_RIG), load_indenters(indenters_path or DEFAULT_INDENTERS)
+
+
+@sim_app.command("probe")
+def sim_probe(
+    out: Annotated[Path, typer.Argument(help="Recording to write (.h5).")],
+    indenter: Annotated[str, typer.Option(help="Indenter name from the indenter file.")] = "sphere",
+    depth_mm: Annotated[float, typer.Option(help="Indentation depth below the gel surface, mm.")] = 1.5,
+    shear_mm: Annotated[float, typer.Option(help="Shear distance at depth, mm (0: none).")] = 1.0,
+    direction_deg: Annotated[float, typer.Option(help="Shear direction in the gel frame, degrees from +x.")] = 0.0,
+    x_mm: Annotated[float, typer.Option(help="Contact location, gel frame x, mm.")] = 0.0,
+    y_mm: Annotated[float, typer.Option(help="Contact location, gel frame y, mm.")] = 0.0,
+    speed_mm_s: Annotated[float, typer.Option(help="Normal and shear speed, mm/s.")] = 1.5,
+    wait_s: Annotated[float, typer.Option(help="Each Wait phase, s.")] = 0.3,
+    seed: Annotated[int, typer.Option(help="Seed of the event sensor's noise and thresholds.")] = 0,
+    realtime: Annotated[
+        bool, typer.Option("--realtime/--fast", help="Pace to the host clock (as live devices) or run as fast as possible.")
+    ] = False,
+    overwrite: Annotated[bool, typer.Option(help="Replace OUT if it exists.")] = False,
+    rig_path: RigOption = None,
+    indenters_path: IndentersOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Record one probing run (the paper's sequence) on the virtual rig, with its truth."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from labrig.errors import LabrigError
+    from labrig.sim.live import record_live
+    from labrig.sim.motion import probing_path
+
+    rig, indenters = _load_rig_and_indenters(rig_path, indenters_path)
+    if indenter not in indenters:
+        raise LabrigError(f"unknown indenter {indenter!r}; known: {', '.join(indenters)}")
+    ind = indenters[indenter]
+    if not 0 < depth_mm <= ind.max_depth_mm:
+        raise LabrigError(f"--depth-mm must be in (0, {ind.max_depth_mm}] for the {indenter} indenter (its max_depth_mm)")
+    if speed_mm_s <= 0 or wait_s < 0 or shear_mm < 0:
+        raise LabrigError("--speed-mm-s must be positive; --wait-s and --shear-mm must not be negative")
+    half_x, half_y = rig.gel.size_x_mm / 2, rig.gel.size_y_mm / 2
+    if abs(x_mm) > half_x or abs(y_mm) > half_y:
+        raise LabrigError(f"location ({x_mm}, {y_mm}) mm is off the gel (|x| <= {half_x}, |y| <= {half_y})")
+    if out.exists() and overwrite:
+        out.unlink()
+    path = probing_path(rig, ind, location_mm=(x_mm, y_mm), depth_mm=depth_mm, shear_mm=shear_mm,
+                        shear_direction_deg=direction_deg, normal_speed_mm_s=speed_mm_s, shear_speed_mm_s=speed_mm_s,
+                        wait_s=wait_s)
+    total_s = path.duration_us / 1e6
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.2f}/{task.total:.2f} s"),
+                  TimeElapsedColumn(), console=err_console, disable=as_json) as bar:
+        task = bar.add_task(f"simulating {indenter}", total=total_s)
+        result = record_live(out, rig, ind, path, seed=seed, realtime=realtime,
+                             progress=lambda done_s: bar.update(task, completed=done_s))
+    summary = {
+        "path": str(result.recording.path),
+        "indenter": indenter,
+        "sim_duration_s": result.sim_duration_s,
+        "wall_s": result.wall_s,
+        "real_time_factor": result.wall_s / result.sim_duration_s,
+        "events": result.events,
+        "event_rate_hz": result.events / result.sim_duration_s,
+        "realtime": realtime,
+        "max_lag_ms": result.max_lag_ms,
+        "late_chunks": result.late_chunks,
+        "exit_status": result.recording.exit_status,
+    }
+    if as_json:
+        _print_json(summary)
+        return
+    console.print(f"[green]recorded[/] {summary['path']}: {summary['events']:,} events over {total_s:.2f} s "
+                  f"(real-time factor {summary['real_time_factor']:.2f})")
+    if realtime:
+        style = "green" if result.late_chunks == 0 else "red"
+        console.print(f"[{style}]max lag behind real time: {result.max_lag_ms:.1f} ms, late chunks: {result.late_chunks}[/]")
+
+
+@sim_app.command("tables")
+def sim_tables(
+    rig_path: RigOption = None,
+    indenters_path: IndentersOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Build (or load from cache) the contact tables of every indenter."""
+    import time
+
+    from labrig.sim.mechanics import ContactTable, table_cache_dir
+
+    rig, indenters = _load_rig_and_indenters(rig_path, indenters_path)
+    rows = []
+    for name, ind in indenters.items():
+        t0 = time.perf_counter()
+        with err_console.status(f"contact table for {name}"):
+            table = ContactTable.from_rig(ind, rig)
+        rows.append({"indenter": name, "seconds": time.perf_counter() - t0, "max_depth_mm": float(table.depths_mm[-1])})
+    if as_json:
+        _print_json({"cache_dir": str(table_cache_dir()), "tables": rows})
+        return
+    for row in rows:
+        console.print(f"{row['indenter']:>10}: up to {row['max_depth_mm']:.2f} mm in {row['seconds']:.1f} s")
+    console.print(f"cache: {table_cache_dir()}")
+
+
 def main() -> None:
     """Console entry point: user errors print one line and exit 2, no traceback."""
     from labrig.recording.writer import exit_process

@@ -85,3 +85,29 @@ def test_bad_input_gives_one_line_and_exit_2(kind: str, small_recording: Path, t
 def test_recover_refuses_a_finalized_recording(small_recording: Path) -> None:
     result = labrig("recover", small_recording)
     assert result.returncode == 2 and "already finalized" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_sim_probe_records_a_run_and_reports_json(tmp_path: Path) -> None:
+    out = tmp_path / "probe.h5"
+    result = labrig("sim", "probe", out, "--depth-mm", "0.4", "--shear-mm", "0.1", "--speed-mm-s", "4", "--wait-s", "0.05",
+                    "--json")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["exit_status"] == "complete" and summary["events"] > 1000
+    assert {"sim_duration_s", "wall_s", "real_time_factor", "event_rate_hz", "max_lag_ms"} <= set(summary)
+    inspected = json.loads(labrig("inspect", out, "--json").stdout)
+    assert inspected["fz_max_n"] > 0.5 and [p["name"] for p in inspected["phases"]][1] == "normal_down"
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--indenter", "banana"], "unknown indenter"),
+        (["--depth-mm", "7"], "max_depth_mm"),
+        (["--x-mm", "40"], "off the gel"),
+        (["--speed-mm-s", "0"], "must be positive"),
+    ],
+)
+def test_sim_probe_rejects_bad_input(tmp_path: Path, args: list[str], expected: str) -> None:
+    result = labrig("sim", "probe", tmp_path / "x.h5", *args)
+    assert result.returncode == 2 and expected in result.stderr and "Traceback" not in result.stderr

@@ -1,9 +1,9 @@
 """`make demo`: the longest real path labrig has so far.
 
-Today: synthetic device streams of one probing run (camera events, F/T, CNC,
-protocol phases, trigger edges) go through the real recording writer, and
-`labrig inspect` summarizes and plots the file. The virtual rig and the
-campaign runner will replace the synthetic streams as they land.
+Today: one probing run (sphere, 1.5 mm deep, +/-1 mm shear) on the virtual rig
+(contact mechanics, optics, event camera; `labrig sim probe`), recorded with its
+truth through the real recording writer, then `labrig inspect` summarizes and
+plots it. Campaigns, ground truth, evaluation and a report join as they land.
 
 Usage: python tools/demo.py OUT_DIR
 """
@@ -17,21 +17,24 @@ from pathlib import Path
 
 from rich.console import Console
 
-from labrig.testing.synthetic import SyntheticRun, record_synthetic
-
 
 def main(out_dir: Path) -> int:
     console = Console()
     shutil.rmtree(out_dir, ignore_errors=True)
     out_dir.mkdir(parents=True)
-    recording = out_dir / "run-001.h5"
-    with console.status("recording 8 s of synthetic streams through the writer"):
-        result = record_synthetic(recording, SyntheticRun(duration_s=8.0, peak_event_rate_hz=2e6))
-    console.print(f"[green]wrote[/] {result.path} ({result.rows['events']:,} events, {result.exit_status})")
-    labrig = Path(sys.executable).with_name("labrig")
-    command = [str(labrig), "inspect", str(recording), "--plot", str(out_dir / "run-001.png")]
-    console.print(f"$ {' '.join(command)}", style="dim")
-    return subprocess.call(command)
+    labrig = str(Path(sys.executable).with_name("labrig"))
+    recording = out_dir / "sphere.h5"
+    steps = [
+        [labrig, "sim", "tables"],
+        [labrig, "sim", "probe", str(recording), "--indenter", "sphere", "--depth-mm", "1.5", "--shear-mm", "1.0"],
+        [labrig, "inspect", str(recording), "--plot", str(out_dir / "sphere.png")],
+    ]
+    for command in steps:
+        console.print(f"$ {' '.join(command)}", style="dim")
+        code = subprocess.call(command)
+        if code:
+            return code
+    return 0
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ replace these direct puts when they land, with the same timing rules.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,8 +57,12 @@ def record_live(
     realtime: bool = True,
     clock: HostClock | None = None,
     virtual_rig: VirtualRig | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> LiveResult:
-    """Simulate ``tool_path`` and record it; paced to the host clock when ``realtime``."""
+    """Simulate ``tool_path`` and record it; paced to the host clock when ``realtime``.
+
+    ``progress`` is called with the simulated seconds done after each chunk.
+    """
     vr = virtual_rig or VirtualRig(rig, indenter, seed=seed)
     clock = clock or MonotonicClock()
     n_markers = len(vr.rest_mm)
@@ -107,6 +112,8 @@ def record_live(
             _publish_truth(writer, vr, out, grid_gel, receive_us)
             if out.solves:
                 last_solve = out.solves[-1]
+            if progress is not None:
+                progress(t1 / 1e6)
         writer.phase_end(duration_us)
     return LiveResult(writer.result, duration_us / 1e6, time.perf_counter() - wall0, max_lag_us / 1000,  # type: ignore[arg-type]
                       late, chunks, events)
