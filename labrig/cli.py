@@ -143,6 +143,34 @@ def recover(
         console.print(f"  [yellow]{stream}: {rows:,} rows past the last commit were not trusted[/]")
 
 
+@app.command()
+def devices(as_json: JsonOption = False) -> None:
+    """List serial ports and USB devices, and recognise the rig's instruments."""
+    from labrig.devices.discovery import discover
+
+    found = discover()
+    if as_json:
+        _print_json(found.to_dict())
+        return
+    ports = Table(title="serial ports", title_justify="left")
+    for col in ("port", "what", "role", "usb id", "description"):
+        ports.add_column(col)
+    for p in found.serial_ports:
+        usb_id = f"{p.vid:04x}:{p.pid:04x}" if p.vid is not None and p.pid is not None else "-"
+        ports.add_row(p.device, p.kind, p.role, usb_id, p.description)
+    console.print(ports if found.serial_ports else "no serial ports found")
+    for p in found.serial_ports:
+        for warning in p.warnings:
+            console.print(f"[yellow]warning:[/] {p.device}: {warning}")
+    if found.usb_error:
+        console.print(f"[yellow]USB:[/] {found.usb_error}")
+    cameras = [d for d in found.usb_devices if d.role == "camera"]
+    for d in cameras:
+        console.print(f"camera: {d.kind} (USB {d.vid:04x}:{d.pid:04x}, bus {d.bus}, address {d.address})")
+    if not found.usb_error and not cameras:
+        console.print("no event camera on USB (the virtual rig is used when no hardware is configured)")
+
+
 sim_app = typer.Typer(help="The virtual rig: simulated probing runs and its precomputed contact tables.", no_args_is_help=True)
 app.add_typer(sim_app, name="sim")
 
