@@ -1,48 +1,51 @@
-"""Run the recording benchmarks (writer, then reader) and print all their figures.
+"""Run every benchmark and print all their figures (`make bench`).
 
-Targets: writer real-time factor < 0.5 at 10 Mev/s with 0 dropped rows
-(bench_writer.py); a 10 ms event slice in well under 10 ms (bench_reader.py).
-Defaults are the full runs (a few minutes on 2 cores); flags shorten them.
+Each benchmark prints its figures as ratios measured side by side in one run:
+recording writer (real-time factor per codec) and reader (slice time / window),
+RAW codec (decode rate / the evt3 package's), GRBL streaming (character
+counting / send-response), Bota reader (frames lost, jitter; decode / real
+time), virtual rig (wall time / simulated time). Full runs take several
+minutes on 2 cores; --quick shortens them.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import time
+from typing import Any
 
-import bench_reader
-import bench_writer
 from _common import print_json
+
+BENCHES = ("bench_writer", "bench_reader", "bench_raw", "bench_grbl", "bench_bota", "bench_rig")
+QUICK: dict[str, dict[str, Any]] = {
+    "bench_writer": {"duration_s": 3.0, "repeat": 1, "codecs": "bitshuffle-lz4,lz4,gzip"},
+    "bench_reader": {"duration_s": 20.0, "events": 15e6, "positions": 50, "naive_calls": 3},
+    "bench_grbl": {"lines": 300, "repeat": 1},
+    "bench_bota": {"seconds": 3.0},
+}
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--writer-duration-s", type=float, default=10.0, help="writer: data time per run (s)")
-    ap.add_argument("--codecs", default=None, help="writer: comma-separated codecs (default: all)")
-    ap.add_argument("--repeat", type=int, default=3, help="writer: runs per codec")
-    ap.add_argument("--reader-duration-s", type=float, default=60.0, help="reader: data time of the file (s)")
-    ap.add_argument("--reader-events", type=float, default=50e6, help="reader: events in the file (about)")
-    ap.add_argument("--positions", type=int, default=200, help="reader: random 10 ms windows")
-    ap.add_argument("--naive-calls", type=int, default=10, help="reader: windows read the naive way")
-    ap.add_argument("--json", action="store_true", help="print the figures as JSON")
+    ap.add_argument("--only", default=",".join(BENCHES), help="comma-separated benchmarks to run")
+    ap.add_argument("--quick", action="store_true", help="shorter runs (noisier figures)")
+    ap.add_argument("--json", action="store_true", help="print all figures as JSON")
     args = ap.parse_args(argv)
-
     t = time.perf_counter()
-    writer_kwargs = {"codecs": args.codecs} if args.codecs else {}
-    writer = bench_writer.run(duration_s=args.writer_duration_s, repeat=args.repeat, progress=not args.json, **writer_kwargs)
-    reader = bench_reader.run(
-        duration_s=args.reader_duration_s,
-        events=args.reader_events,
-        positions=args.positions,
-        naive_calls=args.naive_calls,
-        progress=not args.json,
-    )
+    figures: dict[str, Any] = {}
+    for name in [b.strip() for b in args.only.split(",") if b.strip()]:
+        if name not in BENCHES:
+            raise SystemExit(f"unknown benchmark {name!r}; choose from {', '.join(BENCHES)}")
+        module = importlib.import_module(name)
+        kwargs = dict(QUICK.get(name, {})) if args.quick else {}
+        figures[name] = module.run(progress=not args.json, **kwargs)
+        if not args.json:
+            module.render(figures[name])
+            print()
     if args.json:
-        print_json({"writer": writer, "reader": reader, "bench_wall_s": time.perf_counter() - t})
-    else:
-        bench_writer.render(writer)
-        print()
-        bench_reader.render(reader)
+        figures["bench_wall_s"] = time.perf_counter() - t
+        print_json(figures)
 
 
 if __name__ == "__main__":
