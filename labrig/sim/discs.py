@@ -38,21 +38,60 @@ def ellipse_coverage(
     Patch element [k, i, j] is pixel (x, y) = origin_k + (j, i).
     """
     c = np.asarray(centres_px, dtype=np.float64)
-    a = np.asarray(axes_px, dtype=np.float64)
     o = np.asarray(origins_px, dtype=np.int64)
     side = 2 * half_px
-    grid = np.arange(side, dtype=np.float64)
-    qx = (o[:, 0] - c[:, 0])[:, None, None] + grid[None, None, :]
-    qy = (o[:, 1] - c[:, 1])[:, None, None] + grid[None, :, None]
-    # Q = (A A^T)^-1, symmetric 2x2: [[qa, qb], [qb, qc]].
+    # Flat (K, S*S) patches: long contiguous rows for numpy's inner loops.
+    cols = np.tile(np.arange(side, dtype=np.float64), side)
+    rows = np.repeat(np.arange(side, dtype=np.float64), side)
+    qx = (o[:, 0] - c[:, 0])[:, None] + cols[None, :]
+    qy = (o[:, 1] - c[:, 1])[:, None] + rows[None, :]
+    qa, qb, qc = inverse_shape(axes_px)
+    return coverage_at(qx, qy, qa[:, None], qb[:, None], qc[:, None], edge_px).reshape(-1, side, side)
+
+
+def inverse_shape(axes_px: npt.ArrayLike) -> tuple[Array, Array, Array]:
+    """(qa, qb, qc), each (K,): the symmetric Q = (A A^T)^-1 = [[qa, qb], [qb, qc]] of each ellipse."""
+    a = np.asarray(axes_px, dtype=np.float64)
     aat = a @ np.swapaxes(a, -1, -2)
     det = aat[:, 0, 0] * aat[:, 1, 1] - aat[:, 0, 1] ** 2
-    qa, qb, qc = (aat[:, 1, 1] / det)[:, None, None], (-aat[:, 0, 1] / det)[:, None, None], (aat[:, 0, 0] / det)[:, None, None]
+    return aat[:, 1, 1] / det, -aat[:, 0, 1] / det, aat[:, 0, 0] / det
+
+
+def coverage_at(qx: Array, qy: Array, qa: Array, qb: Array, qc: Array, edge_px: float = 1.0) -> Array:
+    """Coverage at pixel offsets (qx, qy) from an ellipse centre, for its Q = [[qa, qb], [qb, qc]] (broadcast)."""
     gx = qa * qx + qb * qy
     gy = qb * qx + qc * qy
-    f2 = qx * gx + qy * gy
-    f = np.sqrt(f2)
-    grad = np.sqrt(gx * gx + gy * gy)
+    f = qx * gx
+    f += qy * gy  # f^2 = q^T Q q
+    np.sqrt(f, out=f)
+    gx *= gx
+    gy *= gy
+    gx += gy
+    grad = np.sqrt(gx, out=gx)  # |grad f^2| / 2
+    # Signed distance (f - 1) f / |grad f^2 / 2|; at the centre it is 0/0 = NaN, which fmin turns into full coverage.
     with np.errstate(invalid="ignore", divide="ignore"):
-        distance = np.where(f2 > 0, (f - 1.0) * f / grad, -np.inf)
-    return np.clip(0.5 - distance / edge_px, 0.0, 1.0)
+        distance = f - 1.0
+        distance *= f
+        distance /= grad
+    if edge_px != 1.0:
+        distance /= edge_px
+    coverage = np.subtract(0.5, distance, out=distance)
+    np.fmin(coverage, 1.0, out=coverage)
+    np.fmax(coverage, 0.0, out=coverage)
+    return coverage
+
+
+def rim_radii(axes_px: npt.ArrayLike, edge_px: float = 1.0) -> tuple[Array, Array]:
+    """(inner, outer) radii (K,), px: coverage is exactly 1 closer than ``inner`` to the centre, exactly 0 beyond ``outer``.
+
+    With s1 >= s2 the singular values of A, f = |A^-1 q| and |grad f^2 / 2| = |Q q|
+    lie within [|q| / s1, |q| / s2] and [|q| / s1^2, |q| / s2^2], which bounds the
+    signed distance: <= -edge/2 (full) for |q| <= s2 - edge/2 s1 / s2, >= edge/2
+    (empty) for |q| >= s1 + edge/2 (s1 / s2)^2.
+    """
+    a = np.asarray(axes_px, dtype=np.float64)
+    aat = a @ np.swapaxes(a, -1, -2)
+    mean = (aat[:, 0, 0] + aat[:, 1, 1]) / 2
+    spread = np.sqrt(((aat[:, 0, 0] - aat[:, 1, 1]) / 2) ** 2 + aat[:, 0, 1] ** 2)
+    s1, s2 = np.sqrt(mean + spread), np.sqrt(np.maximum(mean - spread, 1e-300))
+    return s2 - edge_px / 2 * s1 / s2, s1 + edge_px / 2 * (s1 / s2) ** 2

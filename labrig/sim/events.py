@@ -28,11 +28,16 @@ Model (after ESIM and v2e, as summarised in the shared reference notes, events.m
   fall within the refractory period of another event of its pixel is dropped.
 
 Cost: a step updates only the pixels given to it plus the pixels whose
-low-pass has not settled (|Lf - L| > settle_log). Quiet pixels' leak events
-come from a schedule of their next leak times (scanned once per 0.1 s of sim
-time); shot noise is sampled as one Poisson count for the array. Random
-numbers come from one numpy Generator: the same seed and inputs give
-byte-identical events. Times are integer microseconds of the sim's world time.
+low-pass has not settled (|Lf - L| > settle_log); a dense block of changed
+pixels (a re-shaded membrane) is updated on contiguous slices. The exact
+crossing arithmetic runs only on pixels whose filtered log intensity left a
+per-pixel band in which no crossing (nor leak) can happen before the end of
+the current leak epoch (0.1 s of sim time). A quiet pixel's next leak time,
+``t_start + (C_on + R - Lf) / k``, is computed for the few pixels that may
+leak within the epoch, not stored per input change; shot noise is sampled as
+one Poisson count for the array. Random numbers come from one numpy
+Generator: the same seed and inputs give byte-identical events. Times are
+integer microseconds of the sim's world time.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
-from labrig.sim.pixels import unique_indices
+from labrig.sim.pixels import PixelBlock
 
 Array = npt.NDArray[np.float64]
 Index = npt.NDArray[np.int64]
@@ -99,6 +104,19 @@ class EventSensor:
     """Stateful DVS pixels over a width x height window whose top-left pixel is sensor (x0, y0).
 
     Pixel indices are flat, row-major in the window: ``(y - y0) * width + (x - x0)``.
+
+    Implementation notes (the model is as in the module docstring):
+
+    * Per step, only the given pixels and the unsettled ones are updated; a
+      dense :class:`~labrig.sim.pixels.PixelBlock` of changed pixels is updated
+      on contiguous slices of the state (no gathers).
+    * The exact crossing arithmetic runs only on pixels whose filtered log
+      intensity left a per-pixel band ``(lo, hi)`` that no crossing can happen
+      inside until the end of the current leak epoch (the band is conservative
+      and refreshed once per epoch and at each event of the pixel).
+    * A quiet pixel's next leak time is ``t_start + (C_on + R - Lf) / k``; it
+      is computed when needed (pixels that may leak within the epoch are
+      candidates) instead of being stored and updated at every input change.
     """
 
     def __init__(
@@ -131,13 +149,22 @@ class EventSensor:
         self.reference = self.log_filtered - d0
         self.last_event_us = np.full(n, _NEVER_US, dtype=np.int64)
         self._refractory_us = int(np.ceil(p.refractory_us)) if p.refractory_us > 0 else 0
+        #: Leak drift per pixel, ln units per us (D grows by k per us).
+        self._k = p.leak_rate_hz * 1e-6 * self.c_on if p.leak_rate_hz > 0 else np.zeros(n)
         self._active = np.empty(0, dtype=np.int64)
+        self._is_active = np.zeros(n, dtype=bool)
         self._scratch = np.zeros(n, dtype=np.int64)
-        self._next_leak_us = np.full(n, np.inf)
-        if p.leak_rate_hz > 0:
-            self._next_leak_us = self.t_us + (self.c_on - d0) / (p.leak_rate_hz * self.c_on) * 1e6
-        self._leak_epoch_end_us = -np.inf
+        self._mark = np.zeros(n, dtype=np.int64)
+        self._stamp = 0
+        # Leak epoch [start, end] (us): the band (lo, hi) of Lf holds no crossing until its end.
+        self._epoch_start_us = -np.inf
+        self._epoch_end_us = -np.inf
+        self._hi = np.empty(n)
+        self._lo = np.empty(n)
+        self._c_on_margin = self.c_on - 2e-9
+        self._c_off_margin = 2e-9 - self.c_off
         self._leak_candidates = np.empty(0, dtype=np.int64)
+        self._is_candidate = np.zeros(n, dtype=bool)
 
     @classmethod
     def from_rig(
@@ -160,12 +187,21 @@ class EventSensor:
     def size(self) -> int:
         return self.width * self.height
 
-    def step(self, t0_us: int, t1_us: int, pixel_indices: npt.ArrayLike, new_intensity: npt.ArrayLike) -> npt.NDArray[np.void]:
+    def step(
+        self,
+        t0_us: int,
+        t1_us: int,
+        pixel_indices: npt.ArrayLike,
+        new_intensity: npt.ArrayLike,
+        *,
+        block: PixelBlock | None = None,
+    ) -> npt.NDArray[np.void]:
         """Advance from t0_us (the sensor's current time) to t1_us; return the events (EVENT_DTYPE) sorted by t.
 
         ``pixel_indices`` (distinct flat window indices) get ``new_intensity``
-        (linear, [0, 1]) at t1_us, ramping from their previous value; all other
-        pixels keep theirs.
+        (linear, [0, 1]) at t1_us, ramping from their previous value; so do the
+        changed pixels of ``block`` (window coordinates, disjoint from
+        ``pixel_indices``); all other pixels keep theirs.
         """
         t0_us, t1_us = int(t0_us), int(t1_us)
         if t0_us != self.t_us or t1_us <= t0_us:
@@ -173,7 +209,8 @@ class EventSensor:
         pixels = np.asarray(pixel_indices, dtype=np.int64).ravel()
         log_new = np.log(self.params.eps + np.asarray(new_intensity, dtype=np.float64).ravel())
         noise = self._sample_shot_noise(t0_us, t1_us)
-        signal = self._update(t0_us, t1_us, pixels, log_new)
+        self._start_epoch(t0_us, t1_us)
+        signal = self._update(t0_us, t1_us, pixels, log_new, block)
         leak = self._quiet_leak(t1_us)
         pix, pol, t = self._merge_noise(
             np.concatenate([signal[0], leak[0]]),
@@ -190,51 +227,131 @@ class EventSensor:
 
     # -- signal ------------------------------------------------------------------------------------
 
-    def _update(self, t0_us: int, t1_us: int, pixels: Index, log_new: Array) -> tuple[Index, npt.NDArray[np.uint8], Index]:
-        """Advance the given and the unsettled pixels; return their events (pixel, polarity, t)."""
+    def _filter(self, dt_us: int) -> tuple[float, float, float]:
+        """(a, b, c) of the low-pass step for an input ramping u0 -> u1 over dt: y1 = a y0 + b u1 + c u0 (exact)."""
+        p = self.params
+        if p.cutoff_hz <= 0:
+            return 0.0, 1.0, 0.0
+        decay = float(np.exp(-dt_us * 2 * np.pi * p.cutoff_hz * 1e-6))
+        beta = (1 - decay) / (dt_us * 2 * np.pi * p.cutoff_hz * 1e-6)
+        return decay, 1 - beta, beta - decay
+
+    def _update(
+        self, t0_us: int, t1_us: int, pixels: Index, log_new: Array, block: PixelBlock | None
+    ) -> tuple[Index, npt.NDArray[np.uint8], Index]:
+        """Advance the given, the block's and the unsettled pixels; return their events (pixel, polarity, t)."""
+        coef = self._filter(t1_us - t0_us)
+        settle = self.params.settle_log
+        old_active = self._active
+        who, y0s, y1s, active = [], [], [], []
+        if block is not None:
+            dense = self._update_block(block, coef, settle)
+            who.append(dense[0])
+            y0s.append(dense[1])
+            y1s.append(dense[2])
+            active.append(dense[3])
+            old_active = old_active[~block.contains(old_active, self.width)]  # those were updated in the block
+        if old_active.size and pixels.size:  # unsettled pixels that got no new input (no sorting, no unique)
+            self._stamp += 1
+            self._mark[pixels] = self._stamp
+            old_active = old_active[self._mark[old_active] != self._stamp]
+        upd = np.concatenate([pixels, old_active]) if old_active.size else pixels
+        if upd.size:
+            u0 = self.log_input[upd]
+            u1 = u0.copy()
+            u1[: pixels.size] = log_new
+            y0 = self.log_filtered[upd]
+            y1 = self._low_pass(y0, u0, u1, coef)
+            self.log_input[pixels] = log_new
+            self.log_filtered[upd] = y1
+            maybe = np.flatnonzero((y1 >= self._hi[upd]) | (y1 <= self._lo[upd]))
+            who.append(upd[maybe])
+            y0s.append(y0[maybe])
+            y1s.append(y1[maybe])
+            u1 -= y1
+            active.append(upd[np.abs(u1) > settle])
+        self._is_active[self._active] = False
+        self._active = np.concatenate(active) if active else np.empty(0, dtype=np.int64)
+        self._is_active[self._active] = True
+        if not who:
+            return np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64)
+        return self._crossings(t0_us, t1_us, np.concatenate(who), np.concatenate(y0s), np.concatenate(y1s))
+
+    @staticmethod
+    def _low_pass(y0: Array, u0: Array, u1: Array, coef: tuple[float, float, float]) -> Array:
+        """y1 = a y0 + b u1 + c u0, evaluated left to right."""
+        a, b, c = coef
+        y1 = np.multiply(a, y0)
+        tmp = np.multiply(b, u1)
+        y1 += tmp
+        np.multiply(c, u0, out=tmp)
+        y1 += tmp
+        return y1
+
+    def _update_block(
+        self, block: PixelBlock, coef: tuple[float, float, float], settle: float
+    ) -> tuple[Index, Array, Array, Index]:
+        """Dense update of a block's changed pixels and of the unsettled pixels inside it.
+
+        Returns the pixels that may cross a threshold (flat), their filtered log
+        intensity before and after, and the block's pixels left unsettled (flat).
+        Everything runs on slices of the state. The block's values are the
+        window's values over the whole rectangle, so for its unchanged pixels the
+        new log intensity is exactly the stored one and needs no mask.
+        """
+        rows, cols = block.slices()
+        shape = (self.height, self.width)
+        u0 = self.log_input.reshape(shape)[rows, cols]
+        y0 = self.log_filtered.reshape(shape)[rows, cols]
+        w = block.changed.shape[1]
+        log_new = np.add(self.params.eps, block.values)
+        np.log(log_new, out=log_new)
+        y1 = self._low_pass(y0, u0, log_new, coef)
+        update = block.changed | self._is_active.reshape(shape)[rows, cols]
+        maybe = np.greater_equal(y1, self._hi.reshape(shape)[rows, cols])
+        maybe |= np.less_equal(y1, self._lo.reshape(shape)[rows, cols])
+        maybe &= update
+        where = np.flatnonzero(maybe)
+        r, c = np.divmod(where, w)
+        who = (r + block.y0) * self.width + (c + block.x0)
+        before = y0[r, c]
+        after = y1[r, c]
+        lag = np.subtract(log_new, y1)
+        np.abs(lag, out=lag)
+        unsettled = np.greater(lag, settle, out=maybe)
+        unsettled &= update
+        np.copyto(y0, y1, where=update)
+        u0[...] = log_new
+        r, c = np.divmod(np.flatnonzero(unsettled), w)
+        active = (r + block.y0) * self.width + (c + block.x0)
+        return who, before, after, active
+
+    def _crossings(self, t0_us: int, t1_us: int, who: Index, y0: Array, y1: Array) -> tuple[Index, npt.NDArray[np.uint8], Index]:
+        """Threshold crossings of pixels whose filtered log intensity went y0 -> y1 over the step (already stored)."""
         p = self.params
         dt_us = t1_us - t0_us
-        upd = pixels if self._active.size == 0 else unique_indices(np.concatenate([pixels, self._active]), self._scratch)
-        u0 = self.log_input[upd]
-        self.log_input[pixels] = log_new
-        u1 = self.log_input[upd]
-        y0 = self.log_filtered[upd]
-        if p.cutoff_hz > 0:
-            # Exact low-pass response to an input ramping from u0 to u1: y1 = e y0 + a u1 + b u0.
-            decay = float(np.exp(-dt_us * 2 * np.pi * p.cutoff_hz * 1e-6))
-            beta = (1 - decay) / (dt_us * 2 * np.pi * p.cutoff_hz * 1e-6)
-            y1 = decay * y0 + (1 - beta) * u1 + (beta - decay) * u0
-        else:
-            y1 = u1
-        c_on = self.c_on[upd]
-        offset = -self.reference[upd]  # D = L_filtered - R + k (t - t_start)
+        c_on = self.c_on[who]
+        offset = -self.reference[who]  # D = L_filtered - R + k (t - t_start)
         if p.leak_rate_hz > 0:
-            k = p.leak_rate_hz * 1e-6 * c_on  # leak drift, ln units per us
+            k = self._k[who]
             offset += k * (t0_us - self._t_start_us)
             d0 = y0 + offset
             d1 = y1 + offset + k * dt_us
         else:
             d0 = y0 + offset
             d1 = y1 + offset
-        fire = np.flatnonzero((d1 >= c_on) | (d1 <= -self.c_off[upd]))
-        self.log_filtered[upd] = y1
-        self._active = upd[np.abs(y1 - u1) > p.settle_log]
-
-        who = upd[fire]
-        d0_f, d1_f, c_on_f, c_off_f = d0[fire], d1[fire], c_on[fire], self.c_off[who]
+        c_off = self.c_off[who]
+        fire = np.flatnonzero((d1 >= c_on) | (d1 <= -c_off))
+        candidates, y1_all = who, y1
+        who, d0_f, d1_f, c_on_f, c_off_f = who[fire], d0[fire], d1[fire], c_on[fire], c_off[fire]
         rising = d1_f > d0_f
         c = np.where(rising, c_on_f, c_off_f)
         count = np.floor(np.abs(d1_f) / c)
         jump = np.where(rising, count, -count) * c
         self.reference[who] += jump
-        if p.leak_rate_hz > 0:
-            # Next leak event of each updated pixel, if it stays quiet from now on.
-            d1[fire] -= jump
-            nxt = t1_us + (c_on - d1) / k
-            self._next_leak_us[upd] = nxt
-            soon = upd[nxt < self._leak_epoch_end_us]
-            if soon.size:
-                self._leak_candidates = np.concatenate([self._leak_candidates, soon])
+        self._set_band(who, c_on_f, c_off_f)
+        # Pixels that, left quiet from now on, leak before the epoch's end (the exact time is checked when due).
+        self._add_leak_candidates(candidates[y1_all >= self._hi[candidates]])
 
         step = np.maximum(np.abs(d1_f - d0_f), 1e-12)
         first = np.where(rising, c_on_f - d0_f, d0_f + c_off_f)
@@ -243,6 +360,12 @@ class EventSensor:
         count_i = count.astype(np.int64)
         j0, every = self._refractory_pattern(t_first, spacing, self.last_event_us[who])
         kept = np.where(j0 < count_i, (count_i - 1 - j0) // every + 1, 0)
+        if kept.size == 0 or kept.max() <= 1:  # one event at most per pixel (the usual case): its crossing j0
+            owner = np.flatnonzero(kept)
+            t = t_first[owner] + j0[owner] * spacing[owner]
+            t_int = np.clip(np.floor(t + 1e-6).astype(np.int64), t0_us, t1_us)
+            self.last_event_us[who[owner]] = t_int
+            return who[owner], rising[owner].astype(np.uint8), t_int
         # Expand to one row per kept event: event i of a pixel is its crossing j0 + i * every.
         owner = np.repeat(np.arange(who.size), kept)
         i = np.arange(owner.size) - np.repeat(np.cumsum(kept) - kept, kept)
@@ -265,29 +388,66 @@ class EventSensor:
         every = np.where(every * spacing < r, every + 1, every)
         return np.minimum(j0, 2**40).astype(np.int64), np.minimum(every, 2**40).astype(np.int64)
 
-    # -- leak of quiet pixels ----------------------------------------------------------------------
+    # -- no-crossing band and leak of quiet pixels --------------------------------------------------
+
+    def _start_epoch(self, t0_us: int, t1_us: int) -> None:
+        """At the first step past the epoch: a new epoch from t0_us, its bands and its leak candidates."""
+        if t1_us <= self._epoch_end_us:
+            return
+        self._epoch_start_us = float(t0_us)
+        self._epoch_end_us = float(max(t0_us + self.params.leak_epoch_us, t1_us))
+        # The whole band, in place (the same bounds as _set_band up to rounding, inside its margin).
+        np.multiply(self._k, -(self._epoch_end_us - self._t_start_us), out=self._hi)
+        self._hi += self._c_on_margin
+        self._hi += self.reference
+        np.multiply(self._k, -(self._epoch_start_us - self._t_start_us), out=self._lo)
+        self._lo += self._c_off_margin
+        self._lo += self.reference
+        self._is_candidate[self._leak_candidates] = False
+        self._leak_candidates = np.empty(0, dtype=np.int64)
+        if self.params.leak_rate_hz > 0:
+            self._add_leak_candidates(np.flatnonzero(self.log_filtered >= self._hi))
+
+    def _set_band(self, who: Index | slice, c_on: Array | None = None, c_off: Array | None = None) -> None:
+        """Band of Lf with no crossing anywhere in the epoch: D = Lf - R + k (t - t_start) stays in (-C_off, C_on).
+
+        Above ``hi`` an ON crossing (or leak) may happen before the epoch's end;
+        below ``lo`` an OFF crossing may happen after its start. A 1e-9 margin
+        keeps the band conservative against rounding.
+        """
+        r, k = self.reference[who], self._k[who]
+        c_on = self.c_on[who] if c_on is None else c_on
+        c_off = self.c_off[who] if c_off is None else c_off
+        self._hi[who] = r + c_on - k * (self._epoch_end_us - self._t_start_us) - 1e-9
+        self._lo[who] = r - c_off - k * (self._epoch_start_us - self._t_start_us) + 1e-9
+
+    def _add_leak_candidates(self, who: Index) -> None:
+        if self.params.leak_rate_hz <= 0 or who.size == 0:
+            return
+        new = who[~self._is_candidate[who]]
+        if new.size:
+            new = np.unique(new)
+            self._is_candidate[new] = True
+            self._leak_candidates = np.concatenate([self._leak_candidates, new])
 
     def _quiet_leak(self, t1_us: int) -> tuple[Index, npt.NDArray[np.uint8], Index]:
-        """ON leak events of pixels not updated this step whose next leak time is <= t1_us."""
+        """ON leak events of pixels whose next leak time is <= t1_us (pixels updated this step are past theirs)."""
         p = self.params
         empty = (np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64))
-        if p.leak_rate_hz <= 0:
+        if p.leak_rate_hz <= 0 or self._leak_candidates.size == 0:
             return empty
-        if t1_us >= self._leak_epoch_end_us:
-            self._leak_epoch_end_us = float(t1_us + p.leak_epoch_us)
-            self._leak_candidates = np.flatnonzero(self._next_leak_us < self._leak_epoch_end_us)
         out_pix, out_t = [], []
-        period_us = 1e6 / p.leak_rate_hz
         cand = self._leak_candidates
         while True:
-            due = np.unique(cand[self._next_leak_us[cand] <= t1_us])
-            if due.size == 0:
+            t = self._t_start_us + (self.c_on[cand] + self.reference[cand] - self.log_filtered[cand]) / self._k[cand]
+            due_at = t <= t1_us
+            if not due_at.any():
                 break
-            t = self._next_leak_us[due]
+            due, t = cand[due_at], t[due_at]
             t_int = np.floor(t + 1e-6).astype(np.int64)
             ok = t >= self.last_event_us[due] + self._refractory_us
             self.reference[due] += self.c_on[due]
-            self._next_leak_us[due] = t + period_us
+            self._set_band(due)
             self.last_event_us[due[ok]] = t_int[ok]
             out_pix.append(due[ok])
             out_t.append(t_int[ok])

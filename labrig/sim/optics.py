@@ -12,45 +12,99 @@ Scene model (units: intensity relative to full scale, pixels of the sensor):
   (1 on flat membrane), sampled at each pixel's rest back-projection
   onto z = 0 (small-displacement approximation), and clipped to [0, 1]:
   ``I = led * clip(S * (m + min(coverage, 1) * (M - m)), 0, 1)``.
+  S is 1 outside the box of the depth field's nodes with slope above ``slope_tol``.
 * LED ring off: I = 0 everywhere (the extrinsic-calibration blink scene).
 
-:class:`Renderer` is incremental: it keeps the marker coverage and the shading
-of the whole ROI and, per call, re-draws only markers that moved by more than
-``min_move_px`` since they were last drawn (their old and new patches) and the
-old and new bounding boxes of the slope field, then reports only the pixels
-whose intensity changed (by more than ``min_rel_change`` of its value).
+:class:`Renderer` is incremental. It keeps the marker coverage, the
+luminance ``m + min(coverage, 1) (M - m)`` and the shading of the whole ROI
+and, per call:
+
+* re-draws the markers that moved by more than ``min_move_px`` since they
+  were last drawn, and keeps exactly the pixels whose coverage changed (old
+  and new patch differenced in one window per marker: the rims, not the
+  whole patches);
+* re-shades, for a new depth field, the pixels whose shading may have
+  changed: the whole slope box when it or the grid moved, else the pixels
+  around the nodes whose slope moved by more than ``shade_tol`` since those
+  nodes were last used (so a pixel's shading is never more than
+  ``2 * slope_gain * shade_tol`` off; ``shade_tol=0`` re-shades on any change);
+* reports the pixels whose intensity changed by more than ``min_rel_change``
+  of its value: the re-shaded rectangle as a dense :class:`~labrig.sim.pixels.PixelBlock`
+  (mask and values, no index lists) and the marker rims outside it as flat indices.
+
 Pixel indices are flat, row-major in the ROI: ``(y - roi.y0_px) * roi.width + (x - roi.x0_px)``.
 """
 
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
 from labrig.sim.camera import CameraModel
-from labrig.sim.discs import ellipse_coverage, patch_half_px, patch_origins
-from labrig.sim.pixels import unique_indices
-from labrig.sim.shading import DepthField, GridLookup, slope_shading
+from labrig.sim.discs import coverage_at, ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
+from labrig.sim.pixels import PixelBlock, unique_indices
+from labrig.sim.shading import DepthField, GridLookup
 
 Array = npt.NDArray[np.float64]
 Index = npt.NDArray[np.int64]
+Rect = tuple[int, int, int, int]  # x0, x1, y0, y1: ROI pixels, exclusive ends
+
+#: Finite-difference step of the projection Jacobian, mm (as CameraModel.jacobian_px_per_mm).
+_JACOBIAN_STEP_MM = 1e-4
+#: Above this fraction of the ROI, a re-shade samples the whole ROI with the sparse matrix.
+_MATRIX_FRACTION = 0.2
 
 
-class RenderUpdate(NamedTuple):
-    """Changed ROI pixels: flat ROI indices (n,) int64 and their new linear intensity (n,) in [0, 1]."""
+class RenderUpdate:
+    """The ROI pixels one render changed and their new linear intensity in [0, 1].
 
-    indices: Index
-    intensity: Array
+    ``pixels`` / ``values``: scattered pixels (flat ROI indices, distinct);
+    ``block``: a dense rectangle of changed pixels (disjoint from ``pixels``), or None.
+    :attr:`indices` and :attr:`intensity` give everything as flat arrays.
+    """
+
+    __slots__ = ("_flat", "block", "pixels", "values", "width")
+
+    def __init__(self, pixels: Index, values: Array, block: PixelBlock | None = None, width: int = 0) -> None:
+        self.pixels, self.values, self.block, self.width = pixels, values, block, width
+        self._flat: tuple[Index, Array] | None = None
+
+    def _merged(self) -> tuple[Index, Array]:
+        if self._flat is None:
+            if self.block is None:
+                self._flat = (self.pixels, self.values)
+            else:
+                self._flat = (
+                    np.concatenate([self.pixels, self.block.flat_indices(self.width)]),
+                    np.concatenate([self.values, self.block.changed_values()]),
+                )
+        return self._flat
+
+    @property
+    def indices(self) -> Index:
+        """Flat ROI indices (n,) int64 of every changed pixel (distinct)."""
+        return self._merged()[0]
+
+    @property
+    def intensity(self) -> Array:
+        """New linear intensity (n,) of the pixels in :attr:`indices`."""
+        return self._merged()[1]
+
+    def __iter__(self):  # type: ignore[no-untyped-def]
+        """Unpacks as ``indices, intensity``."""
+        return iter(self._merged())
+
+    def __len__(self) -> int:
+        return int(self.pixels.size + (0 if self.block is None else np.count_nonzero(self.block.changed)))
 
 
 class Renderer:
     """Incremental membrane renderer over the rig's ROI (see the module docstring).
 
-    Internally every per-pixel buffer lives on a canvas: the ROI grown by one
-    patch side on each edge, so marker patches never need clipping.
+    Coverage and luminance live on a canvas: the ROI grown by one patch side on
+    each edge, so marker patches never need clipping. Shading and the reported
+    intensity live on the ROI.
     """
 
     def __init__(
@@ -64,44 +118,61 @@ class Renderer:
         min_move_px: float = 0.002,
         min_rel_change: float = 1e-4,
         slope_tol: float = 1e-4,
+        shade_tol: float = 1e-6,
     ) -> None:
         self.camera = camera or CameraModel.from_rig(rig)
         self.roi = rig.roi
         self.lighting = rig.sim.lighting
         self.radius_mm = rig.markers.diameter_mm / 2
-        self.edge_px, self.min_move_px, self.min_rel_change, self.slope_tol = edge_px, min_move_px, min_rel_change, slope_tol
+        self.edge_px, self.min_move_px, self.min_rel_change = edge_px, min_move_px, min_rel_change
+        self.slope_tol, self.shade_tol = slope_tol, shade_tol
         rest = rig.markers.rest_positions_mm() if marker_xyz_mm is None else np.asarray(marker_xyz_mm, float)
         self.half_px = half_px or patch_half_px(self._axes(rest), edge_px)
         side = 2 * self.half_px
         h, w = self.roi.height_px, self.roi.width_px
         self._pad = side
         self._canvas_shape = (h + 2 * side, w + 2 * side)
-        canvas = np.arange(self._canvas_shape[0] * self._canvas_shape[1]).reshape(self._canvas_shape)
-        self._roi_to_canvas = canvas[side : side + h, side : side + w].ravel().copy()
-        self._canvas_to_roi = np.full(canvas.size, -1, dtype=np.int64)
+        cw = self._canvas_shape[1]
+        self._roi_to_canvas = ((np.arange(h)[:, None] + side) * cw + side + np.arange(w)[None, :]).ravel()
+        self._canvas_to_roi = np.full(self._canvas_shape[0] * cw, -1, dtype=np.int64)
         self._canvas_to_roi[self._roi_to_canvas] = np.arange(h * w)
-        self._offsets = (np.arange(side)[:, None] * self._canvas_shape[1] + np.arange(side)[None, :]).ravel()
-        self._cov = np.zeros(canvas.size)
-        self._shade = np.ones(canvas.size)
-        self._shade_box: tuple[int, int, int, int] | None = None
-        self._depth: DepthField | None = None
+        self._offsets = (np.arange(side)[:, None] * cw + np.arange(side)[None, :]).ravel()
+        self._scratch = np.zeros(self._canvas_to_roi.size, dtype=np.int64)
         self._led_on = bool(self.lighting.led_on)
-        self._scratch = np.zeros(canvas.size, dtype=np.int64)
+        # Canvas: marker coverage and luminance m + min(coverage, 1) (M - m); ROI: shading, reported intensity.
+        self._cov = np.zeros(self._canvas_to_roi.size)
+        self._lum = np.full(self._cov.size, float(self.lighting.membrane_level))
+        self._shade = np.ones((h, w))
+        self._reported = np.zeros((h, w))
+        # Shading state: the slope box (ROI rect), the grid, the node slopes last used, the pixels' grid weights.
+        self._depth: DepthField | None = None
+        self._shade_box: Rect | None = None
+        self._shade_key: tuple[float, float, int, float, float, int] | None = None
+        self._shade_nodes: Array | None = None
         self._pixel_gel_xy: Array | None = None
-        self._grid_lookup: tuple[tuple[float, float, int, float, float, int], GridLookup] | None = None
+        self._lookup_key: tuple[float, float, int, float, float, int] | None = None
+        self._lookup: GridLookup | None = None
+        self._lookup_uses = 0
         self._centres, self._axes_px = self._project(rest)
         self._origins = patch_origins(self._centres, self.half_px)
         self._patches = ellipse_coverage(self._centres, self._axes_px, self._origins, self.half_px, edge_px)
         np.add.at(self._cov, self._patch_index(self._origins).ravel(), self._patches.ravel())
-        self._reported = np.zeros(canvas.size)
-        self._reported[self._roi_to_canvas] = self._compose(self._roi_to_canvas)
+        self._inner_px, self._outer_px = rim_radii(self._axes_px, edge_px)
+        self._search: dict[int, tuple[Index, Index, Array, Array]] = {}
+
+        self._lum[:] = self._luminance(self._cov)
+        self._reported[:] = self._intensity(self._lum2d(), self._shade, self._led_on)
 
     # -- public ------------------------------------------------------------------------------------
+
+    def prepare_shading(self) -> None:
+        """Compute now what the first re-shade would (the pixels' rest points on the gel), e.g. before serving live."""
+        self._gel_xy()
 
     @property
     def image(self) -> Array:
         """The current ROI intensity image (height, width), as last reported."""
-        return self._reported[self._roi_to_canvas].reshape(self.roi.height_px, self.roi.width_px)
+        return self._reported.copy()
 
     def render(
         self, marker_xyz_mm: npt.ArrayLike, depth: DepthField | None = None, *, led_on: bool | None = None
@@ -111,20 +182,18 @@ class Renderer:
         ``depth`` is compared by identity: pass the same object to mean "unchanged".
         ``led_on`` None keeps the current LED state.
         """
-        candidates = [self._move_markers(np.asarray(marker_xyz_mm, dtype=np.float64))]
-        if depth is not self._depth:
-            candidates.append(self._reshade(depth))
+        touched = self._move_markers(np.asarray(marker_xyz_mm, dtype=np.float64))
+        rect = self._reshade(depth) if depth is not self._depth else None
         if led_on is not None and bool(led_on) != self._led_on:
             self._led_on = bool(led_on)
-            candidates.append(self._roi_to_canvas)
-        pixels = unique_indices(np.concatenate(candidates), self._scratch)
-        pixels = pixels[self._canvas_to_roi[pixels] >= 0]
-        new = self._compose(pixels)
-        old = self._reported[pixels]
-        changed = np.abs(new - old) > self.min_rel_change * (old + new + 1e-3)
-        pixels, new = pixels[changed], new[changed]
-        self._reported[pixels] = new
-        return RenderUpdate(self._canvas_to_roi[pixels], new)
+            rect = (0, self.roi.width_px, 0, self.roi.height_px)
+        block = self._compose_block(rect) if rect is not None else None
+        pixels = self._canvas_to_roi[touched]
+        pixels = pixels[pixels >= 0]
+        if block is not None and pixels.size:
+            pixels = pixels[~block.contains(pixels, self.roi.width_px)]
+        pixels, values = self._compose_pixels(pixels)
+        return RenderUpdate(pixels, values, block, self.roi.width_px)
 
     def render_full(self, marker_xyz_mm: npt.ArrayLike, depth: DepthField | None = None, *, led_on: bool | None = None) -> Array:
         """Render the ROI (height, width) from scratch, without touching the incremental state."""
@@ -133,13 +202,14 @@ class Renderer:
         cov = np.zeros_like(self._cov)
         patches = ellipse_coverage(centres, axes, origins, self.half_px, self.edge_px)
         np.add.at(cov, self._patch_index(origins).ravel(), patches.ravel())
-        shade = np.ones(self.roi.height_px * self.roi.width_px)
+        shade = np.ones((self.roi.height_px, self.roi.width_px))
         box = self._slope_box(depth)
         if box is not None and depth is not None:
-            shade[self._box_pixels(box)] = self._box_shading(depth, box)
+            x0, x1, y0, y1 = box
+            shade[y0:y1, x0:x1] = 1.0 + self.lighting.slope_gain * self._sample(depth, box)
         led = self._led_on if led_on is None else bool(led_on)
-        image = self._intensity(cov[self._roi_to_canvas], shade, led)
-        return image.reshape(self.roi.height_px, self.roi.width_px)
+        lum = self._luminance(cov)[self._roi_to_canvas].reshape(shade.shape)
+        return self._intensity(lum, shade, led)
 
     # -- markers -----------------------------------------------------------------------------------
 
@@ -147,34 +217,160 @@ class Renderer:
         return self.camera.jacobian_px_per_mm(xyz)[..., :2] * self.radius_mm
 
     def _project(self, xyz: Array) -> tuple[Array, Array]:
-        """Sensor-pixel centres (N, 2) and ellipse axes (N, 2, 2) of the markers."""
-        return self.camera.project(xyz), self._axes(xyz)
+        """Sensor-pixel centres (N, 2) and ellipse axes (N, 2, 2) of the markers (one batched projection)."""
+        h = _JACOBIAN_STEP_MM
+        points = np.repeat(xyz[None], 5, axis=0)
+        points[1, :, 0] += h
+        points[2, :, 0] -= h
+        points[3, :, 1] += h
+        points[4, :, 1] -= h
+        px = self.camera.project(points.reshape(-1, 3)).reshape(5, len(xyz), 2)
+        jac = np.stack([(px[1] - px[2]) / (2 * h), (px[3] - px[4]) / (2 * h)], axis=-1)
+        return px[0], jac * self.radius_mm
 
-    def _patch_index(self, origins: npt.NDArray[np.int64]) -> Index:
-        """Flat canvas indices (K, S*S) of the patches with these sensor-pixel origins (clipped to the canvas)."""
-        side = 2 * self.half_px
+    def _canvas_corner(self, origins: npt.NDArray[np.int64], side: int) -> Index:
+        """Flat canvas index of the top-left pixel of side x side windows at these sensor-pixel origins (clipped)."""
         ch, cw = self._canvas_shape
         ox = np.clip(origins[:, 0] - self.roi.x0_px + self._pad, 0, cw - side)
         oy = np.clip(origins[:, 1] - self.roi.y0_px + self._pad, 0, ch - side)
-        return (oy * cw + ox)[:, None] + self._offsets[None, :]
+        return oy * cw + ox
+
+    def _patch_index(self, origins: npt.NDArray[np.int64]) -> Index:
+        """Flat canvas indices (K, S*S) of the patches with these sensor-pixel origins (clipped to the canvas)."""
+        return self._canvas_corner(origins, 2 * self.half_px)[:, None] + self._offsets[None, :]
 
     def _move_markers(self, xyz: Array) -> Index:
-        """Re-draw the markers that moved; return the canvas pixels whose coverage may have changed."""
+        """Re-draw the markers that moved; return the distinct canvas pixels whose coverage changed."""
         centres, axes = self._project(xyz)
         shift = np.maximum(np.abs(centres - self._centres).max(axis=1), np.abs(axes - self._axes_px).max(axis=(1, 2)))
         moved = np.flatnonzero(shift > self.min_move_px)
         if moved.size == 0:
             return np.empty(0, dtype=np.int64)
-        old_index = self._patch_index(self._origins[moved])
-        np.add.at(self._cov, old_index.ravel(), -self._patches[moved].ravel())
-        origins = patch_origins(centres[moved], self.half_px)
-        patches = ellipse_coverage(centres[moved], axes[moved], origins, self.half_px, self.edge_px)
-        new_index = self._patch_index(origins)
-        np.add.at(self._cov, new_index.ravel(), patches.ravel())
-        relocated = np.any(origins != self._origins[moved], axis=1)
-        self._centres[moved], self._axes_px[moved] = centres[moved], axes[moved]
-        self._origins[moved], self._patches[moved] = origins, patches
-        return np.concatenate([old_index[relocated].ravel(), new_index.ravel()])
+        c0, c1, a1 = self._centres[moved], centres[moved], axes[moved]
+        # Only the rims can change: pixels nearer the centre than the inner rim radius are fully covered and
+        # those beyond the outer one empty, before and after. Candidates: an annulus about the new centre
+        # holding both rims (the old one widened by the move), if it lies inside the new patch.
+        inner1, outer1 = rim_radii(a1, self.edge_px)
+        move = np.hypot(c1[:, 0] - c0[:, 0], c1[:, 1] - c0[:, 1])
+        low = np.maximum(np.minimum(self._inner_px[moved] - move, inner1) - 0.05, 0.0)
+        high = np.maximum(self._outer_px[moved] + move, outer1) + 0.05
+        origins = patch_origins(c1, self.half_px)
+        rim = high <= self.half_px - 1
+        parts = []
+        if rim.any():
+            parts.append(self._rim_change(moved[rim], c1[rim], a1[rim], origins[rim], low[rim], high[rim]))
+        if not rim.all():
+            far = ~rim
+            parts.append(self._coverage_change(moved[far], c1[far], a1[far], origins[far]))
+        pixels = np.concatenate([p[0] for p in parts]) if len(parts) > 1 else parts[0][0]
+        delta = np.concatenate([p[1] for p in parts]) if len(parts) > 1 else parts[0][1]
+        np.add.at(self._cov, pixels, delta)
+        if moved.size > 1:
+            pixels = unique_indices(pixels, self._scratch)  # overlapping markers
+        self._lum[pixels] = self._luminance(self._cov[pixels])
+        self._centres[moved], self._axes_px[moved], self._origins[moved] = c1, a1, origins
+        self._inner_px[moved], self._outer_px[moved] = inner1, outer1
+        return pixels
+
+    def _search_grid(self, reach: int) -> tuple[Index, Index, Array, Array]:
+        """Patch columns and rows (and as floats) of the square within ``reach`` px of pixel floor(centre)."""
+        if reach not in self._search:
+            span = np.arange(self.half_px - 1 - reach, self.half_px + reach + 1)
+            cols, rows = np.tile(span, span.size), np.repeat(span, span.size)
+            self._search[reach] = (cols, rows, cols.astype(np.float64), rows.astype(np.float64))
+        return self._search[reach]
+
+    def _rim_change(
+        self, markers: Index, c1: Array, a1: Array, o1: npt.NDArray[np.int64], low: Array, high: Array
+    ) -> tuple[Index, Array]:
+        """Canvas pixels and coverage change of markers moved within their rims (see :meth:`_move_markers`).
+
+        The new coverage is evaluated only at the candidate pixels, with the same
+        arithmetic as :func:`ellipse_coverage`; the stored patches (moved to the
+        new origins) are updated there, so they stay exactly the full patches.
+        """
+        side = 2 * self.half_px
+        o0 = self._origins[markers]
+        cols, rows, fcols, frows = self._search_grid(min(int(np.ceil(high.max())), self.half_px - 1))
+        qx = (o1[:, 0] - c1[:, 0])[:, None] + fcols[None, :]
+        qy = (o1[:, 1] - c1[:, 1])[:, None] + frows[None, :]
+        r2 = qx * qx
+        r2 += qy * qy
+        near = r2 >= (low * low)[:, None]
+        near &= r2 <= (high * high)[:, None]
+        flat = np.flatnonzero(near)
+        which, within = np.divmod(flat, cols.size)
+        row, col = rows[within], cols[within]
+        qa, qb, qc = inverse_shape(a1)
+        new = coverage_at(qx.ravel()[flat], qy.ravel()[flat], qa[which], qb[which], qc[which], self.edge_px)
+        patches = self._patches.reshape(len(self._patches), side * side)
+        old_at = (which * 0 + markers[which]) * (side * side)
+        row0 = row + (o1[:, 1] - o0[:, 1])[which]
+        col0 = col + (o1[:, 0] - o0[:, 0])[which]
+        inside = (col0 >= 0) & (col0 < side) & (row0 >= 0) & (row0 < side)
+        old = np.where(inside, patches.ravel()[old_at + np.where(inside, row0 * side + col0, 0)], 0.0)
+        relocated = np.flatnonzero(np.any(o1 != o0, axis=1))
+        if relocated.size:
+            self._shift_patches(markers[relocated], o1[relocated] - o0[relocated])
+        patches.ravel()[markers[which] * (side * side) + row * side + col] = new
+        new -= old
+        changed = np.flatnonzero(new)
+        which, row, col = which[changed], row[changed], col[changed]
+        cw = self._canvas_shape[1]
+        return self._canvas_corner(o1, side)[which] + row * cw + col, new[changed]
+
+    def _shift_patches(self, markers: Index, offset: npt.NDArray[np.int64]) -> None:
+        """Re-express stored patches at origins moved by ``offset`` (K, 2) px; pixels entering them are empty."""
+        side = 2 * self.half_px
+        grid = np.arange(side)
+        src_row = grid[None, :, None] + offset[:, 1, None, None]
+        src_col = grid[None, None, :] + offset[:, 0, None, None]
+        valid = (src_row >= 0) & (src_row < side) & (src_col >= 0) & (src_col < side)
+        src = np.where(valid, src_row * side + src_col, 0) + (markers * side * side)[:, None, None]
+        self._patches[markers] = np.where(valid, self._patches.ravel()[src], 0.0)
+
+    def _coverage_change(self, markers: Index, c1: Array, a1: Array, new_origins: npt.NDArray[np.int64]) -> tuple[Index, Array]:
+        """Canvas pixels (may repeat across markers) and the coverage change there, from old to new patches.
+
+        The new patches are drawn in full; each marker's old and new patches are
+        differenced in one window holding both, so only pixels whose coverage
+        actually changed come out.
+        """
+        old_origins, old = self._origins[markers], self._patches[markers]
+        new = ellipse_coverage(c1, a1, new_origins, self.half_px, self.edge_px)
+        self._patches[markers] = new
+        k, side = len(new), 2 * self.half_px
+        reach = int(np.abs(new_origins - old_origins).max(initial=0))
+        if reach >= side:  # a jump past the patch: old and new patches are disjoint
+            index = np.concatenate([self._patch_index(old_origins).ravel(), self._patch_index(new_origins).ravel()])
+            delta = np.concatenate([-old.ravel(), new.ravel()])
+            keep = delta != 0
+            return index[keep], delta[keep]
+        win = side + reach
+        corner = np.minimum(old_origins, new_origins)
+        local = (np.arange(side)[:, None] * win + np.arange(side)[None, :]).ravel()
+        start = np.arange(k) * (win * win)
+        window = np.zeros(k * win * win)
+        at_new = (start + (new_origins[:, 1] - corner[:, 1]) * win + (new_origins[:, 0] - corner[:, 0]))[:, None] + local
+        at_old = (start + (old_origins[:, 1] - corner[:, 1]) * win + (old_origins[:, 0] - corner[:, 0]))[:, None] + local
+        window[at_new.ravel()] = new.ravel()
+        window[at_old.ravel()] -= old.ravel()
+        nonzero = np.flatnonzero(window)
+        marker, within = np.divmod(nonzero, win * win)
+        row, col = np.divmod(within, win)
+        cw = self._canvas_shape[1]
+        # The window's top-left pixel on the canvas, placed as the new patch is (see _patch_index).
+        lead = new_origins - corner
+        top_left = self._canvas_corner(new_origins, side) - (lead[:, 1] * cw + lead[:, 0])
+        return top_left[marker] + row * cw + col, window[nonzero]
+
+    def _luminance(self, coverage: Array) -> Array:
+        m, big_m = self.lighting.membrane_level, self.lighting.marker_level
+        return m + np.clip(coverage, 0.0, 1.0) * (big_m - m)
+
+    def _lum2d(self) -> Array:
+        """Canvas luminance as a 2D view."""
+        return self._lum.reshape(self._canvas_shape)[self._pad : -self._pad, self._pad : -self._pad]
 
     # -- shading -----------------------------------------------------------------------------------
 
@@ -186,25 +382,34 @@ class Renderer:
             self._pixel_gel_xy = self.camera.backproject_to_plane(xy)[:, :2].copy()
         return self._pixel_gel_xy
 
-    def _lookup(self, depth: DepthField) -> GridLookup:
-        """Bilinear weights of every ROI pixel's rest gel point on the depth field's grid, cached per grid."""
+    def _grid_lookup(self, depth: DepthField) -> GridLookup:
+        """Bilinear weights of every ROI pixel's rest gel point on the depth field's grid, cached per grid position."""
         key = depth.grid_key()
-        if self._grid_lookup is None or self._grid_lookup[0] != key:
-            lookup = GridLookup.build(key, self._gel_xy()).reshape(self.roi.height_px, self.roi.width_px)
-            self._grid_lookup = (key, lookup)
-        return self._grid_lookup[1]
+        if self._lookup is None or self._lookup_key != key:
+            self._lookup = GridLookup.build(key, self._gel_xy()).reshape(self.roi.height_px, self.roi.width_px)
+            self._lookup_key, self._lookup_uses = key, 0
+        self._lookup_uses += 1
+        return self._lookup
 
-    def _box_shading(self, depth: DepthField, box: tuple[int, int, int, int]) -> Array:
-        """Slope shading S of the ROI pixel box, flattened row-major like :meth:`_box_pixels`."""
-        x0, x1, y0, y1 = box
-        slope = self._lookup(depth).sample(depth.slope, np.s_[y0:y1, x0:x1])
-        return slope_shading(slope, self.lighting.slope_gain).ravel()
+    def _sample(self, depth: DepthField, rect: Rect) -> Array:
+        """The depth field's node slopes interpolated at the pixels of a ROI rect, (h, w)."""
+        x0, x1, y0, y1 = rect
+        lookup = self._grid_lookup(depth)
+        h, w = self.roi.height_px, self.roi.width_px
+        if self._lookup_uses > 1 and (x1 - x0) * (y1 - y0) >= _MATRIX_FRACTION * h * w:
+            # The grid has stayed put: one sparse product for the whole ROI (weights packed once per grid position).
+            full = lookup.matrix() @ depth.slope.ravel()
+            return full.reshape(h, w)[y0:y1, x0:x1]
+        return lookup.sample(depth.slope, np.s_[y0:y1, x0:x1])
 
-    def _slope_box(self, depth: DepthField | None) -> tuple[int, int, int, int] | None:
+    def _slope_box(self, depth: DepthField | None) -> Rect | None:
         """ROI pixel box (x0, x1, y0, y1; exclusive ends, ROI coordinates) holding the slope above tolerance."""
         if depth is None:
             return None
-        box_mm = depth.slope_bbox_mm(self.slope_tol)
+        return self._pixel_box(depth.slope_bbox_mm(self.slope_tol))
+
+    def _pixel_box(self, box_mm: tuple[float, float, float, float] | None) -> Rect | None:
+        """ROI pixel box holding the image of a gel-frame box (mm), with a 2-3 px margin; None if empty."""
         if box_mm is None:
             return None
         x0, x1, y0, y1 = box_mm
@@ -220,40 +425,99 @@ class Renderer:
             return None
         return bx0, bx1, by0, by1
 
-    def _box_pixels(self, box: tuple[int, int, int, int]) -> Index:
-        """Flat ROI indices of a ROI pixel box."""
-        x0, x1, y0, y1 = box
-        return (np.arange(y0, y1)[:, None] * self.roi.width_px + np.arange(x0, x1)[None, :]).ravel()
-
-    def _reshade(self, depth: DepthField | None) -> Index:
-        """Re-shade the old and new slope boxes; return their canvas pixels."""
-        touched = [np.empty(0, dtype=np.int64)]
+    def _reshade(self, depth: DepthField | None) -> Rect | None:
+        """Update the shading for a new depth field; return the ROI rect whose shading was rewritten (or None)."""
+        old_box = self._shade_box
         box = self._slope_box(depth)
-        if self._shade_box is not None:
-            old = self._box_pixels(self._shade_box)
-            if box is not None:  # keep only old pixels the new box will not rewrite
-                y, x = np.divmod(old, self.roi.width_px)
-                old = old[(x < box[0]) | (x >= box[1]) | (y < box[2]) | (y >= box[3])]
-            old = self._roi_to_canvas[old]
-            self._shade[old] = 1.0
-            touched.append(old)
-        if box is not None and depth is not None:
-            new = self._box_pixels(box)
-            shade = self._box_shading(depth, box)
-            new = self._roi_to_canvas[new]
-            self._shade[new] = shade
-            touched.append(new)
-        self._shade_box, self._depth = box, depth
-        return np.concatenate(touched)
+        self._depth = depth
+        if depth is None or box is None:
+            self._shade_box, self._shade_key, self._shade_nodes = None, None, None
+            if old_box is None:
+                return None
+            x0, x1, y0, y1 = old_box
+            self._shade[y0:y1, x0:x1] = 1.0
+            return old_box
+        slope = depth.slope
+        key = depth.grid_key()
+        if box == old_box and key == self._shade_key and self._shade_nodes is not None:
+            # Same box on the same grid: re-shade only around the nodes whose slope moved by more than shade_tol.
+            moved = np.abs(slope - self._shade_nodes) > self.shade_tol
+            rows = np.flatnonzero(moved.any(axis=1))
+            if rows.size == 0:
+                return None
+            cols = np.flatnonzero(moved[rows[0] : rows[-1] + 1].any(axis=0))
+            j0, j1, i0, i1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+            self._shade_nodes[j0:j1, i0:i1] = slope[j0:j1, i0:i1]  # their dependent pixels are all re-shaded below
+            ny, nx = slope.shape
+            area = self._pixel_box((
+                float(depth.x_mm[max(i0 - 1, 0)]), float(depth.x_mm[min(i1, nx - 1)]),
+                float(depth.y_mm[max(j0 - 1, 0)]), float(depth.y_mm[min(j1, ny - 1)]),
+            ))
+            rect = _intersect(area, box)
+            if rect is None:
+                return None
+            self._shade_rect(depth, rect)
+            return rect
+        self._shade_box, self._shade_key, self._shade_nodes = box, key, slope.copy()
+        if old_box is not None:
+            x0, x1, y0, y1 = old_box
+            self._shade[y0:y1, x0:x1] = 1.0
+        self._shade_rect(depth, box)
+        return box if old_box is None else _union(old_box, box)
+
+    def _shade_rect(self, depth: DepthField, rect: Rect) -> None:
+        """Shading S = 1 + slope_gain * slope over a ROI rect, written in place."""
+        x0, x1, y0, y1 = rect
+        shade = self._shade[y0:y1, x0:x1]
+        np.multiply(self._sample(depth, rect), self.lighting.slope_gain, out=shade)
+        shade += 1.0
 
     # -- composition -------------------------------------------------------------------------------
 
-    def _compose(self, pixels: Index) -> Array:
-        """Current intensity at flat canvas pixels."""
-        return self._intensity(self._cov[pixels], self._shade[pixels], self._led_on)
-
-    def _intensity(self, coverage: Array, shade: Array, led_on: bool) -> Array:
+    def _intensity(self, lum: Array, shade: Array, led_on: bool) -> Array:
+        """``clip(shade * lum, 0, 1)`` (both factors are positive), or 0 with the LED off."""
         if not led_on:
-            return np.zeros_like(coverage)
-        m, big_m = self.lighting.membrane_level, self.lighting.marker_level
-        return np.clip(shade * (m + np.clip(coverage, 0.0, 1.0) * (big_m - m)), 0.0, 1.0)
+            return np.zeros(np.broadcast_shapes(lum.shape, shade.shape))
+        out = np.multiply(shade, lum)
+        return np.minimum(out, 1.0, out=out)
+
+    def _changed(self, new: Array, old: Array) -> npt.NDArray[np.bool_]:
+        """Pixels whose intensity moved by more than min_rel_change of its value."""
+        diff = np.subtract(new, old)
+        np.abs(diff, out=diff)
+        limit = np.add(old, new)
+        limit += 1e-3
+        limit *= self.min_rel_change
+        return np.greater(diff, limit, out=np.empty(diff.shape, dtype=bool))
+
+    def _compose_block(self, rect: Rect) -> PixelBlock:
+        """Compose a ROI rect; update the reported image where it changed; the changes as a dense block."""
+        x0, x1, y0, y1 = rect
+        new = self._intensity(self._lum2d()[y0:y1, x0:x1], self._shade[y0:y1, x0:x1], self._led_on)
+        old = self._reported[y0:y1, x0:x1]
+        changed = self._changed(new, old)
+        np.copyto(old, new, where=changed)
+        return PixelBlock(y0, x0, changed, old.copy())
+
+    def _compose_pixels(self, pixels: Index) -> tuple[Index, Array]:
+        """Compose scattered ROI pixels; update the reported image; (pixels that changed, their new intensity)."""
+        if pixels.size == 0:
+            return pixels, np.empty(0)
+        lum = self._lum[self._roi_to_canvas[pixels]]
+        new = self._intensity(lum, self._shade.ravel()[pixels], self._led_on)
+        reported = self._reported.ravel()
+        changed = self._changed(new, reported[pixels])
+        pixels, new = pixels[changed], new[changed]
+        reported[pixels] = new
+        return pixels, new
+
+
+def _union(a: Rect, b: Rect) -> Rect:
+    return min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])
+
+
+def _intersect(a: Rect | None, b: Rect) -> Rect | None:
+    if a is None:
+        return None
+    x0, x1, y0, y1 = max(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), min(a[3], b[3])
+    return (x0, x1, y0, y1) if x1 > x0 and y1 > y0 else None

@@ -16,7 +16,14 @@ Time stepping
   bracket a render time.
 * Renders (and event sensor steps) are adaptive: a step is as long as keeps
   every marker's image motion under ``max_step_px`` (0.2 px), estimated from the
-  bracketing solves. The slope shading of the membrane changes at solve times.
+  bracketing solves (once per solve pair). The slope shading of the membrane
+  changes at solve times.
+* Cost (single core, see tools/bench/bench_rig.py): per render, only the
+  markers' rims and the pixels they change; per solve, one table lookup and,
+  in contact, a re-shade of the slope box (a sparse product over the ROI
+  and dense passes over the box, renderer and pixels alike). What depends
+  only on the contact anchor (pixel weights on the grid, marker weights and
+  cells) is kept while the anchor stays put.
 
 Contact kinematics
 ------------------
@@ -115,7 +122,7 @@ class VirtualRig:
         self.rest_mm = rig.markers.rest_positions_mm()
         self.cells = _marker_cells(rig)
         self.renderer = Renderer(rig, self.camera)
-        self.renderer.render_full(self.rest_mm, None)
+        self.renderer.prepare_shading()
         self.sensor = EventSensor.from_rig(rig, self.renderer.image, t_us=0, seed=seed)
         self.solve_step_mm = solve_step_mm
         self.min_solve_interval_us = min_solve_interval_us
@@ -131,6 +138,15 @@ class VirtualRig:
         self._next: Solve | None = None
         self._pending_triggers: list[tuple[int, int]] = []
         self._next_truth_us = 0
+        # Per solve pair: the markers' image positions at both solves and the render step they allow.
+        self._prev_px: npt.NDArray[np.float64] | None = None
+        self._next_px: npt.NDArray[np.float64] | None = None
+        self._step: int = max_render_interval_us
+        # Per contact anchor: marker cells of the grid nodes and the markers' bilinear weights.
+        self._cells_key: tuple[float, ...] | None = None
+        self._cells_of_nodes: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
+        self._marker_weights_key: tuple[float, ...] | None = None
+        self._marker_weights: _Weights | None = None
 
     # -- clocks and triggers ---------------------------------------------------
 
@@ -209,10 +225,15 @@ class VirtualRig:
         return float(np.interp(depth, depths[: len(slips)], slips)) if len(slips) else 0.0
 
     def _displaced_markers(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        local = self.rest_mm[:, :2] - anchor
-        ux = _bilinear(fields.x_mm, fields.y_mm, fields.ux_mm, local)
-        uy = _bilinear(fields.x_mm, fields.y_mm, fields.uy_mm, local)
-        uz = -_bilinear(fields.x_mm, fields.y_mm, fields.depth_mm, local)
+        key = (float(anchor[0]), float(anchor[1]), float(fields.x_mm[0]), float(fields.y_mm[0]),
+               len(fields.x_mm), len(fields.y_mm))
+        if self._marker_weights is None or self._marker_weights_key != key:
+            self._marker_weights = _Weights.build(fields.x_mm, fields.y_mm, self.rest_mm[:, :2] - anchor)
+            self._marker_weights_key = key
+        weights = self._marker_weights
+        ux = weights.sample(fields.ux_mm)
+        uy = weights.sample(fields.uy_mm)
+        uz = -weights.sample(fields.depth_mm)
         return self.rest_mm + np.stack([ux, uy, uz], axis=1)
 
     def _centre_of_pressure(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -225,21 +246,44 @@ class VirtualRig:
         return np.array([x, y, 0.0])
 
     def _marker_forces(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """Traction integrated over each marker's cell (N, gel frame, on the gel)."""
-        col = np.floor((fields.x_mm + anchor[0] - self.cells.x0_mm) / self.cells.pitch_mm).astype(int)
-        row = np.floor((fields.y_mm + anchor[1] - self.cells.y0_mm) / self.cells.pitch_mm).astype(int)
-        col = np.where((col >= 0) & (col < self.cells.cols), col, -1)
-        row = np.where((row >= 0) & (row < self.cells.rows), row, -1)
-        cell = np.where((row[:, None] >= 0) & (col[None, :] >= 0), row[:, None] * self.cells.cols + col[None, :], -1)
-        keep = cell >= 0
+        """Traction integrated over each marker's cell (N, gel frame, on the gel).
+
+        Only the box of nodes under pressure is summed (the traction vanishes
+        with the pressure, under the Coulomb bound), which leaves the sums as
+        they are; the nodes' cells are kept per contact anchor.
+        """
         n = self.cells.rows * self.cells.cols
-        area = (fields.x_mm[1] - fields.x_mm[0]) * (fields.y_mm[1] - fields.y_mm[0])
         out = np.zeros((n, 3))
-        index = cell[keep]
-        out[:, 0] = np.bincount(index, fields.traction_mpa[0][keep], minlength=n) * area
-        out[:, 1] = np.bincount(index, fields.traction_mpa[1][keep], minlength=n) * area
-        out[:, 2] = -np.bincount(index, fields.pressure_mpa[keep], minlength=n) * area
+        loaded = fields.pressure_mpa > 0
+        rows = np.flatnonzero(loaded.any(axis=1))
+        if rows.size == 0:
+            return out
+        cols = np.flatnonzero(loaded[rows[0] : rows[-1] + 1].any(axis=0))
+        box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+        flat, index = self._node_cells(fields, anchor, box)
+        area = (fields.x_mm[1] - fields.x_mm[0]) * (fields.y_mm[1] - fields.y_mm[0])
+        out[:, 0] = np.bincount(index, fields.traction_mpa[0][box].ravel()[flat], minlength=n) * area
+        out[:, 1] = np.bincount(index, fields.traction_mpa[1][box].ravel()[flat], minlength=n) * area
+        out[:, 2] = -np.bincount(index, fields.pressure_mpa[box].ravel()[flat], minlength=n) * area
         return out
+
+    def _node_cells(
+        self, fields: ContactFields, anchor: npt.NDArray[np.float64], box: tuple[slice, slice]
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+        """(flat positions in the node box of the nodes inside a marker cell, their cell indices), cached."""
+        key = (float(anchor[0]), float(anchor[1]), float(fields.x_mm[0]), float(fields.y_mm[0]),
+               box[0].start, box[0].stop, box[1].start, box[1].stop)
+        if self._cells_of_nodes is None or self._cells_key != key:
+            x_mm, y_mm = fields.x_mm[box[1]], fields.y_mm[box[0]]
+            col = np.floor((x_mm + anchor[0] - self.cells.x0_mm) / self.cells.pitch_mm).astype(int)
+            row = np.floor((y_mm + anchor[1] - self.cells.y0_mm) / self.cells.pitch_mm).astype(int)
+            col = np.where((col >= 0) & (col < self.cells.cols), col, -1)
+            row = np.where((row >= 0) & (row < self.cells.rows), row, -1)
+            cell = np.where((row[:, None] >= 0) & (col[None, :] >= 0), row[:, None] * self.cells.cols + col[None, :], -1)
+            flat = np.flatnonzero(cell >= 0)
+            self._cells_of_nodes = (flat, cell.ravel()[flat])
+            self._cells_key = key
+        return self._cells_of_nodes
 
     def ft_wrench(self, solve: Solve) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """(force N, torque N m) the F/T sensor measures, in its own axes.
@@ -271,20 +315,21 @@ class VirtualRig:
             assert self._prev is not None
             if self._next is None or self.t_us >= self._next.t_us:
                 if self._next is not None:
-                    self._prev = self._next
+                    self._prev, self._prev_px = self._next, self._next_px
                 t_next = self._next_solve_time(self._prev, tool_path)
                 self._next = self.solve(t_next, tool_path(t_next)[0])
                 out.solves.append(self._next)
                 self._depth_field = self._shading_field(self._prev)
-            step = self._step_us()
-            t1 = min(self.t_us + step, self._next.t_us, t_end_us)
+                self._step = self._step_us()
+            t1 = min(self.t_us + self._step, self._next.t_us, t_end_us)
             markers = self._markers_at(t1)
-            while self._next_truth_us <= t1:
-                truth_t.append(self._next_truth_us)
-                truth_mm.append(self._markers_at(self._next_truth_us))
-                self._next_truth_us += TRUTH_MARKER_INTERVAL_US
+            if self._next_truth_us <= t1:
+                times = np.arange(self._next_truth_us, t1 + 1, TRUTH_MARKER_INTERVAL_US, dtype=np.int64)
+                truth_t.extend(times.tolist())
+                truth_mm.extend(self._markers_at_times(times))
+                self._next_truth_us = int(times[-1]) + TRUTH_MARKER_INTERVAL_US
             update = self.renderer.render(markers, self._depth_field)
-            chunks.append(self.sensor.step(self.t_us, t1, update.indices, update.intensity))
+            chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
             out.renders += 1
             self.t_us = t1
         if chunks:
@@ -314,11 +359,23 @@ class VirtualRig:
         w = (t_us - prev.t_us) / (nxt.t_us - prev.t_us)
         return prev.markers_mm + w * (nxt.markers_mm - prev.markers_mm)
 
+    def _markers_at_times(self, t_us: npt.NDArray[np.int64]) -> npt.NDArray[np.float64]:
+        """:meth:`_markers_at` for several times at once, (T, N, 3)."""
+        prev, nxt = self._prev, self._next
+        assert prev is not None
+        if nxt is None or nxt.t_us == prev.t_us:
+            return np.repeat(prev.markers_mm[None], len(t_us), axis=0)
+        w = (t_us - prev.t_us) / (nxt.t_us - prev.t_us)
+        return prev.markers_mm + w[:, None, None] * (nxt.markers_mm - prev.markers_mm)
+
     def _step_us(self) -> int:
-        """Longest render step keeping every marker's image motion under max_step_px."""
+        """Longest render step keeping every marker's image motion under max_step_px (once per solve pair)."""
         prev, nxt = self._prev, self._next
         assert prev is not None and nxt is not None
-        motion = self.camera.project(nxt.markers_mm) - self.camera.project(prev.markers_mm)
+        if self._prev_px is None:
+            self._prev_px = self.camera.project(prev.markers_mm)
+        self._next_px = self.camera.project(nxt.markers_mm)
+        motion = self._next_px - self._prev_px
         px = float(np.max(np.hypot(motion[:, 0], motion[:, 1])))
         if px <= 1e-9:
             return self.max_render_interval_us
@@ -345,18 +402,29 @@ def _marker_cells(rig: RigConfig) -> _Cells:
     return _Cells(-m.cols * m.pitch_mm / 2, -m.rows * m.pitch_mm / 2, m.pitch_mm, m.rows, m.cols)
 
 
-def _bilinear(
-    x_mm: npt.NDArray[np.float64], y_mm: npt.NDArray[np.float64], values: npt.NDArray[np.floating], xy: npt.NDArray[np.float64]
-) -> npt.NDArray[np.float64]:
-    """Sample a field on a regular grid at points (N, 2); zero outside the grid."""
-    dx, dy = x_mm[1] - x_mm[0], y_mm[1] - y_mm[0]
-    fx = (xy[:, 0] - x_mm[0]) / dx
-    fy = (xy[:, 1] - y_mm[0]) / dy
-    inside = (fx >= 0) & (fx <= len(x_mm) - 1) & (fy >= 0) & (fy <= len(y_mm) - 1)
-    i0 = np.clip(np.floor(fx).astype(int), 0, len(x_mm) - 2)
-    j0 = np.clip(np.floor(fy).astype(int), 0, len(y_mm) - 2)
-    wx, wy = np.clip(fx - i0, 0, 1), np.clip(fy - j0, 0, 1)
-    v = values
-    out = (v[j0, i0] * (1 - wx) * (1 - wy) + v[j0, i0 + 1] * wx * (1 - wy)
-           + v[j0 + 1, i0] * (1 - wx) * wy + v[j0 + 1, i0 + 1] * wx * wy)
-    return np.where(inside, out, 0.0)
+@dataclass(frozen=True)
+class _Weights:
+    """Bilinear sampling of fields on a regular grid at fixed points (N, 2); zero outside the grid."""
+
+    i0: npt.NDArray[np.int64]
+    j0: npt.NDArray[np.int64]
+    wx: npt.NDArray[np.float64]
+    wy: npt.NDArray[np.float64]
+    inside: npt.NDArray[np.bool_]
+
+    @classmethod
+    def build(cls, x_mm: npt.NDArray[np.float64], y_mm: npt.NDArray[np.float64], xy: npt.NDArray[np.float64]) -> _Weights:
+        dx, dy = x_mm[1] - x_mm[0], y_mm[1] - y_mm[0]
+        fx = (xy[:, 0] - x_mm[0]) / dx
+        fy = (xy[:, 1] - y_mm[0]) / dy
+        inside = (fx >= 0) & (fx <= len(x_mm) - 1) & (fy >= 0) & (fy <= len(y_mm) - 1)
+        i0 = np.clip(np.floor(fx).astype(int), 0, len(x_mm) - 2)
+        j0 = np.clip(np.floor(fy).astype(int), 0, len(y_mm) - 2)
+        return cls(i0, j0, np.clip(fx - i0, 0, 1), np.clip(fy - j0, 0, 1), inside)
+
+    def sample(self, values: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
+        i0, j0, wx, wy, v = self.i0, self.j0, self.wx, self.wy, values
+        out = (v[j0, i0] * (1 - wx) * (1 - wy) + v[j0, i0 + 1] * wx * (1 - wy)
+               + v[j0 + 1, i0] * (1 - wx) * wy + v[j0 + 1, i0 + 1] * wx * wy)
+        return np.where(self.inside, out, 0.0)
+

@@ -5,21 +5,30 @@ tilted patch of membrane scatters more light towards the camera whatever the
 tilt's direction. The relative brightness is ``S = 1 + slope_gain * |grad d|``
 with ``d`` the depth field (mm, either sign: only the slope magnitude counts)
 and ``|grad d|`` the surface slope (mm/mm, dimensionless). Flat membrane has S = 1.
+The gradient is taken by central differences on the grid (one-sided at its
+edges), the slope magnitude at the nodes, and interpolated bilinearly between them.
 
 Small-displacement approximation: the membrane point seen by a pixel is taken
 where the pixel's ray meets the undeformed surface z = 0 (the rest
 back-projection), not where it meets the deformed surface; the error is the
 lateral surface displacement (below ~1 mm), small against the width of a
 contact's slope field.
+
+Sampling cost: the pixels' gel points are fixed, so the bilinear weights of
+every pixel on a grid (:class:`GridLookup`) are computed once per grid
+position (a contact keeps its grid while its anchor stays put) and, for
+repeated use, packed into a sparse matrix so that shading the whole ROI is
+one sparse matrix-vector product.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
+import scipy.sparse
 
 Array = npt.NDArray[np.float64]
 
@@ -40,17 +49,27 @@ class DepthField:
     def slope(self) -> Array:
         """Surface slope magnitude |grad depth| (dimensionless) at the grid nodes, (ny, nx)."""
         d = np.asarray(self.depth_mm, dtype=np.float64)
-        gy, gx = np.gradient(d, np.asarray(self.y_mm, float), np.asarray(self.x_mm, float))
-        return np.hypot(gx, gy)
+        x0, x1, nx, y0, y1, ny = self.grid_key()
+        gx = _derivative(d, (x1 - x0) / (nx - 1), axis=1)
+        gy = _derivative(d, (y1 - y0) / (ny - 1), axis=0)
+        gx *= gx
+        gy *= gy
+        gx += gy
+        return np.sqrt(gx, out=gx)
 
     def slope_bbox_mm(self, tol: float) -> tuple[float, float, float, float] | None:
         """(x0, x1, y0, y1) gel-frame box (mm) holding every node with slope > tol, grown by one node; None if flat."""
-        rows, cols = np.nonzero(self.slope > tol)
+        return self.node_box_mm(self.slope > tol)
+
+    def node_box_mm(self, nodes: npt.NDArray[np.bool_]) -> tuple[float, float, float, float] | None:
+        """(x0, x1, y0, y1) gel-frame box (mm) of the marked nodes (ny, nx), grown by one node; None if none."""
+        rows = np.flatnonzero(nodes.any(axis=1))
         if rows.size == 0:
             return None
+        cols = np.flatnonzero(nodes[rows[0] : rows[-1] + 1].any(axis=0))
         nx, ny = len(self.x_mm), len(self.y_mm)
-        i0, i1 = max(int(cols.min()) - 1, 0), min(int(cols.max()) + 1, nx - 1)
-        j0, j1 = max(int(rows.min()) - 1, 0), min(int(rows.max()) + 1, ny - 1)
+        i0, i1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 1, nx - 1)
+        j0, j1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 1, ny - 1)
         return float(self.x_mm[i0]), float(self.x_mm[i1]), float(self.y_mm[j0]), float(self.y_mm[j1])
 
     def grid_key(self) -> tuple[float, float, int, float, float, int]:
@@ -61,6 +80,19 @@ class DepthField:
     def sample_slope(self, xy_mm: npt.ArrayLike) -> Array:
         """Bilinearly interpolated slope at gel points (N, 2) mm; 0 outside the grid."""
         return GridLookup.build(self.grid_key(), xy_mm).sample(self.slope, slice(None))
+
+
+def _derivative(values: Array, spacing: float, axis: int) -> Array:
+    """d values / d axis on a uniform grid: central differences, one-sided at the two edges (as np.gradient)."""
+    v = np.moveaxis(values, axis, 0)
+    out = np.empty_like(v)
+    np.subtract(v[2:], v[:-2], out=out[1:-1])
+    out[1:-1] /= 2.0 * spacing
+    np.subtract(v[1], v[0], out=out[0])
+    np.subtract(v[-1], v[-2], out=out[-1])
+    out[0] /= spacing
+    out[-1] /= spacing
+    return np.moveaxis(out, 0, axis)
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,6 +107,8 @@ class GridLookup:
     tx: Array
     ty: Array
     nx: int
+    ny: int = 0
+    _matrix: list[scipy.sparse.csr_matrix] = field(default_factory=list, repr=False)
 
     @classmethod
     def build(cls, grid_key: tuple[float, float, int, float, float, int], xy_mm: npt.ArrayLike) -> GridLookup:
@@ -87,22 +121,48 @@ class GridLookup:
         ix = np.clip(np.floor(fx).astype(np.int64), 0, nx - 2)
         iy = np.clip(np.floor(fy).astype(np.int64), 0, ny - 2)
         base = np.where(inside, iy * nx + ix, -1)
-        return cls(base, np.clip(fx - ix, 0.0, 1.0), np.clip(fy - iy, 0.0, 1.0), nx)
+        return cls(base, np.clip(fx - ix, 0.0, 1.0), np.clip(fy - iy, 0.0, 1.0), nx, ny)
 
     def reshape(self, *shape: int) -> GridLookup:
         """The same lookup with its points arranged in ``shape`` (e.g. an image), for slicing."""
-        return GridLookup(self.base.reshape(shape), self.tx.reshape(shape), self.ty.reshape(shape), self.nx)
+        return GridLookup(self.base.reshape(shape), self.tx.reshape(shape), self.ty.reshape(shape), self.nx, self.ny)
 
     def sample(self, grid_values: Array, points: npt.NDArray[np.int64] | slice | tuple[slice, ...]) -> Array:
         """Interpolate ``grid_values`` (ny, nx) at the points selected by ``points`` (any numpy index); 0 outside."""
         base = self.base[points]
-        inside = base >= 0
-        b = np.where(inside, base, 0)
+        outside = base < 0
+        v = np.asarray(grid_values).ravel()
+        # Points outside the grid read a block of zeros appended after the last node.
+        padded = np.concatenate([v, np.zeros(self.nx + 2, dtype=v.dtype)])
+        b = np.where(outside, v.size, base) if outside.any() else base
         tx, ty = self.tx[points], self.ty[points]
-        v = grid_values.ravel()
-        low = v[b] + (v[b + 1] - v[b]) * tx
-        high = v[b + self.nx] + (v[b + self.nx + 1] - v[b + self.nx]) * tx
-        return np.where(inside, low + (high - low) * ty, 0.0)
+        low = padded.take(b)
+        low += (padded.take(b + 1) - low) * tx
+        high = padded.take(b + self.nx)
+        high += (padded.take(b + self.nx + 1) - high) * tx
+        high -= low
+        high *= ty
+        low += high
+        return low
+
+    def matrix(self) -> scipy.sparse.csr_matrix:
+        """The lookup as a sparse (points, ny * nx) float64 matrix: ``matrix() @ values.ravel()`` samples a field.
+
+        Built on first use (rows of points outside the grid are empty) and kept.
+        """
+        if not self._matrix:
+            base = self.base.ravel()
+            inside = base >= 0
+            b = base[inside]
+            tx = self.tx.ravel()[inside]
+            ty = self.ty.ravel()[inside]
+            n_nodes = self.nx * (self.ny or (int(b.max(initial=0)) // self.nx + 2))
+            indices = np.stack([b, b + 1, b + self.nx, b + self.nx + 1], axis=1).ravel().astype(np.int32)
+            weights = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1).ravel()
+            indptr = np.concatenate([[0], np.cumsum(4 * inside)]).astype(np.int32)
+            matrix = scipy.sparse.csr_matrix((weights.astype(np.float64), indices, indptr), shape=(base.size, n_nodes))
+            self._matrix.append(matrix)
+        return self._matrix[0]
 
 
 def slope_shading(slope: npt.ArrayLike, slope_gain: float) -> Array:
