@@ -33,7 +33,8 @@ anchor: the contact fields are centred there (small-displacement description
 in reference coordinates), and the tip's in-plane motion since then is the
 tangential shift, fed through a Masing :class:`ShearHistory`. In gross slip the
 anchor is dragged so the shift never exceeds the table's slip shift. Lifting
-off clears the anchor and the history. Indenter yaw relative to the gel and the
+off clears the anchor and the history (the residual traction after Shear and
+Shear Opposite stays until then). Indenter yaw relative to the gel and the
 gel's tilt are ignored in the contact shape (both are below a degree).
 """
 
@@ -59,8 +60,6 @@ ToolPath = Callable[[npt.ArrayLike], npt.NDArray[np.float64]]
 
 #: A shear axis is fixed once the tip has moved this far in-plane from the anchor, mm.
 SHEAR_AXIS_MM = 1e-3
-#: Within this distance of the anchor the tangential state is unloaded, mm.
-SHEAR_RESET_MM = 1e-5
 
 #: Interval of the true-marker samples, us (>= 1 kHz).
 TRUTH_MARKER_INTERVAL_US = 1000
@@ -197,22 +196,24 @@ class VirtualRig:
         """The in-plane shift along the current shear axis (Masing needs one axis).
 
         The axis is the direction of the first shift beyond SHEAR_AXIS_MM; the
-        component across it is dropped (tilt, CNC jitter). Back within
-        SHEAR_RESET_MM of the anchor, a new axis may start.
+        component across it is dropped (tilt, CNC jitter). The tangential state
+        (including the residual traction after Shear, Shear Opposite) lasts
+        until lift-off; a shift clearly across the axis starts a new axis and a
+        fresh history (the old residual is then forgotten: an approximation).
         """
         size = float(np.hypot(*shift))
-        if size < SHEAR_RESET_MM:
-            if self._history.direction == 0 or abs(self._history.last_mm) < SHEAR_RESET_MM:
-                self._shear_axis = None
-                self._history.reset()
+        axis = self._shear_axis
+        if axis is not None:
+            along = float(shift @ axis)
+            across = float(np.hypot(*(shift - along * axis)))
+            if across <= SHEAR_AXIS_MM or across <= 0.1 * abs(along):
+                return along * axis
+        if size < SHEAR_AXIS_MM:
             return np.zeros(2)
-        if self._shear_axis is None:
-            if size < SHEAR_AXIS_MM:
-                return np.zeros(2)
-            self._shear_axis = shift / size
-            self._history.reset()
-            self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
-        return float(shift @ self._shear_axis) * self._shear_axis
+        self._shear_axis = shift / size
+        self._history.reset()
+        self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
+        return shift.copy()
 
     def _rest_solve(self, t_us: int, tip: npt.NDArray[np.float64]) -> Solve:
         zeros = np.zeros(3)
