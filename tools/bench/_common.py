@@ -7,10 +7,12 @@ requested mean rate) is made before timing, then replayed with time offsets.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -174,3 +176,21 @@ def emit(title: str, columns: list[str], rows: list[list[str]], notes: list[str]
 
 def print_json(figures: dict[str, Any]) -> None:
     print(json.dumps(figures, indent=2, sort_keys=True))
+
+
+def bench_main(
+    parse_args: Callable[[list[str] | None], argparse.Namespace],
+    run: Callable[..., dict[str, Any]],
+    render: Callable[[dict[str, Any]], None],
+    argv: list[str] | None = None,
+) -> None:
+    """The shared ``main`` of a benchmark: parse, run (timed), print a table or JSON."""
+    args = vars(parse_args(argv))
+    as_json = args.pop("json")
+    t = time.perf_counter()
+    figures = run(**args, progress=not as_json)
+    figures["bench_wall_s"] = time.perf_counter() - t
+    if as_json:
+        print_json(figures)
+    else:
+        render(figures)

@@ -25,7 +25,7 @@ import time
 from typing import Any
 
 import numpy as np
-from _common import emit, print_json
+from _common import bench_main, emit
 
 from labrig.clock import CounterUnwrapper
 from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
@@ -156,15 +156,7 @@ def render(f: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = vars(parse_args(argv))
-    as_json = args.pop("json")
-    t = time.perf_counter()
-    figures = run(**args, progress=not as_json)
-    figures["bench_wall_s"] = time.perf_counter() - t
-    if as_json:
-        print_json(figures)
-    else:
-        render(figures)
+    bench_main(parse_args, run, render, argv)
 
 
 if __name__ == "__main__":

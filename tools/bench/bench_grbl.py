@@ -23,7 +23,7 @@ import sys
 import time
 from typing import Any
 
-from _common import emit, print_json
+from _common import bench_main, emit
 
 from labrig.devices.grbl import Grbl
 from labrig.sim.grbl_twin import GrblTwin
@@ -142,15 +142,7 @@ def render(f: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = vars(parse_args(argv))
-    as_json = args.pop("json")
-    t = time.perf_counter()
-    figures = run(**args, progress=not as_json)
-    figures["bench_wall_s"] = time.perf_counter() - t
-    if as_json:
-        print_json(figures)
-    else:
-        render(figures)
+    bench_main(parse_args, run, render, argv)
 
 
 if __name__ == "__main__":

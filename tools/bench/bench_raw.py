@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import emit, print_json
+from _common import bench_main, emit
 
 from labrig.devices.raw import Evt3Decoder, encode_evt2, encode_evt3, make_header, read_raw
 from labrig.devices.raw.synthetic import synthetic_events, synthetic_triggers
@@ -283,15 +283,7 @@ def _yes(flag: bool | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = vars(parse_args(argv))
-    as_json = args.pop("json")
-    t = time.perf_counter()
-    figures = run(**args, progress=not as_json)
-    figures["bench_wall_s"] = time.perf_counter() - t
-    if as_json:
-        print_json(figures)
-    else:
-        render(figures)
+    bench_main(parse_args, run, render, argv)
 
 
 if __name__ == "__main__":

@@ -39,7 +39,7 @@ import tracemalloc
 from collections.abc import Callable
 from typing import Any
 
-from _common import emit, print_json
+from _common import bench_main, emit
 
 from labrig.config import load_rig
 from labrig.indenters import load_indenter
@@ -298,15 +298,7 @@ def main(argv: list[str] | None = None) -> None:
     if argv is None and any(os.environ.get(var) != "1" for var in SINGLE_THREAD):
         os.environ.update(dict.fromkeys(SINGLE_THREAD, "1"))
         os.execv(sys.executable, [sys.executable, *sys.argv])  # numpy is loaded: start again, single-threaded
-    args = vars(parse_args(argv))
-    as_json = args.pop("json")
-    t = time.perf_counter()
-    figures = run(**args, progress=not as_json)
-    figures["bench_wall_s"] = time.perf_counter() - t
-    if as_json:
-        print_json(figures)
-    else:
-        render(figures)
+    bench_main(parse_args, run, render, argv)
 
 
 if __name__ == "__main__":
