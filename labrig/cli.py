@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from labrig import __version__
+from labrig.cli_devices import add_device_commands
 from labrig.errors import LabrigError
 
 app = typer.Typer(
@@ -173,6 +174,7 @@ def devices(as_json: JsonOption = False) -> None:
 
 sim_app = typer.Typer(help="The virtual rig: simulated probing runs and its precomputed contact tables.", no_args_is_help=True)
 app.add_typer(sim_app, name="sim")
+add_device_commands(app)
 
 RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
 IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]

@@ -34,3 +34,23 @@ def test_pyserial_talks_to_a_twin_over_a_pty() -> None:
         assert port.readline() == b"WORLD\r\n"
         port.close()
         assert server.error is None
+
+
+class Chatty:
+    """A twin that talks all the time, whether anyone listens or not."""
+
+    def receive(self, data: bytes, now_us: int) -> None:
+        pass
+
+    def transmit(self, now_us: int) -> bytes:
+        return b"x" * 4096
+
+
+def test_a_port_nobody_reads_does_not_stall_the_other_twins() -> None:
+    with TwinServer({"chatty": Chatty(), "echo": EchoUpper()}) as server:
+        port = serial.Serial(server.paths["echo"], 115200, timeout=1.0)
+        for _ in range(3):
+            port.write(b"ping\n")
+            assert port.readline() == b"PING\r\n"
+        port.close()
+        assert server.ports["chatty"].dropped_bytes > 0 and server.error is None
