@@ -204,3 +204,26 @@ def test_trigger_edges_come_back_with_the_next_output(rig: RigConfig, sphere: In
     out = vr.advance(50_000, path)
     assert out.triggers == [(5_000, 1), (25_000, 0)]
     assert vr.advance(60_000, path).triggers == []
+
+
+def test_led_blink_makes_every_marker_fire(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
+    """The extrinsic-calibration scene: LED off then on, gel at rest."""
+    vr = VirtualRig(rig, sphere, seed=5, table=table)
+    idle = probing_path(rig, sphere, depth_mm=0.5, shear_mm=0.0)
+    still = lambda t: idle(np.zeros_like(np.atleast_1d(t)))  # noqa: E731  (tool held above the gel)
+    vr.set_led(False, 20_000)
+    vr.set_led(True, 60_000)
+    events = vr.advance(100_000, still).events
+    off = events[(events["p"] == 0) & (events["t"] >= 20_000) & (events["t"] < 30_000)]
+    on = events[(events["p"] == 1) & (events["t"] >= 60_000) & (events["t"] < 70_000)]
+    quiet = events[(events["t"] >= 35_000) & (events["t"] < 55_000)]
+    assert len(off) > 20 * len(quiet) and len(on) > 20 * len(quiet)
+    centres = np.rint(vr.camera.project(vr.rest_mm)).astype(int)
+    # Every marker blinks: each has events within a few pixels of its centre.
+    for events_of_kind in (off, on):
+        counts = np.zeros((rig.camera.height_px, rig.camera.width_px), np.int64)
+        np.add.at(counts, (events_of_kind["y"], events_of_kind["x"]), 1)
+        near = [counts[y - 3 : y + 4, x - 3 : x + 4].sum() for x, y in centres]
+        assert min(near) > 0
+    with pytest.raises(ValueError):
+        vr.set_led(False, 10_000)

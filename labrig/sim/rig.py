@@ -61,6 +61,9 @@ ToolPath = Callable[[npt.ArrayLike], npt.NDArray[np.float64]]
 #: A shear axis is fixed once the tip has moved this far in-plane from the anchor, mm.
 SHEAR_AXIS_MM = 1e-3
 
+#: How long the LED ring takes to switch on or off, us.
+LED_SWITCH_US = 20
+
 #: Interval of the true-marker samples, us (>= 1 kHz).
 TRUTH_MARKER_INTERVAL_US = 1000
 
@@ -136,6 +139,7 @@ class VirtualRig:
         self._prev: Solve | None = None
         self._next: Solve | None = None
         self._pending_triggers: list[tuple[int, int]] = []
+        self._led_switches: list[tuple[int, bool]] = []
         self._next_truth_us = 0
         # Per solve pair: the markers' image positions at both solves and the render step they allow.
         self._prev_px: npt.NDArray[np.float64] | None = None
@@ -154,6 +158,15 @@ class VirtualRig:
         clock = self.rig.sim.camera_clock
         t = np.asarray(t_world_us, dtype=np.float64)
         return (clock.origin_us + np.floor(t * (1 + clock.drift_ppm * 1e-6))).astype(np.int64)
+
+    def set_led(self, on: bool, t_world_us: int | None = None) -> None:
+        """Switch the LED ring at ``t_world_us`` (default: now); LED off darkens the
+        membrane and markers (the extrinsic-calibration blink scene)."""
+        t = self.t_us if t_world_us is None else int(t_world_us)
+        if t < self.t_us:
+            raise ValueError("the LED cannot be switched in the past")
+        self._led_switches.append((t, bool(on)))
+        self._led_switches.sort(key=lambda item: item[0])
 
     def trigger(self, t_world_us: int, polarity: int) -> None:
         """An edge on the camera's trigger input (the CNC output toggled)."""
@@ -323,6 +336,8 @@ class VirtualRig:
                 self._depth_field = self._shading_field(self._prev)
                 self._step = self._step_us()
             t1 = min(self.t_us + self._step, self._next.t_us, t_end_us)
+            if self._led_switches:
+                t1 = min(t1, max(self._led_switches[0][0], self.t_us + 1))
             markers = self._markers_at(t1)
             if self._next_truth_us <= t1:
                 times = np.arange(self._next_truth_us, t1 + 1, TRUTH_MARKER_INTERVAL_US, dtype=np.int64)
@@ -333,6 +348,14 @@ class VirtualRig:
             chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
             out.renders += 1
             self.t_us = t1
+            if self._led_switches and self._led_switches[0][0] <= t1 < t_end_us:
+                # The LED switches within LED_SWITCH_US; the photoreceptors' low-pass spreads the events.
+                _, on = self._led_switches.pop(0)
+                t1 = min(t1 + LED_SWITCH_US, t_end_us)
+                update = self.renderer.render(self._markers_at(t1), self._depth_field, led_on=on)
+                chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
+                out.renders += 1
+                self.t_us = t1
         if chunks:
             out.events = np.concatenate(chunks)
         out.triggers, self._pending_triggers = self._pending_triggers, []
