@@ -22,11 +22,10 @@ import numpy.typing as npt
 
 from labrig.clock import ClockModel, unwrap_counter
 from labrig.errors import RecordingError
+from labrig.eventtypes import EVENT_DTYPE
 from labrig.recording import schema
 from labrig.recording.finalize import committed_rows, fit_clock_models
 from labrig.recording.layout import stream_group, stream_path
-
-EVENT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "u1"), ("t", "<i8")])
 
 
 @dataclass(frozen=True)

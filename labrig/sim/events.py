@@ -48,13 +48,13 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
+from labrig.eventtypes import EVENT_DTYPE
 from labrig.sim.pixels import PixelBlock
 
 Array = npt.NDArray[np.float64]
 Index = npt.NDArray[np.int64]
 
 #: One CD event: sensor pixel x, y; polarity p (1 ON, 0 OFF); time t (us).
-EVENT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "u1"), ("t", "<i8")])
 
 _NEVER_US = -(2**62)
 

@@ -18,8 +18,9 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from labrig.eventtypes import EVENT_DTYPE
+
 #: One CD event (the same dtype as labrig.sim.events / labrig.recording.reader).
-EVENT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "u1"), ("t", "<i8")])
 #: One external-trigger edge: p value (1 rising, 0 falling), t (us), channel id.
 TRIGGER_DTYPE = np.dtype([("p", "u1"), ("t", "<i8"), ("id", "u1")])
 #: One run of skipped words: byte offset of its first word in the stream, words, reason (SkipReason).
