@@ -27,15 +27,11 @@ Time stepping
 
 Contact kinematics
 ------------------
-The indenter tip is mapped into the gel frame through the rig's true gel pose.
-Depth = -z of the tip. At first contact the tip's (x, y) becomes the contact
-anchor: the contact fields are centred there (small-displacement description
-in reference coordinates), and the tip's in-plane motion since then is the
-tangential shift, fed through a Masing :class:`ShearHistory`. In gross slip the
-anchor is dragged so the shift never exceeds the table's slip shift. Lifting
-off clears the anchor and the history (the residual traction after Shear and
-Shear Opposite stays until then). Indenter yaw relative to the gel and the
-gel's tilt are ignored in the contact shape (both are below a degree).
+See :mod:`labrig.sim.contact_track`: tool positions become contact states
+(depth, anchor, shear memory, net force) on a :class:`ContactTrack` that the
+F/T twin shares when the rig is served live; the rig turns the states it
+solves at into contact fields. Indenter yaw relative to the gel and the gel's
+tilt are ignored in the contact shape (both are below a degree).
 """
 
 from __future__ import annotations
@@ -50,16 +46,14 @@ from labrig.config import RigConfig
 from labrig.frames import Pose, rotvec_to_matrix, wrench_about
 from labrig.indenters import Indenter
 from labrig.sim.camera import CameraModel
+from labrig.sim.contact_track import ContactKinematics, ContactState, ContactTrack
 from labrig.sim.events import EVENT_DTYPE, EventSensor
-from labrig.sim.mechanics import ContactFields, ContactTable, ShearHistory
+from labrig.sim.mechanics import ContactFields, ContactTable
 from labrig.sim.motion import gel_in_machine
 from labrig.sim.optics import Renderer
 from labrig.sim.shading import DepthField
 
 ToolPath = Callable[[npt.ArrayLike], npt.NDArray[np.float64]]
-
-#: A shear axis is fixed once the tip has moved this far in-plane from the anchor, mm.
-SHEAR_AXIS_MM = 1e-3
 
 #: How long the LED ring takes to switch on or off, us.
 LED_SWITCH_US = 20
@@ -110,6 +104,7 @@ class VirtualRig:
         min_solve_interval_us: int = 2_000,
         max_solve_interval_us: int = 50_000,
         max_render_interval_us: int = 10_000,
+        track: ContactTrack | None = None,
     ) -> None:
         self.rig = rig
         self.indenter = indenter
@@ -132,9 +127,10 @@ class VirtualRig:
         self.max_render_interval_us = max_render_interval_us
         self.max_step_px = rig.sim.events.max_step_px
         self.t_us = 0
-        self._history = ShearHistory()
-        self._anchor: npt.NDArray[np.float64] | None = None
-        self._shear_axis: npt.NDArray[np.float64] | None = None
+        self.kinematics = ContactKinematics(self.table, indenter.tool_offset_mm, self.machine_to_gel)
+        #: The contact states the rig solves at; shared with the F/T twin when served live.
+        self.track = track
+        self._own_track = track is None
         self._depth_field: DepthField | None = None
         self._prev: Solve | None = None
         self._next: Solve | None = None
@@ -174,69 +170,17 @@ class VirtualRig:
 
     # -- mechanics ---------------------------------------------------------------
 
-    def solve(self, t_us: int, tool_machine_mm: npt.ArrayLike) -> Solve:
-        """Contact state for a tool position; updates the contact history."""
-        tip_machine = np.asarray(tool_machine_mm, dtype=np.float64).reshape(3) + np.asarray(self.indenter.tool_offset_mm)
-        tip = self.machine_to_gel.apply(tip_machine)
-        depth = max(0.0, -float(tip[2]))
-        if depth <= 0.0:
-            self._anchor = None
-            self._shear_axis = None
-            self._history.reset()
-            return self._rest_solve(t_us, tip)
-        if depth > self.table.depths_mm[-1]:
-            raise ValueError(
-                f"the {self.indenter.name} indenter is {depth:.2f} mm deep, beyond the gel model's "
-                f"{self.table.depths_mm[-1]:.2f} mm (its max_depth_mm)"
-            )
-        if self._anchor is None:
-            self._anchor = tip[:2].copy()
-        shift = self._shear_shift(tip[:2] - self._anchor)
-        limit = self._slip_shift_mm(depth)
-        size = float(np.hypot(*shift))
-        if limit > 0 and size > limit:  # gross slip: the contact is dragged along
-            self._anchor = tip[:2] - shift * (limit / size)
-            shift = tip[:2] - self._anchor
-        fields = self.table.fields(depth, shift, self._history)
-        markers = self._displaced_markers(fields, self._anchor)
-        force = np.asarray(fields.force_n, dtype=np.float64)
-        force_on_gel = np.array([force[0], force[1], -force[2]])  # gel frame: pressing is -z
-        cop = self._centre_of_pressure(fields, self._anchor)
-        return Solve(t_us, tip, depth, markers, force_on_gel, cop, self._marker_forces(fields, self._anchor),
-                     fields, self._anchor.copy())
-
-    def _shear_shift(self, shift: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """The in-plane shift along the current shear axis (Masing needs one axis).
-
-        The axis is the direction of the first shift beyond SHEAR_AXIS_MM; the
-        component across it is dropped (tilt, CNC jitter). The tangential state
-        (including the residual traction after Shear, Shear Opposite) lasts
-        until lift-off; a shift clearly across the axis starts a new axis and a
-        fresh history (the old residual is then forgotten: an approximation).
-        """
-        size = float(np.hypot(*shift))
-        axis = self._shear_axis
-        if axis is not None:
-            along = float(shift @ axis)
-            across = float(np.hypot(*(shift - along * axis)))
-            if across <= SHEAR_AXIS_MM or across <= 0.1 * abs(along):
-                return along * axis
-        if size < SHEAR_AXIS_MM:
-            return np.zeros(2)
-        self._shear_axis = shift / size
-        self._history.reset()
-        self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
-        return shift.copy()
-
-    def _rest_solve(self, t_us: int, tip: npt.NDArray[np.float64]) -> Solve:
-        zeros = np.zeros(3)
-        return Solve(t_us, tip, 0.0, self.rest_mm.copy(), zeros, np.array([tip[0], tip[1], 0.0]),
-                     np.zeros((len(self.rest_mm), 3)), None, None)
-
-    def _slip_shift_mm(self, depth: float) -> float:
-        depths = np.asarray(self.table.shear_depths_mm)
-        slips = np.asarray(self.table.slip_shift_mm)
-        return float(np.interp(depth, depths[: len(slips)], slips)) if len(slips) else 0.0
+    def solve(self, state: ContactState) -> Solve:
+        """Contact fields, displaced markers and per-marker forces for a contact state."""
+        if not state.in_contact:
+            return Solve(state.t_us, state.tip_gel_mm, 0.0, self.rest_mm.copy(), np.zeros(3),
+                         state.centre_of_pressure_mm, np.zeros((len(self.rest_mm), 3)), None, None)
+        assert state.anchor_mm is not None
+        fields = self.table.fields_for_terms(state.depth_mm, state.terms, state.angle_rad)
+        markers = self._displaced_markers(fields, state.anchor_mm)
+        return Solve(state.t_us, state.tip_gel_mm, state.depth_mm, markers, state.force_on_gel_n,
+                     state.centre_of_pressure_mm, self._marker_forces(fields, state.anchor_mm), fields,
+                     state.anchor_mm.copy())
 
     def _displaced_markers(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         key = (float(anchor[0]), float(anchor[1]), float(fields.x_mm[0]), float(fields.y_mm[0]),
@@ -249,15 +193,6 @@ class VirtualRig:
         uy = weights.sample(fields.uy_mm)
         uz = -weights.sample(fields.depth_mm)
         return self.rest_mm + np.stack([ux, uy, uz], axis=1)
-
-    def _centre_of_pressure(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        p = fields.pressure_mpa
-        total = float(p.sum())
-        if total <= 0:
-            return np.array([anchor[0], anchor[1], 0.0])
-        x = float((p.sum(axis=0) * fields.x_mm).sum() / total) + anchor[0]
-        y = float((p.sum(axis=1) * fields.y_mm).sum() / total) + anchor[1]
-        return np.array([x, y, 0.0])
 
     def _marker_forces(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """Traction integrated over each marker's cell (N, gel frame, on the gel).
@@ -299,15 +234,21 @@ class VirtualRig:
             self._cells_key = key
         return self._cells_of_nodes
 
-    def ft_wrench(self, solve: Solve) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """(force N, torque N m) the F/T sensor measures, in its own axes.
+    def ft_wrench(self, solve: Solve | ContactState) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(force N, torque N m) the F/T sensor measures, in its own axes."""
+        return self.ft_wrench_of(solve.force_on_gel_n, solve.centre_of_pressure_mm, solve.tip_gel_mm)
+
+    def ft_wrench_of(
+        self, force_on_gel_n: npt.ArrayLike, centre_of_pressure_mm: npt.ArrayLike, tip_gel_mm: npt.ArrayLike
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(force N, torque N m) in the F/T sensor's axes for a contact (gel frame inputs).
 
         The sensor carries the indenter, so it feels the reaction of the force
         on the gel, applied at the centre of pressure, about its own origin.
         """
-        force_on_indenter = -solve.force_on_gel_n
-        origin = solve.tip_gel_mm + self.ft_origin_from_tip_mm
-        torque = wrench_about(force_on_indenter, solve.centre_of_pressure_mm, origin)
+        force_on_indenter = -np.asarray(force_on_gel_n, dtype=np.float64)
+        origin = np.asarray(tip_gel_mm, dtype=np.float64) + self.ft_origin_from_tip_mm
+        torque = wrench_about(force_on_indenter, np.asarray(centre_of_pressure_mm, dtype=np.float64), origin)
         to_ft = self.ft_axes_in_gel.T
         return to_ft @ force_on_indenter, to_ft @ torque
 
@@ -322,8 +263,12 @@ class VirtualRig:
         chunks: list[npt.NDArray[np.void]] = []
         truth_t: list[int] = []
         truth_mm: list[npt.NDArray[np.float64]] = []
+        if self.track is None:
+            self.track = ContactTrack(self.kinematics, tool_path)
+        elif self._own_track:
+            self.track.tool_path = tool_path
         if self._prev is None:
-            self._prev = self.solve(self.t_us, tool_path(self.t_us)[0])
+            self._prev = self.solve(self.track.sample(self.t_us))
             out.solves.append(self._prev)
         while self.t_us < t_end_us:
             assert self._prev is not None
@@ -331,7 +276,8 @@ class VirtualRig:
                 if self._next is not None:
                     self._prev, self._prev_px = self._next, self._next_px
                 t_next = self._next_solve_time(self._prev, tool_path)
-                self._next = self.solve(t_next, tool_path(t_next)[0])
+                self._next = self.solve(self.track.first_after(self._prev.t_us, t_next))
+                self.track.hold(self._prev.t_us)
                 out.solves.append(self._next)
                 self._depth_field = self._shading_field(self._prev)
                 self._step = self._step_us()

@@ -1,0 +1,212 @@
+"""The indenter's contact state over time: cheap kinematics, shared by every consumer.
+
+Turning a tool position into a contact state (depth, contact anchor, shear
+memory, net force, centre of pressure) costs microseconds; turning that state
+into contact fields (for markers, shading and truth) costs milliseconds. The
+virtual rig's consumers need the state at different times: the F/T twin at
+the host's "now" (800 Hz, timing-critical), the renderer behind it (its
+events carry their own timestamps, so it may lag). :class:`ContactTrack`
+samples the state in strictly increasing time, stores it, and serves both:
+a query at or after the last sample takes a new sample; an earlier one is
+answered from the stored samples.
+
+Contact kinematics (:class:`ContactKinematics`)
+-----------------------------------------------
+The indenter tip is mapped into the gel frame through the rig's true gel pose.
+Depth = -z of the tip. At first contact the tip's (x, y) becomes the contact
+anchor: the contact fields are centred there (small-displacement description
+in reference coordinates), and the tip's in-plane motion since then is the
+tangential shift, fed through a Masing :class:`ShearHistory` along one shear
+axis. In gross slip the anchor is dragged so the shift never exceeds the
+table's slip shift. Lifting off clears the anchor and the history (the
+residual traction after Shear and Shear Opposite stays until then).
+"""
+
+from __future__ import annotations
+
+import bisect
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.frames import Pose
+from labrig.sim.mechanics import ContactTable, ShearHistory
+from labrig.sim.mechanics.history import Term
+
+F64 = npt.NDArray[np.float64]
+ToolPath = Callable[[npt.ArrayLike], F64]
+
+#: A shear axis is fixed once the tip has moved this far in-plane from the anchor, mm.
+SHEAR_AXIS_MM = 1e-3
+
+
+@dataclass(frozen=True)
+class ContactState:
+    """The contact at one world time (gel frame, mm, N)."""
+
+    t_us: int
+    tip_gel_mm: F64
+    depth_mm: float
+    anchor_mm: F64 | None
+    terms: tuple[Term, ...]
+    angle_rad: float
+    #: Net force on the gel (pressing is -z).
+    force_on_gel_n: F64
+    centre_of_pressure_mm: F64
+
+    @property
+    def in_contact(self) -> bool:
+        return self.anchor_mm is not None
+
+
+class ContactKinematics:
+    """Tool positions (machine mm) -> :class:`ContactState`; feed them in time order."""
+
+    def __init__(self, table: ContactTable, tool_offset_mm: npt.ArrayLike, machine_to_gel: Pose) -> None:
+        self.table = table
+        self.tool_offset_mm = np.asarray(tool_offset_mm, dtype=np.float64).reshape(3)
+        self.machine_to_gel = machine_to_gel
+        self._history = ShearHistory()
+        self._anchor: F64 | None = None
+        self._shear_axis: F64 | None = None
+
+    def step(self, t_us: int, tool_machine_mm: npt.ArrayLike) -> ContactState:
+        tip = self.machine_to_gel.apply(np.asarray(tool_machine_mm, dtype=np.float64).reshape(3) + self.tool_offset_mm)
+        depth = max(0.0, -float(tip[2]))
+        if depth <= 0.0:
+            self._anchor = None
+            self._shear_axis = None
+            self._history.reset()
+            return ContactState(int(t_us), tip, 0.0, None, (), 0.0, np.zeros(3), np.array([tip[0], tip[1], 0.0]))
+        if depth > self.table.depths_mm[-1]:
+            raise ValueError(
+                f"the indenter is {depth:.2f} mm deep, beyond the gel model's "
+                f"{self.table.depths_mm[-1]:.2f} mm (its max_depth_mm)"
+            )
+        if self._anchor is None:
+            self._anchor = tip[:2].copy()
+        shift = self._shear_shift(tip[:2] - self._anchor)
+        limit = self._slip_shift_mm(depth)
+        size = float(np.hypot(*shift))
+        if limit > 0 and size > limit:  # gross slip: the contact is dragged along
+            self._anchor = tip[:2] - shift * (limit / size)
+            shift = tip[:2] - self._anchor
+        terms, angle = self.table.shear_terms(shift, self._history)
+        force = self.table.force_for_terms(depth, terms, angle)
+        cop = self._anchor + self.table.pressure_centre_mm(depth)
+        return ContactState(int(t_us), tip, depth, self._anchor.copy(), terms, angle,
+                            np.array([force[0], force[1], -force[2]]), np.array([cop[0], cop[1], 0.0]))
+
+    def _shear_shift(self, shift: F64) -> F64:
+        """The in-plane shift along the current shear axis (Masing needs one axis).
+
+        The axis is the direction of the first shift beyond SHEAR_AXIS_MM; the
+        component across it is dropped (tilt, CNC jitter). The tangential state
+        (including the residual traction after Shear, Shear Opposite) lasts
+        until lift-off; a shift clearly across the axis starts a new axis and a
+        fresh history (the old residual is then forgotten: an approximation).
+        """
+        size = float(np.hypot(*shift))
+        axis = self._shear_axis
+        if axis is not None:
+            along = float(shift @ axis)
+            across = float(np.hypot(*(shift - along * axis)))
+            if across <= SHEAR_AXIS_MM or across <= 0.1 * abs(along):
+                return along * axis
+        if size < SHEAR_AXIS_MM:
+            return np.zeros(2)
+        self._shear_axis = shift / size
+        self._history.reset()
+        self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
+        return shift.copy()
+
+    def _slip_shift_mm(self, depth: float) -> float:
+        depths = np.asarray(self.table.shear_depths_mm)
+        slips = np.asarray(self.table.slip_shift_mm)
+        return float(np.interp(depth, depths[: len(slips)], slips)) if len(slips) else 0.0
+
+
+class ContactTrack:
+    """Contact states sampled in increasing world time from a tool path; thread-safe.
+
+    ``keep_us``: how much history to keep behind the newest sample (older
+    samples are dropped unless :meth:`hold` pins them for a lagging reader).
+    """
+
+    def __init__(self, kinematics: ContactKinematics, tool_path: ToolPath, *, keep_us: int = 30_000_000) -> None:
+        self.kinematics = kinematics
+        self.tool_path = tool_path
+        self.keep_us = int(keep_us)
+        self._times: list[int] = []
+        self._states: list[ContactState] = []
+        self._held_us: int | None = None
+        self._lock = threading.RLock()
+
+    @property
+    def last_us(self) -> int | None:
+        with self._lock:
+            return self._times[-1] if self._times else None
+
+    def sample(self, t_us: int) -> ContactState:
+        """The state at ``t_us`` if it is at or after the last sample (sampled now),
+        else the latest stored state at or before it (the earliest one if none)."""
+        t = int(t_us)
+        with self._lock:
+            if not self._times or t > self._times[-1]:
+                state = self.kinematics.step(t, self.tool_path(t)[0])
+                self._times.append(t)
+                self._states.append(state)
+                self._prune()
+                return state
+            i = bisect.bisect_right(self._times, t) - 1
+            return self._states[max(i, 0)]
+
+    def first_after(self, t_us: int, not_after_us: int) -> ContactState:
+        """A state later than ``t_us`` and as late as possible up to ``not_after_us``:
+        sampled at ``not_after_us`` when that is new, else the latest stored one in
+        (t_us, not_after_us], else the first stored one after ``t_us``."""
+        with self._lock:
+            if not self._times or not_after_us > self._times[-1]:
+                return self.sample(not_after_us)
+            i = bisect.bisect_right(self._times, int(not_after_us)) - 1
+            if i >= 0 and self._times[i] > t_us:
+                return self._states[i]
+            j = bisect.bisect_right(self._times, int(t_us))
+            return self._states[j] if j < len(self._states) else self.sample(max(int(t_us) + 1, self._times[-1] + 1))
+
+    def wrench_state(self, t_us: float) -> tuple[F64, F64, F64]:
+        """(force on the gel N, centre of pressure mm, tip mm) at ``t_us``, gel frame:
+        sampled when ``t_us`` is new, else interpolated linearly between stored samples."""
+        t = round(t_us)
+        with self._lock:
+            if not self._times or t >= self._times[-1]:
+                s = self.sample(t)
+                return s.force_on_gel_n, s.centre_of_pressure_mm, s.tip_gel_mm
+            j = bisect.bisect_right(self._times, t)
+            if j == 0:
+                s = self._states[0]
+                return s.force_on_gel_n, s.centre_of_pressure_mm, s.tip_gel_mm
+            a, b = self._states[j - 1], self._states[j]
+            w = (t - a.t_us) / (b.t_us - a.t_us)
+            return (
+                a.force_on_gel_n + w * (b.force_on_gel_n - a.force_on_gel_n),
+                a.centre_of_pressure_mm + w * (b.centre_of_pressure_mm - a.centre_of_pressure_mm),
+                a.tip_gel_mm + w * (b.tip_gel_mm - a.tip_gel_mm),
+            )
+
+    def hold(self, t_us: int | None) -> None:
+        """Keep every sample from ``t_us`` on (a lagging reader's position); None releases."""
+        with self._lock:
+            self._held_us = None if t_us is None else int(t_us)
+
+    def _prune(self) -> None:
+        cut = self._times[-1] - self.keep_us
+        if self._held_us is not None:
+            cut = min(cut, self._held_us)
+        i = bisect.bisect_left(self._times, cut) - 1  # keep one sample at or before the cut
+        if i > 1024:
+            del self._times[:i]
+            del self._states[:i]
