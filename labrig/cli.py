@@ -259,6 +259,76 @@ def sim_probe(
         console.print(f"[{style}]max lag behind real time: {result.max_lag_ms:.1f} ms, late chunks: {result.late_chunks}[/]")
 
 
+@sim_app.command("serve")
+def sim_serve(
+    indenter: Annotated[str, typer.Option(help="Indenter mounted on the virtual CNC.")] = "sphere",
+    seed: Annotated[int, typer.Option(help="Seed of the event sensor's and the F/T sensor's noise.")] = 0,
+    seconds: Annotated[float | None, typer.Option(help="Serve this long, then stop (default: until Ctrl-C).")] = None,
+    links: Annotated[
+        Path | None, typer.Option("--links", help="Also symlink DIR/grbl, DIR/bota to the ports (stable names for a rig file).")
+    ] = None,
+    rig_path: RigOption = None,
+    indenters_path: IndentersOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="JSON lines: one per device, then the statistics.")] = False,
+) -> None:
+    """Serve the virtual rig's devices on pseudo-terminals until interrupted.
+
+    Prints one line per device, name first (``grbl /dev/pts/5``); real drivers and any
+    other GRBL sender or Bota client open them as serial ports.
+    """
+    import signal
+    import threading
+
+    from labrig.sim.world import LiveWorld
+
+    rig, indenters = _load_rig_and_indenters(rig_path, indenters_path)
+    if indenter not in indenters:
+        raise LabrigError(f"unknown indenter {indenter!r}; known: {', '.join(indenters)}")
+    if seconds is not None and seconds <= 0:
+        raise LabrigError("--seconds must be positive")
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with err_console.status("loading the contact tables"):
+        world = LiveWorld(rig, indenters[indenter], seed=seed)
+    made: list[Path] = []
+    with world:
+        for name, path in world.paths.items():
+            if links is not None:
+                made.append(_link(links, name, path))
+            if as_json:
+                sys.stdout.write(json.dumps({"device": name, "path": path}) + "\n")
+            else:
+                sys.stdout.write(f"{name} {path}\n")
+        sys.stdout.flush()
+        try:
+            while not stop.wait(0.2):
+                if world.error is not None or world.server.error is not None:
+                    raise LabrigError(f"the virtual rig stopped: {world.error or world.server.error!r}")
+                if seconds is not None and world.now_world_us() >= seconds * 1e6:
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            for link in made:
+                link.unlink(missing_ok=True)
+    stats = world.stats.as_dict()
+    if as_json:
+        sys.stdout.write(json.dumps({"stats": stats}) + "\n")
+    else:
+        err_console.print(f"served {world.now_world_us() / 1e6:.1f} s; renderer max lag {stats['max_lag_ms']} ms")
+
+
+def _link(directory: Path, name: str, target: str) -> Path:
+    directory.mkdir(parents=True, exist_ok=True)
+    link = directory / name
+    if link.is_symlink() or link.exists():
+        if not link.is_symlink():
+            raise LabrigError(f"{link} exists and is not a symlink; choose another --links directory")
+        link.unlink()
+    link.symlink_to(target)
+    return link
+
+
 @sim_app.command("tables")
 def sim_tables(
     rig_path: RigOption = None,

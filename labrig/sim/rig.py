@@ -36,6 +36,7 @@ tilt are ignored in the contact shape (both are below a degree).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -135,6 +136,7 @@ class VirtualRig:
         self._prev: Solve | None = None
         self._next: Solve | None = None
         self._pending_triggers: list[tuple[int, int]] = []
+        self._trigger_lock = threading.Lock()
         self._led_switches: list[tuple[int, bool]] = []
         self._next_truth_us = 0
         # Per solve pair: the markers' image positions at both solves and the render step they allow.
@@ -146,6 +148,13 @@ class VirtualRig:
         self._cells_of_nodes: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
         self._marker_weights_key: tuple[float, ...] | None = None
         self._marker_weights: _Weights | None = None
+
+    def bind(self, tool_path: ToolPath) -> ContactTrack:
+        """Drive the rig from ``tool_path`` (machine mm at world us) through a shared contact
+        track, which other consumers (the F/T twin) may sample too; returns it."""
+        self.track = ContactTrack(self.kinematics, tool_path)
+        self._own_track = False
+        return self.track
 
     # -- clocks and triggers ---------------------------------------------------
 
@@ -165,8 +174,11 @@ class VirtualRig:
         self._led_switches.sort(key=lambda item: item[0])
 
     def trigger(self, t_world_us: int, polarity: int) -> None:
-        """An edge on the camera's trigger input (the CNC output toggled)."""
-        self._pending_triggers.append((int(t_world_us), int(polarity)))
+        """An edge on the camera's trigger input (the CNC output toggled); any thread may call it.
+
+        An edge later than the rig's time comes out of the :meth:`advance` that reaches it."""
+        with self._trigger_lock:
+            self._pending_triggers.append((int(t_world_us), int(polarity)))
 
     # -- mechanics ---------------------------------------------------------------
 
@@ -304,7 +316,10 @@ class VirtualRig:
                 self.t_us = t1
         if chunks:
             out.events = np.concatenate(chunks)
-        out.triggers, self._pending_triggers = self._pending_triggers, []
+        with self._trigger_lock:
+            edges = sorted(self._pending_triggers)
+            out.triggers = [e for e in edges if e[0] <= t_end_us]
+            self._pending_triggers = [e for e in edges if e[0] > t_end_us]
         if truth_t:
             out.truth_t_us = np.array(truth_t, np.int64)
             mm = np.array(truth_mm)
