@@ -109,7 +109,7 @@ def record_live(
                 writer.put("cnc", t_host_us=receive_us, position_mm=tool_path(next_cnc_us)[0],
                            feed_mm_min=0.0, state=b"Run")
                 next_cnc_us += 1e6 / CNC_RATE_HZ
-            _publish_truth(writer, vr, out, grid_gel, receive_us)
+            publish_truth(writer, out, grid_gel)
             if out.solves:
                 last_solve = out.solves[-1]
             if progress is not None:
@@ -150,18 +150,21 @@ def _publish_ft(
     return float(times[-1] + period_us)
 
 
-def _publish_truth(
-    writer: RecordingWriter, vr: VirtualRig, out: RigOutput, grid_gel: npt.NDArray[np.float64], receive_us: int
+def publish_truth(
+    writer: RecordingWriter, out: RigOutput, grid_gel: npt.NDArray[np.float64], offset_us: int = 0
 ) -> None:
+    """Put a rig chunk's truth into ``writer``'s truth streams (see :func:`truth_streams`);
+    recording host time = world time + ``offset_us``."""
     if out.truth_t_us.size:
-        writer.put("truth/markers", t_host_us=out.truth_t_us, position_mm=out.truth_markers_mm,
+        writer.put("truth/markers", t_host_us=out.truth_t_us + offset_us, position_mm=out.truth_markers_mm,
                    position_px=out.truth_markers_px)
     for s in out.solves:
-        writer.put("truth/contact", t_host_us=s.t_us, indentation_mm=s.depth_mm, tip_mm=s.tip_gel_mm,
+        t = s.t_us + offset_us
+        writer.put("truth/contact", t_host_us=t, indentation_mm=s.depth_mm, tip_mm=s.tip_gel_mm,
                    force_n=s.force_on_gel_n, centre_of_pressure_mm=s.centre_of_pressure_mm)
-        writer.put("truth/marker_forces", t_host_us=s.t_us, force_n=s.marker_forces_n[None])
+        writer.put("truth/marker_forces", t_host_us=t, force_n=s.marker_forces_n[None])
         depth, mask = _depth_on_grid(s, grid_gel)
-        writer.put("truth/depth", t_host_us=s.t_us, depth_mm=depth[None], contact_mask=mask[None])
+        writer.put("truth/depth", t_host_us=t, depth_mm=depth[None], contact_mask=mask[None])
 
 
 def _depth_on_grid(solve: Solve, grid_gel: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8]]:
