@@ -11,6 +11,7 @@ from labrig.config import RigConfig, load_rig
 from labrig.recording.reader import EVENT_DTYPE as RECORDING_EVENT_DTYPE
 from labrig.sim.events import EVENT_DTYPE, EventParams, EventSensor
 from labrig.sim.optics import Renderer
+from labrig.sim.pixels import PixelBlock
 
 
 @pytest.fixture(scope="module")
@@ -94,6 +95,36 @@ def test_low_pass_delays_a_step(rig: RigConfig) -> None:
     assert events.size == pytest.approx(200 * 9.5, rel=0.1)
     assert median == pytest.approx(tau_us * np.log(1 / (1 - 0.5)), rel=0.15)
     assert events["t"].max() < 12 * tau_us
+
+
+def test_dense_block_and_pixel_list_give_the_same_events(rig: RigConfig) -> None:
+    # The same brightening of a rectangle, given as a dense PixelBlock or as flat pixel indices.
+    params = EventParams.from_rig(rig)
+    width, height = 64, 48
+    base = np.full((height, width), 0.08)
+    rng = np.random.default_rng(5)
+    gain = np.exp(rng.normal(0.0, 0.3, (20, 30)))
+    outs = []
+    for dense in (True, False):
+        sensor = EventSensor(params, width, height, base, x0=10, y0=20, seed=7)
+        image = base.copy()
+        events, t = [], 0
+        for k in range(1, 6):
+            values = image[10:30, 5:35].copy()
+            changed = np.ones(values.shape, bool)
+            changed[::3, ::4] = False
+            values[changed] = (0.08 * gain ** (k / 5))[changed]
+            image[10:30, 5:35] = values
+            block = PixelBlock(10, 5, changed, values)
+            if dense:
+                events.append(sensor.step(t, t + 700, [], [], block=block))
+            else:
+                events.append(sensor.step(t, t + 700, block.flat_indices(width), block.changed_values()))
+            t += 700
+        events.append(sensor.step(t, t + 5000, [], []))
+        outs.append(np.concatenate(events))
+    assert outs[0].size > 100
+    assert outs[0].tobytes() == outs[1].tobytes()
 
 
 def test_same_seed_same_events(rig: RigConfig) -> None:

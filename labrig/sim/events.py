@@ -49,6 +49,7 @@ import numpy.typing as npt
 
 from labrig.config import RigConfig
 from labrig.eventtypes import EVENT_DTYPE
+from labrig.sim import _render_kernels as _k
 from labrig.sim.pixels import PixelBlock
 
 Array = npt.NDArray[np.float64]
@@ -294,37 +295,22 @@ class EventSensor:
         """Dense update of a block's changed pixels and of the unsettled pixels inside it.
 
         Returns the pixels that may cross a threshold (flat), their filtered log
-        intensity before and after, and the block's pixels left unsettled (flat).
-        Everything runs on slices of the state. The block's values are the
-        window's values over the whole rectangle, so for its unchanged pixels the
-        new log intensity is exactly the stored one and needs no mask.
+        intensity before and after, and the block's pixels left unsettled (flat),
+        all in row-major order. One fused pass over the block (:mod:`._render_kernels`).
+        The block's values are the window's values over the whole rectangle, so
+        for its unchanged pixels the new log intensity is exactly the stored one.
         """
-        rows, cols = block.slices()
-        shape = (self.height, self.width)
-        u0 = self.log_input.reshape(shape)[rows, cols]
-        y0 = self.log_filtered.reshape(shape)[rows, cols]
-        w = block.changed.shape[1]
         log_new = np.add(self.params.eps, block.values)
         np.log(log_new, out=log_new)
-        y1 = self._low_pass(y0, u0, log_new, coef)
-        update = block.changed | self._is_active.reshape(shape)[rows, cols]
-        maybe = np.greater_equal(y1, self._hi.reshape(shape)[rows, cols])
-        maybe |= np.less_equal(y1, self._lo.reshape(shape)[rows, cols])
-        maybe &= update
-        where = np.flatnonzero(maybe)
-        r, c = np.divmod(where, w)
-        who = (r + block.y0) * self.width + (c + block.x0)
-        before = y0[r, c]
-        after = y1[r, c]
-        lag = np.subtract(log_new, y1)
-        np.abs(lag, out=lag)
-        unsettled = np.greater(lag, settle, out=maybe)
-        unsettled &= update
-        np.copyto(y0, y1, where=update)
-        u0[...] = log_new
-        r, c = np.divmod(np.flatnonzero(unsettled), w)
-        active = (r + block.y0) * self.width + (c + block.x0)
-        return who, before, after, active
+        n = block.changed.size
+        who, active = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+        before, after = np.empty(n), np.empty(n)
+        a, b, c = coef
+        n_who, n_active = _k.sensor_block(
+            block.y0, block.x0, self.width, block.changed, log_new, self.log_input, self.log_filtered,
+            self._hi, self._lo, self._is_active, a, b, c, settle, who, before, after, active,
+        )
+        return who[:n_who], before[:n_who], after[:n_who], active[:n_active]
 
     def _crossings(self, t0_us: int, t1_us: int, who: Index, y0: Array, y1: Array) -> tuple[Index, npt.NDArray[np.uint8], Index]:
         """Threshold crossings of pixels whose filtered log intensity went y0 -> y1 over the step (already stored)."""

@@ -41,6 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
+from labrig.sim import _render_kernels as _k
 from labrig.sim.camera import CameraModel
 from labrig.sim.discs import coverage_at, ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
 from labrig.sim.pixels import PixelBlock, unique_indices
@@ -52,8 +53,9 @@ Rect = tuple[int, int, int, int]  # x0, x1, y0, y1: ROI pixels, exclusive ends
 
 #: Finite-difference step of the projection Jacobian, mm (as CameraModel.jacobian_px_per_mm).
 _JACOBIAN_STEP_MM = 1e-4
-#: Above this fraction of the ROI, a re-shade samples the whole ROI with the sparse matrix.
-_MATRIX_FRACTION = 0.2
+#: Stand-ins for the kernel when nothing is re-shaded.
+_NO_NODES = np.zeros(8)
+_NO_LOOKUP = (np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 1)))
 
 
 class RenderUpdate:
@@ -152,7 +154,7 @@ class Renderer:
         self._pixel_gel_xy: Array | None = None
         self._lookup_key: tuple[float, float, int, float, float, int] | None = None
         self._lookup: GridLookup | None = None
-        self._lookup_uses = 0
+        self._kernel_base = np.zeros((1, 1), dtype=np.int32)
         self._centres, self._axes_px = self._project(rest)
         self._origins = patch_origins(self._centres, self.half_px)
         self._patches = ellipse_coverage(self._centres, self._axes_px, self._origins, self.half_px, edge_px)
@@ -166,8 +168,10 @@ class Renderer:
     # -- public ------------------------------------------------------------------------------------
 
     def prepare_shading(self) -> None:
-        """Compute now what the first re-shade would (the pixels' rest points on the gel), e.g. before serving live."""
+        """Compute now what the first re-shade would (the pixels' rest points on the gel, the compiled pixel
+        loops), e.g. before serving live."""
         self._gel_xy()
+        _k.warm_up()
 
     @property
     def image(self) -> Array:
@@ -183,11 +187,11 @@ class Renderer:
         ``led_on`` None keeps the current LED state.
         """
         touched = self._move_markers(np.asarray(marker_xyz_mm, dtype=np.float64))
-        rect = self._reshade(depth) if depth is not self._depth else None
+        rect, shade = self._reshade(depth) if depth is not self._depth else (None, None)
         if led_on is not None and bool(led_on) != self._led_on:
             self._led_on = bool(led_on)
             rect = (0, self.roi.width_px, 0, self.roi.height_px)
-        block = self._compose_block(rect) if rect is not None else None
+        block = self._compose_block(rect, shade) if rect is not None else None
         pixels = self._canvas_to_roi[touched]
         pixels = pixels[pixels >= 0]
         if block is not None and pixels.size:
@@ -387,20 +391,16 @@ class Renderer:
         key = depth.grid_key()
         if self._lookup is None or self._lookup_key != key:
             self._lookup = GridLookup.build(key, self._gel_xy()).reshape(self.roi.height_px, self.roi.width_px)
-            self._lookup_key, self._lookup_uses = key, 0
-        self._lookup_uses += 1
+            self._lookup_key = key
+            # For the kernel: pixels off the grid point at the block of zeros after the last node.
+            base = self._lookup.base
+            self._kernel_base = np.where(base < 0, key[2] * key[5], base).astype(np.int32)
         return self._lookup
 
     def _sample(self, depth: DepthField, rect: Rect) -> Array:
         """The depth field's node slopes interpolated at the pixels of a ROI rect, (h, w)."""
         x0, x1, y0, y1 = rect
-        lookup = self._grid_lookup(depth)
-        h, w = self.roi.height_px, self.roi.width_px
-        if self._lookup_uses > 1 and (x1 - x0) * (y1 - y0) >= _MATRIX_FRACTION * h * w:
-            # The grid has stayed put: one sparse product for the whole ROI (weights packed once per grid position).
-            full = lookup.matrix() @ depth.slope.ravel()
-            return full.reshape(h, w)[y0:y1, x0:x1]
-        return lookup.sample(depth.slope, np.s_[y0:y1, x0:x1])
+        return self._grid_lookup(depth).sample(depth.slope, np.s_[y0:y1, x0:x1])
 
     def _slope_box(self, depth: DepthField | None) -> Rect | None:
         """ROI pixel box (x0, x1, y0, y1; exclusive ends, ROI coordinates) holding the slope above tolerance."""
@@ -425,18 +425,22 @@ class Renderer:
             return None
         return bx0, bx1, by0, by1
 
-    def _reshade(self, depth: DepthField | None) -> Rect | None:
-        """Update the shading for a new depth field; return the ROI rect whose shading was rewritten (or None)."""
+    def _reshade(self, depth: DepthField | None) -> tuple[Rect | None, Rect | None]:
+        """Take a new depth field: (ROI rect to compose, rect within it to re-shade from the field; None if none).
+
+        Pixels of the old slope box left outside the new one are reset to 1 here;
+        the re-shading itself is fused with the composition (:meth:`_compose_block`).
+        """
         old_box = self._shade_box
         box = self._slope_box(depth)
         self._depth = depth
         if depth is None or box is None:
             self._shade_box, self._shade_key, self._shade_nodes = None, None, None
             if old_box is None:
-                return None
+                return None, None
             x0, x1, y0, y1 = old_box
             self._shade[y0:y1, x0:x1] = 1.0
-            return old_box
+            return old_box, None
         slope = depth.slope
         key = depth.grid_key()
         if box == old_box and key == self._shade_key and self._shade_nodes is not None:
@@ -444,33 +448,22 @@ class Renderer:
             moved = np.abs(slope - self._shade_nodes) > self.shade_tol
             rows = np.flatnonzero(moved.any(axis=1))
             if rows.size == 0:
-                return None
+                return None, None
             cols = np.flatnonzero(moved[rows[0] : rows[-1] + 1].any(axis=0))
             j0, j1, i0, i1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-            self._shade_nodes[j0:j1, i0:i1] = slope[j0:j1, i0:i1]  # their dependent pixels are all re-shaded below
+            self._shade_nodes[j0:j1, i0:i1] = slope[j0:j1, i0:i1]  # their dependent pixels are all re-shaded
             ny, nx = slope.shape
             area = self._pixel_box((
                 float(depth.x_mm[max(i0 - 1, 0)]), float(depth.x_mm[min(i1, nx - 1)]),
                 float(depth.y_mm[max(j0 - 1, 0)]), float(depth.y_mm[min(j1, ny - 1)]),
             ))
             rect = _intersect(area, box)
-            if rect is None:
-                return None
-            self._shade_rect(depth, rect)
-            return rect
+            return rect, rect
         self._shade_box, self._shade_key, self._shade_nodes = box, key, slope.copy()
         if old_box is not None:
             x0, x1, y0, y1 = old_box
             self._shade[y0:y1, x0:x1] = 1.0
-        self._shade_rect(depth, box)
-        return box if old_box is None else _union(old_box, box)
-
-    def _shade_rect(self, depth: DepthField, rect: Rect) -> None:
-        """Shading S = 1 + slope_gain * slope over a ROI rect, written in place."""
-        x0, x1, y0, y1 = rect
-        shade = self._shade[y0:y1, x0:x1]
-        np.multiply(self._sample(depth, rect), self.lighting.slope_gain, out=shade)
-        shade += 1.0
+        return (box if old_box is None else _union(old_box, box)), box
 
     # -- composition -------------------------------------------------------------------------------
 
@@ -490,14 +483,24 @@ class Renderer:
         limit *= self.min_rel_change
         return np.greater(diff, limit, out=np.empty(diff.shape, dtype=bool))
 
-    def _compose_block(self, rect: Rect) -> PixelBlock:
-        """Compose a ROI rect; update the reported image where it changed; the changes as a dense block."""
+    def _compose_block(self, rect: Rect, shade_rect: Rect | None) -> PixelBlock:
+        """Re-shade ``shade_rect`` (inside ``rect``) from the current depth field, compose ``rect``, update the
+        reported image where it changed; the changes as a dense block (one fused pass, :mod:`._render_kernels`)."""
         x0, x1, y0, y1 = rect
-        new = self._intensity(self._lum2d()[y0:y1, x0:x1], self._shade[y0:y1, x0:x1], self._led_on)
-        old = self._reported[y0:y1, x0:x1]
-        changed = self._changed(new, old)
-        np.copyto(old, new, where=changed)
-        return PixelBlock(y0, x0, changed, old.copy())
+        changed = np.empty((y1 - y0, x1 - x0), dtype=bool)
+        values = np.empty((y1 - y0, x1 - x0))
+        if shade_rect is not None and self._depth is not None:
+            lookup = self._grid_lookup(self._depth)
+            base, tx, ty, nx = self._kernel_base, lookup.tx, lookup.ty, lookup.nx
+            nodes = np.zeros(self._depth.slope.size + nx + 2)  # the zeros: pixels off the grid read them
+            nodes[: self._depth.slope.size] = self._depth.slope.ravel()
+        else:
+            shade_rect, nodes, nx = (0, 0, 0, 0), _NO_NODES, 2
+            base, tx, ty = _NO_LOOKUP
+        _k.shade_compose(rect, shade_rect, nodes, nx, base, tx, ty, float(self.lighting.slope_gain), self._shade,
+                         self._lum.reshape(self._canvas_shape), self._pad, self._reported, self._led_on,
+                         float(self.min_rel_change), changed, values)
+        return PixelBlock(y0, x0, changed, values)
 
     def _compose_pixels(self, pixels: Index) -> tuple[Index, Array]:
         """Compose scattered ROI pixels; update the reported image; (pixels that changed, their new intensity)."""

@@ -16,19 +16,17 @@ contact's slope field.
 
 Sampling cost: the pixels' gel points are fixed, so the bilinear weights of
 every pixel on a grid (:class:`GridLookup`) are computed once per grid
-position (a contact keeps its grid while its anchor stays put) and, for
-repeated use, packed into a sparse matrix so that shading the whole ROI is
-one sparse matrix-vector product.
+position (a contact keeps its grid while its anchor stays put); the renderer
+applies them in a fused loop (:mod:`labrig.sim._render_kernels`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
-import scipy.sparse
 
 Array = npt.NDArray[np.float64]
 
@@ -108,7 +106,6 @@ class GridLookup:
     ty: Array
     nx: int
     ny: int = 0
-    _matrix: list[scipy.sparse.csr_matrix] = field(default_factory=list, repr=False)
 
     @classmethod
     def build(cls, grid_key: tuple[float, float, int, float, float, int], xy_mm: npt.ArrayLike) -> GridLookup:
@@ -144,25 +141,6 @@ class GridLookup:
         high *= ty
         low += high
         return low
-
-    def matrix(self) -> scipy.sparse.csr_matrix:
-        """The lookup as a sparse (points, ny * nx) float64 matrix: ``matrix() @ values.ravel()`` samples a field.
-
-        Built on first use (rows of points outside the grid are empty) and kept.
-        """
-        if not self._matrix:
-            base = self.base.ravel()
-            inside = base >= 0
-            b = base[inside]
-            tx = self.tx.ravel()[inside]
-            ty = self.ty.ravel()[inside]
-            n_nodes = self.nx * (self.ny or (int(b.max(initial=0)) // self.nx + 2))
-            indices = np.stack([b, b + 1, b + self.nx, b + self.nx + 1], axis=1).ravel().astype(np.int32)
-            weights = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1).ravel()
-            indptr = np.concatenate([[0], np.cumsum(4 * inside)]).astype(np.int32)
-            matrix = scipy.sparse.csr_matrix((weights.astype(np.float64), indices, indptr), shape=(base.size, n_nodes))
-            self._matrix.append(matrix)
-        return self._matrix[0]
 
 
 def slope_shading(slope: npt.ArrayLike, slope_gain: float) -> Array:

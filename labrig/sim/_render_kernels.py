@@ -1,0 +1,122 @@
+"""Fused per-pixel loops (numba) for the dense passes of the virtual rig's camera.
+
+When the membrane's shading changes, most of the ROI (~450k pixels) is
+re-shaded, composed, compared with the reported image and fed to the event
+sensor. In numpy each of those steps is a pass over the rectangle with its own
+temporaries; here each side (renderer, sensor) is one loop. The arithmetic is
+the numpy code's, operation for operation (no fastmath), so results do not
+depend on which path computed them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def shade_compose(
+    rect, shade_rect, nodes, nx, base, tx, ty, gain, shade, lum, pad, reported, led_on, rel, changed, values
+):  # type: ignore[no-untyped-def]
+    """Re-shade ``shade_rect`` and compose ``rect`` (both x0, x1, y0, y1 in ROI pixels); return the changed count.
+
+    Shading (ROI, in place): ``1 + gain * slope`` inside ``shade_rect`` (may be
+    empty), the slope interpolated bilinearly from ``nodes`` (flat node slopes,
+    ``nx`` per row, followed by at least nx + 2 zeros) at each pixel's
+    lower-left node ``base`` (pixels off the grid point into the zeros) and
+    fractional offsets ``tx``, ``ty`` (as :meth:`GridLookup.sample`).
+    Composition over ``rect``: ``min(shade * lum, 1)`` (0 with the LED off;
+    ``lum`` is the canvas, the ROI at offset ``pad``); a pixel whose intensity
+    moved by more than ``rel * (old + new + 1e-3)`` is updated in ``reported``
+    and marked in ``changed`` (rect-shaped); ``values`` (rect-shaped) receives
+    ``reported`` after the update.
+    """
+    x0, x1, y0, y1 = rect
+    sx0, sx1, sy0, sy1 = shade_rect
+    count = 0
+    for i in range(y0, y1):
+        if sy0 <= i < sy1 and sx1 > sx0:
+            b_row, tx_row, ty_row, s_row = base[i, sx0:sx1], tx[i, sx0:sx1], ty[i, sx0:sx1], shade[i, sx0:sx1]
+            for j in range(sx1 - sx0):
+                b = b_row[j]
+                t = tx_row[j]
+                low = nodes[b]
+                low += (nodes[b + 1] - low) * t
+                high = nodes[b + nx]
+                high += (nodes[b + nx + 1] - high) * t
+                high -= low
+                high *= ty_row[j]
+                low += high
+                low *= gain
+                low += 1.0
+                s_row[j] = low
+        s_row, l_row, r_row = shade[i, x0:x1], lum[i + pad, x0 + pad : x1 + pad], reported[i, x0:x1]
+        c_row, v_row = changed[i - y0], values[i - y0]
+        for j in range(x1 - x0):
+            new = min(s_row[j] * l_row[j], 1.0) if led_on else 0.0
+            old = r_row[j]
+            limit = old + new
+            limit += 1e-3
+            limit *= rel
+            moved = abs(new - old) > limit
+            v = new if moved else old
+            r_row[j] = v
+            v_row[j] = v
+            c_row[j] = moved
+            count += moved
+    return count
+
+
+@njit(cache=True, nogil=True)
+def sensor_block(
+    y0, x0, width, changed, log_new, log_input, log_filtered, hi, lo, is_active, a, b, c, settle, who, before, after, active
+):  # type: ignore[no-untyped-def]
+    """Low-pass update of a dense block's changed pixels and of the unsettled pixels in it.
+
+    The block is rows y0.., columns x0.. of a window ``width`` wide; ``changed``
+    and ``log_new`` are block-shaped, the state (``log_input``, ``log_filtered``,
+    the no-crossing band ``hi``/``lo``, ``is_active``) flat over the window.
+    Updated pixels get ``y1 = a y0 + b u1 + c u0`` (u: log input before and
+    after). Writes, in row-major order, the updated pixels whose ``y1`` left the
+    band (``who``, ``before``, ``after``) and those left unsettled
+    (|u1 - y1| > settle: ``active``); returns both counts.
+    """
+    h, w = changed.shape
+    n_who = 0
+    n_active = 0
+    for r in range(h):
+        start = (r + y0) * width + x0
+        c_row, new_row = changed[r], log_new[r]
+        u_row, y_row = log_input[start : start + w], log_filtered[start : start + w]
+        hi_row, lo_row, a_row = hi[start : start + w], lo[start : start + w], is_active[start : start + w]
+        for col in range(w):
+            if not (c_row[col] or a_row[col]):
+                continue
+            u1 = new_row[col]
+            y_0 = y_row[col]
+            y1 = a * y_0
+            y1 += b * u1
+            y1 += c * u_row[col]
+            if y1 >= hi_row[col] or y1 <= lo_row[col]:
+                who[n_who] = start + col
+                before[n_who] = y_0
+                after[n_who] = y1
+                n_who += 1
+            if abs(u1 - y1) > settle:
+                active[n_active] = start + col
+                n_active += 1
+            y_row[col] = y1
+            u_row[col] = u1
+    return n_who, n_active
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) both kernels on tiny inputs."""
+    f8, i8 = np.float64, np.int64
+    z2 = np.zeros((2, 2))
+    shade_compose((0, 1, 0, 1), (0, 1, 0, 1), np.zeros(8), 2, np.zeros((2, 2), np.int32), z2, z2.copy(), 1.0,
+                  np.ones((2, 2)), np.zeros((4, 4)), 1, np.zeros((2, 2)), True, 1e-4,
+                  np.zeros((1, 1), np.bool_), np.zeros((1, 1)))
+    sensor_block(0, 0, 2, np.ones((1, 1), np.bool_), np.zeros((1, 1)), np.zeros(4), np.zeros(4), np.ones(4),
+                 -np.ones(4), np.zeros(4, np.bool_), 0.5, 0.25, 0.25, 1e-4, np.zeros(1, i8), np.zeros(1, f8),
+                 np.zeros(1, f8), np.zeros(1, i8))
