@@ -264,19 +264,25 @@ def sim_serve(
     indenter: Annotated[str, typer.Option(help="Indenter mounted on the virtual CNC.")] = "sphere",
     seed: Annotated[int, typer.Option(help="Seed of the event sensor's and the F/T sensor's noise.")] = 0,
     seconds: Annotated[float | None, typer.Option(help="Serve this long, then stop (default: until Ctrl-C).")] = None,
+    camera_socket: Annotated[
+        Path | None, typer.Option("--camera-socket", help="Unix socket of the EVK4 twin (default: in a fresh temp directory).")
+    ] = None,
     links: Annotated[
-        Path | None, typer.Option("--links", help="Also symlink DIR/grbl, DIR/bota to the ports (stable names for a rig file).")
+        Path | None, typer.Option("--links", help="Also symlink DIR/grbl, DIR/bota, DIR/evk4 to the devices (stable names).")
     ] = None,
     rig_path: RigOption = None,
     indenters_path: IndentersOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="JSON lines: one per device, then the statistics.")] = False,
 ) -> None:
-    """Serve the virtual rig's devices on pseudo-terminals until interrupted.
+    """Serve the virtual rig's devices until interrupted: GRBL and Bota on pseudo-terminals,
+    the EVK4 as EVT3 on a Unix socket.
 
-    Prints one line per device, name first (``grbl /dev/pts/5``); real drivers and any
-    other GRBL sender or Bota client open them as serial ports.
+    Prints one line per device, name first (``grbl /dev/pts/5``, ``evk4 /tmp/.../evk4.sock``);
+    real drivers and any other GRBL sender or Bota client open them as serial ports, the
+    camera's ``sim`` backend reads the socket.
     """
     import signal
+    import tempfile
     import threading
 
     from labrig.sim.world import LiveWorld
@@ -288,8 +294,14 @@ def sim_serve(
         raise LabrigError("--seconds must be positive")
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    socket_dir = None
+    if camera_socket is None:
+        socket_dir = tempfile.TemporaryDirectory(prefix="labrig-")
+        camera_socket = Path(socket_dir.name) / "evk4.sock"
+    elif not camera_socket.parent.is_dir():
+        raise LabrigError(f"--camera-socket {camera_socket}: its directory does not exist")
     with err_console.status("loading the contact tables"):
-        world = LiveWorld(rig, indenters[indenter], seed=seed)
+        world = LiveWorld(rig, indenters[indenter], seed=seed, camera_socket=camera_socket)
     made: list[Path] = []
     with world:
         for name, path in world.paths.items():
@@ -311,6 +323,8 @@ def sim_serve(
         finally:
             for link in made:
                 link.unlink(missing_ok=True)
+    if socket_dir is not None:
+        socket_dir.cleanup()
     stats = world.stats.as_dict()
     if as_json:
         sys.stdout.write(json.dumps({"stats": stats}) + "\n")

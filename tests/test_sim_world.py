@@ -14,6 +14,7 @@ import pytest
 
 from labrig.config import load_rig
 from labrig.devices.bota import BotaSensor, BotaSettings
+from labrig.devices.evk4 import open_camera
 from labrig.devices.grbl import Grbl
 from labrig.indenters import load_indenter
 from labrig.sim.motion import gel_in_machine
@@ -83,26 +84,41 @@ def test_drivers_press_the_gel_and_feel_its_force(world: tuple[LiveWorld, Camera
     assert w.error is None and w.server.error is None
 
 
-def test_sim_serve_prints_ports_that_drivers_open(tmp_path: Path) -> None:
+def test_sim_serve_prints_devices_that_drivers_open(tmp_path: Path) -> None:
+    """`labrig sim serve` in its own process; GRBL and the camera opened by their real drivers."""
+    links = tmp_path / "links"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "labrig.cli", "sim", "serve", "--seconds", "20", "--json", "--links", str(tmp_path)],
+        [sys.executable, "-m", "labrig.cli", "sim", "serve", "--seconds", "30", "--json", "--links", str(links),
+         "--camera-socket", str(tmp_path / "evk4.sock")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
         assert proc.stdout is not None
-        lines = [json.loads(proc.stdout.readline()) for _ in range(2)]
-        ports = {line["device"]: line["path"] for line in lines}
-        assert set(ports) == {"grbl", "bota"}
-        assert (tmp_path / "grbl").resolve() == Path(ports["grbl"]).resolve()
-        grbl = Grbl(str(tmp_path / "grbl"))
+        lines = [json.loads(proc.stdout.readline()) for _ in range(3)]
+        devices = {line["device"]: line["path"] for line in lines}
+        assert set(devices) == {"grbl", "bota", "evk4"}
+        assert (links / "grbl").resolve() == Path(devices["grbl"]).resolve()
+        grbl = Grbl(str(links / "grbl"))
+        camera = open_camera("sim", path=devices["evk4"])
         try:
-            info = grbl.connect()
-            assert info.state == "Idle"
+            assert grbl.connect().state == "Idle"
+            camera.open()
+            camera.start()
+            grbl.set_output(True)
+            triggers, events, deadline = [], 0, time.monotonic() + 10
+            while not triggers and time.monotonic() < deadline:
+                chunk = camera.read(timeout_s=0.5)
+                if chunk is not None:
+                    events += chunk.events.size
+                    triggers += chunk.triggers["p"].tolist()
+            assert triggers == [1]  # M8 became a rising edge in the camera's EVT3 stream
+            assert events > 0  # pixel noise at rest
         finally:
+            camera.close()
             grbl.close()
     finally:
         proc.terminate()
-        out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
     assert "stats" in json.loads(out.strip().splitlines()[-1])
-    assert not (tmp_path / "grbl").exists()  # links removed on exit
+    assert not (links / "grbl").exists()  # links removed on exit

@@ -11,8 +11,8 @@
   makes trigger edges on the camera;
 * a renderer thread advances the rig's camera behind the host clock by
   ``render_lag_us`` (so its mechanics solves lie in the known past) and hands
-  each chunk's events and trigger edges, in camera time, to ``camera_sink``
-  (the EVK4 twin's socket). Events carry their own timestamps, so a renderer
+  each chunk's events and trigger edges, in camera time, to the EVK4 twin
+  (EVT3 on a Unix socket at ``camera_socket``) and/or ``camera_sink``. Events carry their own timestamps, so a renderer
   running late only delays their delivery; the lag is measured.
 
 World time is host microseconds since :meth:`LiveWorld.start`. The gel pose
@@ -26,6 +26,7 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -35,6 +36,7 @@ from labrig.config import RigConfig
 from labrig.indenters import Indenter
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.contact_track import ContactTrack
+from labrig.sim.evk4_twin import Evk4Twin
 from labrig.sim.grbl_twin import GrblTwin
 from labrig.sim.motion import gel_in_machine
 from labrig.sim.rig import RigOutput, VirtualRig
@@ -81,6 +83,7 @@ class LiveWorld:
         *,
         seed: int = 0,
         clock: HostClock | None = None,
+        camera_socket: str | Path | None = None,
         camera_sink: CameraSink | None = None,
         on_chunk: Callable[[RigOutput], None] | None = None,
         trigger_output: str = "flood",
@@ -91,6 +94,7 @@ class LiveWorld:
         extra_twins: dict[str, SerialTwin] | None = None,
     ) -> None:
         self.clock = clock or MonotonicClock()
+        self.evk4 = Evk4Twin(camera_socket) if camera_socket is not None else None
         self.camera_sink = camera_sink
         self.on_chunk = on_chunk
         self.trigger_output = trigger_output
@@ -115,15 +119,20 @@ class LiveWorld:
 
     @property
     def paths(self) -> dict[str, str]:
-        """Serial port paths by device name (``grbl``, ``bota``)."""
-        return self.server.paths
+        """Device paths by name: serial ports ``grbl``, ``bota``; the ``evk4`` socket if served."""
+        paths = dict(self.server.paths)
+        if self.evk4 is not None:
+            paths["evk4"] = str(self.evk4.path)
+        return paths
 
     def start(self) -> LiveWorld:
         # Short GIL slices: the twins' thread must answer within a fraction of a millisecond.
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
         self._origin_us = self.clock.now_ns() // 1000
         self.server.start()
-        if self.camera_sink is not None or self.on_chunk is not None:
+        if self.evk4 is not None:
+            self.evk4.start()
+        if self.evk4 is not None or self.camera_sink is not None or self.on_chunk is not None:
             self._thread.start()
         return self
 
@@ -132,6 +141,8 @@ class LiveWorld:
         if self._thread.is_alive():
             self._thread.join()
         self.server.stop()
+        if self.evk4 is not None:
+            self.evk4.close()
 
     def __enter__(self) -> LiveWorld:
         return self.start()
@@ -187,11 +198,14 @@ class LiveWorld:
         s.events += len(out.events)
         s.triggers += len(out.triggers)
         s.sim_s = t_end / 1e6
-        if self.camera_sink is not None:
+        if self.camera_sink is not None or self.evk4 is not None:
             events = out.events.copy()
             events["t"] = self.rig.camera_time_us(out.events["t"])
             triggers = [(int(self.rig.camera_time_us(t)), p) for t, p in out.triggers]
-            self.camera_sink(events, triggers)
+            if self.evk4 is not None:
+                self.evk4.feed(events, triggers)
+            if self.camera_sink is not None:
+                self.camera_sink(events, triggers)
         if self.on_chunk is not None:
             self.on_chunk(out)
 
