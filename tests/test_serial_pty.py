@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import time
+
+import pytest
 import serial
 
 from labrig.sim.serial_pty import TwinServer
@@ -54,3 +57,24 @@ def test_a_port_nobody_reads_does_not_stall_the_other_twins() -> None:
             assert port.readline() == b"PING\r\n"
         port.close()
         assert server.ports["chatty"].dropped_bytes > 0 and server.error is None
+
+
+def test_unplug_closes_one_port_and_the_other_twins_keep_running() -> None:
+    with TwinServer({"gone": EchoUpper(), "echo": EchoUpper()}) as server:
+        gone = serial.Serial(server.paths["gone"], 115200, timeout=1.0)
+        echo = serial.Serial(server.paths["echo"], 115200, timeout=1.0)
+        gone.write(b"before\n")
+        assert gone.readline() == b"BEFORE\r\n"
+        server.unplug("gone")
+        assert server.unplugged == {"gone"}
+        t0 = time.monotonic()
+        with pytest.raises(serial.SerialException):
+            gone.read(1)
+        assert time.monotonic() - t0 < 0.5  # at once, not after the port's 1 s timeout
+        with pytest.raises(serial.SerialException, match="write failed"):
+            gone.write(b"after\n")
+        echo.write(b"still here\n")
+        assert echo.readline() == b"STILL HERE\r\n"
+        gone.close()
+        echo.close()
+    assert server.error is None

@@ -43,6 +43,7 @@ class PtyPort:
         self.path = os.ttyname(self._slave)
         os.set_blocking(self.master, False)
         self.dropped_bytes = 0
+        self.closed = False
 
     def read(self) -> bytes:
         try:
@@ -68,6 +69,9 @@ class PtyPort:
         self.dropped_bytes += len(data) - n
 
     def close(self) -> None:
+        if self.closed:  # never close a descriptor number twice: it may belong to someone else by now
+            return
+        self.closed = True
         for fd in (self.master, self._slave):
             with contextlib.suppress(OSError):
                 os.close(fd)
@@ -84,6 +88,10 @@ class TwinServer:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="labrig-twins", daemon=True)
         self.error: BaseException | None = None
+        #: Twins whose port was pulled by :meth:`unplug`.
+        self.unplugged: set[str] = set()
+        self._unplug_lock = threading.Lock()
+        self._unplug_requests: list[tuple[str, threading.Event]] = []
 
     @property
     def paths(self) -> dict[str, str]:
@@ -102,6 +110,30 @@ class TwinServer:
             self._thread.join()
         for port in self.ports.values():
             port.close()
+        with self._unplug_lock:
+            requests, self._unplug_requests = self._unplug_requests, []
+        for name, done in requests:
+            self.unplugged.add(name)
+            done.set()
+
+    def unplug(self, name: str, timeout_s: float = 2.0) -> None:
+        """Fault injection: the device ``name`` vanishes (cable pulled). Its pty closes, so the
+        driver's reads and writes on the port fail; the other twins keep running."""
+        if name not in self.ports:
+            raise KeyError(f"no twin named {name!r}")
+        done = threading.Event()
+        with self._unplug_lock:
+            if self._thread.is_alive():
+                self._unplug_requests.append((name, done))
+            else:
+                self._pull(name)
+                return
+        if not done.wait(timeout_s):
+            raise TimeoutError(f"the twin server did not unplug {name!r} within {timeout_s} s")
+
+    def _pull(self, name: str) -> None:
+        self.ports[name].close()
+        self.unplugged.add(name)
 
     def __enter__(self) -> TwinServer:
         return self.start()
@@ -113,6 +145,13 @@ class TwinServer:
         masters = {port.master: name for name, port in self.ports.items()}
         try:
             while not self._stop.is_set():
+                if self._unplug_requests:
+                    with self._unplug_lock:
+                        requests, self._unplug_requests = self._unplug_requests, []
+                    for name, done in requests:
+                        self._pull(name)
+                        done.set()
+                    masters = {port.master: name for name, port in self.ports.items() if name not in self.unplugged}
                 readable, _, _ = select.select(list(masters), [], [], self.tick_s)
                 now = self.now_us()
                 for fd in readable:
@@ -121,6 +160,8 @@ class TwinServer:
                     if data:
                         self.twins[name].receive(data, now)
                 for name, twin in self.twins.items():
+                    if name in self.unplugged:
+                        continue
                     out = twin.transmit(self.now_us())
                     if out:
                         self.ports[name].write(out)
