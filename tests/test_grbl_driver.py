@@ -291,3 +291,43 @@ def test_status_samples_carry_host_times_and_the_recording_columns() -> None:
     assert samples[-1] == sample
     grbl.close()
     port.done()
+
+
+class WriteFailsAfterLastWords(ScriptedPort):
+    """Answers every ``?``; once armed, one read delivers its last words after a poll falls due, and
+    from then on writes fail (the USB device went away between a read and the next write)."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+        self.last_words: bytes | None = None
+
+    def write(self, data: bytes) -> int:
+        if data == b"?" and not self.unplugged:
+            self.push(IDLE)
+        with self.cond:
+            if self.last_words == b"":
+                raise serial.SerialException("write failed: [Errno 5] Input/output error")
+        return super().write(data)
+
+    def read(self, size: int = 1) -> bytes:
+        if self.last_words:
+            time.sleep(0.06)  # the next status poll (50 Hz) is due when this read returns
+            with self.cond:
+                data, self.last_words = self.last_words, b""
+            return data
+        return super().read(size)
+
+
+def test_lines_read_just_before_the_port_fails_still_reach_the_callbacks() -> None:
+    log: list[bytes] = []
+    port = WriteFailsAfterLastWords()
+    grbl = Grbl(port, poll_hz=50, on_gcode=lambda t, d, line: log.append(line))  # type: ignore[arg-type]
+    grbl.connect(reset="none", read_settings=False)
+    port.last_words = b"[MSG:last words]\r\n"
+    end = time.monotonic() + 2.0
+    while port.last_words and time.monotonic() < end:
+        time.sleep(0.01)
+    grbl.close()  # joins the I/O thread, which fails on its next status poll
+    assert b"[MSG:last words]" in log
+    with pytest.raises(GrblConnectionError, match="unplugged"):
+        grbl.status()

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from labrig.devices.grbl import Grbl, GrblAlarm, GrblConnectionError, GrblTimeout, StatusSample
+from labrig.devices.grbl import Grbl, GrblAlarm, GrblCommandError, GrblConnectionError, GrblTimeout, StatusSample
 from labrig.sim.grbl_twin import GrblTwin
 from labrig.sim.serial_pty import TwinServer
 
@@ -77,6 +77,8 @@ def test_connect_in_alarm_unlock_and_home() -> None:
         info = grbl.connect()
         assert (info.version, info.state, info.reset) == ("1.1h", "Alarm", "soft")  # no DTR on a pty: soft reset
         assert "'$H'|'$X' to unlock" in info.messages and grbl.settings[22] == 1.0
+        with pytest.raises(GrblCommandError, match=r"^GRBL error:9 G-code locked out .*; unlock \(\$X\) or home \(\$H\) first"):
+            grbl.move_by(dx=-1, feed_mm_min=600)
         grbl.unlock()
         assert grbl.state == "Idle"
         sample = grbl.home(timeout_s=20)
@@ -100,10 +102,10 @@ def test_stream_200_short_moves_with_character_counting() -> None:
 
 
 def test_hold_resume_and_commands_during_a_hold() -> None:
-    with rig(response_timeout_s=0.5) as (twin, _, grbl):
+    with rig(response_timeout_s=0.3) as (twin, _, grbl):
         grbl.connect()
-        grbl.move_to(-20, feed_mm_min=600)
-        time.sleep(0.3)
+        grbl.move_to(-20, feed_mm_min=1200)
+        time.sleep(0.2)
         grbl.feed_hold()
         held = wait_state(grbl, "Hold:0")
         assert -10 < held.position_mm[0] < -2
@@ -119,7 +121,7 @@ def test_hold_resume_and_commands_during_a_hold() -> None:
 
         worker = threading.Thread(target=more)
         worker.start()
-        time.sleep(1.2)  # longer than the response timeout: a hold must not time out
+        time.sleep(0.7)  # longer than the response timeout: a hold must not time out
         assert worker.is_alive() and not errors
         assert twin.position_mm(grbl.now_us())[0, 0] == pytest.approx(held.position_mm[0], abs=1e-3)
         grbl.resume()
@@ -137,7 +139,7 @@ def test_soft_limit_alarm_mid_move_and_recovery() -> None:
         with pytest.raises(GrblAlarm, match=r"^ALARM:2 soft limit") as alarm:
             grbl.stream(["G1X-10F1200", "G0X5"])
         assert alarm.value.critical and twin.state == "Alarm"
-        with pytest.raises(GrblTimeout, match="alarm"):
+        with pytest.raises(GrblAlarm, match=r"^ALARM:2 .*not even '\?', until soft_reset\(\)"):
             grbl.status(timeout_s=0.3)  # GRBL is silent until reset
         stopped = twin.position_mm(grbl.now_us())[0]
         info = grbl.soft_reset()

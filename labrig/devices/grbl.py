@@ -732,7 +732,11 @@ class Grbl:
         return edge
 
     def status(self, timeout_s: float = 1.0) -> StatusSample:
-        """A fresh status report (its ``?`` sent after this call began)."""
+        """A fresh status report (its ``?`` sent after this call began).
+
+        Raises :class:`GrblAlarm` at once while a critical alarm locks the controller (it ignores
+        ``?`` until :meth:`soft_reset`), :class:`GrblTimeout` when no report comes in ``timeout_s``.
+        """
         t0 = self.now_us()
         deadline = t0 + timeout_s * 1e6
         with self._cond:
@@ -742,12 +746,13 @@ class Grbl:
                 sample = self._last_sample
                 if sample is not None and sample.t_query_us is not None and sample.t_query_us >= t0:
                     return sample
+                if self._core.locked:  # no report will come: say why at once
+                    raise GrblAlarm(self._core.alarm or 0, "GRBL answers nothing, not even '?', until soft_reset()")
                 now = self.now_us()
                 if now >= deadline:
-                    state = "locked by a critical alarm" if self._core.locked else f"last state {self.state}"
                     raise GrblTimeout(
-                        f"no status report within {timeout_s:.1f} s ({state}); GRBL does not answer '?' while homing or "
-                        "alarm-locked: soft_reset() if it is locked, else check the port and cable"
+                        f"no status report within {timeout_s:.1f} s (last state {self.state}); GRBL does not answer '?' "
+                        "while homing: wait for it, else check the port and cable"
                     )
                 if self._query_sent_us is None or now - self._query_sent_us > QUERY_TIMEOUT_S * 1e6:
                     self._request_poll_locked(now)
@@ -1022,6 +1027,12 @@ class Grbl:
         self._thread.start()
 
     def _io_loop(self) -> None:
+        try:
+            self._io_steps()
+        finally:  # lines read just before a port failure still reach the callbacks (and recordings)
+            self._run_callbacks()
+
+    def _io_steps(self) -> None:
         port = self._port
         while not self._stop.is_set():
             try:

@@ -279,6 +279,22 @@ class GrblTwin:
                 break
             return bytes(out)
 
+    # -- fault injection ------------------------------------------------------------------
+
+    def trip_hard_limit(self, now_us: int) -> None:
+        """A limit switch fires at ``now_us`` (a crash, or noise on its wire), as with ``$21=1``.
+
+        Motion stops dead, ``ALARM:1`` and ``[MSG:Reset to continue]`` go out, and everything
+        (even ``?``) is ignored until a soft reset, after which the twin stays in Alarm. The line
+        the main loop was busy with is answered only after that reset, as by the firmware.
+        """
+        with self._lock:
+            self._run_until(now_us)
+            assert self._t is not None
+            self._tl.stop(self._t)
+            self._deferred_ok = self._job is not None
+            self._alarm(1, critical=True)
+
     # -- queries -----------------------------------------------------------------------
 
     def position_mm(self, t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
