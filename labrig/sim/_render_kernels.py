@@ -110,6 +110,123 @@ def sensor_block(
     return n_who, n_active
 
 
+@njit(cache=True, nogil=True)
+def sensor_list(
+    pixels, log_new, old_active, rect, width, mark, stamp, log_input, log_filtered, hi, lo, a, b, c, settle,
+    who, before, after, active,
+):  # type: ignore[no-untyped-def]
+    """Low-pass update of scattered pixels (new log input ``log_new``) and of the still unsettled ones.
+
+    ``old_active`` pixels count only if not among ``pixels`` (``mark`` is set to
+    ``stamp`` for those) nor inside ``rect`` (y0, y1, x0, x1 of a dense block
+    updated already). Outputs as :func:`sensor_block`, in the order ``pixels``
+    then ``old_active``; returns both counts.
+    """
+    n_who = 0
+    n_active = 0
+    ry0, ry1, rx0, rx1 = rect
+    total = pixels.size + old_active.size
+    for i in range(total):
+        if i < pixels.size:
+            k = pixels[i]
+            mark[k] = stamp
+            u0 = log_input[k]
+            u1 = log_new[i]
+        else:
+            k = old_active[i - pixels.size]
+            if mark[k] == stamp:
+                continue
+            y, x = k // width, k % width
+            if ry0 <= y < ry1 and rx0 <= x < rx1:
+                continue
+            u0 = log_input[k]
+            u1 = u0
+        y_0 = log_filtered[k]
+        y1 = a * y_0
+        y1 += b * u1
+        y1 += c * u0
+        if y1 >= hi[k] or y1 <= lo[k]:
+            who[n_who] = k
+            before[n_who] = y_0
+            after[n_who] = y1
+            n_who += 1
+        if abs(u1 - y1) > settle:
+            active[n_active] = k
+            n_active += 1
+        log_filtered[k] = y1
+        log_input[k] = u1
+    return n_who, n_active
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rim_change(
+    markers, centres, o1, o0, qa, qb, qc, low, high, span0, span1, edge, patches, corner, cw, cov, out_pix, out_delta
+):  # type: ignore[no-untyped-def]
+    """Coverage change of markers moved within their rims (see Renderer._move_markers); return its count.
+
+    For each moved marker k (index ``markers[k]`` into the stored full
+    patches, side S): the patch is re-expressed at its new origin ``o1[k]``
+    (from ``o0[k]``; pixels entering it are empty); the candidate pixels
+    (patch rows and columns ``span0 <= . < span1`` whose offset from the new
+    centre lies between ``low[k]`` and ``high[k]`` px) get the new coverage
+    (as :func:`labrig.sim.discs.coverage_at`, for Q = [[qa, qb], [qb, qc]]);
+    where it differs from the stored value, the difference is added to the
+    canvas coverage ``cov`` at ``corner[k] + row * cw + col`` and written to
+    ``out_pix`` / ``out_delta`` (marker by marker, rows then columns).
+    """
+    side = patches.shape[1]
+    tmp = np.empty((side, side))
+    n = 0
+    for k in range(markers.size):
+        patch = patches[markers[k]]
+        dx = o1[k, 0] - o0[k, 0]
+        dy = o1[k, 1] - o0[k, 1]
+        if dx != 0 or dy != 0:
+            tmp[:, :] = patch
+            for r in range(side):
+                for col in range(side):
+                    rr, cc = r + dy, col + dx
+                    patch[r, col] = tmp[rr, cc] if 0 <= rr < side and 0 <= cc < side else 0.0
+        ox = o1[k, 0] - centres[k, 0]
+        oy = o1[k, 1] - centres[k, 1]
+        lo2 = low[k] * low[k]
+        hi2 = high[k] * high[k]
+        a, b, c = qa[k], qb[k], qc[k]
+        for row in range(span0, span1):
+            qy = oy + row
+            for col in range(span0, span1):
+                qx = ox + col
+                r2 = qx * qx
+                r2 += qy * qy
+                if r2 < lo2 or r2 > hi2:
+                    continue
+                gx = a * qx + b * qy
+                gy = b * qx + c * qy
+                f = qx * gx
+                f += qy * gy
+                f = np.sqrt(f)
+                grad = np.sqrt(gx * gx + gy * gy)
+                d = f - 1.0
+                d *= f
+                d /= grad
+                if edge != 1.0:
+                    d /= edge
+                new = 0.5 - d
+                if not new <= 1.0:  # above 1, or NaN at the centre (0/0): full coverage, as np.fmin
+                    new = 1.0
+                elif new < 0.0:
+                    new = 0.0
+                delta = new - patch[row, col]
+                patch[row, col] = new
+                if delta != 0.0:
+                    pix = corner[k] + row * cw + col
+                    cov[pix] += delta
+                    out_pix[n] = pix
+                    out_delta[n] = delta
+                    n += 1
+    return n
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) both kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
@@ -120,3 +237,10 @@ def warm_up() -> None:
     sensor_block(0, 0, 2, np.ones((1, 1), np.bool_), np.zeros((1, 1)), np.zeros(4), np.zeros(4), np.ones(4),
                  -np.ones(4), np.zeros(4, np.bool_), 0.5, 0.25, 0.25, 1e-4, np.zeros(1, i8), np.zeros(1, f8),
                  np.zeros(1, f8), np.zeros(1, i8))
+    sensor_list(np.zeros(1, i8), np.zeros(1), np.zeros(1, i8), (0, 0, 0, 0), 2, np.zeros(4, i8), 1, np.zeros(4),
+                np.zeros(4), np.ones(4), -np.ones(4), 0.5, 0.25, 0.25, 1e-4, np.zeros(2, i8), np.zeros(2, f8),
+                np.zeros(2, f8), np.zeros(2, i8))
+    one = np.ones(1)
+    rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
+               0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
+               np.zeros(16))

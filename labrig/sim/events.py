@@ -251,43 +251,29 @@ class EventSensor:
             y0s.append(dense[1])
             y1s.append(dense[2])
             active.append(dense[3])
-            old_active = old_active[~block.contains(old_active, self.width)]  # those were updated in the block
-        if old_active.size and pixels.size:  # unsettled pixels that got no new input (no sorting, no unique)
+        if pixels.size or old_active.size:  # the given pixels, then unsettled ones that got no new input
+            rect = (0, 0, 0, 0)
+            if block is not None:  # those inside were updated in the block
+                rows, cols = block.slices()
+                rect = (rows.start, rows.stop, cols.start, cols.stop)
             self._stamp += 1
-            self._mark[pixels] = self._stamp
-            old_active = old_active[self._mark[old_active] != self._stamp]
-        upd = np.concatenate([pixels, old_active]) if old_active.size else pixels
-        if upd.size:
-            u0 = self.log_input[upd]
-            u1 = u0.copy()
-            u1[: pixels.size] = log_new
-            y0 = self.log_filtered[upd]
-            y1 = self._low_pass(y0, u0, u1, coef)
-            self.log_input[pixels] = log_new
-            self.log_filtered[upd] = y1
-            maybe = np.flatnonzero((y1 >= self._hi[upd]) | (y1 <= self._lo[upd]))
-            who.append(upd[maybe])
-            y0s.append(y0[maybe])
-            y1s.append(y1[maybe])
-            u1 -= y1
-            active.append(upd[np.abs(u1) > settle])
+            n = pixels.size + old_active.size
+            buffers = np.empty(n, np.int64), np.empty(n), np.empty(n), np.empty(n, np.int64)
+            a, b, c = coef
+            n_who, n_active = _k.sensor_list(
+                pixels, log_new, old_active, rect, self.width, self._mark, self._stamp, self.log_input,
+                self.log_filtered, self._hi, self._lo, a, b, c, settle, *buffers,
+            )
+            who.append(buffers[0][:n_who])
+            y0s.append(buffers[1][:n_who])
+            y1s.append(buffers[2][:n_who])
+            active.append(buffers[3][:n_active])
         self._is_active[self._active] = False
         self._active = np.concatenate(active) if active else np.empty(0, dtype=np.int64)
         self._is_active[self._active] = True
         if not who:
             return np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64)
         return self._crossings(t0_us, t1_us, np.concatenate(who), np.concatenate(y0s), np.concatenate(y1s))
-
-    @staticmethod
-    def _low_pass(y0: Array, u0: Array, u1: Array, coef: tuple[float, float, float]) -> Array:
-        """y1 = a y0 + b u1 + c u0, evaluated left to right."""
-        a, b, c = coef
-        y1 = np.multiply(a, y0)
-        tmp = np.multiply(b, u1)
-        y1 += tmp
-        np.multiply(c, u0, out=tmp)
-        y1 += tmp
-        return y1
 
     def _update_block(
         self, block: PixelBlock, coef: tuple[float, float, float], settle: float

@@ -43,7 +43,7 @@ import numpy.typing as npt
 from labrig.config import RigConfig
 from labrig.sim import _render_kernels as _k
 from labrig.sim.camera import CameraModel
-from labrig.sim.discs import coverage_at, ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
+from labrig.sim.discs import ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
 from labrig.sim.pixels import PixelBlock, unique_indices
 from labrig.sim.shading import DepthField, GridLookup
 
@@ -160,7 +160,6 @@ class Renderer:
         self._patches = ellipse_coverage(self._centres, self._axes_px, self._origins, self.half_px, edge_px)
         np.add.at(self._cov, self._patch_index(self._origins).ravel(), self._patches.ravel())
         self._inner_px, self._outer_px = rim_radii(self._axes_px, edge_px)
-        self._search: dict[int, tuple[Index, Index, Array, Array]] = {}
 
         self._lum[:] = self._luminance(self._cov)
         self._reported[:] = self._intensity(self._lum2d(), self._shade, self._led_on)
@@ -261,14 +260,14 @@ class Renderer:
         origins = patch_origins(c1, self.half_px)
         rim = high <= self.half_px - 1
         parts = []
-        if rim.any():
-            parts.append(self._rim_change(moved[rim], c1[rim], a1[rim], origins[rim], low[rim], high[rim]))
+        if rim.any():  # (adds its change to the coverage)
+            parts.append(self._rim_change(moved[rim], c1[rim], a1[rim], origins[rim], low[rim], high[rim])[0])
         if not rim.all():
             far = ~rim
-            parts.append(self._coverage_change(moved[far], c1[far], a1[far], origins[far]))
-        pixels = np.concatenate([p[0] for p in parts]) if len(parts) > 1 else parts[0][0]
-        delta = np.concatenate([p[1] for p in parts]) if len(parts) > 1 else parts[0][1]
-        np.add.at(self._cov, pixels, delta)
+            pixels, delta = self._coverage_change(moved[far], c1[far], a1[far], origins[far])
+            np.add.at(self._cov, pixels, delta)
+            parts.append(pixels)
+        pixels = np.concatenate(parts) if len(parts) > 1 else parts[0]
         if moved.size > 1:
             pixels = unique_indices(pixels, self._scratch)  # overlapping markers
         self._lum[pixels] = self._luminance(self._cov[pixels])
@@ -276,62 +275,27 @@ class Renderer:
         self._inner_px[moved], self._outer_px[moved] = inner1, outer1
         return pixels
 
-    def _search_grid(self, reach: int) -> tuple[Index, Index, Array, Array]:
-        """Patch columns and rows (and as floats) of the square within ``reach`` px of pixel floor(centre)."""
-        if reach not in self._search:
-            span = np.arange(self.half_px - 1 - reach, self.half_px + reach + 1)
-            cols, rows = np.tile(span, span.size), np.repeat(span, span.size)
-            self._search[reach] = (cols, rows, cols.astype(np.float64), rows.astype(np.float64))
-        return self._search[reach]
-
     def _rim_change(
         self, markers: Index, c1: Array, a1: Array, o1: npt.NDArray[np.int64], low: Array, high: Array
     ) -> tuple[Index, Array]:
-        """Canvas pixels and coverage change of markers moved within their rims (see :meth:`_move_markers`).
+        """Canvas pixels and coverage change of markers moved within their rims (see :meth:`_move_markers`);
+        the change is already added to the canvas coverage.
 
         The new coverage is evaluated only at the candidate pixels, with the same
         arithmetic as :func:`ellipse_coverage`; the stored patches (moved to the
         new origins) are updated there, so they stay exactly the full patches.
+        One compiled loop over the markers (:func:`._render_kernels.rim_change`).
         """
         side = 2 * self.half_px
-        o0 = self._origins[markers]
-        cols, rows, fcols, frows = self._search_grid(min(int(np.ceil(high.max())), self.half_px - 1))
-        qx = (o1[:, 0] - c1[:, 0])[:, None] + fcols[None, :]
-        qy = (o1[:, 1] - c1[:, 1])[:, None] + frows[None, :]
-        r2 = qx * qx
-        r2 += qy * qy
-        near = r2 >= (low * low)[:, None]
-        near &= r2 <= (high * high)[:, None]
-        flat = np.flatnonzero(near)
-        which, within = np.divmod(flat, cols.size)
-        row, col = rows[within], cols[within]
+        reach = min(int(np.ceil(high.max())), self.half_px - 1)
+        span0, span1 = self.half_px - 1 - reach, self.half_px + reach + 1
         qa, qb, qc = inverse_shape(a1)
-        new = coverage_at(qx.ravel()[flat], qy.ravel()[flat], qa[which], qb[which], qc[which], self.edge_px)
-        patches = self._patches.reshape(len(self._patches), side * side)
-        old_at = (which * 0 + markers[which]) * (side * side)
-        row0 = row + (o1[:, 1] - o0[:, 1])[which]
-        col0 = col + (o1[:, 0] - o0[:, 0])[which]
-        inside = (col0 >= 0) & (col0 < side) & (row0 >= 0) & (row0 < side)
-        old = np.where(inside, patches.ravel()[old_at + np.where(inside, row0 * side + col0, 0)], 0.0)
-        relocated = np.flatnonzero(np.any(o1 != o0, axis=1))
-        if relocated.size:
-            self._shift_patches(markers[relocated], o1[relocated] - o0[relocated])
-        patches.ravel()[markers[which] * (side * side) + row * side + col] = new
-        new -= old
-        changed = np.flatnonzero(new)
-        which, row, col = which[changed], row[changed], col[changed]
-        cw = self._canvas_shape[1]
-        return self._canvas_corner(o1, side)[which] + row * cw + col, new[changed]
-
-    def _shift_patches(self, markers: Index, offset: npt.NDArray[np.int64]) -> None:
-        """Re-express stored patches at origins moved by ``offset`` (K, 2) px; pixels entering them are empty."""
-        side = 2 * self.half_px
-        grid = np.arange(side)
-        src_row = grid[None, :, None] + offset[:, 1, None, None]
-        src_col = grid[None, None, :] + offset[:, 0, None, None]
-        valid = (src_row >= 0) & (src_row < side) & (src_col >= 0) & (src_col < side)
-        src = np.where(valid, src_row * side + src_col, 0) + (markers * side * side)[:, None, None]
-        self._patches[markers] = np.where(valid, self._patches.ravel()[src], 0.0)
+        size = markers.size * (span1 - span0) ** 2
+        pixels, delta = np.empty(size, dtype=np.int64), np.empty(size)
+        n = _k.rim_change(markers, c1, o1, self._origins[markers], qa, qb, qc, low, high, span0, span1,
+                          float(self.edge_px), self._patches, self._canvas_corner(o1, side), self._canvas_shape[1],
+                          self._cov, pixels, delta)
+        return pixels[:n], delta[:n]
 
     def _coverage_change(self, markers: Index, c1: Array, a1: Array, new_origins: npt.NDArray[np.int64]) -> tuple[Index, Array]:
         """Canvas pixels (may repeat across markers) and the coverage change there, from old to new patches.
