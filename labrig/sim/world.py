@@ -103,7 +103,7 @@ class LiveWorld:
         # Solves must lie in the past when the renderer asks for them: within the lag.
         self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=min(50_000, self.render_lag_us * 2 // 3))
         self.track: ContactTrack = self.rig.bind(self._tool_world)
-        self.grbl = GrblTwin(grbl_settings, power_on_physical_mm=_power_on_mm(rig, indenter), on_output=self._on_output)
+        self.grbl = GrblTwin(grbl_settings, power_on_physical_mm=power_on_tool_mm(rig, indenter), on_output=self._on_output)
         self.bota = BotaTwin(
             bota_params or BotaTwinParams(clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM, seed=seed),
             wrench_at=self._wrench_at,
@@ -210,7 +210,7 @@ class LiveWorld:
             self.on_chunk(out)
 
 
-def _power_on_mm(rig: RigConfig, indenter: Indenter) -> tuple[float, float, float]:
+def power_on_tool_mm(rig: RigConfig, indenter: Indenter) -> tuple[float, float, float]:
     """Tool reference above the gel centre with POWER_ON_CLEARANCE_MM, in the homed frame."""
     surface = gel_in_machine(rig, truth=True).apply(np.zeros(3))
     tool = surface - np.asarray(indenter.tool_offset_mm) + np.array([0.0, 0.0, POWER_ON_CLEARANCE_MM])
