@@ -175,6 +175,7 @@ def devices(as_json: JsonOption = False) -> None:
 sim_app = typer.Typer(help="The virtual rig: simulated probing runs and its precomputed contact tables.", no_args_is_help=True)
 app.add_typer(sim_app, name="sim")
 add_device_commands(app)
+__import__("labrig.cli_camera", fromlist=["add_camera_commands"]).add_camera_commands(app)
 
 RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
 IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]
