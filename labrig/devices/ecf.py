@@ -76,17 +76,13 @@ def decode_ecf_chunk(data: bytes | bytearray | memoryview | npt.NDArray[np.uint8
     n = int(buf[:4].view("<u4")[0]) >> 2
     if n > MAX_CHUNK_EVENTS:
         raise EcfError(f"ECF chunk says {n} events, more than the codec's {MAX_CHUNK_EVENTS}")
-    # +5: a masked-x word may name up to 5 events past the count (ignored, as Prophesee's decoder does)
-    x = np.empty(n + 5, np.uint16)
-    y = np.empty(n + 5, np.uint16)
-    p = np.empty(n + 5, np.uint8)
-    t = np.empty(n, np.int64)
-    status = _decode_kernel(buf, n, x, y, p, t)
+    out = np.empty(n, EVENT_DTYPE)
+    # a masked-x word may name up to 5 events past the count (ignored, as Prophesee's decoder does)
+    spill = np.empty(5, np.uint16)
+    status = _decode_kernel(buf, n, out["x"], out["y"], out["p"], out["t"], spill)
     if status < 0:
         what = {-1: "truncated", -2: "corrupt (a run goes past the event count)"}.get(status, "corrupt")
         raise EcfError(f"ECF chunk of {buf.size} bytes ({n} events) is {what}")
-    out = np.empty(n, EVENT_DTYPE)
-    out["x"], out["y"], out["p"], out["t"] = x[:n], y[:n], p[:n], t
     return out
 
 
@@ -207,10 +203,10 @@ def _iter_cd(f: Any, path: Path) -> Iterator[npt.NDArray[Any]]:
     dsid = ds.id
     for start in range(0, n_rows, chunk):
         rows = min(chunk, n_rows - start)
-        info = dsid.get_chunk_info_by_coord((start,))
-        if info.byte_offset is None:  # never written: HDF5 would return fill values
-            raise EcfError(f"{path}: /CD/events chunk at row {start} is missing")
-        mask, data = dsid.read_direct_chunk((start,))
+        try:
+            mask, data = dsid.read_direct_chunk((start,))
+        except (OSError, RuntimeError, ValueError) as exc:  # a chunk never written
+            raise EcfError(f"{path}: /CD/events chunk at row {start} cannot be read ({str(exc).splitlines()[0]})") from None
         if ECF_FILTER_ID in filters and not mask & (1 << filters.index(ECF_FILTER_ID)):
             events = decode_ecf_chunk(data)
         elif not filters or all(mask & (1 << i) for i in range(len(filters))):  # stored as plain rows
@@ -313,8 +309,8 @@ def _u32(buf, pos):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def _decode_kernel(buf, n, x, y, p, t):  # type: ignore[no-untyped-def]
-    """Decode one chunk into x, y, p (n + 5 long) and t (n long); bytes used, -1 truncated, -2 corrupt."""
+def _decode_kernel(buf, n, x, y, p, t, sx):  # type: ignore[no-untyped-def]
+    """Decode one chunk into x, y, p, t (n long; sx takes masked-x spill); bytes used, -1 truncated, -2 corrupt."""
     nb = buf.shape[0]
     info = _u32(buf, 0)
     cur = np.int64(0)
@@ -362,7 +358,7 @@ def _decode_kernel(buf, n, x, y, p, t):  # type: ignore[no-untyped-def]
             w1 = _u32(buf, pos + 4)
             w2 = _u32(buf, pos + 8)
             pos += 12
-            for j in range(4):
+            for j in range(min(4, n - g)):
                 if j == 0:
                     v = w0 >> 8
                 elif j == 1:
@@ -400,7 +396,7 @@ def _decode_kernel(buf, n, x, y, p, t):  # type: ignore[no-untyped-def]
             w1 = _u16(buf, pos + 2)
             w2 = _u16(buf, pos + 4)
             pos += 6
-            for j in range(4):
+            for j in range(min(4, n - g)):
                 if j == 0:
                     v = w0 >> 4
                 elif j == 1:
@@ -423,7 +419,10 @@ def _decode_kernel(buf, n, x, y, p, t):  # type: ignore[no-untyped-def]
         i += 1
         for j in range(5):
             if v & (1 << (4 - j)):
-                x[i] = x0 + j + 1
+                if i < n:
+                    x[i] = x0 + j + 1
+                else:
+                    sx[i - n] = x0 + j + 1
                 i += 1
     i = 0
     while i < n:  # runs of p

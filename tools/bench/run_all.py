@@ -2,8 +2,9 @@
 
 Each benchmark prints its figures as ratios measured side by side in one run:
 recording writer (real-time factor per codec) and reader (slice time / window),
-RAW codec (decode rate / the evt3 package's), GRBL streaming (character
-counting / send-response), Bota reader (frames lost, jitter; decode / real
+RAW codec (decode rate / the evt3 package's), Metavision HDF5 (ECF decode /
+EVT3 decode of the same events), GRBL streaming (character counting /
+send-response), Bota reader (frames lost, jitter; decode / real
 time), virtual rig (wall time / simulated time). Full runs take several
 minutes on 2 cores; --quick shortens them.
 """
@@ -17,10 +18,11 @@ from typing import Any
 
 from _common import print_json
 
-BENCHES = ("bench_writer", "bench_reader", "bench_raw", "bench_grbl", "bench_bota", "bench_rig", "bench_live")
+BENCHES = ("bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live")
 QUICK: dict[str, dict[str, Any]] = {
     "bench_writer": {"duration_s": 3.0, "repeat": 1, "codecs": "bitshuffle-lz4,lz4,gzip"},
     "bench_reader": {"duration_s": 20.0, "events": 15e6, "positions": 50, "naive_calls": 3},
+    "bench_ecf": {"events": 1e6, "repeat": 1, "socket_events": 1e6},
     "bench_grbl": {"lines": 300, "repeat": 1},
     "bench_bota": {"seconds": 3.0},
 }
