@@ -176,6 +176,7 @@ class GrblTwin:
     ``parse_us``: time the main loop spends on a line before answering it.
     ``eeprom_write_us``: how long an EEPROM write keeps the serial receiver deaf.
     ``power_on_physical_mm``: the tool's place in the switch frame at power-up (MPos reads 0).
+    ``homed``: start as if homed earlier in the session (MPos reads the switch frame; no Alarm).
     ``link_latency_us``: extra delay each way, as a USB-serial bridge adds (0: a bare UART;
     about 1000 for an Uno's USB chip, 16000 for an FTDI at its default latency timer).
     """
@@ -191,6 +192,7 @@ class GrblTwin:
         on_output: OutputHook | None = None,
         build_info: str = "",
         link_latency_us: float = 0.0,
+        homed: bool = False,
     ) -> None:
         self.settings: dict[int, float] = dict(DEFAULT_SETTINGS)
         for number, value in (settings or {}).items():
@@ -212,6 +214,7 @@ class GrblTwin:
         self.received: deque[str] = deque(maxlen=4096)
         self._lock = threading.RLock()
         self._power_on_physical = [float(x) for x in power_on_physical_mm]
+        self._homed_at_power_on = bool(homed)
         self._t: float | None = None
         # serial
         self._wire: deque[tuple[float, int]] = deque()
@@ -336,8 +339,12 @@ class GrblTwin:
         now = float(now_us)
         if self._t is None:
             self._t = now
-            self._tl = MotionTimeline(self._limits(), (0.0, 0.0, 0.0), now)
-            self._offset = list(self._power_on_physical)
+            if self._homed_at_power_on:  # as if homed before this session: MPos is the switch frame
+                self._tl = MotionTimeline(self._limits(), tuple(self._power_on_physical), now)
+                self._offset = [0.0, 0.0, 0.0]
+            else:
+                self._tl = MotionTimeline(self._limits(), (0.0, 0.0, 0.0), now)
+                self._offset = list(self._power_on_physical)
             self._boot(power_on=True, alarm=False)
         while True:
             self._step_main_loop()

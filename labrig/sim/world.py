@@ -17,7 +17,8 @@
 
 World time is host microseconds since :meth:`LiveWorld.start`. The gel pose
 in ``rig.toml`` is in GRBL's homed frame (limit switches at the travel ends);
-the twin powers up with the tool above the gel centre, unhomed.
+the twin powers up with the tool above the gel centre, unhomed (MPos 0 there)
+or, with ``homed``, as if homed earlier in the session.
 """
 
 from __future__ import annotations
@@ -92,6 +93,7 @@ class LiveWorld:
         grbl_settings: dict[int, float] | None = None,
         bota_params: BotaTwinParams | None = None,
         extra_twins: dict[str, SerialTwin] | None = None,
+        homed: bool = False,
     ) -> None:
         self.clock = clock or MonotonicClock()
         self.evk4 = Evk4Twin(camera_socket) if camera_socket is not None else None
@@ -103,7 +105,8 @@ class LiveWorld:
         # Solves must lie in the past when the renderer asks for them: within the lag.
         self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=min(50_000, self.render_lag_us * 2 // 3))
         self.track: ContactTrack = self.rig.bind(self._tool_world)
-        self.grbl = GrblTwin(grbl_settings, power_on_physical_mm=power_on_tool_mm(rig, indenter), on_output=self._on_output)
+        self.grbl = GrblTwin(grbl_settings, power_on_physical_mm=power_on_tool_mm(rig, indenter), on_output=self._on_output,
+                             homed=homed)
         self.bota = BotaTwin(
             bota_params or BotaTwinParams(clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM, seed=seed),
             wrench_at=self._wrench_at,
@@ -149,6 +152,12 @@ class LiveWorld:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    @property
+    def origin_us(self) -> int:
+        """Host time (us, the clock's) of world time 0."""
+        assert self._origin_us is not None, "the world has not started"
+        return self._origin_us
 
     def now_world_us(self) -> int:
         assert self._origin_us is not None, "the world has not started"
