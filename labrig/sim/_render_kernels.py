@@ -227,6 +227,82 @@ def rim_change(
     return n
 
 
+@njit(cache=True, nogil=True)
+def crossings(
+    t0, t1, who, y0, y1, reference, c_on_all, c_off_all, k_all, leak, t_start, epoch_start, epoch_end, hi, lo,
+    last_event, refractory, out_pix, out_pol, out_t, leak_candidates,
+):  # type: ignore[no-untyped-def]
+    """Threshold crossings of pixels ``who`` whose filtered log intensity went y0 -> y1 over [t0, t1] us.
+
+    The arithmetic of EventSensor's model (module docstring of labrig.sim.events),
+    per pixel: D = Lf - R + k (t - t_start); a pixel whose D ends at or beyond
+    C_on (or -C_off) moves its reference by the whole crossings, gets a fresh
+    no-crossing band (``hi``, ``lo``) for the epoch and emits the crossings its
+    refractory period keeps (times linear in the step, floored to us, clipped
+    to the step), updating ``last_event``. Events are written pixel by pixel
+    (``out_*``, room for every crossing); with ``leak``, the pixels that may
+    leak before the epoch's end are written to ``leak_candidates``.
+    Returns (events, leak candidates).
+    """
+    dt = t1 - t0
+    n = 0
+    for i in range(who.size):
+        p = who[i]
+        c_on = c_on_all[p]
+        c_off = c_off_all[p]
+        offset = -reference[p]
+        if leak:
+            kk = k_all[p]
+            offset += kk * (t0 - t_start)
+            d0 = y0[i] + offset
+            d1 = y1[i] + offset + kk * dt
+        else:
+            d0 = y0[i] + offset
+            d1 = y1[i] + offset
+        if not (d1 >= c_on or d1 <= -c_off):
+            continue
+        rising = d1 > d0
+        c = c_on if rising else c_off
+        count = np.floor(abs(d1) / c)
+        reference[p] += (count if rising else -count) * c
+        r = reference[p]
+        kk = k_all[p]
+        hi[p] = r + c_on - kk * (epoch_end - t_start) - 1e-9
+        lo[p] = r - c_off - kk * (epoch_start - t_start) + 1e-9
+        step = max(abs(d1 - d0), 1e-12)
+        first = c_on - d0 if rising else d0 + c_off
+        t_first = t0 + first / step * dt
+        spacing = c / step * dt
+        if refractory == 0:
+            j0, every = 0, 1
+        else:
+            allowed = float(last_event[p] + refractory)
+            j0f = max(np.ceil((allowed - t_first) / spacing), 0.0)
+            if t_first + j0f * spacing < allowed:
+                j0f += 1.0
+            everyf = max(np.ceil(refractory / spacing), 1.0)
+            if everyf * spacing < refractory:
+                everyf += 1.0
+            j0, every = int(min(j0f, 2.0**40)), int(min(everyf, 2.0**40))
+        count_i = int(count)
+        kept = (count_i - 1 - j0) // every + 1 if j0 < count_i else 0
+        for e in range(kept):
+            t = t_first + (j0 + e * every) * spacing
+            ti = min(max(int(np.floor(t + 1e-6)), t0), t1)
+            out_pix[n] = p
+            out_pol[n] = 1 if rising else 0
+            out_t[n] = ti
+            last_event[p] = ti
+            n += 1
+    m = 0
+    if leak:
+        for i in range(who.size):
+            if y1[i] >= hi[who[i]]:
+                leak_candidates[m] = who[i]
+                m += 1
+    return n, m
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) both kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
@@ -241,6 +317,9 @@ def warm_up() -> None:
                 np.zeros(4), np.ones(4), -np.ones(4), 0.5, 0.25, 0.25, 1e-4, np.zeros(2, i8), np.zeros(2, f8),
                 np.zeros(2, f8), np.zeros(2, i8))
     one = np.ones(1)
+    crossings(0, 10, np.zeros(1, i8), 0 * one, one, 0 * one, 0.2 * one, 0.2 * one, 1e-9 * one, True, 0, 0.0, 10.0,
+              one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
+              np.zeros(1, i8))
     rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
                0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
                np.zeros(16))

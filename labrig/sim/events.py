@@ -162,6 +162,9 @@ class EventSensor:
         self._epoch_end_us = -np.inf
         self._hi = np.empty(n)
         self._lo = np.empty(n)
+        self._c_min = float(min(self.c_on.min(initial=1.0), self.c_off.min(initial=1.0)))
+        self._c_max = float(max(self.c_on.max(initial=0.0), self.c_off.max(initial=0.0)))
+        self._k_max = float(np.max(self._k, initial=0.0))
         self._c_on_margin = self.c_on - 2e-9
         self._c_off_margin = 2e-9 - self.c_off
         self._leak_candidates = np.empty(0, dtype=np.int64)
@@ -299,66 +302,32 @@ class EventSensor:
         return who[:n_who], before[:n_who], after[:n_who], active[:n_active]
 
     def _crossings(self, t0_us: int, t1_us: int, who: Index, y0: Array, y1: Array) -> tuple[Index, npt.NDArray[np.uint8], Index]:
-        """Threshold crossings of pixels whose filtered log intensity went y0 -> y1 over the step (already stored)."""
+        """Threshold crossings of pixels whose filtered log intensity went y0 -> y1 over the step (already stored).
+
+        One compiled loop (:func:`._render_kernels.crossings`); the count of crossings
+        per pixel is bounded by |D| / C, which sizes the output.
+        """
+        if who.size == 0:
+            return np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64)
         p = self.params
         dt_us = t1_us - t0_us
-        c_on = self.c_on[who]
-        offset = -self.reference[who]  # D = L_filtered - R + k (t - t_start)
-        if p.leak_rate_hz > 0:
-            k = self._k[who]
-            offset += k * (t0_us - self._t_start_us)
-            d0 = y0 + offset
-            d1 = y1 + offset + k * dt_us
-        else:
-            d0 = y0 + offset
-            d1 = y1 + offset
-        c_off = self.c_off[who]
-        fire = np.flatnonzero((d1 >= c_on) | (d1 <= -c_off))
-        candidates, y1_all = who, y1
-        who, d0_f, d1_f, c_on_f, c_off_f = who[fire], d0[fire], d1[fire], c_on[fire], c_off[fire]
-        rising = d1_f > d0_f
-        c = np.where(rising, c_on_f, c_off_f)
-        count = np.floor(np.abs(d1_f) / c)
-        jump = np.where(rising, count, -count) * c
-        self.reference[who] += jump
-        self._set_band(who, c_on_f, c_off_f)
-        # Pixels that, left quiet from now on, leak before the epoch's end (the exact time is checked when due).
-        self._add_leak_candidates(candidates[y1_all >= self._hi[candidates]])
-
-        step = np.maximum(np.abs(d1_f - d0_f), 1e-12)
-        first = np.where(rising, c_on_f - d0_f, d0_f + c_off_f)
-        t_first = t0_us + first / step * dt_us
-        spacing = c / step * dt_us
-        count_i = count.astype(np.int64)
-        j0, every = self._refractory_pattern(t_first, spacing, self.last_event_us[who])
-        kept = np.where(j0 < count_i, (count_i - 1 - j0) // every + 1, 0)
-        if kept.size == 0 or kept.max() <= 1:  # one event at most per pixel (the usual case): its crossing j0
-            owner = np.flatnonzero(kept)
-            t = t_first[owner] + j0[owner] * spacing[owner]
-            t_int = np.clip(np.floor(t + 1e-6).astype(np.int64), t0_us, t1_us)
-            self.last_event_us[who[owner]] = t_int
-            return who[owner], rising[owner].astype(np.uint8), t_int
-        # Expand to one row per kept event: event i of a pixel is its crossing j0 + i * every.
-        owner = np.repeat(np.arange(who.size), kept)
-        i = np.arange(owner.size) - np.repeat(np.cumsum(kept) - kept, kept)
-        t = t_first[owner] + (j0[owner] + i * every[owner]) * spacing[owner]
-        t_int = np.clip(np.floor(t + 1e-6).astype(np.int64), t0_us, t1_us)
-        has = kept > 0
-        last = t_first[has] + (j0[has] + (kept[has] - 1) * every[has]) * spacing[has]
-        self.last_event_us[who[has]] = np.clip(np.floor(last + 1e-6).astype(np.int64), t0_us, t1_us)
-        return who[owner], rising[owner].astype(np.uint8), t_int
-
-    def _refractory_pattern(self, t_first: Array, spacing: Array, last_us: Index) -> tuple[Index, Index]:
-        """First kept crossing j0 and keep-every-n of evenly spaced crossings under the refractory period."""
-        r = self._refractory_us
-        if r == 0:
-            return np.zeros(t_first.size, dtype=np.int64), np.ones(t_first.size, dtype=np.int64)
-        allowed = (last_us + r).astype(np.float64)
-        j0 = np.maximum(np.ceil((allowed - t_first) / spacing), 0.0)
-        j0 = np.where(t_first + j0 * spacing < allowed, j0 + 1, j0)
-        every = np.maximum(np.ceil(r / spacing), 1.0)
-        every = np.where(every * spacing < r, every + 1, every)
-        return np.minimum(j0, 2**40).astype(np.int64), np.minimum(every, 2**40).astype(np.int64)
+        # Room for every event: D starts within about one threshold of 0, so a pixel crosses at most
+        # (|y1 - y0| + 2 C_max + k dt) / C_min times, and its refractory period keeps at most dt / r + 2.
+        bound = np.abs(y1 - y0)
+        bound += 2 * self._c_max + self._k_max * dt_us
+        bound /= self._c_min
+        if self._refractory_us:
+            np.minimum(bound, dt_us // self._refractory_us + 2, out=bound)
+        room = int(bound.sum()) + 2 * who.size
+        pix, pol, t = np.empty(room, np.int64), np.empty(room, np.uint8), np.empty(room, np.int64)
+        candidates = np.empty(who.size, np.int64)
+        n, m = _k.crossings(
+            t0_us, t1_us, who, y0, y1, self.reference, self.c_on, self.c_off, self._k, p.leak_rate_hz > 0,
+            self._t_start_us, float(self._epoch_start_us), float(self._epoch_end_us), self._hi, self._lo,
+            self.last_event_us, self._refractory_us, pix, pol, t, candidates,
+        )
+        self._add_leak_candidates(candidates[:m])
+        return pix[:n], pol[:n], t[:n]
 
     # -- no-crossing band and leak of quiet pixels --------------------------------------------------
 

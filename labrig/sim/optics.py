@@ -395,6 +395,9 @@ class Renderer:
         Pixels of the old slope box left outside the new one are reset to 1 here;
         the re-shading itself is fused with the composition (:meth:`_compose_block`).
         """
+        if depth is not None and depth.same_as(self._depth):  # a new object for the same field (e.g. shear)
+            self._depth = depth
+            return None, None
         old_box = self._shade_box
         box = self._slope_box(depth)
         self._depth = depth

@@ -55,6 +55,15 @@ class DepthField:
         gx += gy
         return np.sqrt(gx, out=gx)
 
+    def same_as(self, other: DepthField | None) -> bool:
+        """Whether ``other`` holds the same grid and depth values (then both share one computed slope)."""
+        if other is None or other.grid_key() != self.grid_key() or not np.array_equal(other.depth_mm, self.depth_mm):
+            return False
+        for a, b in ((self, other), (other, self)):
+            if "slope" in a.__dict__ and "slope" not in b.__dict__:
+                b.__dict__["slope"] = a.__dict__["slope"]  # the cached_property's own storage
+        return True
+
     def slope_bbox_mm(self, tol: float) -> tuple[float, float, float, float] | None:
         """(x0, x1, y0, y1) gel-frame box (mm) holding every node with slope > tol, grown by one node; None if flat."""
         return self.node_box_mm(self.slope > tol)
