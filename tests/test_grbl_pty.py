@@ -102,7 +102,7 @@ def test_stream_200_short_moves_with_character_counting() -> None:
 
 
 def test_hold_resume_and_commands_during_a_hold() -> None:
-    with rig(response_timeout_s=0.3) as (twin, _, grbl):
+    with rig(response_timeout_s=0.5) as (twin, _, grbl):
         grbl.connect()
         grbl.move_to(-20, feed_mm_min=1200)
         time.sleep(0.2)
@@ -121,7 +121,7 @@ def test_hold_resume_and_commands_during_a_hold() -> None:
 
         worker = threading.Thread(target=more)
         worker.start()
-        time.sleep(0.7)  # longer than the response timeout: a hold must not time out
+        time.sleep(0.8)  # longer than the response timeout: a hold must not time out
         assert worker.is_alive() and not errors
         assert twin.position_mm(grbl.now_us())[0, 0] == pytest.approx(held.position_mm[0], abs=1e-3)
         grbl.resume()
