@@ -363,6 +363,42 @@ def match_trigger_edges(
     return dev_idx[keep].astype(np.int64), host_idx[keep].astype(np.int64)
 
 
+def align_trigger_edges(
+    device_edges_us: npt.ArrayLike,
+    host_edges_us: npt.ArrayLike,
+    tolerance_us: float,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Pair edges by the pattern of their intervals, whatever the latency (no coarse model).
+
+    Every (device, host) pair proposes an offset; the offset under which most
+    device edges land within ``tolerance_us`` of a distinct host edge wins (ties:
+    the smaller summed residual). Drift over a recording must stay within the
+    tolerance (60 ppm over 5 min is 18 ms). Returns the indices of matched pairs.
+    """
+    dev = np.asarray(device_edges_us, dtype=np.float64)
+    host = np.asarray(host_edges_us, dtype=np.float64)
+    empty = np.zeros(0, dtype=np.int64)
+    if dev.size == 0 or host.size == 0:
+        return empty, empty
+    order = np.argsort(host)
+    host_sorted = host[order]
+    best: tuple[int, float, npt.NDArray[np.int64], npt.NDArray[np.int64]] = (0, np.inf, empty, empty)
+    for offset in np.unique((host[None, :] - dev[:, None]).ravel()):
+        predicted = dev + offset
+        j = np.clip(np.searchsorted(host_sorted, predicted), 1, max(host_sorted.size - 1, 1)) if host_sorted.size > 1 \
+            else np.zeros(dev.size, dtype=np.int64)
+        if host_sorted.size > 1:
+            j = np.where(np.abs(predicted - host_sorted[j - 1]) <= np.abs(host_sorted[j] - predicted), j - 1, j)
+        distance = np.abs(host_sorted[j] - predicted)
+        ok = np.flatnonzero(distance <= tolerance_us)
+        _, first = np.unique(j[ok], return_index=True)
+        ok = ok[first]
+        score = (ok.size, float(distance[ok].sum()))
+        if score[0] > best[0] or (score[0] == best[0] and score[1] < best[1]):
+            best = (score[0], score[1], ok.astype(np.int64), order[j[ok]].astype(np.int64))
+    return best[2], best[3]
+
+
 class OnlineClockFit:
     """Live clock model for one device, updated as samples arrive.
 

@@ -124,3 +124,15 @@ def test_manual_clock_never_goes_back() -> None:
     assert clock.now_ns() == 15
     with pytest.raises(ValueError):
         clock.set_ns(3)
+
+
+def test_align_trigger_edges_pairs_by_interval_pattern_whatever_the_latency() -> None:
+    from labrig.clock import align_trigger_edges
+
+    rng = np.random.default_rng(3)
+    host = np.cumsum(rng.uniform(0.3e6, 5e6, 9))  # phase starts, irregular
+    device = 7_000_000_000 + (host + rng.normal(0, 2000, host.size)) * (1 + 60e-6)  # another clock, jittered
+    extra = np.array([device[4] + 123_456.0])  # a spurious camera edge
+    dev = np.concatenate([device, extra])
+    di, hi = align_trigger_edges(dev, host[:-1], tolerance_us=20_000)  # the last host edge missing
+    assert sorted(zip(di.tolist(), hi.tolist(), strict=True)) == [(i, i) for i in range(8)]

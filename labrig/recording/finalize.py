@@ -11,7 +11,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from labrig.clock import ClockModel, fit_lower_envelope, fit_triggers, match_trigger_edges, unwrap_counter
+from labrig.clock import (
+    ClockModel,
+    align_trigger_edges,
+    fit_lower_envelope,
+    fit_triggers,
+    match_trigger_edges,
+    unwrap_counter,
+)
 from labrig.recording import schema
 from labrig.recording.layout import stream_group
 
@@ -63,7 +70,12 @@ def _fit_camera_triggers(column, envelope: ClockModel | None) -> ClockModel | No
     for polarity in (0, 1):
         dev, host = edges_dev[edges_pol == polarity], known_host[known_pol == polarity]
         spacing = np.diff(np.sort(host)).min() / 2 if host.size > 1 else TRIGGER_MATCH_TOLERANCE_US
-        di, hi = match_trigger_edges(dev, host, envelope, min(spacing, TRIGGER_MATCH_TOLERANCE_US))
+        tolerance = min(spacing, TRIGGER_MATCH_TOLERANCE_US)
+        di, hi = match_trigger_edges(dev, host, envelope, tolerance)
+        if di.size < min(dev.size, host.size):  # late delivery can fool the envelope: align the interval pattern
+            ai, ah = align_trigger_edges(dev, host, tolerance)
+            if ai.size > di.size:
+                di, hi = ai, ah
         pairs_dev.append(dev[di])
         pairs_host.append(host[hi])
     dev, host = np.concatenate(pairs_dev), np.concatenate(pairs_host)

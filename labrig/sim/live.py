@@ -150,21 +150,44 @@ def _publish_ft(
     return float(times[-1] + period_us)
 
 
+TruthRows = dict[str, dict[str, np.ndarray]]
+
+
+def truth_rows(out: RigOutput, grid_gel: npt.NDArray[np.float64]) -> TruthRows:
+    """A rig chunk's truth as rows for the truth streams (see :func:`truth_streams`), times in world us.
+
+    Compact (the depth on the network grid, not the contact fields), so it can
+    cross a process boundary."""
+    rows: TruthRows = {}
+    if out.truth_t_us.size:
+        rows["truth/markers"] = {"t_host_us": out.truth_t_us, "position_mm": out.truth_markers_mm,
+                                 "position_px": out.truth_markers_px}
+    if out.solves:
+        depth, mask = zip(*(_depth_on_grid(s, grid_gel) for s in out.solves))
+        t = np.array([s.t_us for s in out.solves], dtype=np.int64)
+        rows["truth/contact"] = {
+            "t_host_us": t,
+            "indentation_mm": np.array([s.depth_mm for s in out.solves]),
+            "tip_mm": np.array([s.tip_gel_mm for s in out.solves]),
+            "force_n": np.array([s.force_on_gel_n for s in out.solves]),
+            "centre_of_pressure_mm": np.array([s.centre_of_pressure_mm for s in out.solves]),
+        }
+        rows["truth/marker_forces"] = {"t_host_us": t, "force_n": np.array([s.marker_forces_n for s in out.solves])}
+        rows["truth/depth"] = {"t_host_us": t, "depth_mm": np.array(depth), "contact_mask": np.array(mask)}
+    return rows
+
+
+def put_truth_rows(writer: RecordingWriter, rows: TruthRows, offset_us: int = 0) -> None:
+    """Put truth rows into ``writer``; recording host time = world time + ``offset_us``."""
+    for stream, columns in rows.items():
+        writer.put(stream, **{**columns, "t_host_us": columns["t_host_us"] + offset_us})
+
+
 def publish_truth(
     writer: RecordingWriter, out: RigOutput, grid_gel: npt.NDArray[np.float64], offset_us: int = 0
 ) -> None:
-    """Put a rig chunk's truth into ``writer``'s truth streams (see :func:`truth_streams`);
-    recording host time = world time + ``offset_us``."""
-    if out.truth_t_us.size:
-        writer.put("truth/markers", t_host_us=out.truth_t_us + offset_us, position_mm=out.truth_markers_mm,
-                   position_px=out.truth_markers_px)
-    for s in out.solves:
-        t = s.t_us + offset_us
-        writer.put("truth/contact", t_host_us=t, indentation_mm=s.depth_mm, tip_mm=s.tip_gel_mm,
-                   force_n=s.force_on_gel_n, centre_of_pressure_mm=s.centre_of_pressure_mm)
-        writer.put("truth/marker_forces", t_host_us=t, force_n=s.marker_forces_n[None])
-        depth, mask = _depth_on_grid(s, grid_gel)
-        writer.put("truth/depth", t_host_us=t, depth_mm=depth[None], contact_mask=mask[None])
+    """Put a rig chunk's truth into ``writer``'s truth streams; recording host time = world time + ``offset_us``."""
+    put_truth_rows(writer, truth_rows(out, grid_gel), offset_us)
 
 
 def _depth_on_grid(solve: Solve, grid_gel: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8]]:

@@ -1,0 +1,347 @@
+"""Run one probing sequence through the real drivers into one recording, safely.
+
+Approach (search for contact), Normal Down (to a depth or a force), Wait,
+Shear, Wait, Shear Opposite, Wait, Normal Up, Retract. At each phase start the
+CNC output wired to the camera's trigger input toggles (M8/M9), so the
+recording carries hardware sync edges, and the phase is logged on the host
+clock. Before any move every target is checked against the workspace; during
+the run the :class:`~labrig.protocol.safety.ForceMonitor` holds the machine
+within one F/T sample of a force over its limit, and every wait has a timeout.
+
+Stopping: a tripped force limit, a GRBL alarm, a lost device or a second
+Ctrl-C hold the machine at once, flush its plan and retract along the gel
+normal; a first Ctrl-C lets the current phase finish, then goes up. The
+recording is finalized either way (``aborted`` with the reason).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import RigConfig
+from labrig.devices.grbl import Grbl, GrblError, GrblTimeout
+from labrig.frames import Pose
+from labrig.indenters import Indenter
+from labrig.protocol.plan import ProbePlan
+from labrig.protocol.safety import SafetyError, StopRequest, check_location, check_targets
+from labrig.protocol.session import NS_PER_US, RigSession
+from labrig.protocol.spec import ProbeSpec
+from labrig.recording import RecordingMetadata, RecordingWriter
+from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
+
+F64 = npt.NDArray[np.float64]
+
+#: Extra time allowed on top of a move's nominal duration, s.
+MOVE_MARGIN_S = 5.0
+#: F/T samples averaged for contact and force-target detection (noise 0.02 N -> 0.005 N).
+DETECT_SAMPLES = 16
+
+
+@dataclass(frozen=True)
+class RunProgress:
+    phase: str
+    force_n: tuple[float, float, float]
+    camera_events: int
+
+
+@dataclass
+class RunResult:
+    """What one probing run did (host times: recording us)."""
+
+    path: Path
+    exit_status: str
+    reason: str = ""
+    phases: list[str] = field(default_factory=list)
+    contact_mm: tuple[float, float, float] | None = None
+    peak_force_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    wall_s: float = 0.0
+
+
+class _Abort(Exception):
+    def __init__(self, reason: str, hold: bool) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.hold = hold
+
+
+class ProbeRunner:
+    """Runs :class:`ProbeSpec` s on an open :class:`RigSession` for one mounted indenter."""
+
+    def __init__(
+        self,
+        session: RigSession,
+        rig: RigConfig,
+        indenter: Indenter,
+        *,
+        gel_in_machine: Pose,
+        stop: StopRequest | None = None,
+        progress: Callable[[RunProgress], None] | None = None,
+    ) -> None:
+        self.session = session
+        self.rig = rig
+        self.indenter = indenter
+        self.gel_in_machine = gel_in_machine
+        self.stop = stop or StopRequest()
+        self.progress = progress
+        self.limits = session.limits.for_indenter(indenter.max_normal_force_n, indenter.max_shear_force_n)
+        self._writer: RecordingWriter | None = None
+        self._phases: list[str] = []
+        self._output_level = 0
+
+    @property
+    def grbl(self) -> Grbl:
+        assert self.session.grbl is not None
+        return self.session.grbl
+
+    # -- one run ------------------------------------------------------------------------------
+
+    def check(self, spec: ProbeSpec) -> ProbePlan:
+        """Everything that can be refused before moving (raises SafetyError with all problems)."""
+        if spec.indenter != self.indenter.name:
+            raise SafetyError(f"the run needs the {spec.indenter} indenter but {self.indenter.name} is mounted")
+        check_location(spec.location_mm, (self.rig.gel.size_x_mm, self.rig.gel.size_y_mm),
+                       self.indenter.footprint_radius_mm, self.limits.gel_margin_mm)
+        if spec.depth_mm is not None and spec.depth_mm > self.indenter.max_depth_mm:
+            raise SafetyError(f"depth {spec.depth_mm} mm is beyond the {self.indenter.name} indenter's "
+                              f"max_depth_mm {self.indenter.max_depth_mm}")
+        if spec.force_n is not None and spec.force_n > self.limits.max_normal_force_n:
+            raise SafetyError(f"force target {spec.force_n} N is over the normal force limit {self.limits.max_normal_force_n} N")
+        plan = ProbePlan.build(spec, self.gel_in_machine, self.indenter, self.limits.clearance_mm)
+        check_targets(plan.nominal_targets(self.indenter.max_depth_mm), self.limits)
+        return plan
+
+    def run(self, spec: ProbeSpec, out: str | Path, *, protocol_toml: str = "", extra: dict[str, Any] | None = None,
+            overwrite: bool = False) -> RunResult:
+        """Travel above the location, tare, record the sequence, retract. Raises before moving
+        if the plan is unsafe; otherwise always returns a finalized recording."""
+        plan = self.check(spec)
+        out = Path(out)
+        if out.exists() and not overwrite:
+            raise SafetyError(f"{out} exists; choose another name or allow overwriting")
+        t_start = time.perf_counter()
+        self._travel_to_start(plan)
+        self.session.tare()
+        writer = self._open_writer(out, spec, protocol_toml, extra)
+        result = RunResult(out, EXIT_COMPLETE)
+        try:
+            result.contact_mm = self._sequence(plan, result)
+        except _Abort as abort:
+            result.exit_status, result.reason = EXIT_ABORTED, abort.reason
+            try:
+                self._recover(plan, hold=abort.hold)
+            except (GrblError, _Abort) as exc:
+                result.reason += f"; the retract failed too ({exc}): check the machine before the next run"
+        finally:
+            end_ns = self.session.clock.now_ns()
+            writer.phase_end((end_ns - writer.t0_host_ns) // NS_PER_US)
+            self.session.end(end_ns)
+            self._writer = None
+            recording = writer.close(result.exit_status, result.reason)
+            result.path = recording.path
+            result.phases = list(self._phases)
+            result.peak_force_n = tuple(float(v) for v in self.session.monitor.peak_n)  # type: ignore[assignment]
+            result.wall_s = time.perf_counter() - t_start
+        return result
+
+    # -- the sequence -----------------------------------------------------------------------------
+
+    def _sequence(self, plan: ProbePlan, result: RunResult) -> tuple[float, float, float]:
+        spec = plan.spec
+        self._phase("approach")
+        contact = self._approach(plan)
+        result.contact_mm = (float(contact[0]), float(contact[1]), float(contact[2]))
+        self._phase("normal_down")
+        bottom = self._normal_down(plan, contact)
+        steps: list[tuple[str, F64 | None, float]] = [("wait", None, spec.wait_s)]
+        if spec.shear_mm > 0:
+            steps += [("shear", plan.sheared_mm(bottom), spec.shear_speed_mm_s), ("wait", None, spec.wait_s),
+                      ("shear_opposite", bottom, spec.shear_speed_mm_s), ("wait", None, spec.wait_s)]
+        for name, target, value in steps:
+            if self.stop.level >= 1:
+                raise _Abort("stopped by the user (Ctrl-C)", hold=False)
+            self._phase(name)
+            if target is None:
+                self._dwell(value)
+            else:
+                self._move(target, value)
+        self._phase("normal_up")
+        self._move(contact, spec.normal_speed_mm_s)
+        self._phase("retract")
+        self._move(contact - spec.retract_height_mm * plan.down, spec.retract_speed_mm_s)
+        return result.contact_mm
+
+    def _approach(self, plan: ProbePlan) -> F64:
+        approach = plan.spec.approach
+        reached = self.session.monitor.arm("contact", approach.contact_force_n, self.grbl.jog_cancel,
+                                           average_samples=DETECT_SAMPLES)
+        limit = plan.approach_limit_mm
+        self.grbl.jog(*limit.tolist(), feed_mm_min=approach.speed_mm_s * 60, relative=False, machine=True)
+        self._wait_motion(approach.max_travel_mm / approach.speed_mm_s)
+        self.session.monitor.disarm()
+        if not reached.is_set():
+            raise _Abort(f"no contact within {approach.max_travel_mm} mm of the approach start "
+                         f"(|Fz| stayed under {approach.contact_force_n} N): check the gel height in the rig's gel pose",
+                         hold=False)
+        return np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+
+    def _normal_down(self, plan: ProbePlan, contact: F64) -> F64:
+        spec = plan.spec
+        if spec.depth_mm is not None:
+            self._move(plan.bottom_mm(contact), spec.normal_speed_mm_s)
+            return plan.bottom_mm(contact)
+        assert spec.force_n is not None
+        max_depth = min(spec.max_depth_mm or self.indenter.max_depth_mm, self.indenter.max_depth_mm)
+        deepest = plan.max_bottom_mm(contact, max_depth)
+        reached = self.session.monitor.arm("force", spec.force_n, self.grbl.jog_cancel, average_samples=DETECT_SAMPLES)
+        self.grbl.jog(*deepest.tolist(), feed_mm_min=spec.normal_speed_mm_s * 60, relative=False, machine=True)
+        self._wait_motion(max_depth / spec.normal_speed_mm_s)
+        self.session.monitor.disarm()
+        if not reached.is_set():
+            raise _Abort(f"the force target {spec.force_n} N was not reached at the depth cap {max_depth} mm", hold=False)
+        return np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+
+    # -- motion with checks -----------------------------------------------------------------------
+
+    def _move(self, target: F64, speed_mm_s: float) -> None:
+        here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+        distance = float(np.linalg.norm(np.asarray(target) - here))
+        self._checked(lambda: self.grbl.move_to(*np.asarray(target).tolist(), feed_mm_min=speed_mm_s * 60, machine=True))
+        self._wait_motion(distance / speed_mm_s)
+
+    def _wait_motion(self, nominal_s: float) -> None:
+        deadline = time.monotonic() + 1.5 * nominal_s + MOVE_MARGIN_S
+        while True:
+            self._check_faults()
+            try:
+                self.grbl.wait_idle(timeout_s=0.2)
+                self._check_faults()
+                return
+            except GrblTimeout:
+                if time.monotonic() > deadline:
+                    raise _Abort(f"the move did not finish within {1.5 * nominal_s + MOVE_MARGIN_S:.1f} s "
+                                 f"(GRBL {self.grbl.state})", hold=True) from None
+            except GrblError as exc:
+                self._check_faults()
+                raise _Abort(f"GRBL: {exc}", hold=False) from exc
+            self._report()
+
+    def _dwell(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            self._check_faults()
+            time.sleep(min(left, 0.02))
+            self._report()
+
+    def _checked(self, action: Callable[[], Any]) -> Any:
+        self._check_faults()
+        try:
+            return action()
+        except GrblError as exc:
+            self._check_faults()
+            raise _Abort(f"GRBL: {exc}", hold=False) from exc
+
+    def _check_faults(self) -> None:
+        session = self.session
+        trip = session.monitor.trip
+        if trip is not None:
+            raise _Abort(f"force limit: {trip.reason}", hold=True)
+        if self.stop.level >= 2:
+            raise _Abort("stopped by the user (second Ctrl-C): held and retracted", hold=True)
+        if session.ft is not None and session.ft.error is not None:
+            raise _Abort(f"F/T sensor lost: {session.ft.error}", hold=True)
+        if session.camera is not None and session.camera.error is not None:
+            raise _Abort(f"camera lost: {session.camera.error}", hold=True)
+        if session.world is not None and session.world.error is not None:
+            raise _Abort(f"virtual rig failed: {session.world.error!r}", hold=True)
+
+    def _report(self) -> None:
+        if self.progress is not None and self._phases:
+            f = self.session.monitor.last_n
+            self.progress(RunProgress(self._phases[-1], (float(f[0]), float(f[1]), float(f[2])), self.session.camera_events))
+
+    # -- phases, travel, recovery -------------------------------------------------------------------
+
+    def _phase(self, name: str) -> None:
+        """Toggle the camera trigger and log the phase start (after queued motion has finished)."""
+        writer = self._writer
+        assert writer is not None
+        self._output_level ^= 1
+        edge = self._checked(lambda: self.grbl.set_output(bool(self._output_level)))
+        t_us = edge.t_ack_us - writer.t0_host_ns // NS_PER_US
+        writer.put("trigger_out", t_host_us=t_us, polarity=self._output_level)
+        writer.phase_begin(name, t_us)
+        self._phases.append(name)
+        self._report()
+
+    def _travel_to_start(self, plan: ProbePlan) -> None:
+        """Up to the travel height, across, down to the approach start (not recorded)."""
+        state = self.grbl.status().state
+        if state.startswith("Alarm"):
+            raise SafetyError("GRBL is in Alarm: home it (labrig cnc home) or, if its position is known, unlock it")
+        self.session.monitor.trip = None
+        self.session.monitor.peak_n = np.zeros(3)
+        speed = plan.spec.retract_speed_mm_s
+        here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+        up = here.copy()
+        up[2] = max(here[2], plan.clearance_mm[2])
+        try:
+            for target in (up, plan.clearance_mm, plan.approach_start_mm):
+                self.grbl.move_to(*target.tolist(), feed_mm_min=speed * 60, machine=True)
+                self.grbl.wait_idle(timeout_s=float(np.linalg.norm(target - here)) / speed * 1.5 + MOVE_MARGIN_S)
+                here = target
+        except GrblError as exc:
+            raise SafetyError(f"travelling to the approach start failed: {exc}") from exc
+
+    def _recover(self, plan: ProbePlan, hold: bool) -> None:
+        """After an abort: stop, flush the plan, then go up along the gel normal and to the retract point."""
+        grbl = self.grbl
+        if hold:
+            with contextlib.suppress(GrblError):
+                grbl.feed_hold()
+            deadline = time.monotonic() + 3.0
+            while time.monotonic() < deadline:
+                with contextlib.suppress(GrblError):
+                    if grbl.status().state in ("Hold:0", "Idle", "Alarm"):
+                        break
+                time.sleep(0.02)
+            info = grbl.soft_reset()
+            if info.state == "Alarm":
+                grbl.unlock()  # held to a stop first: the position is kept
+        else:
+            with contextlib.suppress(GrblError):
+                grbl.wait_idle(timeout_s=10)
+        with contextlib.suppress(_Abort, GrblError):
+            self._phase("retract")
+        here = np.asarray(grbl.status().position_mm, dtype=np.float64)
+        rise = float((here - plan.retract_mm) @ plan.down)  # distance below the retract plane along the normal
+        speed = plan.spec.retract_speed_mm_s
+        if rise > 0:
+            above = here - rise * plan.down
+            grbl.move_to(*above.tolist(), feed_mm_min=min(speed, plan.spec.normal_speed_mm_s * 2) * 60, machine=True)
+            grbl.wait_idle(timeout_s=rise / speed * 3 + MOVE_MARGIN_S)
+        grbl.move_to(*plan.retract_mm.tolist(), feed_mm_min=speed * 60, machine=True)
+        grbl.wait_idle(timeout_s=30)
+
+    def _open_writer(self, out: Path, spec: ProbeSpec, protocol_toml: str, extra: dict[str, Any] | None) -> RecordingWriter:
+        from labrig.sim.truth import truth_streams
+
+        info = {"virtual_rig": self.session.virtual, "seed": self.session.seed, "location_mm": list(spec.location_mm),
+                "tare_n_nm": list(self.session.tare_n), **(extra or {})}
+        metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
+                                     extra=info)
+        streams = truth_streams(len(self.rig.markers.rest_positions_mm())) if self.session.virtual else ()
+        if out.exists():
+            out.unlink()
+        writer = RecordingWriter(out, metadata, clock=self.session.clock, extra_streams=streams).open()
+        self._writer = writer
+        self._phases = []
+        self.session.begin(writer)
+        return writer

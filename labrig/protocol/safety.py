@@ -1,0 +1,182 @@
+"""Safety for probing runs: limits checked before any move, forces watched on every sample, stop requests.
+
+* :class:`SafetyLimits`: the machine workspace the runner may command, the gel
+  margin, and per-axis force limits (the indenter's, capped by the rig's).
+* :func:`check_targets`: every planned target inside the workspace, refused
+  before the first move with one line per problem.
+* :class:`ForceMonitor`: sees every F/T sample (from the sensor's reader
+  thread). Over a limit it calls ``on_trip`` at once (the runner wires a GRBL
+  feed hold: the machine decelerates within one sample period of the
+  violation); armed for contact or a force target it calls ``on_reached``
+  (a jog cancel) the same way.
+* :class:`StopRequest`: Ctrl-C levels. The first asks the runner to finish the
+  current phase and stop safely; the second to hold and retract at once.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.errors import LabrigError
+
+
+class SafetyError(LabrigError):
+    """A plan or a run that would break a safety limit."""
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    """Machine-coordinate workspace (mm), gel margin (mm) and force limits (N, tared, sensor axes)."""
+
+    workspace_min_mm: tuple[float, float, float] = (-200.0, -200.0, -200.0)
+    workspace_max_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gel_margin_mm: float = 1.0
+    clearance_mm: float = 5.0
+    max_normal_force_n: float = 25.0
+    max_shear_force_n: float = 6.0
+
+    def for_indenter(self, max_normal_force_n: float, max_shear_force_n: float) -> SafetyLimits:
+        """These limits capped by an indenter's own."""
+        return SafetyLimits(
+            self.workspace_min_mm, self.workspace_max_mm, self.gel_margin_mm, self.clearance_mm,
+            min(self.max_normal_force_n, max_normal_force_n), min(self.max_shear_force_n, max_shear_force_n),
+        )
+
+
+def check_targets(targets: Sequence[tuple[str, npt.ArrayLike]], limits: SafetyLimits) -> None:
+    """Raise :class:`SafetyError` listing every named machine target outside the workspace."""
+    lo, hi = np.asarray(limits.workspace_min_mm), np.asarray(limits.workspace_max_mm)
+    problems = []
+    for name, target in targets:
+        p = np.asarray(target, dtype=np.float64)
+        for axis, value, low, high in zip("XYZ", p, lo, hi, strict=True):
+            if not low - 1e-9 <= value <= high + 1e-9:
+                problems.append(f"{name}: {axis} = {value:.3f} mm is outside the workspace [{low:.1f}, {high:.1f}] mm")
+    if problems:
+        raise SafetyError("refused before moving:\n  " + "\n  ".join(problems)
+                          + "\n  check the location, depth and the rig's [safety] workspace and gel pose")
+
+
+def check_location(location_mm: tuple[float, float], size_mm: tuple[float, float], footprint_radius_mm: float,
+                   margin_mm: float) -> None:
+    """The contact location (gel frame) keeps the indenter's footprint ``margin_mm`` inside the gel edge.
+
+    Long footprints (a ridge) only need their centre inside: the check uses the smaller of
+    the footprint radius and 3 mm, so edge probing with a sphere stays possible.
+    """
+    reach = min(footprint_radius_mm, 3.0) + margin_mm
+    half_x, half_y = size_mm[0] / 2 - reach, size_mm[1] / 2 - reach
+    x, y = location_mm
+    if abs(x) > half_x or abs(y) > half_y:
+        raise SafetyError(f"location ({x:.2f}, {y:.2f}) mm is too close to the gel's edge: keep |x| <= {half_x:.2f} "
+                          f"and |y| <= {half_y:.2f} mm for this indenter")
+
+
+@dataclass(frozen=True)
+class Trip:
+    """Why the monitor stopped the machine."""
+
+    reason: str
+    force_n: tuple[float, float, float]
+    t_host_ns: int
+
+
+class ForceMonitor:
+    """Watches tared forces on every sample; trips once on a limit, fires once on an armed target."""
+
+    def __init__(self, limits: SafetyLimits, on_trip: Callable[[], None]) -> None:
+        self.limits = limits
+        self.on_trip = on_trip
+        self.baseline_n = np.zeros(3)
+        self.peak_n = np.zeros(3)
+        self.last_n = np.zeros(3)
+        self.trip: Trip | None = None
+        self.samples = 0
+        self._lock = threading.Lock()
+        self._armed: tuple[str, float, Callable[[], None]] | None = None
+        self._reached = threading.Event()
+        self.reached_force_n: tuple[float, float, float] | None = None
+        self._recent_fz = np.zeros(1)
+        self._recent_i = 0
+
+    def set_baseline(self, force_n: npt.ArrayLike) -> None:
+        with self._lock:
+            self.baseline_n = np.asarray(force_n, dtype=np.float64).reshape(3)
+
+    def arm(self, kind: str, threshold_n: float, on_reached: Callable[[], None], *,
+            average_samples: int = 1) -> threading.Event:
+        """Fire ``on_reached`` once when the mean |Fz| of the last ``average_samples`` samples
+        exceeds ``threshold_n`` (kind "contact" or "force"); returns the event set then."""
+        with self._lock:
+            self._reached.clear()
+            self.reached_force_n = None
+            self._recent_fz = np.zeros(max(1, int(average_samples)))
+            self._recent_i = 0
+            self._armed = (kind, float(threshold_n), on_reached)
+        return self._reached
+
+    def disarm(self) -> None:
+        with self._lock:
+            self._armed = None
+
+    def on_sample(self, t_host_ns: int, force_n: npt.ArrayLike) -> None:
+        """Call for every F/T sample (sensor axes, raw); cheap."""
+        f = np.asarray(force_n, dtype=np.float64) - self.baseline_n
+        fire: Callable[[], None] | None = None
+        trip: Callable[[], None] | None = None
+        with self._lock:
+            self.samples += 1
+            self.last_n = f
+            self.peak_n = np.maximum(self.peak_n, np.abs(f))
+            shear = float(np.hypot(f[0], f[1]))
+            if self.trip is None:
+                if abs(f[2]) > self.limits.max_normal_force_n:
+                    self.trip = Trip(f"normal force |Fz| = {abs(f[2]):.2f} N over the limit "
+                                     f"{self.limits.max_normal_force_n:.2f} N", tuple(f), t_host_ns)
+                elif shear > self.limits.max_shear_force_n:
+                    self.trip = Trip(f"shear force |Fxy| = {shear:.2f} N over the limit "
+                                     f"{self.limits.max_shear_force_n:.2f} N", tuple(f), t_host_ns)
+                if self.trip is not None:
+                    trip = self.on_trip
+            if self._armed is not None:
+                self._recent_fz[self._recent_i % self._recent_fz.size] = abs(f[2])
+                self._recent_i += 1
+                if self._recent_i >= self._recent_fz.size and float(self._recent_fz.mean()) > self._armed[1]:
+                    fire = self._armed[2]
+                    self._armed = None
+                    self.reached_force_n = (float(f[0]), float(f[1]), float(f[2]))
+        if trip is not None:
+            trip()
+        if fire is not None:
+            fire()
+            self._reached.set()
+
+
+class StopRequest:
+    """Ctrl-C levels: 0 run, 1 finish the phase and stop, 2 hold and retract now."""
+
+    def __init__(self) -> None:
+        self._level = 0
+        self._lock = threading.Lock()
+        self.changed = threading.Event()
+
+    @property
+    def level(self) -> int:
+        return self._level
+
+    def request(self) -> int:
+        """One more press; returns the new level."""
+        with self._lock:
+            self._level = min(self._level + 1, 2)
+            self.changed.set()
+            return self._level
+
+    def reset(self) -> None:
+        with self._lock:
+            self._level = 0
+            self.changed.clear()

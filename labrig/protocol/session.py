@@ -1,0 +1,252 @@
+"""The rig's devices, open for a series of recordings, their data routed into the current one.
+
+A :class:`RigSession` owns the three drivers (GRBL, Bota, camera) for as long
+as a ``labrig record`` or a campaign runs. Their callbacks feed whatever
+recording is current (:meth:`RigSession.begin` / :meth:`RigSession.end`) and
+the safety monitor, which sees every F/T sample whether recording or not.
+
+With no hardware configured the session starts the virtual rig in a child
+process (:class:`~labrig.sim.world_process.WorldProcess`: its twins on ptys
+and a Unix socket, as ``labrig sim serve``) and opens it with the same
+drivers; it also writes the rig's truth into each recording.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from labrig.clock import HostClock, MonotonicClock
+from labrig.config import RigConfig
+from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
+from labrig.devices.evk4 import Camera, open_camera
+from labrig.devices.grbl import Grbl, StatusSample
+from labrig.errors import LabrigError
+from labrig.indenters import Indenter
+from labrig.protocol.safety import ForceMonitor, SafetyLimits
+from labrig.recording import RecordingWriter
+
+NS_PER_US = 1000
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """Where the devices are. Empty ports with the ``sim`` camera and no socket: the virtual rig."""
+
+    grbl_port: str = ""
+    grbl_baud: int = 115200
+    bota_port: str = ""
+    bota_baud: int = 460800
+    camera: str = "sim"
+    camera_path: str = ""
+    output_on: str = "M8"
+    output_off: str = "M9"
+
+    @property
+    def virtual(self) -> bool:
+        return not self.grbl_port and not self.bota_port and self.camera == "sim" and not self.camera_path
+
+    def check(self) -> None:
+        if self.virtual:
+            return
+        missing = [name for name, value in (("grbl_port", self.grbl_port), ("bota_port", self.bota_port)) if not value]
+        if self.camera == "sim" and not self.camera_path:
+            missing.append("camera_path (the socket `labrig sim serve` prints)")
+        if missing:
+            raise LabrigError(f"[devices] names some devices but not {', '.join(missing)}: configure all of them, "
+                              "or none for the embedded virtual rig")
+
+
+class RigSession:
+    """Open devices and routing; use as a context manager (see :meth:`open`)."""
+
+    def __init__(self, rig: RigConfig, devices: DeviceConfig, limits: SafetyLimits, *, seed: int = 0,
+                 indenter: Indenter | None = None, indenters_path: Path | None = None,
+                 clock: HostClock | None = None, world: Any = None) -> None:
+        """``world``: an in-process, started :class:`~labrig.sim.world.LiveWorld` to use as the
+        virtual rig instead of a child process (tests inject faults into its twins)."""
+        devices.check()
+        self.rig = rig
+        self.devices = devices
+        self.limits = limits
+        self.seed = seed
+        self.indenter = indenter
+        self.indenters_path = indenters_path
+        self.clock = clock or MonotonicClock()
+        self.world: Any = None
+        self._own_world = world is None
+        self._injected = world
+        self.grbl: Grbl | None = None
+        self.ft: BotaSensor | None = None
+        self.camera: Camera | None = None
+        self.monitor = ForceMonitor(limits, on_trip=self._hold)
+        self.tare_n: tuple[float, ...] = (0.0,) * 6
+        self._writer: RecordingWriter | None = None
+        self._truth_thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._pump: threading.Thread | None = None
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
+        self.camera_events = 0
+        self.last_camera_ns = 0
+
+    @property
+    def virtual(self) -> bool:
+        return self.devices.virtual
+
+    # -- lifecycle --------------------------------------------------------------------------
+
+    def open(self) -> RigSession:
+        try:
+            paths = self._device_paths()
+            self.grbl = Grbl(paths["grbl"], baudrate=self.devices.grbl_baud, clock=self.clock,
+                             on_sample=self._on_cnc, on_gcode=self._on_gcode,
+                             output_on=self.devices.output_on, output_off=self.devices.output_off)
+            self.grbl.connect(reset="none" if self.virtual else "auto")
+            self.ft = BotaSensor(paths["bota"], baudrate=self.devices.bota_baud, clock=self.clock,
+                                 on_sample=self._on_ft, char_gap_s=0.0 if self.virtual else 0.005)
+            self.ft.connect(boot_timeout_s=10)
+            self.ft.configure(BotaSettings())
+            self.ft.start()
+            options: dict[str, Any] = {"clock": self.clock}
+            if self.devices.camera in ("sim", "raw"):
+                options["path"] = paths["evk4"]
+            self.camera = open_camera(self.devices.camera, **options).open()
+            self.camera.start()
+            self._pump = threading.Thread(target=self._pump_camera, name="labrig-camera-pump", daemon=True)
+            self._pump.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in (self._pump, self._truth_thread):
+            if thread is not None:
+                thread.join(timeout=5)
+        for device in (self.camera, self.ft, self.grbl):
+            if device is not None:
+                with contextlib.suppress(Exception):
+                    device.close()
+        if self.world is not None and self._own_world:
+            self.world.stop()
+        self.world = None
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def __enter__(self) -> RigSession:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _device_paths(self) -> dict[str, str]:
+        if not self.virtual:
+            return {"grbl": self.devices.grbl_port, "bota": self.devices.bota_port, "evk4": self.devices.camera_path}
+        from labrig.sim.world_process import WorldProcess
+
+        if self._injected is not None:
+            self.world = self._injected
+            return dict(self.world.paths)
+        if self.indenter is None:
+            raise LabrigError("the virtual rig needs to know the mounted indenter")
+        self._tmp = tempfile.TemporaryDirectory(prefix="labrig-rig-")
+        self.world = WorldProcess(self.rig.path, self.indenter.name, indenters_path=self.indenters_path, seed=self.seed,
+                                  camera_socket=Path(self._tmp.name) / "evk4.sock").start()
+        self._truth_thread = threading.Thread(target=self._pump_truth, name="labrig-truth-pump", daemon=True)
+        self._truth_thread.start()
+        return self.world.paths
+
+    # -- recordings ---------------------------------------------------------------------------
+
+    def begin(self, writer: RecordingWriter) -> None:
+        with self._lock:
+            self._writer = writer
+
+    def end(self, end_host_ns: int, timeout_s: float = 5.0) -> None:
+        """Let late data (camera events up to ``end_host_ns``, the rig's truth) arrive, then stop routing."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            world_done = self.world is None or self._world_t_us() + self.world.origin_us >= end_host_ns // NS_PER_US
+            if world_done and self.last_camera_ns >= end_host_ns:
+                break
+            time.sleep(0.01)
+        with self._lock:
+            self._writer = None
+
+    def _world_t_us(self) -> int:
+        world = self.world
+        return int(world.rig_t_us) if hasattr(world, "rig_t_us") else int(world.rig.t_us)
+
+    def tare(self, n_samples: int = 200) -> None:
+        """Software-tare the F/T sensor (the indenter free) and zero the monitor."""
+        assert self.ft is not None
+        offsets = self.ft.tare(n_samples)
+        self.tare_n = tuple(float(v) for v in (*offsets.force_n, *offsets.torque_nm))
+        self.monitor.set_baseline(np.zeros(3))
+
+    # -- data routing (device threads) ----------------------------------------------------------
+
+    def _hold(self) -> None:
+        if self.grbl is not None:
+            with contextlib.suppress(Exception):
+                self.grbl.feed_hold()
+
+    def _on_ft(self, sample: FtSample) -> None:
+        self.monitor.on_sample(sample.t_host_ns, sample.force_n)
+        writer = self._writer
+        if writer is not None:
+            writer.put("ft", t_device_us=sample.t_device_us, t_host_us=(sample.t_host_ns - writer.t0_host_ns) // NS_PER_US,
+                       force_n=sample.force_n, torque_nm=sample.torque_nm, status=sample.status,
+                       temperature_c=sample.temperature_c)
+
+    def _on_cnc(self, sample: StatusSample) -> None:
+        writer = self._writer
+        if writer is not None:
+            row = sample.columns()
+            row["t_host_us"] = sample.t_host_us - writer.t0_host_ns // NS_PER_US
+            writer.put("cnc", **row)
+
+    def _on_gcode(self, t_host_us: int, direction: int, line: bytes) -> None:
+        writer = self._writer
+        if writer is not None:
+            writer.put("gcode", t_host_us=t_host_us - writer.t0_host_ns // NS_PER_US, direction=direction, line=line[:128])
+
+    def _pump_truth(self) -> None:
+        from labrig.sim.live import put_truth_rows
+
+        while not self._stop.is_set() and self.world is not None:
+            rows = self.world.truth(timeout_s=0.05)
+            writer = self._writer
+            if rows is not None and writer is not None and "truth/contact" in writer.specs:
+                put_truth_rows(writer, rows, self.world.origin_us - writer.t0_host_ns // NS_PER_US)
+
+    def _pump_camera(self) -> None:
+        assert self.camera is not None
+        while not self._stop.is_set():
+            chunk = self.camera.read(timeout_s=0.05)
+            if chunk is None:
+                if self.camera.ended:
+                    return
+                continue
+            self.last_camera_ns = chunk.t_host_ns
+            self.camera_events += int(chunk.events.size)
+            writer = self._writer
+            if writer is None:
+                continue
+            t_host_us = (chunk.t_host_ns - writer.t0_host_ns) // NS_PER_US
+            ev = chunk.events
+            if ev.size:
+                writer.put_events(ev["x"], ev["y"], ev["p"], ev["t"], t_host_us)
+            if chunk.triggers.size:
+                tr = chunk.triggers
+                writer.put("triggers", t_device_us=tr["t"], polarity=tr["p"], channel=tr["id"])
