@@ -155,6 +155,10 @@ def test_protocol_limits_indenter_and_exclusive_targets(tmp_path: Path, rig: Rig
     assert "both depth_mm and force_n" in found[(5, "normal")]
     assert "known: sphere, cylinder, square, ridge" in found[(2, "probe.indenter")]
 
+    path = _write(tmp_path, "root.toml", 'depth_mm = 1.0\n[probe]\nindenter = "sphere"\n')
+    with pytest.raises(ProtocolError, match=r"root\.toml:1: depth_mm: is outside any section; move it under \[normal\]"):
+        load_protocol(path)
+
     # Without rig and indenters only the file itself is checked.
     ok = _write(tmp_path, "ok.toml", '[probe]\nindenter = "spere"\nlocation_mm = [50, 0]\n')
     assert load_protocol(ok).location_mm == (50.0, 0.0)
@@ -344,6 +348,7 @@ def test_overrides_from_the_command_line(rig: RigConfig, indenters: dict[str, In
     assert by_force.force_n == 12.0 and by_force.depth_mm is None and by_force.approach.start_height_mm == 1.0
     assert apply_overrides(by_force, depth=2.0).depth_mm == 2.0
     assert apply_overrides(base, at=(1, 2), wait_s=0.2).wait_s == 0.2
+    assert apply_overrides(base, force_n=3.0, wait_s=None) == ProbeSpec("sphere", force_n=3.0, approach=base.approach)
     with pytest.raises(ProtocolError, match="--depth/--force: both given"):
         apply_overrides(base, depth=1.0, force=2.0)
     with pytest.raises(ProtocolError, match="--at: '2;3' is not a location"):

@@ -273,6 +273,10 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
     locator = TomlLocator(text)
     pf = _ProtocolFile(str(path), locator, {})
     for section, table in data.items():
+        if section not in PROTOCOL_KEYS and not isinstance(table, dict):
+            homes = [f"[{name}]" for name, keys in PROTOCOL_KEYS.items() if section in keys] or ["its section"]
+            problems.add((pf.path, locator.line("", section)), section, f"is outside any section; move it under {homes[0]}")
+            continue
         if section not in PROTOCOL_KEYS:
             message = _unknown_key_message(section, PROTOCOL_KEYS, "section")
             problems.add((pf.path, locator.line(section)), f"[{section}]", message)
@@ -417,13 +421,20 @@ def apply_overrides(
     **fields: Any,
 ) -> ProbeSpec:
     """``spec`` with command-line overrides: ``at`` ("X,Y" mm or a pair), ``depth`` (mm) or
-    ``force`` (N), and any ProbeSpec field by name (``wait_s=0.2``). A new normal target
+    ``force`` (N), and any ProbeSpec field by name (``wait_s=0.2``; ``None`` values are
+    ignored, so unset CLI options can be passed straight through). A new normal target
     replaces the old one. Checked against ``rig`` / ``indenters`` when given."""
     problems: list[str] = []
     flag = {"location_mm": "--at", "depth_mm": "--depth", "force_n": "--force"}
+    # The field names work too: location_mm= is at=, depth_mm= is depth=, force_n= is force=.
+    at = fields.pop("location_mm", at)
+    depth = fields.pop("depth_mm", depth)
+    force = fields.pop("force_n", force)
     changes: dict[str, Any] = {}
     known = {f.name for f in dataclasses.fields(ProbeSpec)}
     for name, value in fields.items():
+        if value is None:
+            continue
         if name not in known:
             problems.append(f"{name}: {_unknown_key_message(name, sorted(known), 'field')}")
         else:
