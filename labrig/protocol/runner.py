@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
-from labrig.devices.grbl import Grbl, GrblError, GrblTimeout
+from labrig.devices.grbl import Grbl, GrblAlarm, GrblError, GrblTimeout
 from labrig.frames import Pose
 from labrig.indenters import Indenter
 from labrig.protocol.plan import ProbePlan
@@ -269,14 +269,23 @@ class ProbeRunner:
 
     # -- phases, travel, recovery -------------------------------------------------------------------
 
-    def _phase(self, name: str) -> None:
-        """Toggle the camera trigger and log the phase start (after queued motion has finished)."""
+    def _phase(self, name: str, *, recovering: bool = False) -> None:
+        """Toggle the camera trigger and log the phase start (after queued motion has finished).
+
+        ``recovering``: after an abort, faults are known already; the phase is logged even if
+        the trigger output cannot be switched."""
         writer = self._writer
         assert writer is not None
         self._output_level ^= 1
-        edge = self._checked(lambda: self.grbl.set_output(bool(self._output_level)))
-        t_us = edge.t_ack_us - writer.t0_host_ns // NS_PER_US
-        writer.put("trigger_out", t_host_us=t_us, polarity=self._output_level)
+        level = self._output_level
+        t_us = writer.host_us()
+        try:
+            edge = self.grbl.set_output(bool(level)) if recovering else self._checked(lambda: self.grbl.set_output(bool(level)))
+            t_us = edge.t_ack_us - writer.t0_host_ns // NS_PER_US
+            writer.put("trigger_out", t_host_us=t_us, polarity=level)
+        except GrblError:
+            if not recovering:
+                raise
         writer.phase_begin(name, t_us)
         self._phases.append(name)
         self._report()
@@ -308,18 +317,25 @@ class ProbeRunner:
                 grbl.feed_hold()
             deadline = time.monotonic() + 3.0
             while time.monotonic() < deadline:
-                with contextlib.suppress(GrblError):
+                try:
                     if grbl.status().state in ("Hold:0", "Idle", "Alarm"):
                         break
+                except GrblAlarm:
+                    break
+                except GrblError:
+                    pass
                 time.sleep(0.02)
-            info = grbl.soft_reset()
-            if info.state == "Alarm":
-                grbl.unlock()  # held to a stop first: the position is kept
+            grbl.soft_reset()  # flush the plan; held to a stop first, the position is kept
         else:
-            with contextlib.suppress(GrblError):
+            try:
                 grbl.wait_idle(timeout_s=10)
-        with contextlib.suppress(_Abort, GrblError):
-            self._phase("retract")
+            except GrblAlarm:
+                grbl.soft_reset()
+            except GrblError:
+                pass
+        if grbl.status().state == "Alarm":
+            grbl.unlock()
+        self._phase("retract", recovering=True)
         here = np.asarray(grbl.status().position_mm, dtype=np.float64)
         rise = float((here - plan.retract_mm) @ plan.down)  # distance below the retract plane along the normal
         speed = plan.spec.retract_speed_mm_s

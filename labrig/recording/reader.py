@@ -154,6 +154,11 @@ class Recording:
         return str(self.file.attrs.get("exit_status", "unknown"))
 
     @property
+    def exit_reason(self) -> str:
+        """Why an aborted recording stopped ("" when complete)."""
+        return str(self.file.attrs.get("exit_reason", ""))
+
+    @property
     def streams(self) -> tuple[str, ...]:
         return tuple(self._rows)
 

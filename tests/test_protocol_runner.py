@@ -1,0 +1,169 @@
+"""Probing runs through the real drivers over ptys on the virtual rig: a full run, then each safety stop."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labrig.config import RigConfig, load_rig
+from labrig.indenters import Indenter, load_indenter
+from labrig.protocol.runner import ProbeRunner, RunResult
+from labrig.protocol.safety import SafetyError, SafetyLimits, StopRequest
+from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.spec import ApproachSpec, ProbeSpec
+from labrig.recording import Recording
+from labrig.sim.motion import gel_in_machine
+from labrig.sim.world import LiveWorld
+
+QUICK = ProbeSpec(
+    "sphere", depth_mm=0.8, normal_speed_mm_s=2.0, wait_s=0.15, shear_mm=0.5, shear_speed_mm_s=2.0,
+    approach=ApproachSpec(start_height_mm=0.4, speed_mm_s=1.0, contact_force_n=0.1, max_travel_mm=1.5),
+    retract_height_mm=1.0, retract_speed_mm_s=5.0,
+)
+
+
+@pytest.fixture(scope="module")
+def rig() -> RigConfig:
+    return load_rig()
+
+
+@pytest.fixture(scope="module")
+def sphere() -> Indenter:
+    return load_indenter("sphere")
+
+
+def _runner(session: RigSession, rig: RigConfig, sphere: Indenter, stop: StopRequest | None = None) -> ProbeRunner:
+    return ProbeRunner(session, rig, sphere, gel_in_machine=gel_in_machine(rig, truth=False), stop=stop)
+
+
+def test_a_full_run_on_the_virtual_rig_records_everything(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:
+    """The default path: the virtual rig in its own process, drivers over ptys and the camera socket."""
+    with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere) as session:
+        result = _runner(session, rig, sphere).run(QUICK, tmp_path / "run.h5")
+    assert result.exit_status == "complete", result.reason
+    assert result.phases == list(QUICK.phases())
+    with Recording(result.path) as rec:
+        assert rec.exit_status == "complete"
+        assert [p.name for p in rec.phases()] == list(QUICK.phases())
+        assert rec.rows("events") > 10_000 and rec.rows("ft") > 1000 and rec.rows("cnc") > 10
+        assert rec.rows("triggers") == rec.rows("trigger_out") == len(QUICK.phases())
+        assert rec.rows("truth/contact") > 10 and rec.rows("truth/depth") > 10
+        fz = rec.column("ft", "force_n")[:, 2]
+        truth_fz = -rec.column("truth/contact", "force_n")[:, 2]
+        assert fz.max() == pytest.approx(truth_fz.max(), rel=0.05)  # the sensor saw the rig's force
+        assert rec.clock_model("camera").method == "triggers"
+
+
+@pytest.fixture()
+def live(rig: RigConfig, sphere: Indenter, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveWorld, RigSession]]:
+    """An in-process world, so tests can inject faults into its twins."""
+    socket = tmp_path_factory.mktemp("sock") / "evk4.sock"
+    with LiveWorld(rig, sphere, homed=True, camera_socket=socket) as world:
+        with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere, world=world) as session:
+            yield world, session
+
+
+def _soon(delay_s: float, action: Callable[[], None]) -> threading.Timer:
+    timer = threading.Timer(delay_s, action)
+    timer.start()
+    return timer
+
+
+def _when_phase(runner: ProbeRunner, phase: str, action: Callable[[], None], after_s: float = 0.05) -> threading.Thread:
+    def watch() -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if runner._phases and runner._phases[-1] == phase:
+                time.sleep(after_s)
+                action()
+                return
+            time.sleep(0.005)
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread
+
+
+def _assert_retracted_and_saved(result: RunResult, session: RigSession, reason: str) -> None:
+    assert result.exit_status == "aborted"
+    assert reason in result.reason
+    assert "retract failed" not in result.reason
+    assert result.contact_mm is not None
+    z = session.grbl.status().position_mm[2]  # type: ignore[union-attr]
+    assert z > result.contact_mm[2] + 0.5  # out of the gel
+    with Recording(result.path) as rec:
+        assert rec.exit_status == "aborted" and reason in rec.exit_reason
+        assert rec.rows("ft") > 100
+        assert rec.phases()[-1].name == "retract"
+
+
+def test_bad_targets_are_refused_before_any_move(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    _, session = live
+    runner = _runner(session, rig, sphere)
+    before = session.grbl.status().position_mm  # type: ignore[union-attr]
+    with pytest.raises(SafetyError, match="edge"):
+        runner.run(replace(QUICK, location_mm=(14.0, 0.0)), tmp_path / "a.h5")
+    with pytest.raises(SafetyError, match="max_depth_mm"):
+        runner.run(replace(QUICK, depth_mm=3.0), tmp_path / "b.h5")
+    session.limits = replace(session.limits, workspace_min_mm=(-200.0, -200.0, -45.0))
+    cramped = _runner(session, rig, sphere)
+    with pytest.raises(SafetyError, match="outside the workspace"):
+        cramped.run(QUICK, tmp_path / "c.h5")
+    assert session.grbl.status().position_mm == before  # type: ignore[union-attr]
+    assert not list(tmp_path.iterdir())  # nothing recorded
+
+
+def test_a_force_over_the_limit_mid_shear_holds_and_retracts(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    _, session = live
+    session.limits = replace(session.limits, max_shear_force_n=0.6)
+    session.monitor.limits = session.limits
+    result = _runner(session, rig, sphere).run(QUICK, tmp_path / "trip.h5")
+    _assert_retracted_and_saved(result, session, "force limit")
+    assert "shear force" in result.reason
+    assert "shear" in result.phases and "normal_up" not in result.phases
+
+
+def test_a_grbl_alarm_mid_run_stops_and_retracts(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    world, session = live
+    runner = _runner(session, rig, sphere)
+    _when_phase(runner, "normal_down", lambda: world.grbl.trip_hard_limit(world.server.now_us()))
+    result = runner.run(QUICK, tmp_path / "alarm.h5")
+    _assert_retracted_and_saved(result, session, "GRBL")
+
+
+def test_losing_the_ft_sensor_stops_and_retracts(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    world, session = live
+    runner = _runner(session, rig, sphere)
+    _when_phase(runner, "wait", lambda: world.server.unplug("bota"))
+    result = runner.run(QUICK, tmp_path / "ft.h5")
+    _assert_retracted_and_saved(result, session, "F/T sensor lost")
+
+
+def test_ctrl_c_twice_holds_and_retracts_at_once(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    _, session = live
+    stop = StopRequest()
+    runner = _runner(session, rig, sphere, stop)
+    _when_phase(runner, "shear", lambda: (stop.request(), stop.request()))
+    result = runner.run(replace(QUICK, shear_speed_mm_s=0.5), tmp_path / "twice.h5")
+    _assert_retracted_and_saved(result, session, "second Ctrl-C")
+    assert "shear_opposite" not in result.phases
+
+
+def test_ctrl_c_once_finishes_the_phase_then_stops(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    _, session = live
+    stop = StopRequest()
+    runner = _runner(session, rig, sphere, stop)
+    _when_phase(runner, "normal_down", stop.request)
+    result = runner.run(QUICK, tmp_path / "once.h5")
+    _assert_retracted_and_saved(result, session, "stopped by the user")
+    assert result.phases == ["approach", "normal_down", "retract"]  # normal_down ran to its end first
+    with Recording(result.path) as rec:
+        depth = rec.column("cnc", "position_mm")[:, 2].min()
+    assert depth == pytest.approx(result.contact_mm[2] - QUICK.depth_mm, abs=0.05)  # type: ignore[index]
+    assert np.isfinite(depth)
