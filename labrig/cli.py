@@ -12,7 +12,9 @@ from rich.console import Console
 from rich.table import Table
 
 from labrig import __version__
+from labrig.cli_camera import add_camera_commands
 from labrig.cli_devices import add_device_commands
+from labrig.cli_protocol import add_protocol_commands
 from labrig.errors import LabrigError
 
 app = typer.Typer(
@@ -175,7 +177,8 @@ def devices(as_json: JsonOption = False) -> None:
 sim_app = typer.Typer(help="The virtual rig: simulated probing runs and its precomputed contact tables.", no_args_is_help=True)
 app.add_typer(sim_app, name="sim")
 add_device_commands(app)
-__import__("labrig.cli_camera", fromlist=["add_camera_commands"]).add_camera_commands(app)
+add_camera_commands(app)
+add_protocol_commands(app)
 
 RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
 IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]

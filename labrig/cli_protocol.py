@@ -1,0 +1,245 @@
+"""``labrig record`` (one probing run) and ``labrig campaign`` (a whole dataset), safely.
+
+Mount on the main app with :func:`add_protocol_commands` (``cli.py``). The work is in
+:mod:`labrig.protocol`; this module parses, shows progress and prints.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from labrig.errors import LabrigError
+
+console = Console()
+err_console = Console(stderr=True)
+
+RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
+IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]
+JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")]
+
+
+def _load(rig_path: Path | None, indenters_path: Path | None) -> tuple[Any, dict[str, Any], Path]:
+    from labrig.config import DEFAULT_RIG, load_rig
+    from labrig.indenters import DEFAULT_INDENTERS, load_indenters
+
+    path = indenters_path or DEFAULT_INDENTERS
+    return load_rig(rig_path or DEFAULT_RIG), load_indenters(path), Path(path)
+
+
+@contextmanager
+def _ctrl_c(stop: Any) -> Iterator[None]:
+    """First Ctrl-C: finish the phase and stop; second: hold and retract now."""
+
+    def handler(signum: int, frame: Any) -> None:
+        level = stop.request()
+        if level == 1:
+            err_console.print("[yellow]stopping after this phase[/] (Ctrl-C again to hold and retract at once)")
+        else:
+            err_console.print("[red]holding and retracting now[/]")
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def record(
+    indenter: Annotated[str | None, typer.Option(help="Mounted indenter (default: the protocol's).")] = None,
+    protocol: Annotated[Path | None, typer.Option(help="Protocol TOML (default: protocols/probe.toml).")] = None,
+    at: Annotated[str | None, typer.Option("--at", help="Contact location X,Y in gel mm (from the gel centre).")] = None,
+    depth: Annotated[float | None, typer.Option("--depth", help="Normal depth below contact, mm.")] = None,
+    force: Annotated[float | None, typer.Option("--force", help="Normal force target, N (instead of a depth).")] = None,
+    out: Annotated[Path, typer.Option("--out", help="Directory for the recording.")] = Path("recordings"),
+    name: Annotated[str | None, typer.Option(help="File name (default: INDENTER-YYYYmmdd-HHMMSS.h5).")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the virtual rig's noise (virtual rig only).")] = 0,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Also draw events, forces and Z to this PNG.")] = None,
+    rig_path: RigOption = None,
+    indenters_path: IndentersOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Record one probing run: approach, Normal Down, Wait, Shear, Wait, Shear Opposite, Wait, Normal Up."""
+    from labrig.protocol import apply_overrides, load_protocol
+    from labrig.protocol.files import DEFAULT_PROTOCOL
+    from labrig.protocol.rigfile import device_config, safety_limits
+    from labrig.protocol.runner import ProbeRunner, RunProgress
+    from labrig.protocol.safety import StopRequest
+    from labrig.protocol.session import RigSession
+    from labrig.sim.motion import gel_in_machine
+
+    rig, indenters, ind_path = _load(rig_path, indenters_path)
+    protocol_path = protocol or DEFAULT_PROTOCOL
+    spec = load_protocol(protocol_path, rig, indenters)
+    spec = apply_overrides(spec, at=at, depth=depth, force=force, indenter=indenter, rig=rig, indenters=indenters)
+    mounted = indenters[spec.indenter]
+    devices, limits = device_config(rig), safety_limits(rig)
+    if devices.virtual:
+        err_console.print("no hardware configured: recording on the virtual rig (embedded)")
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / (name or f"{spec.indenter}-{time.strftime('%Y%m%d-%H%M%S')}.h5")
+    if path.suffix != ".h5":
+        path = path.with_suffix(".h5")
+    if path.exists():
+        raise LabrigError(f"{path} exists; give another --name or --out")
+    stop = StopRequest()
+    total = spec.nominal_duration_s() + spec.approach.max_travel_mm / spec.approach.speed_mm_s / 2
+    with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=err_console,
+                  disable=as_json) as bar:
+        task = bar.add_task("opening the devices", total=total)
+        started = time.monotonic()
+
+        def show(p: RunProgress) -> None:
+            bar.update(task, completed=time.monotonic() - started,
+                       description=f"{p.phase:<15} Fz {p.force_n[2]:6.2f} N  Fxy {abs(complex(*p.force_n[:2])):5.2f} N  "
+                                   f"{p.camera_events:>10,} events")
+
+        with RigSession(rig, devices, limits, seed=seed, indenter=mounted, indenters_path=ind_path) as session, _ctrl_c(stop):
+            runner = ProbeRunner(session, rig, mounted, gel_in_machine=gel_in_machine(rig, truth=False), stop=stop,
+                                 progress=show)
+            started = time.monotonic()
+            result = runner.run(spec, path, protocol_toml=protocol_path.read_text())
+    if plot is not None:
+        from labrig.recording import Recording
+        from labrig.recording.plot import plot_overview
+
+        with Recording(result.path) as rec:
+            plot_overview(rec, plot)
+    summary = {
+        "path": str(result.path), "exit_status": result.exit_status, "reason": result.reason,
+        "indenter": spec.indenter, "virtual_rig": devices.virtual, "phases": result.phases,
+        "contact_machine_mm": result.contact_mm, "peak_force_n": result.peak_force_n, "wall_s": round(result.wall_s, 3),
+        "plot": None if plot is None else str(plot),
+    }
+    if as_json:
+        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+    else:
+        style = "green" if result.exit_status == "complete" else "yellow"
+        console.print(f"[{style}]{result.exit_status}[/] {result.path}" + (f": {result.reason}" if result.reason else ""))
+        peak = result.peak_force_n
+        console.print(f"peak |F| (N): x {peak[0]:.2f}  y {peak[1]:.2f}  z {peak[2]:.2f};  {result.wall_s:.1f} s")
+    if result.exit_status != "complete":
+        raise typer.Exit(1)
+
+
+def campaign(
+    file: Annotated[Path, typer.Argument(help="Campaign TOML (e.g. protocols/paper.toml).")],
+    out: Annotated[Path, typer.Option("--out", help="Output directory (recordings and manifest.csv).")] = Path("data"),
+    workers: Annotated[int, typer.Option(help="Virtual rigs in parallel (hardware campaigns run one at a time).")] = 1,
+    limit: Annotated[int | None, typer.Option(help="Record at most this many of the pending recordings.")] = None,
+    yes: Annotated[bool, typer.Option("--yes", help="Hardware: do not ask before each indenter change.")] = False,
+    rig_path: RigOption = None,
+    indenters_path: IndentersOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Record a whole campaign with a manifest; rerun to resume after an interruption or a crash."""
+    from labrig.protocol import load_campaign
+    from labrig.protocol.campaign import Manifest, Outcome, pending_jobs, run_job, run_parallel
+    from labrig.protocol.rigfile import device_config
+    from labrig.protocol.safety import StopRequest
+
+    if workers < 1:
+        raise LabrigError("--workers must be at least 1")
+    rig, indenters, ind_path = _load(rig_path, indenters_path)
+    plan = load_campaign(file, rig, indenters)
+    devices = device_config(rig)
+    if workers > 1 and not devices.virtual:
+        raise LabrigError("--workers > 1 needs the virtual rig: a hardware campaign runs one recording at a time")
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = Manifest(out, plan)
+    protocol_text = plan.protocol.read_text() if plan.protocol is not None else ""
+    jobs = pending_jobs(plan, manifest, out, rig_path=rig.path, indenters_path=ind_path, protocol_toml=protocol_text,
+                        workers=workers)
+    if limit is not None:
+        jobs = _limit(jobs, limit)
+    todo = sum(len(j.plans) for j in jobs)
+    skipped = len(plan.plans) - sum(1 for row in manifest.rows.values() if row["status"] != "complete")
+    manifest.save()
+    if devices.virtual and not as_json:
+        err_console.print(f"no hardware configured: {todo} recordings on the virtual rig ({workers} in parallel)")
+    nominal = {p.id: p.spec.nominal_duration_s() + 3.0 for j in jobs for p in j.plans}
+    t0 = time.monotonic()
+    counts = {"complete": 0, "aborted": 0, "failed": 0}
+    stop = StopRequest()
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.fields[n]}"),
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, disable=as_json) as bar:
+        task = bar.add_task(f"campaign {plan.name}", total=sum(nominal.values()) or 1.0, n=todo)
+        done = 0
+
+        def take(outcome: Outcome) -> None:
+            nonlocal done
+            manifest.record(outcome)
+            counts[outcome.status if outcome.status in counts else "failed"] += 1
+            done += 1
+            bar.update(task, advance=nominal.get(outcome.plan_id, 0.0), description=f"campaign {plan.name}: {outcome.plan_id}")
+            bar.columns[2].text_format = f"{done}/{todo}"  # type: ignore[attr-defined]
+            if outcome.status != "complete":
+                err_console.print(f"[yellow]{outcome.plan_id} {outcome.status}[/]: {outcome.reason}")
+
+        def ask(indenter: str) -> None:
+            if not devices.virtual and not yes:
+                bar.stop()
+                typer.confirm(f"mount the {indenter} indenter, then continue?", abort=True)
+                bar.start()
+
+        with _ctrl_c(stop):
+            if workers == 1:
+                for job in jobs:
+                    if stop.level >= 1:
+                        break
+                    run_job(job, take, stop, before_session=ask)
+            else:
+                for outcome in run_parallel(jobs, workers):
+                    take(outcome)
+    wall = time.monotonic() - t0
+    recorded_s = sum(float(r["duration_s"] or 0) for r in manifest.rows.values())
+    summary = {
+        "campaign": plan.name, "out": str(out), "manifest": str(manifest.path), "recordings": len(plan.plans),
+        "skipped_complete": skipped, "recorded": counts["complete"], "aborted": counts["aborted"], "failed": counts["failed"],
+        "pending": sum(1 for r in manifest.rows.values() if r["status"] not in ("complete",)),
+        "workers": workers, "wall_s": round(wall, 2),
+        "recordings_per_min": round(60 * done / wall, 3) if done and wall > 0 else 0.0,
+        "splits": {s: sum(1 for r in manifest.rows.values() if r["split"] == s) for s in ("train", "val", "test")},
+        "recorded_wall_s_total": round(recorded_s, 2),
+    }
+    if as_json:
+        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+        return
+    table = Table(title=f"campaign {plan.name}", title_justify="left")
+    for column in ("recordings", "skipped", "recorded", "aborted", "failed", "pending", "per min"):
+        table.add_column(column, justify="right")
+    table.add_row(*(str(summary[k]) for k in ("recordings", "skipped_complete", "recorded", "aborted", "failed", "pending")),
+                  f"{summary['recordings_per_min']:.2f}")
+    console.print(table)
+    console.print(f"manifest: {manifest.path}")
+    if summary["pending"]:
+        console.print("[yellow]some recordings are not complete: run the same command again to resume[/]")
+
+
+def _limit(jobs: list[Any], limit: int) -> list[Any]:
+    from dataclasses import replace
+
+    kept, left = [], max(0, limit)
+    for job in jobs:
+        if left == 0:
+            break
+        kept.append(replace(job, plans=job.plans[:left]))
+        left -= len(kept[-1].plans)
+    return kept
+
+
+def add_protocol_commands(app: typer.Typer) -> None:
+    """Mount ``record`` and ``campaign`` on the main app."""
+    app.command("record")(record)
+    app.command("campaign")(campaign)

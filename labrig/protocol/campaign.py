@@ -1,0 +1,220 @@
+"""Running a campaign: every recording of a campaign file, a manifest, resumable, in parallel on virtual rigs.
+
+The manifest (``manifest.csv`` in the output directory, rewritten atomically
+after each recording) has one row per recording: id, indenter, location,
+parameters, split, status (``pending``, ``complete``, ``aborted``), file and
+its SHA-256. A rerun skips recordings whose file is there with its checksum,
+and redoes the rest (a crash leaves ``NAME.h5.partial``: it is moved aside
+as ``NAME.h5.partial.N`` and the recording redone).
+
+Recordings of one indenter share one rig session (hardware: the operator is
+asked to mount each indenter). ``workers`` > 1 runs several virtual rigs in
+parallel, each in its own processes; hardware campaigns are sequential.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import multiprocessing as mp
+import os
+import queue
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from labrig.config import RigConfig, load_rig
+from labrig.errors import LabrigError
+from labrig.frames import Pose
+from labrig.indenters import load_indenters
+from labrig.protocol.rigfile import device_config, safety_limits
+from labrig.protocol.runner import ProbeRunner, RunResult
+from labrig.protocol.safety import StopRequest
+from labrig.protocol.session import RigSession
+from labrig.protocol.spec import Campaign, RecordingPlan
+from labrig.sim.motion import gel_in_machine
+
+MANIFEST = "manifest.csv"
+COLUMNS = ("id", "index", "indenter", "x_mm", "y_mm", "depth_mm", "force_n", "normal_speed_mm_s", "shear_direction_deg",
+           "shear_mm", "shear_speed_mm_s", "wait_s", "repetition", "split", "status", "reason", "file", "sha256",
+           "duration_s")
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One recording done (or failed) by a worker."""
+
+    plan_id: str
+    status: str
+    reason: str
+    file: str
+    sha256: str
+    duration_s: float
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+class Manifest:
+    """The campaign's manifest rows by recording id; saved atomically."""
+
+    def __init__(self, out_dir: Path, campaign: Campaign) -> None:
+        self.path = out_dir / MANIFEST
+        self.rows: dict[str, dict[str, str]] = {}
+        old = self._read()
+        for plan in campaign.plans:
+            row = _plan_row(plan)
+            before = old.get(plan.id)
+            if before is not None and all(before.get(k) == row[k] for k in ("indenter", "x_mm", "y_mm", "split")):
+                row.update({k: before.get(k, "") for k in ("status", "reason", "file", "sha256", "duration_s")})
+            self.rows[plan.id] = row
+
+    def _read(self) -> dict[str, dict[str, str]]:
+        if not self.path.exists():
+            return {}
+        with self.path.open(newline="") as f:
+            return {row["id"]: row for row in csv.DictReader(f)}
+
+    def done(self, plan: RecordingPlan, out_dir: Path) -> bool:
+        """Complete, with its file present and unchanged."""
+        row = self.rows[plan.id]
+        if row["status"] != "complete" or not row["file"]:
+            return False
+        path = out_dir / row["file"]
+        return path.exists() and sha256_of(path) == row["sha256"]
+
+    def record(self, outcome: Outcome) -> None:
+        self.rows[outcome.plan_id].update(status=outcome.status, reason=outcome.reason, file=outcome.file,
+                                          sha256=outcome.sha256, duration_s=f"{outcome.duration_s:.3f}")
+        self.save()
+
+    def save(self) -> None:
+        tmp = self.path.with_suffix(".csv.tmp")
+        with tmp.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=COLUMNS)
+            writer.writeheader()
+            writer.writerows(self.rows.values())
+        os.replace(tmp, self.path)
+
+
+def _plan_row(plan: RecordingPlan) -> dict[str, str]:
+    s = plan.spec
+    return {
+        "id": plan.id, "index": str(plan.index), "indenter": s.indenter, "x_mm": f"{s.location_mm[0]:g}",
+        "y_mm": f"{s.location_mm[1]:g}", "depth_mm": "" if s.depth_mm is None else f"{s.depth_mm:g}",
+        "force_n": "" if s.force_n is None else f"{s.force_n:g}", "normal_speed_mm_s": f"{s.normal_speed_mm_s:g}",
+        "shear_direction_deg": f"{s.shear_direction_deg:g}", "shear_mm": f"{s.shear_mm:g}",
+        "shear_speed_mm_s": f"{s.shear_speed_mm_s:g}", "wait_s": f"{s.wait_s:g}", "repetition": str(plan.repetition),
+        "split": plan.split, "status": "pending", "reason": "", "file": "", "sha256": "", "duration_s": "",
+    }
+
+
+@dataclass(frozen=True)
+class CampaignJob:
+    """What a worker needs to record some plans of one indenter (picklable)."""
+
+    rig_path: str
+    indenters_path: str
+    out_dir: str
+    protocol_toml: str
+    seed: int
+    indenter: str
+    plans: tuple[RecordingPlan, ...]
+
+
+def pending_jobs(campaign: Campaign, manifest: Manifest, out_dir: Path, *, rig_path: Path, indenters_path: Path,
+                 protocol_toml: str, workers: int) -> list[CampaignJob]:
+    """The recordings still to make, grouped by indenter and cut into about ``workers`` jobs per indenter."""
+    todo: dict[str, list[RecordingPlan]] = {}
+    for plan in campaign.plans:
+        if not manifest.done(plan, out_dir):
+            todo.setdefault(plan.spec.indenter, []).append(plan)
+    jobs = []
+    for indenter, plans in todo.items():
+        parts = max(1, min(workers, len(plans)))
+        for k in range(parts):
+            chunk = tuple(plans[k::parts])
+            jobs.append(CampaignJob(str(rig_path), str(indenters_path), str(out_dir), protocol_toml,
+                                    campaign.seed * 100_003 + chunk[0].index, indenter, chunk))
+    return jobs
+
+
+def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopRequest | None = None,
+            before_session: Callable[[str], None] | None = None) -> None:
+    """Record a job's plans on one rig session; ``report`` each outcome as it comes."""
+    rig = load_rig(job.rig_path)
+    indenters = load_indenters(job.indenters_path)
+    indenter = indenters[job.indenter]
+    devices = device_config(rig)
+    limits = safety_limits(rig)
+    if before_session is not None:
+        before_session(job.indenter)
+    out_dir = Path(job.out_dir)
+    with RigSession(rig, devices, limits, seed=job.seed, indenter=indenter,
+                    indenters_path=Path(job.indenters_path)) as session:
+        runner = ProbeRunner(session, rig, indenter, gel_in_machine=_gel_pose(rig), stop=stop)
+        for plan in job.plans:
+            if stop is not None and stop.level >= 1:
+                return
+            report(_record_one(runner, plan, out_dir, job.protocol_toml))
+
+
+def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protocol_toml: str) -> Outcome:
+    path = out_dir / f"{plan.id}.h5"
+    partial = path.with_name(path.name + ".partial")
+    if partial.exists():  # a crash mid-recording: keep it aside, redo the recording
+        n = 1
+        while partial.with_name(f"{partial.name}.{n}").exists():
+            n += 1
+        partial.rename(partial.with_name(f"{partial.name}.{n}"))
+    extra = {"campaign_id": plan.id, "split": plan.split, "repetition": plan.repetition}
+    try:
+        result: RunResult = runner.run(plan.spec, path, protocol_toml=protocol_toml, extra=extra, overwrite=True)
+    except LabrigError as exc:
+        return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
+    return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
+
+
+def _gel_pose(rig: RigConfig) -> Pose:
+    """The gel pose the runner uses: the rig registration once calibrated, else the nominal pose."""
+    return gel_in_machine(rig, truth=False)
+
+
+def _worker(job: CampaignJob, outcomes: Any) -> None:
+    run_job(job, outcomes.put)
+
+
+def run_parallel(jobs: list[CampaignJob], workers: int) -> Iterator[Outcome]:
+    """Run jobs on ``workers`` processes (virtual rigs only); yields outcomes as they come."""
+    ctx = mp.get_context("spawn")
+    manager = ctx.Manager()
+    outcomes = manager.Queue()
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            futures: list[Future[None]] = [pool.submit(_worker, job, outcomes) for job in jobs]
+            while True:
+                try:
+                    yield outcomes.get(timeout=0.2)
+                    continue
+                except queue.Empty:
+                    pass
+                if all(f.done() for f in futures):
+                    break
+            while True:
+                try:
+                    yield outcomes.get_nowait()
+                except queue.Empty:
+                    break
+            for f in futures:
+                error = f.exception()
+                if error is not None:
+                    raise LabrigError(f"a campaign worker failed: {error}") from error
+    finally:
+        manager.shutdown()

@@ -1,0 +1,71 @@
+"""The rig file's [devices] and [safety] sections (optional; defaults: the embedded virtual rig).
+
+Read from the rig TOML that :func:`labrig.config.load_rig` loaded, checked key
+by key, each problem naming the file, the section and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import tomllib
+from typing import Any
+
+from labrig.config import ConfigError, RigConfig
+from labrig.protocol.safety import SafetyLimits
+from labrig.protocol.session import DeviceConfig
+
+CAMERA_BACKENDS = ("metavision", "raw", "sim")
+
+
+def device_config(rig: RigConfig) -> DeviceConfig:
+    """The [devices] section (missing: the embedded virtual rig)."""
+    values = _section(rig, "devices", DeviceConfig)
+    config = DeviceConfig(**values)
+    if config.camera not in CAMERA_BACKENDS:
+        raise ConfigError(f"{rig.path}: [devices] camera must be one of {', '.join(CAMERA_BACKENDS)}, not {config.camera!r}")
+    for key in ("grbl_baud", "bota_baud"):
+        if getattr(config, key) <= 0:
+            raise ConfigError(f"{rig.path}: [devices] {key} must be positive")
+    return config
+
+
+def safety_limits(rig: RigConfig) -> SafetyLimits:
+    """The [safety] section (missing keys: the defaults of :class:`SafetyLimits`)."""
+    values = _section(rig, "safety", SafetyLimits)
+    limits = SafetyLimits(**values)
+    lo, hi = limits.workspace_min_mm, limits.workspace_max_mm
+    if len(lo) != 3 or len(hi) != 3 or any(a >= b for a, b in zip(lo, hi, strict=True)):
+        raise ConfigError(f"{rig.path}: [safety] workspace_min_mm must be three values each below workspace_max_mm's")
+    for key in ("max_normal_force_n", "max_shear_force_n", "clearance_mm"):
+        if getattr(limits, key) <= 0:
+            raise ConfigError(f"{rig.path}: [safety] {key} must be positive")
+    if limits.gel_margin_mm < 0:
+        raise ConfigError(f"{rig.path}: [safety] gel_margin_mm must not be negative")
+    return limits
+
+
+def _section(rig: RigConfig, name: str, cls: type) -> dict[str, Any]:
+    table = tomllib.loads(rig.text).get(name, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{rig.path}: [{name}] must be a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    values: dict[str, Any] = {}
+    for key, value in table.items():
+        if key not in fields:
+            close = difflib.get_close_matches(key, fields, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ConfigError(f"{rig.path}: [{name}] unknown key {key!r}; {hint}allowed: {', '.join(fields)}")
+        default = fields[key].default
+        if isinstance(default, tuple):
+            if not isinstance(value, list) or not all(isinstance(v, int | float) for v in value):
+                raise ConfigError(f"{rig.path}: [{name}] {key} must be a list of numbers")
+            value = tuple(float(v) for v in value)
+        elif isinstance(default, float):
+            if not isinstance(value, int | float) or isinstance(value, bool):
+                raise ConfigError(f"{rig.path}: [{name}] {key} must be a number")
+            value = float(value)
+        elif not isinstance(value, type(default)):
+            raise ConfigError(f"{rig.path}: [{name}] {key} must be a {type(default).__name__}, not {value!r}")
+        values[key] = value
+    return values
