@@ -276,6 +276,10 @@ def fit_lower_envelope(device_us: npt.ArrayLike, host_us: npt.ArrayLike) -> Cloc
     return model.with_residuals(d, h)
 
 
+#: Crystal oscillators stay within about +-100 ppm; a fitted drift beyond this is noise.
+MAX_PLAUSIBLE_DRIFT_PPM = 200.0
+
+
 def fit_triggers(
     device_us: npt.ArrayLike,
     host_us: npt.ArrayLike,
@@ -314,10 +318,19 @@ def fit_triggers(
         if new_keep.sum() < 2 or np.array_equal(new_keep, keep):
             break
         keep = new_keep
+    drift = (float(slope) - 1.0) * 1e6
+    if abs(drift) > MAX_PLAUSIBLE_DRIFT_PPM:
+        # Host edge times jittered by milliseconds over a short span: the slope is noise. Keep a
+        # plausible drift (the fallback's, else none) and take the offset as the median.
+        prior = fallback.drift_ppm if fallback is not None and abs(fallback.drift_ppm) <= MAX_PLAUSIBLE_DRIFT_PPM else 0.0
+        d_ref = float(np.median(d[keep]))
+        offset = float(np.median(h[keep] - (d[keep] - d_ref) * (1 + prior * 1e-6)))
+        return ClockModel(device_ref_us=d_ref, host_ref_us=offset, drift_ppm=prior, method="triggers-offset",
+                          n_pairs=fallback.n_pairs if fallback else 0, n_triggers=int(keep.sum()))
     return ClockModel(
         device_ref_us=d_ref,
         host_ref_us=float(intercept),
-        drift_ppm=(float(slope) - 1.0) * 1e6,
+        drift_ppm=drift,
         method="triggers",
         n_pairs=fallback.n_pairs if fallback else 0,
         n_triggers=int(keep.sum()),

@@ -136,3 +136,17 @@ def test_align_trigger_edges_pairs_by_interval_pattern_whatever_the_latency() ->
     dev = np.concatenate([device, extra])
     di, hi = align_trigger_edges(dev, host[:-1], tolerance_us=20_000)  # the last host edge missing
     assert sorted(zip(di.tolist(), hi.tolist(), strict=True)) == [(i, i) for i in range(8)]
+
+
+def test_trigger_fit_keeps_a_plausible_drift_when_edges_are_jittered() -> None:
+    from labrig.clock import MAX_PLAUSIBLE_DRIFT_PPM, fit_triggers
+
+    rng = np.random.default_rng(5)
+    host = np.sort(rng.uniform(0, 10e6, 9))  # a 10 s recording
+    device = 5e9 + host * (1 + 35e-6)
+    jittered = host + np.linspace(-8000, 8000, 9)  # host latency growing through a short recording
+    model = fit_triggers(device, jittered)
+    assert model.method == "triggers-offset" and abs(model.drift_ppm) <= MAX_PLAUSIBLE_DRIFT_PPM
+    assert np.abs(model.to_host_us(device) - host).max() < 8500  # within the jitter, not 1600 ppm off
+    clean = fit_triggers(device, host)
+    assert clean.method == "triggers" and clean.drift_ppm == pytest.approx(-35.0, abs=0.5)

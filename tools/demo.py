@@ -1,15 +1,17 @@
 """`make demo`: the longest real path labrig has so far.
 
-Today: one probing run (sphere, 1.5 mm deep, +/-1 mm shear) on the virtual rig
-(contact mechanics, optics, event camera; `labrig sim probe`), recorded with its
-truth through the real recording writer, then `labrig inspect` summarizes and
-plots it. Campaigns, ground truth, evaluation and a report join as they land.
+Today: the demo campaign (protocols/demo.toml: 6 probing runs, sphere and
+cylinder) on the virtual rig, through the real drivers (GRBL and Bota over
+pseudo-terminals, the EVK4 as EVT3 over a socket), rigs in parallel where cores allow,
+recorded with the truth; then `labrig inspect` summarizes and plots one
+recording. Ground truth, evaluation and a report join as they land.
 
 Usage: python tools/demo.py OUT_DIR
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -23,11 +25,13 @@ def main(out_dir: Path) -> int:
     shutil.rmtree(out_dir, ignore_errors=True)
     out_dir.mkdir(parents=True)
     labrig = str(Path(sys.executable).with_name("labrig"))
-    recording = out_dir / "sphere.h5"
+    data = out_dir / "data"
+    workers = 2 if (os.cpu_count() or 1) >= 4 else 1  # a virtual rig and its recorder use about 1.5 cores
+    campaign = Path(__file__).resolve().parent.parent / "protocols" / "demo.toml"
     steps = [
         [labrig, "sim", "tables"],
-        [labrig, "sim", "probe", str(recording), "--indenter", "sphere", "--depth-mm", "1.5", "--shear-mm", "1.0"],
-        [labrig, "inspect", str(recording), "--plot", str(out_dir / "sphere.png")],
+        [labrig, "campaign", str(campaign), "--out", str(data), "--workers", str(workers)],
+        [labrig, "inspect", str(data / "demo-000.h5"), "--plot", str(out_dir / "demo-000.png")],
     ]
     for command in steps:
         console.print(f"$ {' '.join(command)}", style="dim")

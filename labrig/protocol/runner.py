@@ -41,6 +41,8 @@ F64 = npt.NDArray[np.float64]
 
 #: Extra time allowed on top of a move's nominal duration, s.
 MOVE_MARGIN_S = 5.0
+#: A controller's time from receiving an output line to switching the output, us (GRBL's parse).
+OUTPUT_EXECUTE_US = 250.0
 #: F/T samples averaged for contact and force-target detection (noise 0.02 N -> 0.005 N).
 DETECT_SAMPLES = 16
 
@@ -281,7 +283,10 @@ class ProbeRunner:
         t_us = writer.host_us()
         try:
             edge = self.grbl.set_output(bool(level)) if recovering else self._checked(lambda: self.grbl.set_output(bool(level)))
-            t_us = edge.t_ack_us - writer.t0_host_ns // NS_PER_US
+            # The output switches once the line has arrived (motion finished before it was sent):
+            # the send time plus the line on the wire is the edge; the ack can come much later.
+            on_wire_us = (len(edge.line) + 1) * self.grbl.byte_us + OUTPUT_EXECUTE_US
+            t_us = round(min(edge.t_sent_us + on_wire_us, edge.t_ack_us)) - writer.t0_host_ns // NS_PER_US
             writer.put("trigger_out", t_host_us=t_us, polarity=level)
         except GrblError:
             if not recovering:
