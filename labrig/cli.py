@@ -268,6 +268,9 @@ def sim_serve(
     indenter: Annotated[str, typer.Option(help="Indenter mounted on the virtual CNC.")] = "sphere",
     seed: Annotated[int, typer.Option(help="Seed of the event sensor's and the F/T sensor's noise.")] = 0,
     seconds: Annotated[float | None, typer.Option(help="Serve this long, then stop (default: until Ctrl-C).")] = None,
+    homed: Annotated[
+        bool, typer.Option("--homed/--unhomed", help="Power the CNC up as if homed (machine coordinates valid) or not.")
+    ] = True,
     camera_socket: Annotated[
         Path | None, typer.Option("--camera-socket", help="Unix socket of the EVK4 twin (default: in a fresh temp directory).")
     ] = None,
@@ -305,7 +308,7 @@ def sim_serve(
     elif not camera_socket.parent.is_dir():
         raise LabrigError(f"--camera-socket {camera_socket}: its directory does not exist")
     with err_console.status("loading the contact tables"):
-        world = LiveWorld(rig, indenters[indenter], seed=seed, camera_socket=camera_socket)
+        world = LiveWorld(rig, indenters[indenter], seed=seed, camera_socket=camera_socket, homed=homed)
     made: list[Path] = []
     with world:
         for name, path in world.paths.items():
