@@ -163,6 +163,8 @@ class ProbeRunner:
         self._phase("approach")
         contact = self._approach(plan)
         result.contact_mm = (float(contact[0]), float(contact[1]), float(contact[2]))
+        if self.stop.level >= 1:
+            raise _Abort("stopped by the user (Ctrl-C)", hold=False)
         self._phase("normal_down")
         bottom = self._normal_down(plan, contact)
         steps: list[tuple[str, F64 | None, float]] = [("wait", None, spec.wait_s)]
