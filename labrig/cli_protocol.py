@@ -102,8 +102,8 @@ def record(
 
         def show(p: RunProgress) -> None:
             bar.update(task, completed=time.monotonic() - started,
-                       description=f"{p.phase:<15} Fz {p.force_n[2]:6.2f} N  Fxy {abs(complex(*p.force_n[:2])):5.2f} N  "
-                                   f"{p.camera_events:>10,} events")
+                       description=f"{p.phase:<15} depth {p.depth_mm:4.2f} mm  Fz {p.force_n[2]:6.2f} N  "
+                                   f"Fxy {abs(complex(*p.force_n[:2])):5.2f} N  {p.event_rate_hz / 1e6:5.2f} Mev/s")
 
         with RigSession(rig, devices, limits, seed=seed, indenter=mounted, indenters_path=ind_path) as session, _ctrl_c(stop):
             runner = ProbeRunner(session, rig, mounted, gel_in_machine=gel_in_machine(rig, truth=False), stop=stop,

@@ -52,9 +52,14 @@ DETECT_SAMPLES = 16
 
 @dataclass(frozen=True)
 class RunProgress:
+    """What a run is doing now: phase, depth below the contact point (mm, 0 before contact),
+    tared force (N, sensor axes), camera events so far and their rate over the last report."""
+
     phase: str
     force_n: tuple[float, float, float]
     camera_events: int
+    depth_mm: float = 0.0
+    event_rate_hz: float = 0.0
 
 
 @dataclass
@@ -100,6 +105,9 @@ class ProbeRunner:
         self._writer: RecordingWriter | None = None
         self._phases: list[str] = []
         self._output_level = 0
+        self._plan: ProbePlan | None = None
+        self._contact: F64 | None = None
+        self._last_report = (0.0, 0)
 
     @property
     def grbl(self) -> Grbl:
@@ -160,8 +168,10 @@ class ProbeRunner:
 
     def _sequence(self, plan: ProbePlan, result: RunResult) -> tuple[float, float, float]:
         spec = plan.spec
+        self._plan, self._contact = plan, None
         self._phase("approach")
         contact = self._approach(plan)
+        self._contact = contact
         result.contact_mm = (float(contact[0]), float(contact[1]), float(contact[2]))
         if self.stop.level >= 1:
             raise _Abort("stopped by the user (Ctrl-C)", hold=False)
@@ -276,9 +286,20 @@ class ProbeRunner:
             raise _Abort(f"virtual rig failed: {session.world.error!r}", hold=True)
 
     def _report(self) -> None:
-        if self.progress is not None and self._phases:
-            f = self.session.monitor.last_n
-            self.progress(RunProgress(self._phases[-1], (float(f[0]), float(f[1]), float(f[2])), self.session.camera_events))
+        if self.progress is None or not self._phases:
+            return
+        now, events = time.monotonic(), self.session.camera_events
+        last_t, last_events = self._last_report
+        if now - last_t < 0.1:
+            return
+        rate = (events - last_events) / (now - last_t) if last_t else 0.0
+        self._last_report = (now, events)
+        depth = 0.0
+        sample = self.grbl.last_sample
+        if self._contact is not None and self._plan is not None and sample is not None:
+            depth = max(0.0, float((np.asarray(sample.position_mm) - self._contact) @ self._plan.down))
+        f = self.session.monitor.last_n
+        self.progress(RunProgress(self._phases[-1], (float(f[0]), float(f[1]), float(f[2])), events, depth, rate))
 
     # -- phases, travel, recovery -------------------------------------------------------------------
 
