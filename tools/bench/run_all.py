@@ -18,7 +18,10 @@ from typing import Any
 
 from _common import print_json
 
-BENCHES = ("bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live", "bench_campaign")
+BENCHES = (
+    "bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live",
+    "bench_campaign",
+)
 QUICK: dict[str, dict[str, Any]] = {
     "bench_writer": {"duration_s": 3.0, "repeat": 1, "codecs": "bitshuffle-lz4,lz4,gzip"},
     "bench_reader": {"duration_s": 20.0, "events": 15e6, "positions": 50, "naive_calls": 3},
