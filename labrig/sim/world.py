@@ -23,6 +23,7 @@ or, with ``homed``, as if homed earlier in the session.
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 from collections.abc import Callable
@@ -46,6 +47,8 @@ from labrig.sim.serial_pty import SerialTwin, TwinServer
 #: The simulated F/T sensor's clock against the host clock.
 FT_CLOCK_ORIGIN_US = 2_000_000_000
 FT_CLOCK_DRIFT_PPM = -60.0
+#: GIL slice: short enough for the twins to answer promptly, long enough for the renderer.
+SWITCH_INTERVAL_S = float(os.environ.get("LABRIG_SWITCH_INTERVAL_S", "0.0005"))
 #: Tool clearance above the gel surface at power-on, mm.
 POWER_ON_CLEARANCE_MM = 10.0
 
@@ -130,7 +133,7 @@ class LiveWorld:
 
     def start(self) -> LiveWorld:
         # Short GIL slices: the twins' thread must answer within a fraction of a millisecond.
-        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         self._origin_us = self.clock.now_ns() // 1000
         self.server.start()
         if self.evk4 is not None:

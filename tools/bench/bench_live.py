@@ -46,7 +46,7 @@ from labrig.sim.live import publish_truth
 from labrig.sim.motion import PiecewiseLinearPath, probing_path
 from labrig.sim.rig import RigOutput
 from labrig.sim.truth import network_grid_gel_mm, truth_streams
-from labrig.sim.world import LiveWorld, power_on_tool_mm
+from labrig.sim.world import LiveWorld
 
 FT_PERIOD_US = 1250.0
 
@@ -131,10 +131,9 @@ def _run_process(depth_mm: float, shear_mm: float, speed_mm_s: float, truth: boo
         reader = threading.Thread(target=lambda: recorded.append(record_camera(camera, writer, stop)))
         reader.start()
         grbl, bota = _drivers(paths, writer, ft)
-        offset = np.asarray(power_on_tool_mm(rig, indenter))
         path = _path(rig, indenter, depth_mm, shear_mm, speed_mm_s)
         t_probe = time.perf_counter()
-        _probe(grbl, writer, path.position_mm - offset, path.phases)
+        _probe(grbl, writer, path.position_mm, path.phases)  # the served CNC is homed: machine coordinates
         probe_s = time.perf_counter() - t_probe
         time.sleep(0.2)
         bota.close()
@@ -171,7 +170,7 @@ def _run_thread(depth_mm: float, shear_mm: float, speed_mm_s: float, truth: bool
             if truth:
                 publish_truth(writer, chunk, state["grid"], state["offset_us"])
 
-        world = LiveWorld(rig, indenter, camera_sink=camera, on_chunk=on_chunk, clock=writer.clock)
+        world = LiveWorld(rig, indenter, camera_sink=camera, on_chunk=on_chunk, clock=writer.clock, homed=True)
         state["grid"] = network_grid_gel_mm(rig, world.rig.camera)
         ft: list[FtSample] = []
         t_wall = time.perf_counter()
@@ -179,7 +178,7 @@ def _run_thread(depth_mm: float, shear_mm: float, speed_mm_s: float, truth: bool
             state["offset_us"] = (world._origin_us or 0) - writer.t0_host_ns // 1000
             grbl, bota = _drivers(world.paths, writer, ft)
             t_probe = time.perf_counter()
-            _probe(grbl, writer, path.position_mm - np.asarray(world.grbl.physical_offset_mm), path.phases)
+            _probe(grbl, writer, path.position_mm, path.phases)
             probe_s = time.perf_counter() - t_probe
             time.sleep(0.1)
             bota.close()
