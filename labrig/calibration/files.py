@@ -1,0 +1,259 @@
+"""Calibration files: ``intrinsics.toml`` and ``extrinsics.toml``, their loaders, and the calibrated camera.
+
+Every key carries its unit in its name (px, mm, rad). The files are written
+by hand (TOML is simple enough) and read with :mod:`tomllib`; a missing key
+or a wrong shape is a one-line :class:`CalibrationFileError` naming the file
+and the key. See docs/calibration.md for the keys.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig import __version__
+from labrig.errors import LabrigError
+from labrig.sim.camera import CameraModel
+
+if TYPE_CHECKING:
+    from labrig.calibration.extrinsics import ExtrinsicsResult
+    from labrig.calibration.intrinsics import IntrinsicsResult
+
+Array = npt.NDArray[np.float64]
+
+DEFAULT_INTRINSICS = Path("calibration/intrinsics.toml")
+DEFAULT_EXTRINSICS = Path("calibration/extrinsics.toml")
+
+
+class CalibrationFileError(LabrigError):
+    """A calibration file is missing or malformed."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    distortion: tuple[float, float, float, float, float]  # k1 k2 p1 p2 k3
+    width_px: int = 1280
+    height_px: int = 720
+    rms_px: float = float("nan")
+    n_views: int = 0
+    path: Path | None = None
+
+    @property
+    def matrix(self) -> Array:
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @classmethod
+    def from_camera(cls, camera: CameraModel) -> Intrinsics:
+        return cls(camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px, camera.distortion, camera.width_px,
+                   camera.height_px)
+
+
+@dataclass(frozen=True)
+class Extrinsics:
+    """The gel-to-camera pose (``p_cam = R p_gel + t``) and the markers' rest positions."""
+
+    rotvec_rad: tuple[float, float, float]
+    translation_mm: tuple[float, float, float]
+    rest_gel_mm: Array  # (N, 3)
+    rest_px: Array  # (N, 2)
+    detected: npt.NDArray[np.bool_]
+    errors_px: Array
+    mean_error_px: float
+    std_error_px: float
+    path: Path | None = None
+
+
+def camera_from_calibration(intrinsics: Intrinsics, extrinsics: Extrinsics | None = None) -> CameraModel:
+    """A :class:`CameraModel` with the calibrated intrinsics and (if given) the calibrated gel-to-camera pose.
+
+    Without extrinsics the pose is the identity (gel frame = camera frame)."""
+    rotvec = extrinsics.rotvec_rad if extrinsics else (0.0, 0.0, 0.0)
+    translation = extrinsics.translation_mm if extrinsics else (0.0, 0.0, 0.0)
+    return CameraModel(intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px, intrinsics.cy_px, intrinsics.distortion,
+                       rotvec, translation, intrinsics.width_px, intrinsics.height_px)
+
+
+def load_camera(intrinsics_path: str | Path, extrinsics_path: str | Path | None = None) -> CameraModel:
+    """The calibrated camera from its files."""
+    extrinsics = load_extrinsics(extrinsics_path) if extrinsics_path is not None else None
+    return camera_from_calibration(load_intrinsics(intrinsics_path), extrinsics)
+
+
+# -- writing ----------------------------------------------------------------------------------------
+
+
+def _value(v: Any) -> str:
+    if isinstance(v, bool | np.bool_):
+        return "true" if v else "false"
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    if isinstance(v, float | np.floating):
+        f = float(v)
+        return "nan" if math.isnan(f) else repr(f)
+    if isinstance(v, str | Path):
+        return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, np.ndarray):
+        v = v.tolist()
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _table(name: str, items: dict[str, Any], comments: dict[str, str] | None = None) -> str:
+    comments = comments or {}
+    lines = [f"[{name}]"]
+    for key, v in items.items():
+        if isinstance(v, np.ndarray) and v.ndim == 2:
+            rows = ",\n".join("    " + _value(r) for r in v)
+            lines.append(f"{key} = [\n{rows},\n]")
+        else:
+            lines.append(f"{key} = {_value(v)}" + (f"  # {comments[key]}" if key in comments else ""))
+    return "\n".join(lines) + "\n"
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def _source(path: Path | None, sha256: str) -> dict[str, Any]:
+    return {"recording": str(path or ""), "recording_sha256": sha256, "labrig_version": __version__, "date": _now()}
+
+
+def write_intrinsics(result: IntrinsicsResult, path: str | Path = DEFAULT_INTRINSICS) -> Path:
+    path = Path(path)
+    k = result.camera_matrix
+    body = {
+        "fx_px": float(k[0, 0]), "fy_px": float(k[1, 1]), "cx_px": float(k[0, 2]), "cy_px": float(k[1, 2]),
+        "camera_matrix_px": np.asarray(k, float),
+        "distortion": [float(d) for d in result.distortion],
+        "k3_fixed": result.fix_k3,
+        "width_px": result.width_px, "height_px": result.height_px,
+        "rms_px": result.rms_px,
+        "n_views": len(result.used),
+        "n_views_rejected": sum(1 for v in result.views if v.rejected),
+        "views_used": list(result.used),
+        "per_view_rms_px": result.per_view_rms_px,
+    }
+    text = (
+        "# Camera intrinsics (OpenCV pinhole, distortion = [k1, k2, p1, p2, k3]), from `labrig calibrate intrinsics`.\n"
+        + _table("intrinsics", body, {"distortion": "k1 k2 p1 p2 k3", "views_used": "view indices in the recording"})
+        + "\n" + _table("source", _source(result.recording, result.recording_sha256))
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def write_extrinsics(result: ExtrinsicsResult, path: str | Path = DEFAULT_EXTRINSICS,
+                     intrinsics: Intrinsics | None = None) -> Path:
+    path = Path(path)
+    from labrig.frames import rotvec_to_matrix
+
+    body = {
+        "rotation_rotvec_rad": [float(v) for v in result.rotvec_rad],
+        "rotation_matrix": rotvec_to_matrix(result.rotvec_rad),
+        "translation_mm": [float(v) for v in result.translation_mm],
+        "reprojection_mean_px": result.mean_error_px,
+        "reprojection_std_px": result.std_error_px,
+        "reprojection_max_px": result.max_error_px,
+        "markers_detected": int(result.detected.sum()),
+        "blobs_spurious": result.spurious,
+        "blinks": result.blinks,
+        "intrinsics_file": str(intrinsics.path) if intrinsics and intrinsics.path else "",
+    }
+    m = result.markers
+    markers = {
+        "rows": m.rows, "cols": m.cols, "pitch_mm": m.pitch_mm,
+        "rest_gel_mm": result.rest_gel_mm,
+        "rest_px": result.rest_px,
+        "measured_px": result.measured_px,
+        "detected": [bool(d) for d in result.detected],
+        "error_px": result.errors_px,
+    }
+    text = (
+        "# Gel-to-camera extrinsics (p_cam = R p_gel + t), from `labrig calibrate extrinsics`.\n"
+        "# Markers in node order: row-major from -y, -x of the gel frame; rest_px projects rest_gel_mm through the pose;\n"
+        "# measured_px and error_px are nan where a marker was not detected.\n"
+        + _table("extrinsics", body) + "\n" + _table("markers", markers)
+        + "\n" + _table("source", _source(result.recording, result.recording_sha256))
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+# -- reading ----------------------------------------------------------------------------------------
+
+
+def _read(path: str | Path) -> tuple[Path, dict[str, Any]]:
+    path = Path(path)
+    try:
+        return path, tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationFileError(f"{path}: no such calibration file; run `labrig calibrate` first") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise CalibrationFileError(f"{path}: not valid TOML ({exc})") from None
+
+
+def _get(path: Path, data: dict[str, Any], section: str, key: str) -> Any:
+    try:
+        return data[section][key]
+    except (KeyError, TypeError):
+        raise CalibrationFileError(f"{path}: missing [{section}] {key}") from None
+
+
+def _array(path: Path, data: dict[str, Any], section: str, key: str, shape: tuple[int, ...]) -> Array:
+    value = np.asarray(_get(path, data, section, key), dtype=np.float64)
+    if value.ndim != len(shape) or any(s >= 0 and s != v for s, v in zip(shape, value.shape)):
+        raise CalibrationFileError(f"{path}: [{section}] {key} has shape {value.shape}, expected {shape}")
+    return value
+
+
+def load_intrinsics(path: str | Path = DEFAULT_INTRINSICS) -> Intrinsics:
+    path, data = _read(path)
+    s = "intrinsics"
+    dist = _array(path, data, s, "distortion", (5,))
+    return Intrinsics(
+        float(_get(path, data, s, "fx_px")), float(_get(path, data, s, "fy_px")),
+        float(_get(path, data, s, "cx_px")), float(_get(path, data, s, "cy_px")),
+        tuple(float(d) for d in dist),  # type: ignore[arg-type]
+        int(_get(path, data, s, "width_px")), int(_get(path, data, s, "height_px")),
+        float(data[s].get("rms_px", float("nan"))), int(data[s].get("n_views", 0)), path,
+    )
+
+
+def load_extrinsics(path: str | Path = DEFAULT_EXTRINSICS) -> Extrinsics:
+    path, data = _read(path)
+    rotvec = _array(path, data, "extrinsics", "rotation_rotvec_rad", (3,))
+    translation = _array(path, data, "extrinsics", "translation_mm", (3,))
+    rest = _array(path, data, "markers", "rest_gel_mm", (-1, 3))
+    n = len(rest)
+    return Extrinsics(
+        tuple(float(v) for v in rotvec),  # type: ignore[arg-type]
+        tuple(float(v) for v in translation),  # type: ignore[arg-type]
+        rest,
+        _array(path, data, "markers", "rest_px", (n, 2)),
+        np.asarray(_get(path, data, "markers", "detected"), dtype=bool),
+        _array(path, data, "markers", "error_px", (n,)),
+        float(_get(path, data, "extrinsics", "reprojection_mean_px")),
+        float(_get(path, data, "extrinsics", "reprojection_std_px")),
+        path,
+    )
+
+
+def intrinsics_from_result(result: IntrinsicsResult, path: Path | None = None) -> Intrinsics:
+    k = result.camera_matrix
+    return Intrinsics(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
+                      tuple(float(d) for d in result.distortion),  # type: ignore[arg-type]
+                      result.width_px, result.height_px, result.rms_px, len(result.used), path)
