@@ -1,0 +1,213 @@
+"""``labrig calibrate``: camera intrinsics and gel-to-camera extrinsics from event recordings.
+
+Mount on the main app with :func:`add_calibrate_commands` (``cli.py``). Other
+modules register further subcommands (``rig``, ``gel``) on :data:`calibrate_app`.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+err_console = Console(stderr=True)
+
+calibrate_app = typer.Typer(
+    help="Calibration from events: camera intrinsics, gel-to-camera extrinsics (and rig registration, gel modulus).",
+    no_args_is_help=True,
+)
+
+JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")]
+PlotOption = Annotated[Path | None, typer.Option("--plot", help="Draw detections and reprojection residuals to this PNG.")]
+RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
+SeedOption = Annotated[int, typer.Option(help="Seed of the virtual rig's scene (when no recording is given).")]
+
+
+def add_calibrate_commands(app: typer.Typer) -> None:
+    app.add_typer(calibrate_app, name="calibrate")
+
+
+def _print_json(data: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(data, indent=2) + "\n")
+
+
+def _scratch(name: str) -> Path:
+    return Path(tempfile.mkdtemp(prefix="labrig-calibrate-")) / name
+
+
+@calibrate_app.command("intrinsics")
+def intrinsics_command(
+    recording: Annotated[Path | None, typer.Argument(help="Recording of a blinking dot-grid target (default: record one on the virtual rig).")] = None,  # noqa: E501
+    out: Annotated[Path, typer.Option("--out", help="Intrinsics file to write.")] = Path("calibration/intrinsics.toml"),
+    rows: Annotated[int | None, typer.Option(help="Target dot rows (default: from the recording, else 9).")] = None,
+    cols: Annotated[int | None, typer.Option(help="Target dot columns (default: from the recording, else 15).")] = None,
+    pitch_mm: Annotated[float | None, typer.Option(help="Target dot pitch, mm (default: from the recording, else 2).")] = None,
+    fit_k3: Annotated[bool, typer.Option("--fit-k3", help="Also fit k3 (fixed at 0 by default).")] = False,
+    views: Annotated[int, typer.Option(help="Views to record on the virtual rig (when no recording is given).")] = 12,
+    seed: SeedOption = 0,
+    rig_path: RigOption = None,
+    plot: PlotOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Camera matrix and distortion from a recording of a blinking dot-grid target at many poses."""
+    from labrig.calibration.files import write_intrinsics
+    from labrig.calibration.intrinsics import calibrate_intrinsics
+    from labrig.sim.target import DotGridTarget
+
+    if recording is None:
+        from labrig.calibration.scenes import record_target_scene
+        from labrig.config import DEFAULT_RIG, load_rig
+
+        recording = _scratch("target-scene.h5")
+        err_console.print(f"no recording given: recording a {views}-view dot-grid target scene on the virtual rig ({recording})")
+        record_target_scene(recording, load_rig(rig_path or DEFAULT_RIG), n_views=views, seed=seed)
+    target = None
+    if rows is not None or cols is not None or pitch_mm is not None:
+        base = DotGridTarget()
+        target = DotGridTarget(rows=rows or base.rows, cols=cols or base.cols, pitch_mm=pitch_mm or base.pitch_mm)
+    result = calibrate_intrinsics(recording, target, fix_k3=not fit_k3)
+    path = write_intrinsics(result, out)
+    k = result.camera_matrix
+    summary: dict[str, Any] = {
+        "path": str(path), "recording": str(recording), "fx_px": float(k[0, 0]), "fy_px": float(k[1, 1]),
+        "cx_px": float(k[0, 2]), "cy_px": float(k[1, 2]), "distortion": [float(d) for d in result.distortion],
+        "rms_px": result.rms_px, "views_found": len(result.views), "views_used": len(result.used),
+        "views_rejected": {str(v.index): v.rejected for v in result.views if v.rejected},
+        "per_view_rms_px": result.per_view_rms_px,
+    }
+    if plot is not None:
+        summary["plot"] = str(_plot_intrinsics(result, plot))
+    if as_json:
+        _print_json(summary)
+        return
+    table = Table(title=f"intrinsics -> {path}", show_header=False)
+    table.add_column(style="dim")
+    table.add_column()
+    table.add_row("fx, fy", f"{k[0, 0]:.2f}, {k[1, 1]:.2f} px")
+    table.add_row("cx, cy", f"{k[0, 2]:.2f}, {k[1, 2]:.2f} px")
+    table.add_row("k1 k2 p1 p2 k3", " ".join(f"{d:+.5f}" for d in result.distortion))
+    table.add_row("RMS", f"{result.rms_px:.3f} px")
+    table.add_row("views", f"{len(result.used)} used of {len(result.views)}")
+    for index, reason in summary["views_rejected"].items():
+        table.add_row(f"view {index}", f"[yellow]rejected[/]: {reason}")
+    console.print(table)
+
+
+@calibrate_app.command("extrinsics")
+def extrinsics_command(
+    recording: Annotated[Path | None, typer.Argument(help="Recording of the LED ring blinking, gel at rest (default: record one on the virtual rig).")] = None,  # noqa: E501
+    intrinsics: Annotated[Path | None, typer.Option("--intrinsics", help="Intrinsics file (default: calibration/intrinsics.toml).")] = None,  # noqa: E501
+    out: Annotated[Path, typer.Option("--out", help="Extrinsics file to write.")] = Path("calibration/extrinsics.toml"),
+    seed: SeedOption = 0,
+    rig_path: RigOption = None,
+    plot: PlotOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Gel-to-camera pose and marker rest positions from a recording of the LED ring blinking."""
+    from labrig.calibration.extrinsics import calibrate_extrinsics
+    from labrig.calibration.files import DEFAULT_INTRINSICS, load_intrinsics, write_extrinsics
+    from labrig.config import DEFAULT_RIG, load_rig
+
+    rig = load_rig(rig_path or DEFAULT_RIG)
+    intr = load_intrinsics(intrinsics or DEFAULT_INTRINSICS)
+    if recording is None:
+        from labrig.calibration.scenes import record_led_blink
+
+        recording = _scratch("led-blink.h5")
+        err_console.print(f"no recording given: recording the LED ring blinking on the virtual rig ({recording})")
+        record_led_blink(recording, rig, seed=seed)
+    result = calibrate_extrinsics(recording, intr, rig.markers)
+    path = write_extrinsics(result, out, intr)
+    summary: dict[str, Any] = {
+        "path": str(path), "recording": str(recording), "intrinsics": str(intr.path),
+        "rotation_rotvec_rad": result.rotvec_rad.tolist(), "translation_mm": result.translation_mm.tolist(),
+        "reprojection_mean_px": result.mean_error_px, "reprojection_std_px": result.std_error_px,
+        "reprojection_max_px": result.max_error_px, "markers_detected": int(result.detected.sum()),
+        "markers": len(result.rest_gel_mm), "blobs_spurious": result.spurious, "blinks": result.blinks,
+    }
+    if plot is not None:
+        summary["plot"] = str(_plot_extrinsics(result, plot))
+    if as_json:
+        _print_json(summary)
+        return
+    table = Table(title=f"extrinsics -> {path}", show_header=False)
+    table.add_column(style="dim")
+    table.add_column()
+    table.add_row("rotation (Rodrigues)", " ".join(f"{v:+.5f}" for v in result.rotvec_rad) + " rad"
+                  f"  ({np.degrees(np.linalg.norm(result.rotvec_rad)):.3f} deg)")
+    table.add_row("translation", " ".join(f"{v:+.4f}" for v in result.translation_mm) + " mm")
+    table.add_row("reprojection", f"{result.mean_error_px:.3f} +/- {result.std_error_px:.3f} px "
+                  f"(max {result.max_error_px:.3f})")
+    table.add_row("markers", f"{int(result.detected.sum())} of {len(result.rest_gel_mm)} detected, "
+                  f"{result.spurious} spurious blob(s) ignored, {result.blinks} blink(s)")
+    console.print(table)
+
+
+# -- plots ------------------------------------------------------------------------------------------
+
+
+def _residual_axes(frame: Any, measured: Any, projected: Any, title: str, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 4.6))
+    ax0.imshow(frame, cmap="gray", vmax=np.percentile(frame[frame > 0], 99.5) if (frame > 0).any() else 1)
+    ax0.plot(measured[:, 0], measured[:, 1], "+", color="tab:red", ms=6, label="detected")
+    ax0.plot(projected[:, 0], projected[:, 1], "o", mfc="none", color="tab:cyan", ms=5, label="reprojected")
+    ax0.set_title(f"{title}: accumulated frame")
+    ax0.legend(loc="upper right", fontsize=8)
+    residual = measured - projected
+    ok = np.isfinite(residual).all(axis=1)
+    scale = float(np.nanmax(np.linalg.norm(residual[ok], axis=1))) if ok.any() else 1.0
+    ax1.quiver(projected[ok, 0], projected[ok, 1], residual[ok, 0], residual[ok, 1], angles="xy", color="tab:red")
+    ax1.set_xlim(0, frame.shape[1])
+    ax1.set_ylim(frame.shape[0], 0)
+    ax1.set_aspect("equal")
+    ax1.set_title(f"reprojection residuals (arrows autoscaled; longest {scale:.2f} px)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _plot_intrinsics(result: Any, path: Path) -> Path:
+    measured, projected = [], []
+    for view in result.used:
+        m, p = result.residuals(view)
+        measured.append(m)
+        projected.append(p)
+    frame = result.preview if result.preview is not None else np.zeros((result.height_px, result.width_px))
+    first = result.used[0]
+    # Left: the first view's frame with its points; right: residuals of every used view.
+    m0, p0 = result.residuals(first)
+    out = _residual_axes(frame, m0, p0, f"intrinsics view {first}", path)
+    if len(measured) > 1:
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(8, 4.6))
+        allm, allp = np.concatenate(measured), np.concatenate(projected)
+        r = allm - allp
+        ax.quiver(allp[:, 0], allp[:, 1], r[:, 0], r[:, 1], angles="xy", color="tab:red")
+        ax.set_xlim(0, result.width_px)
+        ax.set_ylim(result.height_px, 0)
+        ax.set_aspect("equal")
+        ax.set_title(f"residuals of all {len(result.used)} views (RMS {result.rms_px:.3f} px)")
+        fig.tight_layout()
+        fig.savefig(path.with_name(path.stem + "-residuals" + path.suffix), dpi=110)
+        plt.close(fig)
+    return out
+
+
+def _plot_extrinsics(result: Any, path: Path) -> Path:
+    return _residual_axes(result.frame, result.measured_px, result.rest_px, "extrinsics", path)
