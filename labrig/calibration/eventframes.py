@@ -10,7 +10,7 @@ scanned once in slices (bounded memory) into per-bin ON and OFF counts
 orders of magnitude lower), and as ON or OFF when one polarity holds at least
 75 % of their events. Runs of active bins with one polarity are switches
 (mixed bins join the run they touch); consecutive opposite switches pair into
-one blink. Nothing depends on the scene's timing.
+one blink; bursts under 500 events are noise. Nothing depends on the scene's timing.
 
 Frames
 ------
@@ -25,8 +25,9 @@ isolated noisy pixels never make blobs.
 Blobs
 -----
 Counts are turned into a coverage estimate ``clip((n - background) / (lit -
-background), 0, 1)`` (background: the median count below the threshold; lit:
-the median count of blob interiors). Each blob's centre is the
+background), 0, 1)`` (background: the median count in a ring around the
+blob, so a lit membrane around a marker is removed; lit: the median count of
+all blob interiors). Each blob's centre is the
 coverage-weighted centroid inside a disc of the blob's half-extent plus
 1.25 px, re-centred three times. Clipping at 0 and 1 removes most of the
 per-pixel threshold mismatch inside and around the blob; the disc keeps far
@@ -111,8 +112,10 @@ def polarity_counts(rec: Recording, bin_us: int = 1000) -> tuple[Counts, Counts,
     return start + np.arange(n_bins, dtype=np.int64) * bin_us, on, off
 
 
-def find_switches(rec: Recording, bin_us: int = 1000) -> list[Switch]:
-    """The light switches in a recording, from its event-rate bursts and their polarity."""
+def find_switches(rec: Recording, bin_us: int = 1000, min_events: int = 500) -> list[Switch]:
+    """The light switches in a recording, from its event-rate bursts and their polarity.
+
+    A switch lights many pixels at once; bursts of fewer than ``min_events`` events are noise."""
     t, on, off = polarity_counts(rec, bin_us)
     total = on + off
     if total.size == 0 or total.max() == 0:
@@ -135,7 +138,7 @@ def find_switches(rec: Recording, bin_us: int = 1000) -> list[Switch]:
         current = [pol, k, k]
     if current and current[0] >= 0:
         switches.append(_switch(current, t, total, bin_us))
-    return switches
+    return [s for s in switches if s.events >= min_events]
 
 
 def _switch(run: list[int], t: npt.NDArray[np.int64], total: npt.NDArray[np.int64], bin_us: int) -> Switch:
