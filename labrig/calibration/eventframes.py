@@ -18,9 +18,12 @@ A blink's frame is, per pixel, the ON events of its ON switch plus the OFF
 events of its OFF switch (both polarities see the same log-intensity step,
 through independent thresholds, so the sum halves the threshold mismatch).
 Noise filtering is by counts: a lit pixel fires many times per switch, while
-shot noise and leak add isolated single events; the blob mask is a
-two-level (Otsu) threshold of the counts, opened with a 3x3 kernel, so
-isolated noisy pixels never make blobs.
+shot noise and leak add isolated single events, and the per-pixel threshold
+spread makes counts of equally lit pixels differ; the blob mask is a
+two-level (Otsu) threshold of the counts smoothed by a Gaussian (sigma
+1.5 px) less their local background (a white top-hat with a 61 px square,
+wider than any blob: a lit membrane or the ROI's edge is not a blob), opened
+with a 3x3 kernel, so isolated noisy pixels never make blobs.
 
 Blobs
 -----
@@ -202,14 +205,18 @@ def detect_blobs(
     min_area_px: int = 12,
     max_area_px: int = 20_000,
     border_px: int = 2,
+    background_px: int = 61,
 ) -> Blobs:
     """Bright blobs of a count frame, with sub-pixel centres (module docstring)."""
     frame = np.asarray(frame, dtype=np.float64)
     counts = frame[frame > 0]
     if counts.size == 0:
         return Blobs(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
-    threshold = otsu_threshold(counts)
-    mask = (frame > threshold).astype(np.uint8)
+    smooth = cv2.GaussianBlur(frame.astype(np.float32), (0, 0), 1.5)
+    kernel_bg = cv2.getStructuringElement(cv2.MORPH_RECT, (background_px, background_px))
+    smooth = smooth - cv2.morphologyEx(smooth, cv2.MORPH_OPEN, kernel_bg)  # white top-hat: blobs above their surround
+    threshold = otsu_threshold(smooth[smooth > 0])
+    mask = (smooth > threshold).astype(np.uint8)
     kernel = np.ones((3, 3), np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
     n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
