@@ -71,7 +71,9 @@ def test_drivers_press_the_gel_and_feel_its_force(world: tuple[LiveWorld, Camera
         sheared = np.mean([s.force_n for s in bota.wait_samples(160)], axis=0)
         grbl.set_output(False)
         grbl.move_to(*_offset(contact, 0, 0, 3.0), feed_mm_min=1200, wait=True)
-        time.sleep(0.15)
+        deadline = time.monotonic() + 20  # the renderer runs behind the host clock: let it pass M9
+        while len(camera.triggers) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
     finally:
         bota.close()
         grbl.close()
