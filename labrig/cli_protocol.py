@@ -71,13 +71,13 @@ def record(
     as_json: JsonOption = False,
 ) -> None:
     """Record one probing run: approach, Normal Down, Wait, Shear, Wait, Shear Opposite, Wait, Normal Up."""
+    from labrig.calibration.registration import gel_pose
     from labrig.protocol import apply_overrides, load_protocol
     from labrig.protocol.files import DEFAULT_PROTOCOL
     from labrig.protocol.rigfile import device_config, safety_limits
     from labrig.protocol.runner import ProbeRunner, RunProgress
     from labrig.protocol.safety import StopRequest
     from labrig.protocol.session import RigSession
-    from labrig.sim.motion import gel_in_machine
 
     rig, indenters, ind_path = _load(rig_path, indenters_path)
     protocol_path = protocol or DEFAULT_PROTOCOL
@@ -106,7 +106,7 @@ def record(
                                    f"Fxy {abs(complex(*p.force_n[:2])):5.2f} N  {p.event_rate_hz / 1e6:5.2f} Mev/s")
 
         with RigSession(rig, devices, limits, seed=seed, indenter=mounted, indenters_path=ind_path) as session, _ctrl_c(stop):
-            runner = ProbeRunner(session, rig, mounted, gel_in_machine=gel_in_machine(rig, truth=False), stop=stop,
+            runner = ProbeRunner(session, rig, mounted, gel_in_machine=gel_pose(rig), stop=stop,
                                  progress=show)
             started = time.monotonic()
             result = runner.run(spec, path, protocol_toml=protocol_path.read_text())

@@ -34,7 +34,6 @@ from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import Campaign, RecordingPlan
-from labrig.sim.motion import gel_in_machine
 
 MANIFEST = "manifest.csv"
 COLUMNS = ("id", "index", "indenter", "x_mm", "y_mm", "depth_mm", "force_n", "normal_speed_mm_s", "shear_direction_deg",
@@ -184,7 +183,9 @@ def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protoco
 
 def _gel_pose(rig: RigConfig) -> Pose:
     """The gel pose the runner uses: the rig registration once calibrated, else the nominal pose."""
-    return gel_in_machine(rig, truth=False)
+    from labrig.calibration.registration import gel_pose
+
+    return gel_pose(rig)
 
 
 def _worker(job: CampaignJob, outcomes: Any) -> None:

@@ -387,7 +387,7 @@ class ProbeRunner:
         from labrig.sim.truth import truth_streams
 
         info = {"virtual_rig": self.session.virtual, "seed": self.session.seed, "location_mm": list(spec.location_mm),
-                "tare_n_nm": list(self.session.tare_n), **(extra or {})}
+                "tare_n_nm": list(self.session.tare_n), "calibration": _calibration_files(self.rig), **(extra or {})}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      extra=info)
         streams = truth_streams(len(self.rig.markers.rest_positions_mm())) if self.session.virtual else ()
@@ -398,3 +398,15 @@ class ProbeRunner:
         self._phases = []
         self.session.begin(writer)
         return writer
+
+
+def _calibration_files(rig: RigConfig) -> str:
+    """JSON {path: SHA-256} of the calibration files next to the rig file (the rig file itself excluded)."""
+    import hashlib
+    import json
+
+    files = {}
+    for path in sorted(rig.path.parent.glob("*.toml")):
+        if path.resolve() != rig.path.resolve():
+            files[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return json.dumps(files)
