@@ -10,6 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from labrig.config import RigConfig, load_rig
+from labrig.indenters import Indenter, load_indenter
+from labrig.sim.mechanics import ContactTable
 from labrig.testing.synthetic import SyntheticRun, record_synthetic
 
 #: A short synthetic run used by many tests (about 1.5 M events).
@@ -22,3 +25,20 @@ def small_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("recordings") / "small.h5"
     record_synthetic(path, SMALL_RUN)
     return path
+
+
+@pytest.fixture(scope="session")
+def rig() -> RigConfig:
+    """The default rig (calibration/rig.toml); frozen, shared."""
+    return load_rig()
+
+
+@pytest.fixture(scope="session")
+def sphere() -> Indenter:
+    return load_indenter("sphere")
+
+
+@pytest.fixture(scope="session")
+def table(rig: RigConfig, sphere: Indenter) -> ContactTable:
+    """The sphere's contact table (cached on disk after the first build)."""
+    return ContactTable.from_rig(sphere, rig)

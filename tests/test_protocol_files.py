@@ -8,16 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from labrig.config import RigConfig, load_rig
+from labrig.config import RigConfig
 from labrig.indenters import Indenter, load_indenters
 from labrig.protocol import ApproachSpec, ProbeSpec, ProtocolError, apply_overrides, load_campaign, load_protocol
 from labrig.protocol.files import DEFAULT_PROTOCOL, PROTOCOLS_DIR, TomlLocator
 from labrig.protocol.split import assign_splits, split_counts
-
-
-@pytest.fixture(scope="module")
-def rig() -> RigConfig:
-    return load_rig()
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig, load_rig
-from labrig.indenters import Indenter, load_indenter
+from labrig.config import RigConfig
+from labrig.indenters import Indenter
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import SafetyError, SafetyLimits, StopRequest
 from labrig.protocol.session import DeviceConfig, RigSession
@@ -26,16 +26,6 @@ QUICK = ProbeSpec(
     approach=ApproachSpec(start_height_mm=0.4, speed_mm_s=1.0, contact_force_n=0.1, max_travel_mm=1.5),
     retract_height_mm=1.0, retract_speed_mm_s=5.0,
 )
-
-
-@pytest.fixture(scope="module")
-def rig() -> RigConfig:
-    return load_rig()
-
-
-@pytest.fixture(scope="module")
-def sphere() -> Indenter:
-    return load_indenter("sphere")
 
 
 def _runner(session: RigSession, rig: RigConfig, sphere: Indenter, stop: StopRequest | None = None) -> ProbeRunner:

@@ -7,26 +7,11 @@ import threading
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig, load_rig
-from labrig.indenters import Indenter, load_indenter
+from labrig.config import RigConfig
+from labrig.indenters import Indenter
 from labrig.sim.contact_track import ContactKinematics, ContactTrack
 from labrig.sim.mechanics import ContactTable, ShearHistory
 from labrig.sim.motion import gel_in_machine
-
-
-@pytest.fixture(scope="module")
-def rig() -> RigConfig:
-    return load_rig()
-
-
-@pytest.fixture(scope="module")
-def sphere() -> Indenter:
-    return load_indenter("sphere")
-
-
-@pytest.fixture(scope="module")
-def table(rig: RigConfig, sphere: Indenter) -> ContactTable:
-    return ContactTable.from_rig(sphere, rig)
 
 
 def test_cheap_force_matches_the_fields_along_a_shear_loop(table: ContactTable) -> None:

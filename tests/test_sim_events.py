@@ -7,16 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig, load_rig
+from labrig.config import RigConfig
 from labrig.recording.reader import EVENT_DTYPE as RECORDING_EVENT_DTYPE
 from labrig.sim.events import EVENT_DTYPE, EventParams, EventSensor
 from labrig.sim.optics import Renderer
 from labrig.sim.pixels import PixelBlock
-
-
-@pytest.fixture(scope="module")
-def rig() -> RigConfig:
-    return load_rig()
 
 
 def translate_marker(

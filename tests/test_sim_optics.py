@@ -7,17 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig, load_rig
+from labrig.config import RigConfig
 from labrig.sim.camera import CameraModel, matrix_to_rotvec, rotvec_to_matrix
 from labrig.sim.optics import Renderer
 from labrig.sim.shading import DepthField
 from labrig.sim.stepping import image_velocity_px_s, step_us
 from labrig.sim.target import DotGridTarget, render_target, target_pose
-
-
-@pytest.fixture(scope="module")
-def rig() -> RigConfig:
-    return load_rig()
 
 
 @pytest.fixture(scope="module")

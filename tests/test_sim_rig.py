@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig, load_rig
+from labrig.config import RigConfig
 from labrig.frames import wrench_about
-from labrig.indenters import Indenter, load_indenter
+from labrig.indenters import Indenter
 from labrig.sim.mechanics import ContactTable
 from labrig.sim.motion import PiecewiseLinearPath, probing_path
 from labrig.sim.optics import RenderUpdate
@@ -24,21 +24,6 @@ def noiseless(rig: RigConfig) -> RigConfig:
     """The rig with the pixels' leak and shot noise off."""
     events = dataclasses.replace(rig.sim.events, leak_rate_hz=0.0, shot_noise_rate_hz=0.0)
     return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, events=events))
-
-
-@pytest.fixture(scope="module")
-def rig() -> RigConfig:
-    return load_rig()
-
-
-@pytest.fixture(scope="module")
-def sphere() -> Indenter:
-    return load_indenter("sphere")
-
-
-@pytest.fixture(scope="module")
-def table(rig: RigConfig, sphere: Indenter) -> ContactTable:
-    return ContactTable.from_rig(sphere, rig)
 
 
 @dataclass
