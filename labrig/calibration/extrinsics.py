@@ -175,6 +175,15 @@ def choose_orientation(
     return best[1], best[2], best[3]
 
 
+def _marker_sized(blobs: Blobs, n_markers: int) -> Blobs:
+    """Blobs within a factor 2.5 of the typical marker area (that of the n_markers largest): noise specks go."""
+    if len(blobs) <= n_markers:
+        return blobs
+    typical = float(np.median(np.sort(blobs.area_px)[-n_markers:]))
+    keep = (blobs.area_px > typical / 2.5) & (blobs.area_px < typical * 2.5)
+    return Blobs(blobs.xy[keep], blobs.area_px[keep], blobs.radius_px[keep])
+
+
 def calibrate_extrinsics(
     recording: str | Path,
     intrinsics: Intrinsics,
@@ -197,7 +206,7 @@ def calibrate_extrinsics(
         frame = np.zeros((height, width))
         for blink in blinks:
             frame += accumulate(rec, blink, width, height)
-    blobs = detect_blobs(frame)
+    blobs = _marker_sized(detect_blobs(frame), n_markers)
     need = math.ceil(min_fraction * n_markers)
     if len(blobs) < need:
         raise CalibrationError(
