@@ -32,6 +32,9 @@ SeedOption = Annotated[int, typer.Option(help="Seed of the virtual rig's scene (
 
 
 def add_calibrate_commands(app: typer.Typer) -> None:
+    from labrig.cli_calibrate_rig import add_rig_calibration_commands  # rig registration and gel modulus
+
+    add_rig_calibration_commands(calibrate_app)
     app.add_typer(calibrate_app, name="calibrate")
 
 

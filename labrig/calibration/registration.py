@@ -77,25 +77,23 @@ MOVE_MARGIN_S = 5.0
 # camera model switch
 
 
-def camera_model(rig: RigConfig, extrinsics_path: str | Path | None = None) -> tuple[Any, str]:
-    """(camera model, where it came from): the extrinsics calibration when its file exists and loads,
-    else the virtual rig's true camera (only meaningful on the virtual rig)."""
+def camera_model(rig: RigConfig, extrinsics_path: str | Path | None = None,
+                 intrinsics_path: str | Path | None = None) -> tuple[Any, str]:
+    """(camera model, where it came from): the camera calibration (``intrinsics.toml`` and
+    ``extrinsics.toml`` next to the rig file, or the paths given) when both exist, else the
+    virtual rig's true camera (only meaningful on the virtual rig)."""
     from labrig.sim.camera import CameraModel
 
-    path = Path(extrinsics_path) if extrinsics_path is not None else rig.path.parent / "extrinsics.toml"
-    if path.exists():
-        try:
-            from labrig.calibration import extrinsics as ext  # the camera calibration module
+    extrinsics = Path(extrinsics_path) if extrinsics_path is not None else rig.path.parent / "extrinsics.toml"
+    intrinsics = Path(intrinsics_path) if intrinsics_path is not None else rig.path.parent / "intrinsics.toml"
+    if extrinsics.exists() and intrinsics.exists():
+        from labrig.calibration.files import load_camera
 
-            loaded = ext.load_extrinsics(path)  # type: ignore[attr-defined]
-            model = loaded if isinstance(loaded, CameraModel) else getattr(loaded, "camera", None)
-            if model is None and hasattr(loaded, "camera_model"):
-                model = loaded.camera_model() if callable(loaded.camera_model) else loaded.camera_model
-            if isinstance(model, CameraModel):
-                return model, str(path)
-        except (ImportError, AttributeError, TypeError, ValueError, OSError):
-            pass
-    return CameraModel.from_rig(rig), "sim truth (rig.toml [sim.camera]: no usable extrinsics calibration)"
+        return load_camera(intrinsics, extrinsics), f"{intrinsics} + {extrinsics}"
+    if extrinsics_path is not None or intrinsics_path is not None:
+        raise CalibrationError(f"the camera calibration needs both {intrinsics} and {extrinsics}; "
+                               "run `labrig calibrate intrinsics` and `labrig calibrate extrinsics`")
+    return CameraModel.from_rig(rig), "sim truth (rig.toml [sim.camera]; no intrinsics/extrinsics calibration yet)"
 
 
 # ---------------------------------------------------------------------------------------------
