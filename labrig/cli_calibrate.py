@@ -127,7 +127,7 @@ def extrinsics_command(
         recording = _scratch("led-blink.h5")
         err_console.print(f"no recording given: recording the LED ring blinking on the virtual rig ({recording})")
         record_led_blink(recording, rig, seed=seed)
-    result = calibrate_extrinsics(recording, intr, rig.markers)
+    result = calibrate_extrinsics(recording, intr, rig.markers, nominal_rotvec_rad=rig.camera.nominal_rotvec_rad)
     path = write_extrinsics(result, out, intr)
     summary: dict[str, Any] = {
         "path": str(path), "recording": str(recording), "intrinsics": str(intr.path),

@@ -62,6 +62,8 @@ class CameraGeometry:
     width_px: int
     height_px: int
     pixel_um: float
+    #: Nominal gel-to-camera rotation (Rodrigues, rad): how the camera is mounted, known before calibration.
+    nominal_rotvec_rad: tuple[float, float, float]
 
 
 @dataclass(frozen=True)

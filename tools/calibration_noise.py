@@ -44,7 +44,7 @@ def figures(scale: float, views: int, seed: int, root: Path) -> dict[str, float]
         "distortion_max_err_px": float(np.linalg.norm(mapped - pixels, axis=1).max()),
     }
     try:
-        ext = calibrate_extrinsics(led, intr, rig.markers)
+        ext = calibrate_extrinsics(led, intr, rig.markers, nominal_rotvec_rad=rig.camera.nominal_rotvec_rad)
     except CalibrationError as exc:
         print(f"noise x{scale:g}: extrinsics failed: {exc}")
         return out

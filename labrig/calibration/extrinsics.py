@@ -15,9 +15,9 @@
 3. A planar grid is symmetric: its 180-degree turn and its mirror images
    (equivalent to viewing the plane from the other side) fit equally well.
    Of the four labellings, the one whose PnP rotation is closest to the
-   nominal gel-to-camera rotation is kept (``nominal_rotvec_rad``; the
-   default, a half turn about x, is the reference sensor's camera looking at
-   the gel with image x along gel x and image y against gel y).
+   nominal gel-to-camera rotation is kept (``nominal_rotvec_rad``, the rig
+   file's ``[camera] nominal_rotvec_rad``; the reference sensor's camera sits
+   below the gel looking up, image x along gel x, image y along gel y).
 4. ``cv2.solvePnP`` (iterative) and ``cv2.solvePnPRefineLM`` give the pose;
    the per-marker reprojection errors are reported.
 """
@@ -41,7 +41,7 @@ from labrig.recording import Recording
 
 Array = npt.NDArray[np.float64]
 
-NOMINAL_ROTVEC_RAD = (math.pi, 0.0, 0.0)
+NOMINAL_ROTVEC_RAD = (0.0, 0.0, 0.0)
 
 
 @dataclass
