@@ -111,6 +111,7 @@ class Press:
     down: F64
     depth_mm: F64
     force_n: F64
+    #: The sheared tool position minus the contact point (machine mm) and the force change it made.
     shear_dir_machine: F64 | None = None
     shear_force_n: F64 | None = None
     recording: Path | None = None
@@ -255,8 +256,10 @@ def press(
             session.end(end_ns)
         bottom = contact + depth_rows[-1] * plan.down
         if shear_mm > 0:
-            shear_dir = plan.shear_dir
-            _move(session, bottom + shear_mm * shear_dir, speed_mm_s)
+            # The tip's whole in-plane motion since contact is the shear (pressing along the nominal
+            # normal drifts it a little across a tilted gel): keep it from the contact point.
+            shear_dir = bottom + shear_mm * plan.shear_dir - contact
+            _move(session, bottom + shear_mm * plan.shear_dir, speed_mm_s)
             time.sleep(settle_s)
             shear_force = _mean_force(session, samples) - forces[-1]
             _move(session, bottom, speed_mm_s)
