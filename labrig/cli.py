@@ -15,6 +15,7 @@ from labrig import __version__
 from labrig.cli_calibrate import add_calibrate_commands
 from labrig.cli_camera import add_camera_commands
 from labrig.cli_devices import add_device_commands
+from labrig.cli_groundtruth import add_groundtruth_commands
 from labrig.cli_protocol import add_protocol_commands
 from labrig.errors import LabrigError
 
@@ -181,6 +182,7 @@ add_device_commands(app)
 add_camera_commands(app)
 add_protocol_commands(app)
 add_calibrate_commands(app)
+add_groundtruth_commands(app)
 
 RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
 IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]

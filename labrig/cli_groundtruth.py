@@ -1,0 +1,147 @@
+"""``labrig groundtruth DATA``: ground-truth depth maps and contact masks as ``NAME.gt.h5`` sidecars.
+
+Mount on the main app with :func:`add_groundtruth_commands` (``cli.py``).
+User errors (not a recording, no manifest, bad options) are :class:`LabrigError`
+s, printed as one line by ``labrig``'s main.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from labrig.errors import LabrigError
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def groundtruth(
+    data: Annotated[Path, typer.Argument(help="A campaign output folder (with manifest.csv) or one recording (.h5).")],
+    model: Annotated[str, typer.Option(
+        help="Elastic model of the gel: layer (bonded thin layer) or halfspace (the paper's).")] = "layer",
+    method: Annotated[str, typer.Option(help="Contact solution: auto (per indenter), hertz, sneddon or numerical.")] = "auto",
+    rate_hz: Annotated[float, typer.Option(help="Maps per second (F/T sample times thinned to this rate).")] = 100.0,
+    scale_mm: Annotated[float, typer.Option(help="Global normalisation: mm of depth per unit of the [0, 1] maps.")] = 2.5,
+    calibration: Annotated[Path | None, typer.Option(
+        help="Folder with gel.toml, rig-registration.toml, intrinsics.toml, extrinsics.toml (default: calibration/).")] = None,
+    rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
+    overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
+    plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
+) -> None:
+    """Ground-truth normal-deformation maps and contact masks for recordings, as NAME.gt.h5 beside each."""
+    from labrig.groundtruth import ELASTIC_MODELS, generate, sidecar_path, write_sidecar
+    from labrig.groundtruth.batch import find_recordings, is_current, plot_groundtruth
+
+    if model not in ELASTIC_MODELS:
+        raise LabrigError(f"--model must be one of {', '.join(ELASTIC_MODELS)}, not {model!r}")
+    if method not in ("auto", "hertz", "sneddon", "numerical"):
+        raise LabrigError(f"--method must be auto, hertz, sneddon or numerical, not {method!r}")
+    if rate_hz <= 0 or scale_mm <= 0:
+        raise LabrigError("--rate-hz and --scale-mm must be positive")
+    if calibration is not None and not calibration.is_dir():
+        raise LabrigError(f"--calibration {calibration}: not a folder")
+    jobs, not_complete = find_recordings(data)
+    settings: dict[str, Any] = {"elastic_model": model, "rate_hz": float(rate_hz), "scale_mm": float(scale_mm)}
+    if method != "auto":
+        settings["contact_model"] = method
+    results: list[dict[str, Any]] = []
+    start = time.perf_counter()
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=err_console, disable=as_json) as bar:
+        overall = bar.add_task("recordings", total=len(jobs))
+        maps = bar.add_task("maps", total=None)
+        for job in jobs:
+            entry: dict[str, Any] = {"recording": str(job.recording), "split": job.split}
+            if not overwrite and is_current(job, settings):
+                entry.update(status="current", sidecar=str(sidecar_path(job.recording)))
+                results.append(entry)
+                bar.advance(overall)
+                continue
+            bar.update(maps, description=f"maps {job.recording.name}", completed=0, total=None)
+            try:
+                gt = generate(job.recording, elastic=model, method=method, rate_hz=rate_hz, scale_mm=scale_mm,
+                              calibration_dir=calibration, rig_path=rig_path,
+                              progress=lambda done, total: bar.update(maps, completed=done, total=total))
+                side = write_sidecar(gt, sidecar_path(job.recording))
+            except LabrigError as exc:
+                if len(jobs) == 1:
+                    raise
+                entry.update(status="failed", reason=str(exc))
+            else:
+                n = int(gt.t_us.size)
+                duration_s = float(gt.t_us[-1] - gt.t_us[0]) / 1e6 if n > 1 else 0.0
+                entry.update(status="written", sidecar=str(side), maps=n, seconds=round(gt.seconds, 3),
+                             maps_per_s=round(n / gt.seconds, 1) if gt.seconds > 0 else None,
+                             recording_s=round(duration_s, 3), elastic_model=gt.attrs["elastic_model"],
+                             contact_model=gt.attrs["contact_model"],
+                             max_indentation_mm=round(float(gt.indentation_mm.max(initial=0.0)), 4),
+                             max_depth_mm=round(float(gt.depth_mm.max(initial=0.0)), 4),
+                             camera_source=gt.attrs["camera_source"], gel_pose_source=gt.attrs["gel_pose_source"],
+                             gel_source=gt.attrs["gel_source"], bytes=side.stat().st_size)
+            results.append(entry)
+            bar.advance(overall)
+    written = [r for r in results if r["status"] == "written"]
+    total_maps = sum(r["maps"] for r in written)
+    busy_s = sum(r["seconds"] for r in written)
+    summary = {
+        "data": str(data),
+        "recordings": len(jobs),
+        "written": len(written),
+        "current": sum(r["status"] == "current" for r in results),
+        "failed": sum(r["status"] == "failed" for r in results),
+        "not_complete_in_manifest": not_complete,
+        "elastic_model": model,
+        "method": method,
+        "rate_hz": rate_hz,
+        "scale_mm": scale_mm,
+        "maps": total_maps,
+        "maps_per_s": round(total_maps / busy_s, 1) if busy_s > 0 else None,
+        "wall_s": round(time.perf_counter() - start, 3),
+        "results": results,
+    }
+    if plot is not None:
+        first = next((r for r in results if r.get("sidecar")), None)
+        if first is None:
+            raise LabrigError("--plot: no sidecar was written or found to plot")
+        summary["plot"] = str(plot_groundtruth(first["recording"], first["sidecar"], plot))
+    if as_json:
+        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+        return
+    _print_summary(summary)
+
+
+def _print_summary(s: dict[str, Any]) -> None:
+    table = Table(title=f"ground truth ({s['elastic_model']}, {s['method']})", show_lines=False)
+    for col in ("recording", "status", "model", "maps", "max depth mm", "maps/s"):
+        table.add_column(col)
+    for r in s["results"]:
+        status = r["status"] if r["status"] != "failed" else f"[red]failed[/]: {escape(r['reason'])}"
+        table.add_row(Path(r["recording"]).name, status,
+                      f"{r.get('elastic_model', '')}/{r.get('contact_model', '')}" if r.get("elastic_model") else "",
+                      str(r.get("maps", "")), f"{r['max_depth_mm']:.3f}" if "max_depth_mm" in r else "",
+                      f"{r['maps_per_s']:.0f}" if r.get("maps_per_s") else "")
+    console.print(table)
+    console.print(f"{s['written']} written, {s['current']} already current, {s['failed']} failed "
+                  f"({s['maps']:,} maps, {s['maps_per_s'] or 0:.0f} maps/s, {s['wall_s']:.1f} s)")
+    sources = {(r["camera_source"], r["gel_pose_source"], r["gel_source"]) for r in s["results"] if "camera_source" in r}
+    for camera, pose, gel in sources:
+        style = "yellow" if camera.startswith("SIM TRUTH") else "dim"
+        console.print(f"[{style}]camera: {escape(camera)}; gel pose: {escape(pose)}; gel: {escape(gel)}[/]")
+    if s.get("plot"):
+        console.print(f"plot: {s['plot']}")
+
+
+def add_groundtruth_commands(app: typer.Typer) -> None:
+    """Mount ``groundtruth`` on the main app."""
+    app.command("groundtruth")(groundtruth)

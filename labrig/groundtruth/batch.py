@@ -1,0 +1,123 @@
+"""Ground truth for a campaign folder (its manifest.csv) or a single recording; a plot of a few maps."""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from labrig.groundtruth.generate import sha256_of, sidecar_path
+from labrig.groundtruth.inputs import GroundTruthError
+
+MANIFEST = "manifest.csv"
+
+
+@dataclass(frozen=True)
+class Job:
+    recording: Path
+    split: str = ""
+    expected_sha256: str = ""
+
+
+def find_recordings(data: str | Path) -> tuple[list[Job], int]:
+    """(jobs, rows skipped because not complete): a campaign folder's complete recordings, or one file."""
+    path = Path(data)
+    if not path.exists():
+        raise GroundTruthError(f"{path}: no such file or folder; give a campaign folder (with {MANIFEST}) or a recording")
+    if path.is_file():
+        if path.name.endswith(".gt.h5"):
+            raise GroundTruthError(f"{path} is a ground-truth sidecar; give the recording it belongs to")
+        return [Job(path)], 0
+    manifest = path / MANIFEST
+    if not manifest.exists():
+        raise GroundTruthError(f"{path} has no {MANIFEST}: give a campaign output folder (`labrig campaign ... --out`) "
+                               "or a single recording file")
+    with manifest.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if rows and not {"status", "file"} <= set(rows[0]):
+        raise GroundTruthError(f"{manifest} lacks the status/file columns of a campaign manifest")
+    jobs = [Job(path / r["file"], r.get("split", ""), r.get("sha256", "")) for r in rows
+            if r.get("status") == "complete" and r.get("file")]
+    return jobs, len(rows) - len(jobs)
+
+
+def is_current(job: Job, settings: dict[str, Any]) -> bool:
+    """The sidecar exists, belongs to this exact recording and was made with the same settings."""
+    from labrig.groundtruth.sidecar import FORMAT
+
+    side = sidecar_path(job.recording)
+    if not side.exists():
+        return False
+    try:
+        import h5py
+
+        with h5py.File(side, "r") as f:
+            attrs = dict(f.attrs)
+    except OSError:
+        return False
+    if attrs.get("format") != FORMAT:
+        return False
+    sha = job.expected_sha256 or sha256_of(job.recording)
+    if attrs.get("source_sha256") != sha:
+        return False
+    return all(_same(attrs.get(k), v) for k, v in settings.items())
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(b, float):
+        return a is not None and abs(float(a) - b) < 1e-9
+    return bool(a == b)
+
+
+def plot_groundtruth(recording: str | Path, gt_path: str | Path, out: str | Path, frames: int = 3) -> Path:
+    """PNG: depth map, contact mask and the events of +-5 ms around a few frames (deepest, shear, release)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from labrig.groundtruth.sidecar import load_groundtruth
+    from labrig.recording import Recording
+
+    gt = load_groundtruth(gt_path)
+    if not len(gt):
+        raise GroundTruthError(f"{gt_path} holds no maps to plot")
+    ind = gt.indentation_mm
+    deepest = int(np.argmax(ind))
+    half = np.flatnonzero(ind >= 0.5 * ind[deepest]) if ind[deepest] > 0 else np.array([deepest])
+    picks = sorted({int(half[0]), deepest, int(half[-1])})[:frames]  # pressing, deepest, releasing
+    x0, y0, x1, y1 = (int(v) for v in gt.attrs["roi_px"])
+    rows, cols = gt.depth_mm.shape[1:]
+    vmax = max(float(gt.depth_mm[picks].max()), 1e-3)
+    fig, axes = plt.subplots(len(picks), 3, figsize=(11, 3.2 * len(picks)), squeeze=False)
+    with Recording(recording) as rec:
+        for r, i in enumerate(picks):
+            t = float(gt.t_us[i])
+            ev = rec.events_between(t - 5000, t + 5000)
+            img = np.zeros((rows, cols))
+            col = ((ev["x"].astype(np.float64) - x0 + 0.5) * cols / (x1 - x0)).astype(int)
+            row = ((ev["y"].astype(np.float64) - y0 + 0.5) * rows / (y1 - y0)).astype(int)
+            ok = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
+            np.add.at(img, (row[ok], col[ok]), np.where(ev["p"][ok] > 0, 1.0, -1.0))
+            a = axes[r]
+            im = a[0].imshow(gt.depth_mm[i], cmap="viridis", vmin=min(0.0, float(gt.depth_mm[i].min())), vmax=vmax)
+            fig.colorbar(im, ax=a[0], label="depth mm")
+            a[0].set_title(f"t {t / 1e6:.2f} s, indentation {ind[i]:.2f} mm")
+            a[1].imshow(gt.contact_mask[i], cmap="gray", vmin=0, vmax=1)
+            a[1].set_title(f"contact ({int(gt.contact_mask[i].sum())} cells)")
+            lim = max(float(np.abs(img).max()), 1.0)
+            a[2].imshow(img, cmap="coolwarm", vmin=-lim, vmax=lim)
+            a[2].set_title(f"events +-5 ms ({len(ev):,}; ON red, OFF blue)")
+            for ax in a:
+                ax.set_xticks([])
+                ax.set_yticks([])
+    fig.suptitle(f"{Path(recording).name}: {gt.attrs['elastic_model']} / {gt.attrs['contact_model']}, "
+                 f"scale {gt.scale_mm} mm per unit (network grid {rows} x {cols} over the ROI)")
+    fig.tight_layout()
+    out = Path(out)
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out
