@@ -1,0 +1,367 @@
+"""Event-based marker tracking: the paper's patch-centroid tracker and an Evetac-style baseline.
+
+:class:`Tracker` (the paper's, section III-A): per window, each marker's square
+patch (``patch_scale`` x the marker diameter) around its last position, clipped
+to its non-overlapping region (the midpoints to its four grid neighbours); the
+centroid of the patch's events (of each polarity, averaged, so that a moving
+bright dot's leading ON and trailing OFF crescents balance); markers with fewer
+than ``min_events`` events keep their position; then the grid-aware refinement
+p = lambda * prior + (1 - lambda) * centroid, the prior being the mean of the
+neighbours' positions each shifted by its rest offset to the marker.
+
+Events reach markers through a label image (sensor pixel -> marker, -1 for
+none) of the clipped patches, repainted only where a patch moved; a compiled
+loop then sums each marker's events. Positions are sensor pixels (x, y), in
+the rig's marker order (row-major from -y, -x of the gel frame).
+
+:class:`EvetacTracker` is the public baseline (Funk et al., physics.md 1.1):
+events on an annulus around each dot pull its centre toward a circle fit of
+the dot's radius; springs on the squared distances to the (up to 8)
+neighbours hold the grid together.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from numba import njit
+
+from labrig.config import RigConfig
+
+Array = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+def rest_positions_px(rig: RigConfig, extrinsics_path: str | Path | None = None) -> Array:
+    """Markers' rest positions (M, 2) px: from a calibrated extrinsics file, else the rig's camera."""
+    if extrinsics_path is not None:
+        from labrig.calibration.files import load_extrinsics
+
+        return np.asarray(load_extrinsics(extrinsics_path).rest_px, np.float64)
+    from labrig.sim.camera import CameraModel
+
+    return CameraModel.from_rig(rig).project(rig.markers.rest_positions_mm())
+
+
+def marker_diameter_px(rig: RigConfig) -> float:
+    """The markers' mean image diameter (px) through the rig's camera at rest."""
+    from labrig.sim.camera import CameraModel
+
+    jac = CameraModel.from_rig(rig).jacobian_px_per_mm(rig.markers.rest_positions_mm())[:, :, :2]
+    scale = np.sqrt(np.abs(np.linalg.det(jac)))  # px per mm, area-equivalent
+    return float(rig.markers.diameter_mm * scale.mean())
+
+
+def grid_neighbours(rows: int, cols: int, connectivity: int = 4) -> npt.NDArray[np.int64]:
+    """(M, 4 or 8) neighbour indices in a row-major grid, -1 where there is none."""
+    if connectivity not in (4, 8):
+        raise ValueError("connectivity must be 4 or 8")
+    steps = [(0, -1), (0, 1), (-1, 0), (1, 0)]
+    if connectivity == 8:
+        steps += [(-1, -1), (-1, 1), (1, -1), (1, 1)]
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    out = np.full((rows * cols, len(steps)), -1, np.int64)
+    for k, (dr, dc) in enumerate(steps):
+        rr, cc = r + dr, c + dc
+        ok = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
+        out[ok, k] = rr[ok] * cols + cc[ok]
+    return out
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """The paper's tracker: defaults as published (3x diameter patches, lambda = 0.2)."""
+
+    marker_diameter_px: float = 14.0
+    patch_scale: float = 3.0  # patch side / marker diameter
+    refine_lambda: float = 0.2  # weight of the neighbour prior
+    prior_connectivity: int = 4  # neighbours in the prior: 4 or 8
+    min_events: int = 8  # fewer events in a patch: the marker is not updated
+    min_each_polarity: int = 4  # ... nor with fewer ON or fewer OFF events than this (a moving dot makes both)
+    polarity_balance: bool = True  # average the ON and OFF centroids when both are present
+    gate_diameters: float | None = 1.0  # keep only events this close (in diameters) to the centre; None: whole patch
+    gate_passes: int = 1  # re-centre the gate on the centroid and sum again (mean shift)
+    grid_rows: int = 12
+    grid_cols: int = 13
+    width_px: int = 1280
+    height_px: int = 720
+
+
+@njit(cache=True, nogil=True)
+def _clipped_rects(pos, neigh4, half, width, height, rects):  # pragma: no cover - compiled
+    """Integer pixel bounds [x0, x1) x [y0, y1) of each marker's patch clipped at the neighbour midpoints."""
+    for i in range(pos.shape[0]):
+        px, py = pos[i, 0], pos[i, 1]
+        xmin, xmax, ymin, ymax = px - half, px + half, py - half, py + half
+        for k in range(neigh4.shape[1]):
+            j = neigh4[i, k]
+            if j < 0:
+                continue
+            dx, dy = pos[j, 0] - px, pos[j, 1] - py
+            if abs(dx) >= abs(dy):
+                mid = px + 0.5 * dx
+                if dx > 0:
+                    xmax = min(xmax, mid)
+                else:
+                    xmin = max(xmin, mid)
+            else:
+                mid = py + 0.5 * dy
+                if dy > 0:
+                    ymax = min(ymax, mid)
+                else:
+                    ymin = max(ymin, mid)
+        rects[i, 0] = min(max(int(np.ceil(xmin)), 0), width)
+        rects[i, 1] = min(max(int(np.ceil(xmax)), 0), width)
+        rects[i, 2] = min(max(int(np.ceil(ymin)), 0), height)
+        rects[i, 3] = min(max(int(np.ceil(ymax)), 0), height)
+
+
+@njit(cache=True, nogil=True)
+def _repaint(label, old, new):  # pragma: no cover - compiled
+    """Move each changed patch in the label image: clear its old pixels, then paint all changed ones."""
+    m = old.shape[0]
+    changed = np.zeros(m, np.bool_)
+    for i in range(m):
+        for k in range(4):
+            if old[i, k] != new[i, k]:
+                changed[i] = True
+        if changed[i]:
+            for y in range(old[i, 2], old[i, 3]):
+                for x in range(old[i, 0], old[i, 1]):
+                    if label[y, x] == i:
+                        label[y, x] = -1
+    for i in range(m):
+        if changed[i]:
+            for y in range(new[i, 2], new[i, 3]):
+                for x in range(new[i, 0], new[i, 1]):
+                    label[y, x] = i
+            for k in range(4):
+                old[i, k] = new[i, k]
+
+
+@njit(cache=True, nogil=True)
+def _sum_events(x, y, p, label, centre, gate2, sums):  # pragma: no cover - compiled
+    """sums[m, polarity] += (count, sum x, sum y) over the events in marker m's patch (and gate, if gate2 > 0)."""
+    h, w = label.shape
+    for i in range(x.shape[0]):
+        xi, yi = int(x[i]), int(y[i])
+        if xi >= w or yi >= h:
+            continue
+        m = label[yi, xi]
+        if m >= 0:
+            if gate2 > 0.0:
+                dx, dy = xi - centre[m, 0], yi - centre[m, 1]
+                if dx * dx + dy * dy > gate2:
+                    continue
+            ch = 1 if p[i] else 0
+            sums[m, ch, 0] += 1.0
+            sums[m, ch, 1] += xi
+            sums[m, ch, 2] += yi
+
+
+@njit(cache=True, nogil=True)
+def _centroids_and_prior(pos, sums, neigh, rest, min_events, min_each, balance, lam, out, updated):  # pragma: no cover
+    m = pos.shape[0]
+    centroid = pos.copy()
+    for i in range(m):
+        n_off, n_on = sums[i, 0, 0], sums[i, 1, 0]
+        updated[i] = n_off + n_on >= min_events and n_off >= min_each and n_on >= min_each
+        if not updated[i]:
+            continue
+        if balance and n_off >= 1 and n_on >= 1:
+            centroid[i, 0] = 0.5 * (sums[i, 0, 1] / n_off + sums[i, 1, 1] / n_on)
+            centroid[i, 1] = 0.5 * (sums[i, 0, 2] / n_off + sums[i, 1, 2] / n_on)
+        else:
+            centroid[i, 0] = (sums[i, 0, 1] + sums[i, 1, 1]) / (n_off + n_on)
+            centroid[i, 1] = (sums[i, 0, 2] + sums[i, 1, 2]) / (n_off + n_on)
+    for i in range(m):
+        out[i, 0], out[i, 1] = centroid[i, 0], centroid[i, 1]
+        if not updated[i] or lam == 0.0:
+            continue
+        sx, sy, n = 0.0, 0.0, 0
+        for k in range(neigh.shape[1]):
+            j = neigh[i, k]
+            if j >= 0:
+                sx += centroid[j, 0] + rest[i, 0] - rest[j, 0]
+                sy += centroid[j, 1] + rest[i, 1] - rest[j, 1]
+                n += 1
+        if n:
+            out[i, 0] = lam * sx / n + (1.0 - lam) * centroid[i, 0]
+            out[i, 1] = lam * sy / n + (1.0 - lam) * centroid[i, 1]
+
+
+class Tracker:
+    """The paper's marker tracker. ``update(events)`` per window -> (positions_px (M, 2), updated (M,))."""
+
+    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams = TrackerParams()) -> None:
+        self.params = params
+        self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
+        if len(self.rest_px) != params.grid_rows * params.grid_cols:
+            raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
+        self._neigh4 = grid_neighbours(params.grid_rows, params.grid_cols, 4)
+        self._prior = grid_neighbours(params.grid_rows, params.grid_cols, params.prior_connectivity)
+        self._half = params.patch_scale * params.marker_diameter_px / 2
+        self._sums = np.zeros((len(self.rest_px), 2, 3))
+        self.reset()
+
+    def reset(self, positions_px: npt.ArrayLike | None = None) -> None:
+        """Start again from the rest positions (or from ``positions_px``)."""
+        p = self.params
+        self.positions_px = self.rest_px.copy() if positions_px is None else np.array(positions_px, np.float64)
+        self._label = np.full((p.height_px, p.width_px), -1, np.int16)
+        self._painted = np.zeros((len(self.rest_px), 4), np.int64)
+        self._rects = np.zeros_like(self._painted)
+        self._sync_patches()
+
+    def _sync_patches(self) -> None:
+        p = self.params
+        _clipped_rects(self.positions_px, self._neigh4, self._half, p.width_px, p.height_px, self._rects)
+        _repaint(self._label, self._painted, self._rects)
+
+    @property
+    def patches_px(self) -> npt.NDArray[np.int64]:
+        """(M, 4) current patches as pixel bounds x0, x1, y0, y1 (x1, y1 exclusive)."""
+        return self._painted.copy()
+
+    def update(self, events: npt.NDArray) -> tuple[Array, BoolArray]:
+        """Advance by one window of events (EVENT_DTYPE); returns copies of the positions and the update mask."""
+        p = self.params
+        out = np.empty_like(self.positions_px)
+        updated = np.zeros(len(out), np.bool_)
+        gate2 = 0.0 if p.gate_diameters is None else (p.gate_diameters * p.marker_diameter_px) ** 2
+        centre = self.positions_px
+        for k in range(p.gate_passes if gate2 else 1):
+            self._sums[...] = 0.0
+            if len(events):
+                _sum_events(events["x"], events["y"], events["p"], self._label, centre, gate2, self._sums)
+            lam = float(p.refine_lambda) if k == (p.gate_passes if gate2 else 1) - 1 else 0.0
+            _centroids_and_prior(centre, self._sums, self._prior, self.rest_px, float(p.min_events),
+                                 float(p.min_each_polarity), p.polarity_balance, lam, out, updated)
+            centre = out.copy()
+        self.positions_px = out
+        self._sync_patches()
+        return out.copy(), updated
+
+
+# -- Evetac-style baseline ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EvetacParams:
+    """Circle-fit + neighbour-spring tracker (Evetac-style); radii in marker radii."""
+
+    marker_diameter_px: float = 14.0
+    fit_radius: float = 1.0  # events are pulled onto a circle of this many marker radii
+    inner_radius: float = 0.3  # annulus of events used, in marker radii
+    outer_radius: float = 2.0
+    step: float = 1.0  # fraction of the mean circle-fit gradient applied per iteration
+    max_step_px: float = 2.0  # clip of one iteration's move
+    iterations: int = 3
+    min_events: int = 10
+    spring: float = 0.1  # neighbour-spring gain (per iteration)
+    spring_connectivity: int = 8
+    grid_rows: int = 12
+    grid_cols: int = 13
+    width_px: int = 1280
+    height_px: int = 720
+
+
+@njit(cache=True, nogil=True)
+def _circle_gradients(x, y, label, pos, r_in2, r_out2, r_fit, sums):  # pragma: no cover - compiled
+    h, w = label.shape
+    for i in range(x.shape[0]):
+        xi, yi = int(x[i]), int(y[i])
+        if xi >= w or yi >= h:
+            continue
+        m = label[yi, xi]
+        if m < 0:
+            continue
+        dx, dy = xi - pos[m, 0], yi - pos[m, 1]
+        d2 = dx * dx + dy * dy
+        if d2 < r_in2 or d2 > r_out2:
+            continue
+        d = np.sqrt(d2)
+        g = (d - r_fit) / d
+        sums[m, 0] += 1.0
+        sums[m, 1] += g * dx
+        sums[m, 2] += g * dy
+
+
+@njit(cache=True, nogil=True)
+def _springs(pos, neigh, rest_d2, gain):  # pragma: no cover - compiled
+    """One gradient step on sum_j (|p_i - p_j|^2 - d0^2)^2 / d0^4, normalised per marker."""
+    m = pos.shape[0]
+    move = np.zeros((m, 2))
+    for i in range(m):
+        n = 0
+        for k in range(neigh.shape[1]):
+            j = neigh[i, k]
+            if j < 0:
+                continue
+            dx, dy = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1]
+            e = (dx * dx + dy * dy - rest_d2[i, k]) / rest_d2[i, k]
+            move[i, 0] -= e * dx
+            move[i, 1] -= e * dy
+            n += 1
+        if n:
+            move[i, 0] *= gain / n
+            move[i, 1] *= gain / n
+    for i in range(m):
+        pos[i, 0] += move[i, 0]
+        pos[i, 1] += move[i, 1]
+
+
+class EvetacTracker:
+    """The baseline: ``update(events)`` -> (positions_px (M, 2), updated (M,))."""
+
+    def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams()) -> None:
+        self.params = params
+        self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
+        if len(self.rest_px) != params.grid_rows * params.grid_cols:
+            raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
+        self._neigh4 = grid_neighbours(params.grid_rows, params.grid_cols, 4)
+        self._neigh = grid_neighbours(params.grid_rows, params.grid_cols, params.spring_connectivity)
+        diff = self.rest_px[:, None, :] - self.rest_px[np.maximum(self._neigh, 0)]
+        self._rest_d2 = np.where(self._neigh >= 0, (diff**2).sum(-1), 1.0)
+        r = params.marker_diameter_px / 2
+        self._half = params.outer_radius * r
+        self._sums = np.zeros((len(self.rest_px), 3))
+        self.reset()
+
+    def reset(self, positions_px: npt.ArrayLike | None = None) -> None:
+        p = self.params
+        self.positions_px = self.rest_px.copy() if positions_px is None else np.array(positions_px, np.float64)
+        self._label = np.full((p.height_px, p.width_px), -1, np.int16)
+        self._painted = np.zeros((len(self.rest_px), 4), np.int64)
+        self._rects = np.zeros_like(self._painted)
+        self._sync()
+
+    def _sync(self) -> None:
+        p = self.params
+        _clipped_rects(self.positions_px, self._neigh4, self._half, p.width_px, p.height_px, self._rects)
+        _repaint(self._label, self._painted, self._rects)
+
+    def update(self, events: npt.NDArray) -> tuple[Array, BoolArray]:
+        p = self.params
+        r = p.marker_diameter_px / 2
+        pos = self.positions_px.copy()
+        updated = np.zeros(len(pos), np.bool_)
+        for _ in range(p.iterations):
+            self._sums[...] = 0.0
+            if len(events):
+                _circle_gradients(events["x"], events["y"], self._label, pos, (p.inner_radius * r) ** 2,
+                                  (p.outer_radius * r) ** 2, p.fit_radius * r, self._sums)
+            ok = self._sums[:, 0] >= p.min_events
+            step = p.step * self._sums[ok, 1:] / self._sums[ok, :1]
+            norm = np.linalg.norm(step, axis=1, keepdims=True)
+            step *= np.minimum(1.0, p.max_step_px / np.maximum(norm, 1e-12))
+            pos[ok] += step
+            updated |= ok
+            if p.spring:
+                _springs(pos, self._neigh, self._rest_d2, p.spring)
+        self.positions_px = pos
+        self._sync()
+        return pos.copy(), updated
