@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import scipy.sparse.linalg as sla
@@ -11,7 +9,6 @@ import scipy.sparse.linalg as sla
 from labrig.config import RigConfig
 from labrig.pipeline import ifem
 from labrig.pipeline.forces import forces_from_displacements, net_force_n
-from labrig.sim.mechanics.spectral import layer_normal_compliance
 
 E, NU = 0.4, 0.48
 
@@ -80,39 +77,8 @@ def test_constrained_layer_under_uniform_load_has_the_confined_stiffness(integra
     assert stiffness == pytest.approx(ifem.confined_stiffness_n_per_mm3(E, nu, h), rel=1e-9)
 
 
-def _sine_load_stiffness_ratio(integration: str, wavelength_mm: float = 16.0, dx: float = 1.0, layers: int = 4,
-                               nu: float = 0.49) -> float:
-    """FE / analytic stiffness of a bonded layer (frictionless top) under p cos(kx), plane strain."""
-    h, p = 4.0, 1e-3
-    k_wave = 2 * np.pi / wavelength_mm
-    mesh = _column(dx, layers, h, wavelength_mm / 2)
-    k = ifem.assemble(mesh, E, nu, integration)
-    xyz = mesh.coordinates()
-    fixed = {}
-    for n, (x, _, z) in enumerate(xyz):
-        fixed[3 * n + 1] = 0.0  # plane strain
-        if np.isclose(x, 0.0) or np.isclose(x, wavelength_mm / 2):
-            fixed[3 * n] = 0.0  # symmetry planes at the crests
-        if z == -h:
-            fixed.update({3 * n: 0.0, 3 * n + 2: 0.0})
-    loads = np.zeros(k.shape[0])
-    gx, gw = np.polynomial.legendre.leggauss(8)
-    for a, b in zip(mesh.x_mm[:-1], mesh.x_mm[1:]):
-        xs, w = (a + b) / 2 + (b - a) / 2 * gx, (b - a) / 2 * gw
-        for iy in range(2):
-            for x_node, shape in ((a, (b - xs) / (b - a)), (b, (xs - a) / (b - a))):
-                node = mesh.node(int(np.argmin(np.abs(mesh.x_mm - x_node))), iy, len(mesh.z_mm) - 1)
-                loads[3 * node + 2] -= np.sum(p * np.cos(k_wave * xs) * shape * w) * dx / 2
-    u = _solve(k, k.shape[0], fixed, loads)
-    crest = mesh.node(0, 0, len(mesh.z_mm) - 1)
-    gel = dataclasses.replace(_gel(), youngs_modulus_mpa=E, poisson_ratio=nu, thickness_mm=h)
-    return float(p * layer_normal_compliance(k_wave, gel) / -u[3 * crest + 2])
-
-
-def _gel():  # type: ignore[no-untyped-def]
-    from labrig.config import GelConfig
-
-    return GelConfig(4.0, 30.0, 28.0, E, NU, 1.0)
+def _sine_load_stiffness_ratio(integration: str, dx: float = 1.0, layers: int = 4) -> float:
+    return ifem.sine_load_stiffness_ratio(E, 0.49, 4.0, element_mm=dx, layers=layers, integration=integration)
 
 
 def test_bbar_does_not_lock_where_full_integration_does() -> None:

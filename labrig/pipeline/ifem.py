@@ -282,3 +282,48 @@ def _surface_interpolation(mesh: StructuredMesh, rows: int, cols: int,
                       shape=(len(nodes), rows * cols)).tocsr()
     t.eliminate_zeros()
     return nodes, t
+
+
+def sine_load_stiffness_ratio(youngs_modulus_mpa: float, poisson_ratio: float, thickness_mm: float, *,
+                              wavelength_mm: float = 16.0, element_mm: float = 1.0, layers: int = 4,
+                              integration: str = "bbar") -> float:
+    """FE over exact stiffness of a bonded layer under a normal load p cos(kx) (frictionless top, plane strain).
+
+    A verification of the element and the mesh (locking shows as a ratio above 1): one
+    half-wavelength, symmetry planes at the crests, the exact compliance from
+    :func:`labrig.sim.mechanics.spectral.layer_normal_compliance`.
+    """
+    from scipy.sparse.linalg import spsolve
+
+    from labrig.config import GelConfig
+    from labrig.sim.mechanics.spectral import layer_normal_compliance
+
+    h, p, half = thickness_mm, 1e-3, wavelength_mm / 2
+    k_wave = 2 * np.pi / wavelength_mm
+    x = np.linspace(0.0, half, round(half / element_mm) + 1)
+    mesh = StructuredMesh(x, np.array([0.0, element_mm]), np.linspace(-h, 0.0, layers + 1), np.zeros(1, np.int64),
+                          np.zeros(1, np.int64))
+    k = assemble(mesh, youngs_modulus_mpa, poisson_ratio, integration)
+    xyz = mesh.coordinates()
+    n_dofs = k.shape[0]
+    fixed = np.zeros(n_dofs, bool)
+    fixed[1::3] = True  # plane strain
+    fixed[0::3] |= np.isclose(xyz[:, 0], 0.0) | np.isclose(xyz[:, 0], half)  # symmetry at the crests
+    bottom = np.isclose(xyz[:, 2], -h)
+    fixed[0::3] |= bottom
+    fixed[2::3] |= bottom
+    loads = np.zeros(n_dofs)
+    gx, gw = np.polynomial.legendre.leggauss(8)
+    top = len(mesh.z_mm) - 1
+    for e in range(len(x) - 1):
+        a, b = x[e], x[e + 1]
+        xs, w = (a + b) / 2 + (b - a) / 2 * gx, (b - a) / 2 * gw
+        for ix, shape in ((e, (b - xs) / (b - a)), (e + 1, (xs - a) / (b - a))):
+            nodes = mesh.node(ix, np.arange(2), top)
+            loads[3 * nodes + 2] -= np.sum(p * np.cos(k_wave * xs) * shape * w) * element_mm / 2
+    u = np.zeros(n_dofs)
+    free = ~fixed
+    u[free] = spsolve(k[free][:, free].tocsc(), loads[free])
+    crest_uz = -u[3 * mesh.node(0, 0, top) + 2]
+    gel = GelConfig(h, 1.0, 1.0, youngs_modulus_mpa, poisson_ratio, 0.0)
+    return float(p * layer_normal_compliance(k_wave, gel) / crest_uz)
