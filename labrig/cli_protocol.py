@@ -86,7 +86,10 @@ def record(
     mounted = indenters[spec.indenter]
     devices, limits = device_config(rig), safety_limits(rig)
     if devices.virtual:
+        from labrig.protocol.campaign import prepare_virtual_tables
+
         err_console.print("no hardware configured: recording on the virtual rig (embedded)")
+        prepare_virtual_tables(rig, mounted, [spec.shear_direction_deg])
     out.mkdir(parents=True, exist_ok=True)
     path = out / (name or f"{spec.indenter}-{time.strftime('%Y%m%d-%H%M%S')}.h5")
     if path.suffix != ".h5":

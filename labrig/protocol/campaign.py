@@ -28,7 +28,7 @@ from typing import Any
 from labrig.config import RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.frames import Pose
-from labrig.indenters import load_indenters
+from labrig.indenters import Indenter, load_indenters
 from labrig.protocol.rigfile import device_config, safety_limits
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
@@ -155,6 +155,8 @@ def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopReque
     limits = safety_limits(rig)
     if before_session is not None:
         before_session(job.indenter)
+    if devices.virtual:
+        prepare_virtual_tables(rig, indenter, [plan.spec.shear_direction_deg for plan in job.plans])
     out_dir = Path(job.out_dir)
     with RigSession(rig, devices, limits, seed=job.seed, indenter=indenter,
                     indenters_path=Path(job.indenters_path)) as session:
@@ -163,6 +165,18 @@ def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopReque
             if stop is not None and stop.level >= 1:
                 return
             report(_record_one(runner, plan, out_dir, job.protocol_toml))
+
+
+def prepare_virtual_tables(rig: RigConfig, indenter: Indenter, shear_directions_deg: list[float]) -> None:
+    """Build (or find cached) the virtual rig's contact tables a non-axisymmetric indenter needs
+    for these shear directions, before its live world starts (a build takes seconds)."""
+    if indenter.axisymmetric:
+        return
+    from labrig.sim.mechanics import ContactTable
+    from labrig.sim.mechanics.tables import table_direction_deg
+
+    for direction in sorted({table_direction_deg(d) for d in shear_directions_deg}):
+        ContactTable.from_rig(indenter, rig, direction_deg=direction)
 
 
 def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protocol_toml: str) -> Outcome:

@@ -35,6 +35,7 @@ import numpy.typing as npt
 from labrig.frames import Pose
 from labrig.sim.mechanics import ContactTable, ShearHistory
 from labrig.sim.mechanics.history import Term
+from labrig.sim.mechanics.tables import table_direction_deg
 
 F64 = npt.NDArray[np.float64]
 ToolPath = Callable[[npt.ArrayLike], F64]
@@ -56,6 +57,8 @@ class ContactState:
     #: Net force on the gel (pressing is -z).
     force_on_gel_n: F64
     centre_of_pressure_mm: F64
+    #: The table the state was computed with (non-axisymmetric indenters: one per shear direction).
+    table: ContactTable | None = None
 
     @property
     def in_contact(self) -> bool:
@@ -65,10 +68,16 @@ class ContactState:
 class ContactKinematics:
     """Tool positions (machine mm) -> :class:`ContactState`; feed them in time order."""
 
-    def __init__(self, table: ContactTable, tool_offset_mm: npt.ArrayLike, machine_to_gel: Pose) -> None:
+    def __init__(self, table: ContactTable, tool_offset_mm: npt.ArrayLike, machine_to_gel: Pose,
+                 table_for_direction: Callable[[float], ContactTable] | None = None) -> None:
+        """``table_for_direction(deg)``: the table of a non-axisymmetric indenter for another shear
+        direction (see :func:`~labrig.sim.mechanics.tables.table_direction_deg`), loaded on first use."""
         self.table = table
         self.tool_offset_mm = np.asarray(tool_offset_mm, dtype=np.float64).reshape(3)
         self.machine_to_gel = machine_to_gel
+        self._table_for_direction = table_for_direction
+        self._tables = {float(table.meta["direction_deg"]) % 180.0: table}
+        self._active = table
         self._history = ShearHistory()
         self._anchor: F64 | None = None
         self._shear_axis: F64 | None = None
@@ -79,6 +88,7 @@ class ContactKinematics:
         if depth <= 0.0:
             self._anchor = None
             self._shear_axis = None
+            self._active = self.table
             self._history.reset()
             return ContactState(int(t_us), tip, 0.0, None, (), 0.0, np.zeros(3), np.array([tip[0], tip[1], 0.0]))
         if depth > self.table.depths_mm[-1]:
@@ -89,28 +99,46 @@ class ContactKinematics:
         if self._anchor is None:
             self._anchor = tip[:2].copy()
         shift = self._shear_shift(tip[:2] - self._anchor)
+        if self._shear_axis is not None:
+            self._active = self._table_for(self._shear_axis)
         limit = self._slip_shift_mm(depth)
         size = float(np.hypot(*shift))
         if limit > 0 and size > limit:  # gross slip: the contact is dragged along
             self._anchor = tip[:2] - shift * (limit / size)
             shift = tip[:2] - self._anchor
-        terms, angle = self.table.shear_terms(shift, self._history)
-        force = self.table.force_for_terms(depth, terms, angle)
-        cop = self._anchor + self.table.pressure_centre_mm(depth)
+        table = self._active
+        terms, angle = table.shear_terms(shift, self._history)
+        force = table.force_for_terms(depth, terms, angle)
+        cop = self._anchor + table.pressure_centre_mm(depth)
         return ContactState(int(t_us), tip, depth, self._anchor.copy(), terms, angle,
-                            np.array([force[0], force[1], -force[2]]), np.array([cop[0], cop[1], 0.0]))
+                            np.array([force[0], force[1], -force[2]]), np.array([cop[0], cop[1], 0.0]), table)
+
+    def _table_for(self, axis: F64) -> ContactTable:
+        if self.table.axisymmetric or self._table_for_direction is None:
+            return self.table
+        direction = table_direction_deg(float(np.degrees(np.arctan2(axis[1], axis[0]))))
+        if direction not in self._tables:
+            self._tables[direction] = self._table_for_direction(direction)
+        return self._tables[direction]
 
     def _shear_shift(self, shift: F64) -> F64:
         """The in-plane shift along the current shear axis (Masing needs one axis).
 
-        The axis is the direction of the first shift beyond SHEAR_AXIS_MM; the
-        component across it is dropped (tilt, CNC jitter). The tangential state
+        While the loading is virgin (no reversal yet) the axis is the shift's own
+        direction; from the first reversal on it stays, and the component across
+        it is dropped (tilt, CNC jitter). The tangential state
         (including the residual traction after Shear, Shear Opposite) lasts
         until lift-off; a shift clearly across the axis starts a new axis and a
         fresh history (the old residual is then forgotten: an approximation).
         """
         size = float(np.hypot(*shift))
         axis = self._shear_axis
+        if axis is not None and not self._history.reversals_mm and size >= SHEAR_AXIS_MM and float(shift @ axis) > 0:
+            # Virgin loading has no memory to keep: the axis follows the shift's direction (a slow
+            # drift before the shear, e.g. from the gel's tilt, does not fix a wrong axis).
+            self._shear_axis = shift / size
+            self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
+            return shift.copy()
         if axis is not None:
             along = float(shift @ axis)
             across = float(np.hypot(*(shift - along * axis)))
@@ -124,8 +152,8 @@ class ContactKinematics:
         return shift.copy()
 
     def _slip_shift_mm(self, depth: float) -> float:
-        depths = np.asarray(self.table.shear_depths_mm)
-        slips = np.asarray(self.table.slip_shift_mm)
+        depths = np.asarray(self._active.shear_depths_mm)
+        slips = np.asarray(self._active.slip_shift_mm)
         return float(np.interp(depth, depths[: len(slips)], slips)) if len(slips) else 0.0
 
 

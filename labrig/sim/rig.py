@@ -128,7 +128,11 @@ class VirtualRig:
         self.max_render_interval_us = max_render_interval_us
         self.max_step_px = rig.sim.events.max_step_px
         self.t_us = 0
-        self.kinematics = ContactKinematics(self.table, indenter.tool_offset_mm, self.machine_to_gel)
+        self.kinematics = ContactKinematics(
+            self.table, indenter.tool_offset_mm, self.machine_to_gel,
+            table_for_direction=None if indenter.axisymmetric or table is not None
+            else lambda deg: ContactTable.from_rig(indenter, rig, direction_deg=deg),
+        )
         #: The contact states the rig solves at; shared with the F/T twin when served live.
         self.track = track
         self._own_track = track is None
@@ -188,7 +192,8 @@ class VirtualRig:
             return Solve(state.t_us, state.tip_gel_mm, 0.0, self.rest_mm.copy(), np.zeros(3),
                          state.centre_of_pressure_mm, np.zeros((len(self.rest_mm), 3)), None, None)
         assert state.anchor_mm is not None
-        fields = self.table.fields_for_terms(state.depth_mm, state.terms, state.angle_rad)
+        table = state.table or self.table
+        fields = table.fields_for_terms(state.depth_mm, state.terms, state.angle_rad)
         markers = self._displaced_markers(fields, state.anchor_mm)
         return Solve(state.t_us, state.tip_gel_mm, state.depth_mm, markers, state.force_on_gel_n,
                      state.centre_of_pressure_mm, self._marker_forces(fields, state.anchor_mm), fields,

@@ -62,6 +62,11 @@ from labrig.sim.mechanics.stiffening import stiffening_factor
 from labrig.sim.mechanics.table_build import compute_table, to_mindlin
 from labrig.sim.mechanics.tangential import STICK_MARGIN
 
+#: A non-axisymmetric indenter's table serves shifts within this angle of its direction (their
+#: component along it); tables are built every DIRECTION_STEP_DEG (see :func:`table_direction_deg`).
+DIRECTION_STEP_DEG = 15.0
+DIRECTION_TOLERANCE_DEG = DIRECTION_STEP_DEG / 2 + 0.5
+
 #: Bump when the numerics or the file layout change: old cache files are then ignored.
 TABLE_VERSION = 1
 
@@ -366,9 +371,11 @@ class ContactTable:
             turn -= np.copysign(np.pi, turn)
             along = -along
         if abs(turn) > 1e-9 and not self.axisymmetric:
-            raise ValueError(
-                f"this table shears along {self.meta['direction_deg']:.1f} deg; build one for this direction"
-            )
+            if abs(turn) > np.radians(DIRECTION_TOLERANCE_DEG):
+                raise ValueError(
+                    f"this table shears along {self.meta['direction_deg']:.1f} deg; build one for this direction"
+                )
+            return along * float(np.cos(turn)), 0.0  # a few degrees off: the component along the table's direction
         return along, (turn if abs(turn) > 1e-9 else 0.0)
 
     def _tangential_convolver(self) -> SurfaceConvolver:
@@ -387,6 +394,13 @@ _ARRAYS = (
     "depths_mm", "depth_fields", "pressure", "normal_force_n", "shear_rows",
     "slip_shift_mm", "fractions", "traction", "shear_force_n", "window",
 )
+
+
+def table_direction_deg(shear_direction_deg: float) -> float:
+    """The table direction (deg, in [0, 180)) serving a shear direction for a non-axisymmetric indenter.
+
+    Forces are odd in the shift, so a direction and its opposite share a table."""
+    return float(round((shear_direction_deg % 180.0) / DIRECTION_STEP_DEG) * DIRECTION_STEP_DEG % 180.0)
 
 
 def table_cache_dir(cache_dir: str | Path | None = None) -> Path:
