@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from labrig.config import RigConfig
-from labrig.indenters import Indenter
+from labrig.indenters import Indenter, load_indenter
 from labrig.sim.contact_track import ContactKinematics, ContactTrack
 from labrig.sim.mechanics import ContactTable, ShearHistory
 from labrig.sim.motion import gel_in_machine
@@ -123,3 +123,27 @@ def test_track_is_safe_to_share_between_threads(rig: RigConfig, sphere: Indenter
     assert not errors
     times = list(track._times)
     assert times == sorted(times) and len(set(times)) == len(times)
+
+
+def test_a_ridge_shears_in_any_direction_through_a_table_per_direction(rig: RigConfig) -> None:
+    """Non-axisymmetric indenters: a few degrees off a table's direction is served by it; 90 deg by its own."""
+    ridge = load_indenter("ridge")
+    base = ContactTable.from_rig(ridge, rig)
+    built: list[float] = []
+
+    def table_for(direction_deg: float) -> ContactTable:
+        built.append(direction_deg)
+        return ContactTable.from_rig(ridge, rig, direction_deg=direction_deg)
+
+    pose = gel_in_machine(rig, truth=True)
+    for angle_deg, expect in ((0.6, []), (90.6, [90.0])):
+        built.clear()
+        kin = ContactKinematics(base, ridge.tool_offset_mm, pose.inverse(), table_for_direction=table_for)
+        kin.step(0, _tool_at(rig, ridge, 0.0, 0.0, 0.6))
+        u = np.array([np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))]) * 0.2
+        state = kin.step(1000, _tool_at(rig, ridge, u[0], u[1], 0.6))
+        assert built == expect
+        shear = state.force_on_gel_n[:2]
+        assert np.hypot(*shear) > 0.1
+        along = shear @ (u / np.hypot(*u))
+        assert along > 0.99 * np.hypot(*shear)  # the force follows the shear direction
