@@ -42,6 +42,8 @@ ToolPath = Callable[[npt.ArrayLike], F64]
 
 #: A shear axis is fixed once the tip has moved this far in-plane from the anchor, mm.
 SHEAR_AXIS_MM = 1e-3
+#: A non-axisymmetric indenter's table direction is chosen once the shift is this long, mm.
+DIRECTION_FIX_MM = 0.02
 
 
 @dataclass(frozen=True)
@@ -99,8 +101,8 @@ class ContactKinematics:
         if self._anchor is None:
             self._anchor = tip[:2].copy()
         shift = self._shear_shift(tip[:2] - self._anchor)
-        if self._shear_axis is not None:
-            self._active = self._table_for(self._shear_axis)
+        if not self.table.axisymmetric and self._shear_axis is not None:
+            shift = self._along_table(shift)
         limit = self._slip_shift_mm(depth)
         size = float(np.hypot(*shift))
         if limit > 0 and size > limit:  # gross slip: the contact is dragged along
@@ -112,6 +114,22 @@ class ContactKinematics:
         cop = self._anchor + table.pressure_centre_mm(depth)
         return ContactState(int(t_us), tip, depth, self._anchor.copy(), terms, angle,
                             np.array([force[0], force[1], -force[2]]), np.array([cop[0], cop[1], 0.0]), table)
+
+    def _along_table(self, shift: F64) -> F64:
+        """A non-axisymmetric indenter's shift, along the direction of the table that serves it.
+
+        The table is chosen once the shift is DIRECTION_FIX_MM long (a few micrometres of drift,
+        e.g. from the gel's tilt while pressing, do not pick one) and kept from the first reversal
+        on; the shift is projected on its direction (at most DIRECTION_STEP_DEG / 2 away)."""
+        size = float(np.hypot(*shift))
+        if size >= DIRECTION_FIX_MM and not self._history.reversals_mm and self._shear_axis is not None:
+            table = self._table_for(self._shear_axis)
+            if table is not self._active:
+                self._active = table
+                self._history.reset()
+        direction = self._active.direction
+        self._history.axis = (float(direction[0]), float(direction[1]))
+        return float(shift @ direction) * direction
 
     def _table_for(self, axis: F64) -> ContactTable:
         if self.table.axisymmetric or self._table_for_direction is None:
