@@ -1,0 +1,242 @@
+"""The depth network: a plain U-Net from a polarity-separated SAE to a normal-deformation map.
+
+Input (B, 2, 96, 112): the SAE on the network grid (:func:`labrig.pipeline.sae.sae_grid`)
+zero-padded by :func:`labrig.pipeline.sae.pad_for_unet`. Output (B, 1, 96, 112): depth
+normalised to [0, 1] with the ground truth's global scale (``scale_mm`` mm per unit); crop
+it back to 90 x 112 with :func:`labrig.pipeline.sae.crop_from_unet`.
+
+Architecture: ``pools`` down-sampling stages (2 x 2 max pooling), each level two 3 x 3
+convolutions with batch norm and ReLU; channels ``width * 2**level``; up-sampling by 2 x 2
+transposed convolutions and skip concatenation; a 1 x 1 convolution to one channel, no
+output activation (the trainer's L1 loss pulls it into [0, 1]; :class:`DepthModel` clips).
+Width 32 with 4 poolings has 7.76 M parameters, the paper's size (7.9 M).
+
+Deployment: :func:`export_onnx` writes ``NAME.onnx``; the model card ``NAME.json`` beside it
+holds the architecture, the training data, window, loss, validation errors and the command
+that made it. :class:`DepthModel` runs it with onnxruntime and returns millimetres.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.errors import LabrigError
+from labrig.pipeline.sae import GRID_SHAPE, UNET_SHAPE, crop_from_unet, pad_for_unet
+
+CARD_FORMAT = "labrig.depthnet"
+CARD_VERSION = 1
+INPUT_NAME = "sae"
+OUTPUT_NAME = "depth"
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    """Shape of the U-Net: base width (channels at full resolution) and number of poolings."""
+
+    width: int = 32
+    pools: int = 4
+    in_channels: int = 2
+
+    def __post_init__(self) -> None:
+        if self.width < 1 or self.pools < 1:
+            raise ValueError("width and pools must be >= 1")
+        for size in UNET_SHAPE:
+            if size % (2 ** self.pools):
+                raise ValueError(f"input {UNET_SHAPE} is not divisible by 2**{self.pools}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": "unet", "width": self.width, "pools": self.pools, "in_channels": self.in_channels,
+                "input_shape": [self.in_channels, *UNET_SHAPE], "output_shape": [1, *UNET_SHAPE],
+                "grid_shape": list(GRID_SHAPE), "blocks": "2 x (conv3x3 + batchnorm + relu) per level",
+                "down": "maxpool 2x2", "up": "transposed conv 2x2 + skip concatenation", "head": "conv1x1, linear"}
+
+
+def build_unet(config: UNetConfig | None = None, **kwargs: Any) -> Any:
+    """A fresh :class:`torch.nn.Module` U-Net (``build_unet(width=8)`` or with a config)."""
+    import torch
+    from torch import nn
+
+    cfg = config or UNetConfig(**kwargs)
+
+    def block(c_in: int, c_out: int) -> nn.Sequential:
+        return nn.Sequential(
+            nn.Conv2d(c_in, c_out, 3, padding=1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True),
+            nn.Conv2d(c_out, c_out, 3, padding=1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True),
+        )
+
+    class UNet(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.config = cfg
+            chans = [cfg.width * 2 ** k for k in range(cfg.pools + 1)]
+            self.down = nn.ModuleList([block(cfg.in_channels, chans[0])] +
+                                      [block(chans[k - 1], chans[k]) for k in range(1, cfg.pools + 1)])
+            self.pool = nn.MaxPool2d(2)
+            self.up = nn.ModuleList([nn.ConvTranspose2d(chans[k], chans[k - 1], 2, stride=2)
+                                     for k in range(cfg.pools, 0, -1)])
+            self.merge = nn.ModuleList([block(2 * chans[k - 1], chans[k - 1]) for k in range(cfg.pools, 0, -1)])
+            self.head = nn.Conv2d(chans[0], 1, 1)
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            skips = []
+            for k, level in enumerate(self.down):
+                x = level(x if k == 0 else self.pool(x))
+                skips.append(x)
+            x = skips.pop()
+            for up, merge in zip(self.up, self.merge):
+                x = merge(torch.cat([skips.pop(), up(x)], dim=1))
+            return self.head(x)
+
+    return UNet()
+
+
+def parameter_count(model: Any) -> int:
+    return int(sum(p.numel() for p in model.parameters()))
+
+
+def export_onnx(model: Any, path: str | Path, card: dict[str, Any] | None = None, opset: int = 17) -> Path:
+    """Write ``model`` (eval mode, batch axis dynamic) to ``path`` (.onnx) and its card beside it (.json)."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    was_training = model.training
+    model.eval()
+    cpu = next(model.parameters()).device.type != "cpu"
+    exported = model.to("cpu") if cpu else model
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(exported, (torch.zeros(1, exported.config.in_channels, *UNET_SHAPE),), str(tmp),
+                              input_names=[INPUT_NAME], output_names=[OUTPUT_NAME], opset_version=opset,
+                              dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}}, dynamo=False)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+        model.train(was_training)
+    if card is not None:
+        write_card(card, card_path(path))
+    return path
+
+
+def card_path(onnx_path: str | Path) -> Path:
+    return Path(onnx_path).with_suffix(".json")
+
+
+def write_card(card: dict[str, Any], path: str | Path) -> Path:
+    path = Path(path)
+    data = {"format": CARD_FORMAT, "format_version": CARD_VERSION, **card}
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def read_card(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.exists():
+        raise LabrigError(f"{path}: no model card beside the network; export it again with `labrig train`")
+    try:
+        card = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise LabrigError(f"{path} is not valid JSON ({exc.msg}, line {exc.lineno})") from None
+    if card.get("format") != CARD_FORMAT:
+        raise LabrigError(f"{path} is not a labrig depth-network model card (format {card.get('format')!r})")
+    return dict(card)
+
+
+class DepthModel:
+    """A trained depth network run with onnxruntime: SAE in, depth in mm on the 90 x 112 grid out.
+
+    ``DepthModel("models/depth-w8.onnx", threads=1)``; the model card (``.json`` beside it)
+    gives the scale (mm per normalised unit) and the window the network was trained on.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1) -> None:
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if self.path.suffix == ".json":
+            self.path = self.path.with_suffix(".onnx")
+        if not self.path.exists():
+            raise LabrigError(f"{self.path}: no such depth network (.onnx); train one with `labrig train DATA/`")
+        self.card = read_card(card_path(self.path))
+        self.scale_mm = float(self.card["scale_mm"])
+        self.window_ms = float(self.card.get("window_ms", 10.0))
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = max(1, int(threads))
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        try:
+            self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise LabrigError(f"{self.path} cannot be loaded by onnxruntime ({str(exc).splitlines()[0]})") from None
+        self.threads = options.intra_op_num_threads
+
+    @property
+    def name(self) -> str:
+        return self.path.stem
+
+    def normalised(self, sae: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """Raw network output in normalised units on the padded grid: (..., 96, 112) for (..., 2, 90|96, 112)."""
+        x = np.asarray(sae, dtype=np.float32)
+        if x.shape[-2:] == GRID_SHAPE:
+            x = pad_for_unet(x)
+        if x.shape[-3:] != (2, *UNET_SHAPE):
+            raise LabrigError(f"the depth network takes (2, 90 or 96, 112) SAEs, not {x.shape}")
+        single = x.ndim == 3
+        out = self.session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(x[None] if single else x)})[0]
+        return out[0, 0] if single else out[:, 0]
+
+    def depth_mm(self, sae: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """Depth in mm on the 90 x 112 grid (batched if ``sae`` is (B, 2, ...)), clipped to [0, scale]."""
+        out = crop_from_unet(self.normalised(sae))
+        return (np.clip(out, 0.0, 1.0) * np.float32(self.scale_mm)).astype(np.float32)
+
+    __call__ = depth_mm
+
+
+def find_models(folder: str | Path) -> list[dict[str, Any]]:
+    """The model cards of every ``NAME.onnx`` + ``NAME.json`` pair in ``folder``, each with its ``onnx`` path.
+
+    This is what ``labrig evaluate --models DIR`` reads: a card gives the window
+    (``window_ms``), the loss (``loss.name``) and the width of its network.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise LabrigError(f"{folder}: not a folder of depth networks")
+    cards = []
+    for onnx_path in sorted(folder.glob("*.onnx")):
+        side = card_path(onnx_path)
+        if side.exists():
+            card = read_card(side)
+            card["onnx"] = str(onnx_path)
+            cards.append(card)
+    return cards
+
+
+def benchmark_ms(path: str | Path, threads: int = 1, repeats: int = 50, warmup: int = 5) -> float:
+    """Median onnxruntime latency of one window (batch 1) in ms."""
+    import time
+
+    model = DepthModel(path, threads=threads)
+    x = np.random.default_rng(0).random((2, *UNET_SHAPE), dtype=np.float32)
+    for _ in range(warmup):
+        model.normalised(x)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        model.normalised(x)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
