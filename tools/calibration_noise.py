@@ -1,10 +1,10 @@
-"""How the camera calibration degrades with event noise: 1x and 4x the virtual rig's noise.
+"""How the camera calibration degrades with event noise: 1x, 4x and 8x the virtual rig's noise.
 
 Records the target and LED-blink scenes at each noise scale (shot noise, leak and
 threshold spread multiplied), calibrates intrinsics then extrinsics (with the
 recovered intrinsics) and prints each figure against the sim's true camera.
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python tools/calibration_noise.py [--views 10] [--seed 0] [--scales 1 4]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python tools/calibration_noise.py [--views 10] [--seed 0] [--scales 1 4 8]
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 4.0])
+    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 4.0, 8.0])
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         results = {}

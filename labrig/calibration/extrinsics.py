@@ -1,25 +1,35 @@
 """Gel-to-camera extrinsics from events of the LED ring blinking, gel at rest.
 
-1. All blinks of the recording are accumulated into one count frame (the gel
-   does not move) and the marker blobs get sub-pixel centres
-   (:mod:`.eventframes`).
-2. Association with the known rows x cols grid, robust to a missing or a
-   spurious blob and to the grid's orientation in the image: the centres are
-   undistorted with the intrinsics (so the grid is a homography image of the
-   plane); the lattice directions come from the nearest-neighbour vectors
-   (their angle folded four times, so both axes agree); integer lattice
-   coordinates are rounded in that basis from the most central blob, then a
-   RANSAC homography from lattice to image re-assigns them three times. Blobs
-   further than a quarter pitch from their lattice site are spurious; the
-   rows x cols window (either way round) holding most blobs is the grid.
-3. A planar grid is symmetric: its 180-degree turn and its mirror images
+1. The ON events of the blinks' ON switches and the OFF events of their OFF
+   switches are counted per pixel and combined by their harmonic mean
+   (:func:`.eventframes.harmonic_frame`: the per-pixel threshold mismatch,
+   which at high noise makes membrane specks as bright as markers, is tamed).
+2. Markers are found by a disc matched filter at the size that responds most
+   strongly (:func:`.eventframes.find_discs`), each peak with a strength in
+   noise sigmas; up to twice as many candidates as markers are kept.
+3. Association with the known rows x cols grid, robust to missing and
+   spurious candidates and to the grid's orientation in the image: the centres
+   are undistorted with the intrinsics (so the grid is a homography image of
+   the plane); pitch and lattice directions come from the nearest-neighbour
+   vectors of the rows x cols strongest candidates (angle folded four times,
+   so both axes agree); integer lattice coordinates are rounded in that basis
+   from the most central of them, then a RANSAC homography from lattice to
+   image re-assigns them three times. Candidates further than a quarter pitch
+   from their lattice site are spurious, a site keeps its strongest candidate,
+   and the rows x cols window (either way round) with the largest total
+   strength is the grid.
+4. Sub-pixel centres: disc-model fits (:func:`.eventframes.fit_discs`), first
+   free on the strongest, then with their common radius and edge width fixed.
+5. A planar grid is symmetric: its 180-degree turn and its mirror images
    (equivalent to viewing the plane from the other side) fit equally well.
    Of the four labellings, the one whose PnP rotation is closest to the
    nominal gel-to-camera rotation is kept (``nominal_rotvec_rad``, the rig
    file's ``[camera] nominal_rotvec_rad``; the reference sensor's camera sits
    below the gel looking up, image x along gel x, image y along gel y).
-4. ``cv2.solvePnP`` (iterative) and ``cv2.solvePnPRefineLM`` give the pose;
-   the per-marker reprojection errors are reported.
+6. Markers without a candidate are fitted where that pose projects them;
+   ``cv2.solvePnPRefineLM`` refines the pose, markers off by more than
+   max(3 x median, 1 px) are dropped and it is refined again; the per-marker
+   reprojection errors are reported.
 """
 
 from __future__ import annotations
@@ -32,7 +42,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from labrig.calibration.eventframes import Blobs, accumulate, detect_blobs, find_blinks
+from labrig.calibration.eventframes import (
+    Blobs,
+    accumulate_polarities,
+    find_blinks,
+    find_discs,
+    fit_discs,
+    harmonic_frame,
+)
 from labrig.calibration.files import Intrinsics
 from labrig.calibration.intrinsics import CalibrationError, sensor_size, sha256_of
 from labrig.config import MarkerConfig
@@ -77,33 +94,45 @@ class ExtrinsicsResult:
         return float(np.nanmax(self.errors_px))
 
 
-def associate_grid(points_px: Array, intrinsics: Intrinsics, rows: int, cols: int) -> tuple[npt.NDArray[np.int64], int]:
+def associate_grid(
+    points_px: Array, intrinsics: Intrinsics, rows: int, cols: int, strength: npt.ArrayLike | None = None
+) -> tuple[npt.NDArray[np.int64], int]:
     """For each point, its (row, col) in the grid up to the grid's symmetry, or (-1, -1); and the spurious count.
 
     The returned labelling has ``cols`` along one lattice axis and ``rows``
     along the other; which way round and which signs are settled by PnP
-    against the nominal rotation (:func:`choose_orientation`).
+    against the nominal rotation (:func:`choose_orientation`). With
+    ``strength`` (one per point, larger is more marker-like) the lattice
+    (pitch, axes, seed) comes from the ``rows x cols`` strongest points only,
+    a lattice site claimed by several points keeps the strongest, and the
+    window with the largest total strength is the grid; without it every point
+    counts the same and a site keeps the point nearest to it.
     """
     n = len(points_px)
     labels = np.full((n, 2), -1, np.int64)
     if n < 8:
         return labels, 0
+    weight = np.ones(n) if strength is None else np.asarray(strength, np.float64)
     und = cv2.undistortPoints(points_px.reshape(-1, 1, 2).astype(np.float64), intrinsics.matrix,
                               np.asarray(intrinsics.distortion), P=intrinsics.matrix).reshape(-1, 2)
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(und)
-    dist, idx = tree.query(und, k=5)
-    vectors = (und[idx[:, 1:]] - und[:, None, :]).reshape(-1, 2)
+    core = np.zeros(n, bool)
+    core[np.argsort(-weight, kind="stable")[: rows * cols] if strength is not None else slice(None)] = True
+    pts = und[core]
+    if len(pts) < 8:
+        return labels, 0
+    dist, idx = cKDTree(pts).query(pts, k=5)
+    vectors = (pts[idx[:, 1:]] - pts[:, None, :]).reshape(-1, 2)
     lengths = dist[:, 1:].ravel()
     pitch = float(np.median(dist[:, 1]))
     ok = (lengths > 0.7 * pitch) & (lengths < 1.4 * pitch)
     angles = np.arctan2(vectors[ok, 1], vectors[ok, 0])
     theta = float(np.angle(np.mean(np.exp(4j * angles)))) / 4
     basis = np.array([[np.cos(theta), np.sin(theta)], [-np.sin(theta), np.cos(theta)]]) * pitch  # rows: a, b
-    seed = und[np.argmin(np.linalg.norm(und - np.median(und, axis=0), axis=1))]
+    seed = pts[np.argmin(np.linalg.norm(pts - np.median(pts, axis=0), axis=1))]
     lattice = np.rint(np.linalg.solve(basis.T, (und - seed).T).T)
-    inlier = np.ones(n, bool)
+    inlier = core.copy()
     for _ in range(3):
         h, _ = cv2.findHomography(lattice[inlier], und[inlier], cv2.RANSAC, 0.2 * pitch)
         if h is None:
@@ -111,9 +140,9 @@ def associate_grid(points_px: Array, intrinsics: Intrinsics, rows: int, cols: in
         back = cv2.perspectiveTransform(und.reshape(-1, 1, 2), np.linalg.inv(h)).reshape(-1, 2)
         lattice = np.rint(back)
         inlier = np.linalg.norm(back - lattice, axis=1) < 0.25
-    # One point per lattice site: the nearest.
+    # One point per lattice site: the strongest, or the nearest.
     residual = np.linalg.norm(back - lattice, axis=1)
-    order = np.argsort(residual)
+    order = np.argsort(residual) if strength is None else np.argsort(-weight, kind="stable")
     seen: set[tuple[int, int]] = set()
     for k in order:
         key = (int(lattice[k, 0]), int(lattice[k, 1]))
@@ -124,14 +153,14 @@ def associate_grid(points_px: Array, intrinsics: Intrinsics, rows: int, cols: in
     if inlier.sum() < 4:
         return labels, int(n)
     lat = lattice.astype(np.int64)
-    best = (-1, 0, 0, 0)  # count, swap, i0, j0
+    best = (-1.0, 0, 0, 0)  # total weight, swap, i0, j0
     for swap, (na, nb) in enumerate(((cols, rows), (rows, cols))):
-        ia, ib = lat[inlier, 0], lat[inlier, 1]
+        ia, ib, w = lat[inlier, 0], lat[inlier, 1], weight[inlier]
         for i0 in range(ia.min(), ia.max() - na + 2):
             for j0 in range(ib.min(), ib.max() - nb + 2):
-                count = int(((ia >= i0) & (ia < i0 + na) & (ib >= j0) & (ib < j0 + nb)).sum())
-                if count > best[0]:
-                    best = (count, swap, i0, j0)
+                total = float(w[(ia >= i0) & (ia < i0 + na) & (ib >= j0) & (ib < j0 + nb)].sum())
+                if total > best[0]:
+                    best = (total, swap, i0, j0)
     _, swap, i0, j0 = best
     na, nb = ((cols, rows), (rows, cols))[swap]
     inside = inlier & (lat[:, 0] >= i0) & (lat[:, 0] < i0 + na) & (lat[:, 1] >= j0) & (lat[:, 1] < j0 + nb)
@@ -175,13 +204,63 @@ def choose_orientation(
     return best[1], best[2], best[3]
 
 
-def _marker_sized(blobs: Blobs, n_markers: int) -> Blobs:
-    """Blobs within a factor 2.5 of the typical marker area (that of the n_markers largest): noise specks go."""
-    if len(blobs) <= n_markers:
-        return blobs
-    typical = float(np.median(np.sort(blobs.area_px)[-n_markers:]))
-    keep = (blobs.area_px > typical / 2.5) & (blobs.area_px < typical * 2.5)
-    return Blobs(blobs.xy[keep], blobs.area_px[keep], blobs.radius_px[keep])
+def _pose(obj: Array, img: Array, intrinsics: Intrinsics, rvec: Array, tvec: Array) -> tuple[Array, Array]:
+    """solvePnPRefineLM from (rvec, tvec)."""
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, intrinsics.matrix, np.asarray(intrinsics.distortion),
+                                      rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy(),
+                                      criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+    return rvec.ravel(), tvec.ravel()
+
+
+def measure_markers(
+    frame: Array, candidates: Blobs, labels: npt.NDArray[np.int64], markers: MarkerConfig, intrinsics: Intrinsics,
+    nominal_rotvec_rad: tuple[float, float, float] = NOMINAL_ROTVEC_RAD,
+) -> tuple[Array, Array, Array]:
+    """Sub-pixel marker centres (rows*cols, 2; NaN where not measured) and the pose (rvec, tvec) they give.
+
+    The matched candidates' discs are fitted freely (the strongest 40 give the
+    markers' common radius and edge width), then all with that size fixed; the
+    orientation is chosen (:func:`choose_orientation`); markers without a
+    candidate are fitted where the pose projects them (kept if the fit stays
+    within 2 px and its contrast is at least half the typical); after an LM
+    refinement, markers off by more than max(3 x median, 1 px) are dropped and
+    the pose refined again."""
+    n_markers = markers.rows * markers.cols
+    rest = markers.rest_positions_mm()
+    good = np.flatnonzero(labels[:, 0] >= 0)
+    start = candidates.xy[good]
+    radius = float(np.median(candidates.radius_px)) if len(candidates) else 5.0
+    strongest = np.argsort(-(candidates.strength[good] if candidates.strength is not None else np.ones(len(good))))
+    free = fit_discs(frame, start[strongest[:40]], radius)
+    if free.ok.sum() >= 3:
+        radius, edge = float(np.median(free.radius_px[free.ok])), float(np.median(free.edge_px[free.ok]))
+    else:
+        edge = 0.8
+    fixed = fit_discs(frame, start, radius, fixed_radius=radius, edge_px=edge)
+    fitted = np.full_like(candidates.xy, np.nan)
+    fitted[good[fixed.ok]] = fixed.xy[fixed.ok]
+    labels = np.where(np.isfinite(fitted[:, :1]), labels, -1)
+    index, rvec, tvec = choose_orientation(np.nan_to_num(fitted), labels, markers, intrinsics, nominal_rotvec_rad)
+    measured = np.full((n_markers, 2), np.nan)
+    measured[index[index >= 0]] = fitted[index >= 0]
+    dist = np.asarray(intrinsics.distortion)
+    missing = np.flatnonzero(~np.isfinite(measured[:, 0]))
+    if missing.size:
+        predicted = cv2.projectPoints(rest[missing], rvec, tvec, intrinsics.matrix, dist)[0].reshape(-1, 2)
+        guided = fit_discs(frame, predicted, radius, fixed_radius=radius, edge_px=edge, max_shift=2.0)
+        typical = float(np.median(fixed.contrast[fixed.ok])) if fixed.ok.any() else 0.0
+        keep = guided.ok & (guided.contrast >= 0.5 * typical)
+        measured[missing[keep]] = guided.xy[keep]
+    for _ in range(2):
+        have = np.flatnonzero(np.isfinite(measured[:, 0]))
+        rvec, tvec = _pose(rest[have], measured[have], intrinsics, rvec, tvec)
+        projected = cv2.projectPoints(rest[have], rvec, tvec, intrinsics.matrix, dist)[0].reshape(-1, 2)
+        errors = np.linalg.norm(measured[have] - projected, axis=1)
+        off = errors > max(3 * float(np.median(errors)), 1.0)
+        if not off.any():
+            break
+        measured[have[off]] = np.nan
+    return measured, rvec, tvec
 
 
 def calibrate_extrinsics(
@@ -203,38 +282,36 @@ def calibrate_extrinsics(
                 f"{recording}: no LED blink found (need at least 1 burst of OFF events next to a burst of ON events); "
                 "record the gel at rest while the LED ring switches off and on"
             )
-        frame = np.zeros((height, width))
-        for blink in blinks:
-            frame += accumulate(rec, blink, width, height)
-    blobs = _marker_sized(detect_blobs(frame), n_markers)
+        on, off = accumulate_polarities(rec, blinks, width, height)
+    frame = harmonic_frame(on, off)
+    candidates = find_discs(frame, n_markers)
     need = math.ceil(min_fraction * n_markers)
-    if len(blobs) < need:
+    if len(candidates) < need:
         raise CalibrationError(
-            f"{recording}: {len(blobs)} marker blobs found in {len(blinks)} blink(s), need at least {need} of the "
-            f"{markers.rows}x{markers.cols} grid; check the LED blinks and that the markers are in view"
+            f"{recording}: {len(candidates)} marker blobs found in {len(blinks)} blink(s), need at least {need} of "
+            f"the {markers.rows}x{markers.cols} grid; check the LED blinks and that the markers are in view"
         )
-    labels, spurious = associate_grid(blobs.xy, intrinsics, markers.rows, markers.cols)
+    labels, spurious = associate_grid(candidates.xy, intrinsics, markers.rows, markers.cols,
+                                      strength=candidates.strength)
     matched = int((labels[:, 0] >= 0).sum())
     if matched < need:
         raise CalibrationError(
-            f"{recording}: {matched} of {len(blobs)} blobs matched the {markers.rows}x{markers.cols} marker grid "
-            f"(need {need}); check the marker rows/cols/pitch in the rig file and the intrinsics"
+            f"{recording}: {matched} of {len(candidates)} blobs matched the {markers.rows}x{markers.cols} marker "
+            f"grid (need {need}); check the marker rows/cols/pitch in the rig file and the intrinsics"
         )
-    index, rvec, tvec = choose_orientation(blobs.xy, labels, markers, intrinsics, nominal_rotvec_rad)
+    measured, rvec, tvec = measure_markers(frame, candidates, labels, markers, intrinsics, nominal_rotvec_rad)
+    detected = int(np.isfinite(measured[:, 0]).sum())
+    if detected < need:
+        raise CalibrationError(
+            f"{recording}: {detected} of {len(candidates)} blobs matched the {markers.rows}x{markers.cols} marker "
+            f"grid after fitting (need {need}); check the marker rows/cols/pitch in the rig file and the intrinsics"
+        )
     rest = markers.rest_positions_mm()
-    good = index >= 0
-    obj = rest[index[good]]
-    img = blobs.xy[good]
-    dist = np.asarray(intrinsics.distortion)
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, intrinsics.matrix, dist, rvec.reshape(3, 1), tvec.reshape(3, 1),
-                                      criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
-    projected, _ = cv2.projectPoints(rest, rvec, tvec, intrinsics.matrix, dist)
+    projected, _ = cv2.projectPoints(rest, rvec, tvec, intrinsics.matrix, np.asarray(intrinsics.distortion))
     rest_px = projected.reshape(-1, 2)
-    measured = np.full((n_markers, 2), np.nan)
-    measured[index[good]] = img
     errors = np.linalg.norm(measured - rest_px, axis=1)
     return ExtrinsicsResult(
-        rotvec_rad=rvec.ravel().astype(float), translation_mm=tvec.ravel().astype(float), rest_gel_mm=rest,
-        rest_px=rest_px, measured_px=measured, errors_px=errors, blobs=blobs, spurious=spurious, blinks=len(blinks),
-        frame=frame, markers=markers, recording=recording, recording_sha256=sha256_of(recording),
+        rotvec_rad=rvec.astype(float), translation_mm=tvec.astype(float), rest_gel_mm=rest,
+        rest_px=rest_px, measured_px=measured, errors_px=errors, blobs=candidates, spurious=spurious,
+        blinks=len(blinks), frame=frame, markers=markers, recording=recording, recording_sha256=sha256_of(recording),
     )
