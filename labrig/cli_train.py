@@ -1,0 +1,94 @@
+"""``labrig train DATA``: train the depth network on a campaign and export it with its model card.
+
+Mount on the main app with :func:`add_train_commands` (``cli.py``). User errors (no
+manifest, missing sidecars, bad options, a checkpoint in the way) are
+:class:`LabrigError` s, printed as one line by ``labrig``'s main.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+
+
+def train_command(
+    data: Annotated[Path, typer.Argument(help="Campaign output folder: manifest.csv, recordings and NAME.gt.h5 sidecars.")],
+    width: Annotated[int, typer.Option(help="U-Net base width (channels at full resolution; 32 = the paper's 7.8 M).")] = 8,
+    pools: Annotated[int, typer.Option(help="Number of 2x2 poolings (96 x 112 allows up to 4).")] = 4,
+    window_ms: Annotated[float, typer.Option(help="Event window accumulated into the SAE (ms).")] = 10.0,
+    loss: Annotated[str, typer.Option(help="contact (contact-aware L1, the paper's) or uniform (plain L1).")] = "contact",
+    lambda_c: Annotated[float, typer.Option(help="Weight of the contact term of the contact-aware loss.")] = 0.5,
+    steps: Annotated[int | None, typer.Option(help="Training steps (default 2000 unless --time-budget-min).")] = None,
+    time_budget_min: Annotated[float | None, typer.Option(
+        help="Stop after this many minutes of training (all sessions of a resumed run together).")] = None,
+    batch_size: Annotated[int, typer.Option(help="Windows per step.")] = 16,
+    lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
+    seed: Annotated[int, typer.Option(help="Seed of the initial weights and the window sampler.")] = 0,
+    out: Annotated[Path | None, typer.Option(
+        help="Output stem: writes OUT.onnx, OUT.json (model card), OUT.ckpt.pt (default models/depth-wW-LOSS-Tms).")] = None,
+    resume: Annotated[bool, typer.Option(help="Continue from OUT.ckpt.pt (same settings).")] = False,
+    checkpoint_every: Annotated[int, typer.Option(help="Save a checkpoint every N steps.")] = 200,
+    val_every: Annotated[int, typer.Option(help="Validation depth error every N steps (0: only at the end).")] = 200,
+    val_windows: Annotated[int, typer.Option(help="Windows drawn once from the val split for validation.")] = 128,
+    phases: Annotated[str, typer.Option(
+        help="Sample windows in the probing phases (normal_down to normal_up) or all.")] = "probing",
+    device: Annotated[str, typer.Option(help="auto (CUDA when present), cpu, cuda.")] = "auto",
+    threads: Annotated[int | None, typer.Option(help="Torch CPU threads (default: torch's).")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the model card as JSON.")] = False,
+) -> None:
+    """Train the depth U-Net on a campaign's train split; validate on its val split; export ONNX + model card."""
+    from labrig.training import TrainConfig, train
+
+    config = TrainConfig(width=width, pools=pools, window_ms=window_ms, loss=loss, lambda_c=lambda_c, steps=steps,
+                         time_budget_min=time_budget_min, batch_size=batch_size, lr=lr, seed=seed,
+                         checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows,
+                         phases=phases, device=device, threads=threads)
+    config.check()
+    if out is None:
+        out = Path("models") / f"depth-w{width}-{loss}-{window_ms:g}ms"
+    command = "labrig " + shlex.join(sys.argv[1:]) if sys.argv and "train" in sys.argv else ""
+    card = train(data, config, out, resume=resume, command=command, show_progress=not as_json)
+    if as_json:
+        sys.stdout.write(json.dumps(card, indent=2) + "\n")
+        return
+    _print_card(card)
+
+
+def _print_card(c: dict[str, Any]) -> None:
+    t = c["training"]
+    d = c["training_data"]
+    table = Table(title=f"depth network {c['name']}", show_header=False)
+    table.add_column("")
+    table.add_column("")
+    table.add_row("network", f"U-Net width {c['architecture']['width']}, {c['architecture']['pools']} pools, "
+                             f"{c['parameters']:,} parameters")
+    table.add_row("data", f"{d['campaign']}: {d['split_counts']['train']} train / {d['split_counts']['val']} val / "
+                          f"{d['split_counts']['test']} test recordings; scale {d['scale_mm']} mm per unit")
+    table.add_row("window, loss", f"{c['window_ms']:g} ms, {c['loss']['name']}"
+                                  + (f" (lambda_c {c['loss']['lambda_c']})" if c["loss"]["lambda_c"] is not None else ""))
+    table.add_row("training", f"{t['steps']} steps x {t['batch_size']} = {t['samples']:,} windows in {t['seconds']:.0f} s "
+                              f"({t['samples_per_s'] or 0:.1f} windows/s on {t['device']}); final loss {t['final_loss']}")
+    v = c.get("val")
+    if v:
+        table.add_row("val depth error", f"total {v['total_mm']:.4f} mm, contact {v['contact_mm'] or float('nan'):.4f} mm, "
+                                         f"non-contact {v['noncontact_mm'] or float('nan'):.4f} mm ({v['maps']} windows)")
+    else:
+        table.add_row("val depth error", "[yellow]no val recordings[/]")
+    table.add_row("inference", f"{c['inference_ms_ort_1thread']:.2f} ms per window (onnxruntime, 1 thread)")
+    table.add_row("files", f"{c['onnx']}\n{c['card']}\n{c['checkpoint']}")
+    table.add_row("reproduce", c["reproduce"])
+    console.print(table)
+
+
+def add_train_commands(app: typer.Typer) -> None:
+    """Mount ``train`` on the main app."""
+    app.command("train")(train_command)

@@ -1,0 +1,221 @@
+"""Training samples from a campaign: random event windows as SAEs, with the ground truth nearest in time.
+
+The paper's sampling: pick a recording and a time at random, accumulate the following
+window (10 ms by default) into a polarity-separated SAE normalised to [0, 1]
+(:func:`labrig.pipeline.sae.sae_grid`, padded to 96 x 112), and take the ground-truth map
+nearest in time to the window's last event. Times are host microseconds throughout:
+:meth:`Recording.events_between` maps the camera's device clock to the recording's host
+base, the base of the sidecar's ``t_host_us``.
+
+Times are drawn uniformly over the recording's probing phases (``normal_down`` to
+``normal_up``: approach and retract are mostly an undeformed gel at rest) intersected with
+the span of its ground truth; ``phases="all"`` uses the whole recording.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import Roi
+from labrig.errors import LabrigError
+from labrig.pipeline.sae import GRID_SHAPE, pad_for_unet, sae_grid
+
+SPLITS = ("train", "val", "test")
+PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
+
+
+@dataclass
+class Sample:
+    """One training example: network input, normalised target, contact mask (all numpy)."""
+
+    sae: npt.NDArray[np.float32]      # (2, 96, 112), padded
+    target: npt.NDArray[np.float32]   # (90, 112), depth / scale_mm clipped to [0, 1]
+    contact: npt.NDArray[np.uint8]    # (90, 112)
+    t_last_us: float
+    dt_gt_us: float
+    recording: int
+
+
+class Source:
+    """One recording and its sidecar: lazy map reads (one gzip chunk per map)."""
+
+    def __init__(self, recording: Path, sidecar: Path, split: str, phases: str = "probing") -> None:
+        from labrig.recording import Recording
+
+        self.path = recording
+        self.sidecar = sidecar
+        self.split = split
+        self.rec = Recording(recording)
+        self.gt = h5py.File(sidecar, "r")
+        self.t_gt = self.gt["t_host_us"][:]
+        if self.t_gt.size == 0:
+            raise LabrigError(f"{sidecar} holds no maps; regenerate it with `labrig groundtruth`")
+        attrs = self.gt.attrs
+        self.scale_mm = float(attrs["scale_mm"])
+        self.elastic_model = str(attrs.get("elastic_model", ""))
+        self.indenter = str(attrs.get("indenter", self.rec.attrs.get("indenter", "")))
+        x0, y0, x1, y1 = (int(v) for v in attrs["roi_px"])
+        self.roi = Roi(x0, y0, x1, y1)
+        self.span_us = self._span(phases)
+
+    def _span(self, phases: str) -> tuple[float, float]:
+        t0, t1 = float(self.t_gt[0]), float(self.t_gt[-1])
+        if phases == "probing":
+            chosen = [p for p in self.rec.phases() if p.name in PROBING_PHASES]
+            if chosen:
+                t0, t1 = max(t0, chosen[0].t_start_us), min(t1, chosen[-1].t_end_us)
+        elif phases != "all":
+            raise LabrigError(f"phases must be 'probing' or 'all', not {phases!r}")
+        if t1 <= t0:
+            raise LabrigError(f"{self.path}: its probing phases and its ground truth do not overlap")
+        return t0, t1
+
+    def nearest(self, t_us: float) -> int:
+        i = int(np.clip(np.searchsorted(self.t_gt, t_us), 1, self.t_gt.size - 1)) if self.t_gt.size > 1 else 0
+        if i > 0 and abs(t_us - self.t_gt[i - 1]) <= abs(self.t_gt[i] - t_us):
+            i -= 1
+        return i
+
+    def window(self, t0_us: float, window_us: float, index: int = -1) -> Sample:
+        """The SAE of ``[t0, t0 + window)`` and the map nearest to its last event (window end if none)."""
+        events = self.rec.events_between(t0_us, t0_us + window_us)
+        sae = pad_for_unet(sae_grid(events, t0_us, t0_us + window_us, self.roi, GRID_SHAPE))
+        t_last = float(events["t"].max()) if len(events) else t0_us + window_us
+        i = self.nearest(t_last)
+        depth = self.gt["depth_mm"][i]
+        target = np.clip(depth / np.float32(self.scale_mm), 0.0, 1.0).astype(np.float32)
+        return Sample(sae, target, self.gt["contact_mask"][i].astype(np.uint8), t_last,
+                      float(self.t_gt[i]) - t_last, index)
+
+    def close(self) -> None:
+        self.gt.close()
+        self.rec.close()
+
+
+@dataclass
+class CampaignData:
+    """The complete recordings of a campaign folder that have current sidecars, by split."""
+
+    folder: Path
+    sources: dict[str, list[Source]] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+
+    @property
+    def scale_mm(self) -> float:
+        scales = {s.scale_mm for group in self.sources.values() for s in group}
+        if len(scales) > 1:
+            raise LabrigError(f"{self.folder}: sidecars use different scales {sorted(scales)}; "
+                              "regenerate them with one --scale-mm")
+        return scales.pop()
+
+    def counts(self) -> dict[str, int]:
+        return {k: len(self.sources.get(k, [])) for k in SPLITS}
+
+    def describe(self) -> dict[str, Any]:
+        """Training-data section of the model card."""
+        models = sorted({s.elastic_model for g in self.sources.values() for s in g})
+        return {
+            "campaign": str(self.folder), "campaign_name": self.folder.name, "split_counts": self.counts(),
+            "recordings": {k: [s.path.name for s in self.sources.get(k, [])] for k in SPLITS},
+            "indenters": sorted({s.indenter for g in self.sources.values() for s in g}),
+            "groundtruth_model": models, "scale_mm": self.scale_mm, "skipped": self.skipped,
+        }
+
+    def close(self) -> None:
+        for group in self.sources.values():
+            for s in group:
+                s.close()
+
+
+def open_campaign(folder: str | Path, phases: str = "probing") -> CampaignData:
+    """Read ``manifest.csv`` and pair each complete recording with its ``NAME.gt.h5``.
+
+    A missing sidecar is an error that says to run ``labrig groundtruth DATA/`` first.
+    """
+    from labrig.groundtruth import sidecar_path
+    from labrig.groundtruth.batch import find_recordings
+
+    folder = Path(folder)
+    if folder.is_file():
+        raise LabrigError(f"{folder} is a file; give a campaign output folder (with manifest.csv)")
+    jobs, _ = find_recordings(folder)
+    if not jobs:
+        raise LabrigError(f"{folder}/manifest.csv lists no complete recordings")
+    missing = [j.recording.name for j in jobs if not sidecar_path(j.recording).exists()]
+    if missing:
+        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        raise LabrigError(f"{folder}: no ground truth for {', '.join(missing[:3])}{more}; "
+                          f"run `labrig groundtruth {folder}` first")
+    data = CampaignData(folder)
+    for job in jobs:
+        split = job.split if job.split in SPLITS else "train"
+        try:
+            data.sources.setdefault(split, []).append(Source(job.recording, sidecar_path(job.recording), split, phases))
+        except LabrigError as exc:
+            data.skipped.append(f"{job.recording.name}: {exc}")
+    if not data.sources.get("train"):
+        raise LabrigError(f"{folder}: no usable recording in the train split")
+    data.scale_mm  # noqa: B018  (checks that all scales agree)
+    return data
+
+
+class WindowSampler:
+    """Random windows from a list of sources, with a seeded generator whose state can be saved.
+
+    Iterating yields :class:`Sample` s forever; :meth:`batch` stacks them as numpy
+    arrays; :meth:`state` / :meth:`set_state` capture the generator for resume.
+    """
+
+    def __init__(self, sources: list[Source], window_us: float, seed: int) -> None:
+        if not sources:
+            raise LabrigError("no recordings to sample from")
+        self.sources = sources
+        self.window_us = float(window_us)
+        self.rng = np.random.default_rng(seed)
+
+    def sample(self) -> Sample:
+        k = int(self.rng.integers(len(self.sources)))
+        src = self.sources[k]
+        t0, t1 = src.span_us
+        start = float(self.rng.uniform(t0, max(t0, t1 - self.window_us)))
+        return src.window(start, self.window_us, k)
+
+    def __iter__(self) -> Iterator[Sample]:
+        while True:
+            yield self.sample()
+
+    def batch(self, size: int) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.uint8]]:
+        samples = [self.sample() for _ in range(size)]
+        return (np.stack([s.sae for s in samples]), np.stack([s.target for s in samples]),
+                np.stack([s.contact for s in samples]))
+
+    def state(self) -> dict[str, Any]:
+        return dict(self.rng.bit_generator.state)
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        self.rng.bit_generator.state = state
+
+
+def torch_dataset(sampler: WindowSampler) -> Any:
+    """The sampler as a :class:`torch.utils.data.IterableDataset` of (sae, target, contact) tensors."""
+    import torch
+    from torch.utils.data import IterableDataset
+
+    class Windows(IterableDataset):  # type: ignore[type-arg]
+        def __iter__(self):  # type: ignore[no-untyped-def]
+            for s in sampler:
+                yield torch.from_numpy(s.sae), torch.from_numpy(s.target), torch.from_numpy(s.contact)
+
+    return Windows()
+
+
+def fixed_set(sources: list[Source], window_us: float, n: int, seed: int) -> tuple[npt.NDArray, ...]:
+    """``n`` windows drawn once with their own seed (validation): arrays sae, target, contact."""
+    return WindowSampler(sources, window_us, seed).batch(n)

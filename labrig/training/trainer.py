@@ -1,0 +1,313 @@
+"""Training the depth network on a campaign: Adam, checkpoints, resume, validation in mm, ONNX export.
+
+Outputs for ``out = models/NAME``: ``NAME.onnx`` (the network), ``NAME.json`` (its model
+card) and ``NAME.ckpt.pt`` (model, optimizer, step, elapsed time, sampler and torch RNG
+states), written every ``checkpoint_every`` steps and at the end. ``resume=True``
+continues from the checkpoint: with the same settings the losses after the resume are
+those an uninterrupted run would have had (on CPU). A time budget counts the training
+time of all sessions together.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from labrig.errors import LabrigError
+from labrig.pipeline.sae import crop_from_unet
+from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
+
+DEFAULT_STEPS = 2000
+VAL_SEED_OFFSET = 1_000_003
+#: Settings that must match for a resume.
+RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases")
+
+
+@dataclass
+class TrainConfig:
+    width: int = 8
+    pools: int = 4
+    window_ms: float = 10.0
+    loss: str = "contact"
+    lambda_c: float = DEFAULT_LAMBDA_C
+    steps: int | None = None
+    time_budget_min: float | None = None
+    batch_size: int = 16
+    lr: float = 1e-3
+    seed: int = 0
+    checkpoint_every: int = 200
+    val_every: int = 200
+    val_windows: int = 128
+    phases: str = "probing"
+    device: str = "auto"
+    threads: int | None = None
+
+    def check(self) -> None:
+        if self.loss not in LOSSES:
+            raise LabrigError(f"--loss must be one of {', '.join(LOSSES)}, not {self.loss!r}")
+        if not 0.0 <= self.lambda_c <= 1.0:
+            raise LabrigError("--lambda-c must be within [0, 1]")
+        if self.width < 1 or self.pools < 1 or self.batch_size < 1 or self.lr <= 0:
+            raise LabrigError("--width, --batch-size and --lr must be positive")
+        if self.window_ms <= 0:
+            raise LabrigError("--window-ms must be positive")
+        if self.steps is not None and self.steps < 1:
+            raise LabrigError("--steps must be >= 1")
+        if self.time_budget_min is not None and self.time_budget_min <= 0:
+            raise LabrigError("--time-budget-min must be positive")
+        if self.phases not in ("probing", "all"):
+            raise LabrigError("--phases must be probing or all")
+
+    @property
+    def max_steps(self) -> int | None:
+        if self.steps is None and self.time_budget_min is None:
+            return DEFAULT_STEPS
+        return self.steps
+
+
+def output_paths(out: str | Path) -> dict[str, Path]:
+    out = Path(out)
+    if out.suffix in (".onnx", ".json"):
+        out = out.with_suffix("")
+    return {"onnx": out.with_name(out.name + ".onnx"), "card": out.with_name(out.name + ".json"),
+            "checkpoint": out.with_name(out.name + ".ckpt.pt")}
+
+
+def pick_device(name: str) -> Any:
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        return torch.device(name)
+    except RuntimeError:
+        raise LabrigError(f"--device {name!r} is not a torch device (auto, cpu, cuda, cuda:1)") from None
+
+
+def predict_normalised(model: Any, sae: np.ndarray, device: Any, batch: int = 32) -> np.ndarray:
+    """Network output (N, 90, 112) in normalised units, clipped to [0, 1], in eval mode."""
+    import torch
+
+    was = model.training
+    model.eval()
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(sae), batch):
+            y = model(torch.from_numpy(sae[i:i + batch]).to(device))[:, 0]
+            out.append(crop_from_unet(y).clamp(0.0, 1.0).cpu().numpy())
+    model.train(was)
+    return np.concatenate(out) if out else np.zeros((0, 90, 112), np.float32)
+
+
+def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume: bool = False,
+          command: str = "", show_progress: bool = True,
+          on_step: Callable[[int, float], None] | None = None) -> dict[str, Any]:
+    """Train, export and return the model card (also written beside the .onnx)."""
+    import torch
+
+    from labrig import __version__
+    from labrig.pipeline.depthnet import UNetConfig, build_unet, export_onnx, parameter_count
+    from labrig.training.data import WindowSampler, fixed_set, open_campaign
+
+    config.check()
+    paths = output_paths(out)
+    if paths["checkpoint"].exists() and not resume:
+        raise LabrigError(f"{paths['checkpoint']} exists: pass --resume to continue it, or choose another --out")
+    if resume and not paths["checkpoint"].exists():
+        raise LabrigError(f"--resume: no checkpoint {paths['checkpoint']} to continue")
+    paths["onnx"].parent.mkdir(parents=True, exist_ok=True)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    device = pick_device(config.device)
+    data = open_campaign(data_dir, config.phases)
+    try:
+        window_us = config.window_ms * 1000.0
+        torch.manual_seed(config.seed)
+        model = build_unet(UNetConfig(width=config.width, pools=config.pools)).to(device)
+        optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+        sampler = WindowSampler(data.sources["train"], window_us, config.seed)
+        val_sources = data.sources.get("val", [])
+        val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET) if val_sources else None
+        loss_fn = loss_function(config.loss, config.lambda_c)
+        scale = data.scale_mm
+        step, elapsed_s, samples_s, history, val_history = 0, 0.0, 0.0, [], []
+        if resume:
+            ckpt = torch.load(paths["checkpoint"], map_location=device, weights_only=False)
+            before = ckpt["config"]
+            changed = [k for k in RESUME_KEYS if before.get(k) != getattr(config, k)]
+            if changed:
+                raise LabrigError(f"--resume: {', '.join(f'{k} was {before.get(k)!r}' for k in changed)} in "
+                                  f"{paths['checkpoint']}; use the same settings or another --out")
+            model.load_state_dict(ckpt["model"])
+            optimizer.load_state_dict(ckpt["optimizer"])
+            sampler.set_state(ckpt["sampler_rng"])
+            torch.set_rng_state(ckpt["torch_rng"])
+            step, elapsed_s, samples_s = int(ckpt["step"]), float(ckpt["elapsed_s"]), float(ckpt.get("samples_s", 0))
+            history, val_history = list(ckpt["history"]), list(ckpt["val_history"])
+
+        def validate() -> dict[str, Any] | None:
+            if val is None:
+                return None
+            pred = predict_normalised(model, val[0], device) * scale
+            return depth_errors_mm(pred, val[1] * scale, val[2])
+
+        def save_checkpoint() -> None:
+            tmp = paths["checkpoint"].with_name(f".{paths['checkpoint'].name}.{os.getpid()}.tmp")
+            torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                        "elapsed_s": elapsed_s, "samples_s": samples_s, "sampler_rng": sampler.state(),
+                        "torch_rng": torch.get_rng_state(), "config": dataclasses.asdict(config),
+                        "history": history, "val_history": val_history}, tmp)
+            os.replace(tmp, paths["checkpoint"])
+
+        budget_s = config.time_budget_min * 60.0 if config.time_budget_min else None
+        max_steps = config.max_steps
+
+        def done() -> bool:
+            return (max_steps is not None and step >= max_steps) or (budget_s is not None and elapsed_s >= budget_s)
+
+        model.train()
+        last_val = val_history[-1][1] if val_history else None
+        with _Progress(show_progress, max_steps, budget_s) as bar:
+            bar.update(step, elapsed_s, history[-1][1] if history else None, last_val)
+            while not done():
+                t0 = time.perf_counter()
+                sae, target, contact = sampler.batch(config.batch_size)
+                t1 = time.perf_counter()
+                x = torch.from_numpy(sae).to(device)
+                y = torch.from_numpy(target).to(device)
+                c = torch.from_numpy(contact).to(device)
+                pred = crop_from_unet(model(x)[:, 0])
+                loss = loss_fn(pred, y, c)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                step += 1
+                value = float(loss.detach())
+                history.append((step, value))
+                if on_step is not None:
+                    on_step(step, value)
+                samples_s += t1 - t0
+                if config.val_every and step % config.val_every == 0:
+                    last_val = validate()
+                    val_history.append((step, last_val))
+                elapsed_s += time.perf_counter() - t0
+                if config.checkpoint_every and step % config.checkpoint_every == 0:
+                    save_checkpoint()
+                bar.update(step, elapsed_s, _smooth(history), last_val)
+        final_val = validate()
+        if final_val is not None and (not val_history or val_history[-1][0] != step):
+            val_history.append((step, final_val))
+        save_checkpoint()
+        n_samples = step * config.batch_size
+        card = {
+            "name": paths["onnx"].stem,
+            "architecture": UNetConfig(width=config.width, pools=config.pools).to_dict(),
+            "parameters": parameter_count(model),
+            "scale_mm": scale,
+            "normalisation": "depth_norm = clip(depth_mm / scale_mm, 0, 1); network output clipped to [0, 1]",
+            "window_ms": config.window_ms,
+            "input": "polarity-separated SAE on the 90 x 112 grid (labrig.pipeline.sae.sae_grid), zero-padded to "
+                     "96 x 112; channel 0 OFF, 1 ON; latest event per cell, (t - t0) / window",
+            "loss": {"name": config.loss, "lambda_c": config.lambda_c if config.loss == "contact" else None},
+            "training_data": data.describe(),
+            "sampling": f"uniform recording, uniform start time within its {config.phases} phases; ground truth "
+                        "nearest to the window's last event",
+            "training": {"steps": step, "batch_size": config.batch_size, "samples": n_samples, "optimizer": "Adam",
+                         "lr": config.lr, "seed": config.seed, "seconds": round(elapsed_s, 1),
+                         "samples_per_s": round(n_samples / elapsed_s, 1) if elapsed_s > 0 else None,
+                         "sampling_share": round(samples_s / elapsed_s, 3) if elapsed_s > 0 else None,
+                         "time_budget_min": config.time_budget_min, "device": str(device),
+                         "torch_threads": torch.get_num_threads(), "final_loss": _smooth(history),
+                         "loss_history": [h for h in history if h[0] % max(1, step // 200) == 0 or h[0] == step],
+                         "val_history": val_history},
+            "val": final_val,
+            "val_windows": config.val_windows,
+            "command": command,
+            "reproduce": _reproduce(data_dir, config, paths["onnx"].with_suffix(""), step),
+            "labrig_version": __version__,
+            "torch_version": torch.__version__,
+            "machine": platform.machine(),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        }
+        export_onnx(model, paths["onnx"], None)
+        from labrig.pipeline.depthnet import benchmark_ms, write_card
+
+        write_card(card, paths["card"])
+        card["inference_ms_ort_1thread"] = round(benchmark_ms(paths["onnx"], threads=1), 3)
+        write_card(card, paths["card"])
+        return {**card, "onnx": str(paths["onnx"]), "card": str(paths["card"]),
+                "checkpoint": str(paths["checkpoint"])}
+    finally:
+        data.close()
+
+
+def _smooth(history: list[tuple[int, float]], n: int = 20) -> float | None:
+    if not history:
+        return None
+    return round(float(np.mean([v for _, v in history[-n:]])), 6)
+
+
+def _reproduce(data_dir: str | Path, c: TrainConfig, out: Path, steps: int) -> str:
+    """A command that gives this model again (deterministic on CPU): the step count reached, not the budget."""
+    parts = ["labrig", "train", str(data_dir), "--width", str(c.width), "--window-ms", f"{c.window_ms:g}",
+             "--loss", c.loss, "--steps", str(steps), "--seed", str(c.seed), "--batch-size", str(c.batch_size),
+             "--lr", f"{c.lr:g}", "--out", str(out)]
+    if c.pools != 4:
+        parts += ["--pools", str(c.pools)]
+    if c.loss == "contact" and c.lambda_c != DEFAULT_LAMBDA_C:
+        parts += ["--lambda-c", f"{c.lambda_c:g}"]
+    if c.phases != "probing":
+        parts += ["--phases", c.phases]
+    if c.val_every != 200 or c.val_windows != 128:
+        parts += ["--val-every", str(c.val_every), "--val-windows", str(c.val_windows)]
+    return " ".join(parts)
+
+
+class _Progress:
+    """A rich bar over steps (or the time budget) with the loss and the validation errors."""
+
+    def __init__(self, enabled: bool, max_steps: int | None, budget_s: float | None) -> None:
+        self.enabled = enabled
+        self.max_steps = max_steps
+        self.budget_s = budget_s
+        self.bar: Any = None
+
+    def __enter__(self) -> _Progress:
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
+                                TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True))
+            self.bar.__enter__()
+            by_steps = self.max_steps is not None and (self.budget_s is None)
+            self.task = self.bar.add_task("train", total=self.max_steps if by_steps else self.budget_s, info="")
+            self.by_steps = by_steps
+        return self
+
+    def update(self, step: int, elapsed_s: float, loss: float | None, val: dict[str, Any] | None) -> None:
+        if self.bar is None:
+            return
+        info = f"step {step}" + (f"/{self.max_steps}" if self.max_steps else "")
+        if loss is not None:
+            info += f"  loss {loss:.4f}"
+        if val and val.get("total_mm") is not None:
+            info += (f"  val mm total {val['total_mm']:.3f} contact {val['contact_mm'] or 0:.3f} "
+                     f"non-contact {val['noncontact_mm'] or 0:.3f}")
+        done = step if self.by_steps else elapsed_s
+        if not self.by_steps and self.max_steps:
+            done = max(elapsed_s, step / self.max_steps * (self.budget_s or 0))
+        self.bar.update(self.task, completed=done, info=info)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(*exc)

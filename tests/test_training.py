@@ -1,0 +1,173 @@
+"""Training the depth network: losses, the paper's sampling, a short run, resume, the CLI."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from labrig.config import RigConfig
+from labrig.errors import LabrigError
+from labrig.indenters import Indenter
+from labrig.training import TrainConfig, contact_aware_l1, depth_errors_mm, output_paths, train, uniform_l1
+from labrig.training.data import WindowSampler, open_campaign, torch_dataset
+
+
+@pytest.fixture(scope="session")
+def campaign(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
+    """A tiny campaign folder: one short simulated probe (~1 s) as a train and a val recording, with sidecars."""
+    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.sim.live import record_live
+    from labrig.sim.motion import probing_path
+
+    folder = tmp_path_factory.mktemp("campaign")
+    tool = probing_path(rig, sphere, location_mm=(1.0, -1.0), depth_mm=0.8, shear_mm=0.3, normal_speed_mm_s=4.0,
+                        shear_speed_mm_s=4.0, wait_s=0.05)
+    record_live(folder / "a.h5", rig, sphere, tool, realtime=False)
+    write_sidecar(generate(folder / "a.h5", rate_hz=100), sidecar_path(folder / "a.h5"))
+    shutil.copy(folder / "a.h5", folder / "b.h5")
+    shutil.copy(folder / "a.gt.h5", folder / "b.gt.h5")
+    (folder / "manifest.csv").write_text("id,split,status,file,sha256\n"
+                                         "a,train,complete,a.h5,\nb,val,complete,b.h5,\nc,test,pending,,\n")
+    return folder
+
+
+# ----------------------------------------------------------------------------------------- losses
+
+
+def test_contact_aware_loss_equals_its_formula_on_a_hand_example() -> None:
+    pred = torch.tensor([[[0.5, 0.0], [0.2, 0.1]], [[0.0, 0.0], [0.0, 0.4]]])
+    target = torch.tensor([[[0.3, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.0, 0.0]]])
+    contact = torch.tensor([[[1, 0], [1, 0]], [[0, 0], [0, 0]]], dtype=torch.uint8)
+    # map 0: contact |0.2| and |0.2| -> 0.2; non-contact 0 and 0.1 -> 0.05. map 1: no contact; non-contact 0.4/4 = 0.1
+    l_c, l_nc = 0.2, (0.05 + 0.1) / 2
+    assert float(contact_aware_l1(pred, target, contact)) == pytest.approx(0.5 * l_c + 0.5 * l_nc)
+    assert float(contact_aware_l1(pred, target, contact, lambda_c=0.8)) == pytest.approx(0.8 * l_c + 0.2 * l_nc)
+    assert float(uniform_l1(pred, target)) == pytest.approx((0.2 + 0.2 + 0.1 + 0.4) / 8)
+    # a small contact weighs as much as a large one: scaling the contact area leaves the loss alone
+    big = torch.ones(1, 4, 4)
+    small = torch.zeros(1, 4, 4)
+    small[0, 0, 0] = 1
+    assert float(contact_aware_l1(big * 0.3, big, big)) == pytest.approx(float(contact_aware_l1(small * 0.3 + (1 - small),
+                                                                                                 small + (1 - small), small)))
+
+
+def test_contact_aware_loss_has_gradients() -> None:
+    pred = torch.zeros(2, 3, 3, requires_grad=True)
+    contact = torch.zeros(2, 3, 3)
+    contact[0, 1, 1] = 1
+    contact_aware_l1(pred, torch.ones(2, 3, 3), contact).backward()
+    assert pred.grad is not None and float(pred.grad[0, 1, 1]) < 0 and float(pred.grad[1, 0, 0]) < 0
+
+
+def test_depth_errors_per_map_in_and_out_of_contact() -> None:
+    true = np.zeros((2, 2, 2))
+    pred = np.array([[[1.0, 0.0], [0.0, 0.2]], [[0.1, 0.1], [0.1, 0.1]]])
+    contact = np.array([[[1, 0], [0, 0]], [[0, 0], [0, 0]]])
+    e = depth_errors_mm(pred, true, contact)
+    assert e["total_mm"] == pytest.approx((0.3 + 0.1) / 2, abs=1e-5)
+    assert e["contact_mm"] == pytest.approx(1.0, abs=1e-5) and e["n_contact_maps"] == 1
+    assert e["noncontact_mm"] == pytest.approx((0.2 / 3 + 0.1) / 2, abs=1e-5)
+
+
+# ----------------------------------------------------------------------------------------- sampling
+
+
+def test_sampling_windows_and_nearest_ground_truth(campaign: Path) -> None:
+    data = open_campaign(campaign)
+    try:
+        assert data.counts() == {"train": 1, "val": 1, "test": 0} and data.scale_mm == 2.5
+        src = data.sources["train"][0]
+        phases = {p.name: p for p in src.rec.phases()}
+        assert src.span_us[0] >= phases["normal_down"].t_start_us and src.span_us[1] <= phases["normal_up"].t_end_us
+        a, b = WindowSampler(data.sources["train"], 10_000, seed=3), WindowSampler(data.sources["train"], 10_000, seed=3)
+        state = a.state()
+        s1 = [a.sample() for _ in range(4)]
+        assert all(np.array_equal(x.sae, b.sample().sae) for x in s1)  # same seed, same windows
+        a.set_state(state)
+        assert np.array_equal(a.sample().target, s1[0].target)  # the state restores the sequence
+        for s in s1:
+            assert s.sae.shape == (2, 96, 112) and s.target.shape == (90, 112) and s.contact.shape == (90, 112)
+            assert s.sae.min() >= 0.0 and s.sae.max() <= 1.0 and not s.sae[:, :3].any() and not s.sae[:, 93:].any()
+            assert s.target.min() >= 0.0 and s.target.max() <= 1.0
+            assert abs(s.dt_gt_us) <= 5_000  # 100 Hz maps: at most half a period from the last event
+            assert s.sae.max() > 0.5  # the indenter moves: events throughout the window
+        # the target is the map nearest the window's last event
+        s = s1[0]
+        i = int(np.argmin(np.abs(src.t_gt - s.t_last_us)))
+        assert np.allclose(s.target, np.clip(src.gt["depth_mm"][i] / 2.5, 0, 1))
+        x, y, c = next(iter(torch_dataset(WindowSampler(data.sources["train"], 5_000, seed=0))))
+        assert x.shape == (2, 96, 112) and y.shape == (90, 112) and c.dtype == torch.uint8
+    finally:
+        data.close()
+
+
+def test_missing_ground_truth_says_what_to_run(campaign: Path, tmp_path: Path) -> None:
+    shutil.copy(campaign / "a.h5", tmp_path / "a.h5")
+    (tmp_path / "manifest.csv").write_text("id,split,status,file,sha256\na,train,complete,a.h5,\n")
+    with pytest.raises(LabrigError, match=r"run `labrig groundtruth .*` first"):
+        open_campaign(tmp_path)
+    with pytest.raises(LabrigError, match=r"manifest\.csv"):
+        open_campaign(tmp_path / "a.h5")
+
+
+# ----------------------------------------------------------------------------------------- training
+
+TINY = {"width": 4, "batch_size": 4, "lr": 3e-3, "val_windows": 8, "threads": 1}
+
+
+def test_short_run_lowers_the_loss_and_writes_a_loadable_model(campaign: Path, tmp_path: Path) -> None:
+    from labrig.pipeline.depthnet import DepthModel
+
+    card = train(campaign, TrainConfig(steps=24, val_every=12, checkpoint_every=12, **TINY), tmp_path / "m",
+                 command="test", show_progress=False)
+    losses = [v for _, v in card["training"]["loss_history"]]
+    assert np.mean(losses[-4:]) < 0.8 * np.mean(losses[:4])
+    assert card["training"]["steps"] == 24 and card["training"]["samples"] == 96
+    assert card["training_data"]["split_counts"] == {"train": 1, "val": 1, "test": 0}
+    assert card["val"]["total_mm"] is not None and card["val"]["contact_mm"] is not None
+    assert card["reproduce"].startswith(f"labrig train {campaign} --width 4 --window-ms 10 --loss contact --steps 24")
+    model = DepthModel(tmp_path / "m.onnx", threads=1)
+    assert model.card["parameters"] == card["parameters"] and model.card["val"] == card["val"]
+    assert model.depth_mm(np.zeros((2, 90, 112), np.float32)).shape == (90, 112)
+    assert card["inference_ms_ort_1thread"] > 0
+    with pytest.raises(LabrigError, match="--resume"):
+        train(campaign, TrainConfig(steps=2, **TINY), tmp_path / "m", show_progress=False)
+
+
+def test_resume_continues_where_the_checkpoint_stopped(campaign: Path, tmp_path: Path) -> None:
+    cfg = {"val_every": 0, "checkpoint_every": 2, **TINY}
+    whole = train(campaign, TrainConfig(steps=6, **cfg), tmp_path / "whole", show_progress=False)
+    train(campaign, TrainConfig(steps=3, **cfg), tmp_path / "part", show_progress=False)  # "interrupted" at 3
+    resumed = train(campaign, TrainConfig(steps=6, **cfg), tmp_path / "part", resume=True, show_progress=False)
+    ckpt = torch.load(output_paths(tmp_path / "part")["checkpoint"], weights_only=False)
+    assert ckpt["step"] == 6 and [s for s, _ in ckpt["history"]] == [1, 2, 3, 4, 5, 6]
+    a, b = whole["training"]["loss_history"], resumed["training"]["loss_history"]
+    np.testing.assert_allclose([v for _, v in b], [v for _, v in a], rtol=1e-5)
+    with pytest.raises(LabrigError, match="width was 4"):
+        train(campaign, TrainConfig(steps=8, **{**cfg, "width": 8}), tmp_path / "part", resume=True, show_progress=False)
+    with pytest.raises(LabrigError, match="no checkpoint"):
+        train(campaign, TrainConfig(steps=8, **cfg), tmp_path / "none", resume=True, show_progress=False)
+
+
+def test_cli_train_json_and_errors(campaign: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from labrig.cli import app
+
+    runner = CliRunner()
+    result = runner.invoke(app, ["train", str(campaign), "--width", "4", "--steps", "2", "--batch-size", "2",
+                                 "--val-windows", "4", "--loss", "uniform", "--window-ms", "5", "--out",
+                                 str(tmp_path / "u"), "--json"])
+    assert result.exit_code == 0, result.output
+    card = json.loads(result.output)
+    assert card["loss"] == {"name": "uniform", "lambda_c": None} and card["window_ms"] == 5.0
+    assert (tmp_path / "u.onnx").exists() and (tmp_path / "u.json").exists()
+    bad = runner.invoke(app, ["train", str(campaign), "--loss", "huber"])
+    assert isinstance(bad.exception, LabrigError) and "--loss must be one of" in str(bad.exception)
+    empty = runner.invoke(app, ["train", str(tmp_path)])
+    assert isinstance(empty.exception, LabrigError) and "manifest.csv" in str(empty.exception)
