@@ -311,3 +311,26 @@ class _Progress:
     def __exit__(self, *exc: object) -> None:
         if self.bar is not None:
             self.bar.__exit__(*exc)
+
+
+def split_errors(onnx_path: str | Path, data_dir: str | Path, split: str = "test", windows: int = 256, seed: int = 7,
+                 threads: int = 1) -> dict[str, Any] | None:
+    """Depth errors (mm) of an exported network on ``windows`` random windows of a split (None if it is empty).
+
+    The windows are drawn with the card's window length and the paper's sampling, the same
+    draw for every model given the same seed, so models can be compared on one set.
+    """
+    from labrig.pipeline.depthnet import DepthModel
+    from labrig.training.data import fixed_set, open_campaign
+
+    model = DepthModel(onnx_path, threads=threads)
+    data = open_campaign(data_dir)
+    try:
+        sources = data.sources.get(split, [])
+        if not sources:
+            return None
+        sae, target, contact = fixed_set(sources, model.window_ms * 1000.0, windows, seed)
+        pred = np.concatenate([model.depth_mm(sae[i:i + 32]) for i in range(0, len(sae), 32)])
+        return depth_errors_mm(pred, target * model.scale_mm, contact)
+    finally:
+        data.close()
