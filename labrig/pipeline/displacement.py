@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
+import scipy.sparse as sp
 
 from labrig.config import Roi
 from labrig.sim.camera import CameraModel
@@ -41,6 +42,21 @@ def sample_grid(grid: npt.ArrayLike, positions_px: npt.ArrayLike, roi: Roi) -> A
             + fr * ((1 - fc) * g[r0 + 1, c0] + fc * g[r0 + 1, c0 + 1]))
 
 
+def grid_sampling_matrix(positions_px: npt.ArrayLike, roi: Roi, grid_shape: tuple[int, int]) -> sp.csr_matrix:
+    """(N, rows * cols) sparse: ``matrix @ grid.ravel()`` equals :func:`sample_grid` at the N pixels."""
+    rows, cols = grid_shape
+    rc = grid_coordinates(positions_px, roi, grid_shape).reshape(-1, 2)
+    r = np.clip(rc[:, 0], 0, rows - 1)
+    c = np.clip(rc[:, 1], 0, cols - 1)
+    r0 = np.minimum(np.floor(r).astype(np.int64), rows - 2)
+    c0 = np.minimum(np.floor(c).astype(np.int64), cols - 2)
+    fr, fc = r - r0, c - c0
+    n = len(r)
+    index = np.concatenate([r0 * cols + c0, r0 * cols + c0 + 1, (r0 + 1) * cols + c0, (r0 + 1) * cols + c0 + 1])
+    weight = np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc])
+    return sp.csr_matrix((weight, (np.tile(np.arange(n), 4), index)), shape=(n, rows * cols))
+
+
 def marker_depths_mm(depth: npt.ArrayLike, positions_px: npt.ArrayLike, roi: Roi) -> Array:
     """Per-marker normal displacements (M,) mm: ``depth`` is already per marker (M,) or a grid map."""
     d = np.asarray(depth, np.float64)
@@ -65,7 +81,13 @@ def marker_positions_mm(positions_px: npt.ArrayLike, depth_mm: npt.ArrayLike, ca
 
 
 def displacements_mm(positions_px: npt.ArrayLike, depth: npt.ArrayLike, camera: CameraModel, rest_mm: npt.ArrayLike,
-                     roi: Roi) -> Array:
-    """U (M, 3) mm: tracked pixels + normal displacement (per marker or grid map) -> 3D, minus rest."""
-    d = marker_depths_mm(depth, positions_px, roi)
+                     roi: Roi, sample_px: npt.ArrayLike | None = None) -> Array:
+    """U (M, 3) mm: tracked pixels + normal displacement (per marker or grid map) -> 3D, minus rest.
+
+    A map is sampled at ``sample_px`` (default: the tracked pixels). The ground truth's maps (and
+    so the network's) hold each grid cell's displacement of the surface point it saw at rest, so
+    pass the markers' rest pixels to read a marker's own depth there (under 0.5 mm of shear the
+    tracked pixel is a quarter of a millimetre off near the dimple's edge).
+    """
+    d = marker_depths_mm(depth, positions_px if sample_px is None else sample_px, roi)
     return marker_positions_mm(positions_px, d, camera) - np.asarray(rest_mm, np.float64)

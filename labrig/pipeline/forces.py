@@ -1,5 +1,9 @@
 """Forces from displacements: F = K U per marker, the net force, and the contact location.
 
+Two force models: the paper's ``forces_from_displacements(K, U)`` (K at the markers only), and
+:class:`SurfaceForces`, the dense surface operator of :func:`labrig.pipeline.ifem.build_surface_operator`
+fed the whole depth map plus the markers' in-plane displacements (the default in the runtime).
+
 Units: K in N/mm, U in mm (M, 3) -> F in N (M, 3), the force applied to the
 gel at each marker, gel frame (pressing gives Fz < 0, as ``/truth/marker_forces``).
 The contact location is the centre of mass of the depth map (positive depth
@@ -14,6 +18,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import Roi
+from labrig.pipeline.displacement import grid_sampling_matrix
+from labrig.pipeline.ifem import SurfaceOperator
 from labrig.sim.camera import CameraModel
 
 Array = npt.NDArray[np.float64]
@@ -23,6 +29,36 @@ def forces_from_displacements(k_n_per_mm: npt.ArrayLike, displacements_mm: npt.A
     """F (M, 3) N = K (3M x 3M, N/mm) @ U (M, 3) mm, marker-major DOFs."""
     u = np.asarray(displacements_mm, np.float64)
     return (np.asarray(k_n_per_mm) @ u.reshape(-1)).reshape(u.shape)
+
+
+class SurfaceForces:
+    """Per-marker forces from a depth map on the network grid and the markers' in-plane displacements.
+
+    Binds a :class:`SurfaceOperator` to the camera and ROI: the operator's top nodes (gel frame, at
+    rest) are projected once and the map is sampled bilinearly there (a sparse matrix), as the
+    ground truth's maps are indexed by the surface point each cell saw at rest.
+    """
+
+    def __init__(self, operator: SurfaceOperator, camera: CameraModel, roi: Roi, grid_shape: tuple[int, int] = (90, 112)):
+        self.operator = operator
+        self.grid_shape = grid_shape
+        xy = operator.node_xy_mm
+        self.node_px = camera.project(np.column_stack([xy, np.zeros(len(xy))]))
+        self.sampler = grid_sampling_matrix(self.node_px, roi, grid_shape)
+
+    def node_depths_mm(self, depth_map_mm: npt.ArrayLike) -> Array:
+        d = np.asarray(depth_map_mm, np.float64)
+        if d.shape != self.grid_shape:
+            raise ValueError(f"depth map {d.shape}, expected {self.grid_shape}")
+        return np.asarray(self.sampler @ d.ravel())
+
+    def __call__(self, depth_map_mm: npt.ArrayLike, displacements_mm: npt.ArrayLike, mode: str = "contact",
+                 threshold_mm: float = 0.01) -> Array:
+        """(M, 3) N on the gel; ``depth_map_mm`` into the gel (pressing positive), ``displacements_mm`` (M, 2|3).
+
+        ``mode`` "contact" (default): the map is used only where deeper than ``threshold_mm``,
+        the rest of the surface is traction-free; "field": the whole map is prescribed."""
+        return self.operator.forces_n(-self.node_depths_mm(depth_map_mm), displacements_mm, mode, threshold_mm)
 
 
 def net_force_n(forces_n: npt.ArrayLike) -> Array:

@@ -198,7 +198,7 @@ def condense(k_full: sp.spmatrix, kept_dofs: npt.NDArray[np.int64], fixed_dofs: 
     return (kc + kc.T) / 2
 
 
-def _material(rig: RigConfig, params: IfemParams) -> tuple[float, float]:
+def _material(rig: RigConfig, params: IfemParams | SurfaceParams) -> tuple[float, float]:
     e = rig.gel.youngs_modulus_mpa if params.youngs_modulus_mpa is None else params.youngs_modulus_mpa
     nu = rig.gel.poisson_ratio if params.poisson_ratio is None else params.poisson_ratio
     return float(e), float(nu)
@@ -327,3 +327,256 @@ def sine_load_stiffness_ratio(youngs_modulus_mpa: float, poisson_ratio: float, t
     crest_uz = -u[3 * mesh.node(0, 0, top) + 2]
     gel = GelConfig(h, 1.0, 1.0, youngs_modulus_mpa, poisson_ratio, 0.0)
     return float(p * layer_normal_compliance(k_wave, gel) / crest_uz)
+
+
+# -- Dense surface operator ---------------------------------------------------------------------
+#
+# The paper's K above has one top node per marker, so the surface between markers is bilinear
+# in their displacements: far too stiff for a dimple one or two pitches wide. The surface
+# operator meshes the top finely (``refinement`` elements per pitch) and takes the normal
+# displacement at every top node inside the marker cells from the dense depth map, the in-plane
+# one from the markers (natural cubic splines over the grid), and sums nodal forces over each
+# marker's 2 x 2 mm cell (the cells of /truth/marker_forces).
+#
+# Two condensed stiffnesses of the top nodes inside the cells (everything else free, bottom
+# fixed): K_zz for normal displacements with the surface free in-plane, K_tt for in-plane ones
+# with the surface free normally (the classic split of normal and tangential contact problems,
+# which the virtual rig's mechanics make too). Per window the displacements are prescribed only
+# where the surface is pressed in (depth above a threshold: the contact and its rim) and the rest
+# of the surface is traction-free: f_A = (C_AA)^-1 u_A with C = K^-1. So the bulge around a
+# dimple comes from the model, not from the map (a network that clips depth at 0 has none, and
+# prescribing such a map everywhere doubles the net force), and no traction appears where
+# nothing touches. "field" mode prescribes every node instead: f = K u.
+
+FORCE_MODES = ("contact", "field")
+SURFACE_CACHE_VERSION = 3
+
+
+@dataclass(frozen=True)
+class SurfaceParams:
+    """Mesh and material choices of :func:`build_surface_operator`."""
+
+    refinement: int = 2  # elements per marker pitch in-plane over the marker cells (2: 1 mm)
+    layers: int = 4
+    #: Mesh beyond the marker cells, mm, in elements growing 1.5x up to ``margin_element_mm``;
+    #: traction-free. The virtual rig's layer has no edges: about four thicknesses is enough (the net
+    #: normal force of a bonded, nearly incompressible layer is a balance between the dimple and the
+    #: bulge around it, so a block that ends at the cells is 20 % too soft). ``None``: the gel's own edges.
+    margin_mm: float | None = 16.0
+    margin_element_mm: float = 4.0
+    integration: str = "bbar"
+    youngs_modulus_mpa: float | None = None
+    poisson_ratio: float | None = None
+
+
+@dataclass(frozen=True)
+class SurfaceOperator:
+    """Per-marker forces (M, 3) N from the normal displacement at the top nodes and the markers' in-plane one.
+
+    ``node_xy_mm`` (N, 2): top nodes (gel frame, at rest) inside the marker cells; ``k_zz`` (N, N)
+    N/mm their condensed normal stiffness (surface free in-plane); ``k_tt`` (2N, 2N) N/mm their
+    condensed in-plane stiffness (surface free normally; x of every node, then y); ``cells``
+    (M, N) each node's share in each marker cell; ``interp`` (N, M) the markers' in-plane
+    displacements to the nodes (natural cubic splines).
+    """
+
+    node_xy_mm: Array
+    k_zz: Array
+    k_tt: Array
+    cells: Array
+    interp: Array
+    build_seconds: float = 0.0
+
+    @property
+    def n_markers(self) -> int:
+        return self.cells.shape[0]
+
+    def _inverse(self, name: str) -> Array:
+        c = self.__dict__.get(f"_inv_{name}")
+        if c is None:
+            c = np.linalg.inv(getattr(self, name))
+            c = (c + c.T) / 2
+            object.__setattr__(self, f"_inv_{name}", c)
+        return c
+
+    def node_forces_n(self, uz_nodes_mm: npt.ArrayLike, u_markers_mm: npt.ArrayLike, mode: str = "contact",
+                      threshold_mm: float = 0.01) -> Array:
+        """(N, 3) nodal forces on the gel; ``uz_nodes_mm`` (N,) up positive (pressed in: negative),
+        ``u_markers_mm`` (M, 2|3) the markers' displacements (in-plane used).
+
+        "contact": displacements prescribed where the surface is pressed deeper than
+        ``threshold_mm`` (the contact and its rim), the rest of the surface traction-free in every
+        direction; "field": prescribed on every node (the whole map, bulge included).
+        """
+        uz = np.asarray(uz_nodes_mm, np.float64)
+        ut = self.interp @ np.asarray(u_markers_mm, np.float64)[:, :2]  # (N, 2)
+        n = len(uz)
+        out = np.zeros((n, 3))
+        if mode == "field":
+            out[:, 2] = self.k_zz @ uz
+            out[:, :2] = (self.k_tt @ ut.T.reshape(-1)).reshape(2, n).T
+            return out
+        if mode != "contact":
+            raise ValueError(f"mode must be one of {FORCE_MODES}, not {mode!r}")
+        pressed = np.flatnonzero(uz < -threshold_mm)
+        if pressed.size == 0:
+            return out
+        from scipy.linalg import solve
+
+        out[pressed, 2] = solve(self._inverse("k_zz")[np.ix_(pressed, pressed)], uz[pressed], assume_a="pos")
+        both = np.concatenate([pressed, pressed + n])
+        ft = solve(self._inverse("k_tt")[np.ix_(both, both)], ut[pressed].T.reshape(-1), assume_a="pos")
+        out[pressed, 0], out[pressed, 1] = ft[: pressed.size], ft[pressed.size:]
+        return out
+
+    def forces_n(self, uz_nodes_mm: npt.ArrayLike, u_markers_mm: npt.ArrayLike, mode: str = "contact",
+                 threshold_mm: float = 0.01) -> Array:
+        """(M, 3) N on the gel per marker cell (pressing: Fz < 0); see :meth:`node_forces_n`."""
+        return self.cells @ self.node_forces_n(uz_nodes_mm, u_markers_mm, mode, threshold_mm)
+
+    def scaled(self, factor: float) -> SurfaceOperator:
+        """The operator of a gel ``factor`` times stiffer (forces are linear in E)."""
+        return SurfaceOperator(self.node_xy_mm, self.k_zz * factor, self.k_tt * factor, self.cells, self.interp,
+                               self.build_seconds)
+
+
+def _graded(start: float, stop: float, first_mm: float, growth: float, largest_mm: float) -> Array:
+    """Node coordinates after ``start`` up to ``stop``, elements growing from ``first_mm``."""
+    out, h = [start], first_mm
+    while out[-1] < stop - 1e-9:
+        h = min(h * growth, largest_mm)
+        out.append(min(out[-1] + h, stop))
+        if stop - out[-1] < 0.5 * h:
+            out[-1] = stop
+    return np.array(out[1:])
+
+
+def surface_axis(n_markers: int, pitch_mm: float, refinement: int, margin_mm: float,
+                 margin_element_mm: float = 4.0) -> Array:
+    """Node coordinates along one axis: uniform over the marker cells, graded beyond them."""
+    half = n_markers * pitch_mm / 2
+    inner = np.linspace(-half, half, n_markers * refinement + 1)
+    if margin_mm <= 1e-9:
+        return inner
+    outer = _graded(half, half + margin_mm, pitch_mm / refinement, 1.5, max(margin_element_mm, pitch_mm / refinement))
+    return np.concatenate([-outer[::-1], inner, outer])
+
+
+def surface_mesh(rig: RigConfig, params: SurfaceParams = SurfaceParams()) -> StructuredMesh:
+    """The structured mesh of :func:`build_surface_operator` (its marker indices are unused: empty)."""
+    mk, gel = rig.markers, rig.gel
+    if params.layers < 1 or params.refinement < 1:
+        raise ValueError("layers and refinement must be at least 1")
+    axes = []
+    for n, size in ((mk.cols, gel.size_x_mm), (mk.rows, gel.size_y_mm)):
+        margin = params.margin_mm if params.margin_mm is not None else max(size / 2 - n * mk.pitch_mm / 2, 0.0)
+        axes.append(surface_axis(n, mk.pitch_mm, params.refinement, margin, params.margin_element_mm))
+    z = np.linspace(-gel.thickness_mm, 0.0, params.layers + 1)
+    empty = np.zeros(0, np.int64)
+    return StructuredMesh(axes[0], axes[1], z, empty, empty)
+
+
+def cell_weights(coord_mm: Array, axis_mm: Array, centres_mm: Array, pitch_mm: float) -> Array:
+    """(len(coord), len(centres)): share of each node's tributary interval in each cell along one axis.
+
+    Nodes outside the cells get no weight; those on the outer edge count wholly in the outer cell."""
+    i = np.searchsorted(axis_mm, coord_mm - 1e-9)
+    n = len(axis_mm)
+    lo = np.where(i > 0, (coord_mm + axis_mm[np.maximum(i - 1, 0)]) / 2, coord_mm)
+    hi = np.where(i < n - 1, (coord_mm + axis_mm[np.minimum(i + 1, n - 1)]) / 2, coord_mm)
+    a, b = centres_mm - pitch_mm / 2, centres_mm + pitch_mm / 2
+    lo, hi = np.maximum(lo, a[0]), np.minimum(hi, b[-1])  # the outer nodes' forces go to the outer cells
+    overlap = np.clip(np.minimum(hi[:, None], b[None]) - np.maximum(lo[:, None], a[None]), 0.0, None)
+    return overlap / np.maximum(hi - lo, 1e-12)[:, None]
+
+
+def spline_weights(coord_mm: Array, knots_mm: Array) -> Array:
+    """(len(coord), len(knots)): natural cubic spline interpolation through the knots (linear beyond)."""
+    from scipy.interpolate import CubicSpline
+
+    return np.asarray(CubicSpline(knots_mm, np.eye(len(knots_mm)), axis=0, bc_type="natural")(coord_mm))
+
+
+def _reaction_sums(k: sp.csr_matrix, prescribed: npt.NDArray[np.int64], fixed: npt.NDArray[np.int64],
+                   sums: sp.csr_matrix, inputs: sp.csr_matrix) -> Array:
+    """sums @ K_c @ inputs, K_c the condensation onto ``prescribed`` with ``fixed`` clamped and the rest free."""
+    n = k.shape[0]
+    free = np.setdiff1d(np.arange(n), np.concatenate([fixed, prescribed]))
+    k_pp = k[prescribed][:, prescribed]
+    k_fp = k[free][:, prescribed]
+    lu = splu(k[free][:, free].tocsc(), permc_spec="MMD_AT_PLUS_A")
+    direct = np.asarray((sums @ k_pp @ inputs).todense())
+    if sums.shape[0] <= inputs.shape[1]:  # fewer right-hand sides from the summing side
+        x = lu.solve(np.asarray((k_fp @ sums.T).todense(), order="F"))
+        return direct - np.asarray((k_fp @ inputs).T @ x).T
+    x = lu.solve(np.asarray((k_fp @ inputs).todense(), order="F"))
+    return direct - np.asarray((sums @ k_fp.T) @ x)
+
+
+def compute_surface_operator(rig: RigConfig, params: SurfaceParams = SurfaceParams()) -> SurfaceOperator:
+    """Assemble and condense the surface operator (no cache)."""
+    start = time.perf_counter()
+    e, nu = _material(rig, params)
+    mk = rig.markers
+    mesh = surface_mesh(rig, params)
+    k = assemble(mesh, e, nu, params.integration)
+    nx, ny, nz = mesh.shape
+    gy, gx = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+    x, y = mesh.x_mm[gx.ravel()], mesh.y_mm[gy.ravel()]
+    half_x, half_y = mk.cols * mk.pitch_mm / 2, mk.rows * mk.pitch_mm / 2
+    inside = (np.abs(x) <= half_x + 1e-9) & (np.abs(y) <= half_y + 1e-9)
+    top = mesh.node(gx.ravel()[inside], gy.ravel()[inside], nz - 1)
+    bottom = mesh.node(gx.ravel(), gy.ravel(), 0)
+    fixed = (3 * bottom[:, None] + np.arange(3)).ravel()
+    cx = (np.arange(mk.cols) - (mk.cols - 1) / 2) * mk.pitch_mm
+    cy = (np.arange(mk.rows) - (mk.rows - 1) / 2) * mk.pitch_mm
+    xi, yi = x[inside], y[inside]
+    wx, wy = cell_weights(xi, mesh.x_mm, cx, mk.pitch_mm), cell_weights(yi, mesh.y_mm, cy, mk.pitch_mm)
+    cells = np.ascontiguousarray((wy[:, :, None] * wx[:, None, :]).reshape(len(xi), -1).T)  # (M, N): node -> cell
+    sx, sy = spline_weights(xi, cx), spline_weights(yi, cy)
+    interp = (sy[:, :, None] * sx[:, None, :]).reshape(len(xi), -1)
+    interp[np.abs(interp) < 1e-12] = 0.0  # (N, M): marker values -> node values
+    n = len(top)
+    eye = sp.identity(n, format="csr")
+    k_zz = _reaction_sums(k, 3 * top + 2, fixed, eye, eye)
+    eye2 = sp.identity(2 * n, format="csr")
+    k_tt = _reaction_sums(k, np.concatenate([3 * top, 3 * top + 1]), fixed, eye2, eye2)
+    return SurfaceOperator(np.stack([xi, yi], 1), (k_zz + k_zz.T) / 2, (k_tt + k_tt.T) / 2, cells, interp,
+                           time.perf_counter() - start)
+
+
+def surface_key(rig: RigConfig, params: SurfaceParams = SurfaceParams()) -> str:
+    """A hash of every input of :func:`build_surface_operator` except E (the operator is linear in E)."""
+    _, nu = _material(rig, params)
+    spec = {
+        "version": SURFACE_CACHE_VERSION, "params": {**asdict(params), "youngs_modulus_mpa": None, "poisson_ratio": nu},
+        "gel": [rig.gel.thickness_mm, rig.gel.size_x_mm, rig.gel.size_y_mm],
+        "markers": [rig.markers.rows, rig.markers.cols, rig.markers.pitch_mm],
+    }
+    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:20]
+
+
+_SURFACE_ARRAYS = ("node_xy_mm", "k_zz", "k_tt", "cells", "interp")
+
+
+def build_surface_operator(rig: RigConfig, params: SurfaceParams = SurfaceParams(), *,
+                           cache_dir: str | Path | None = None, use_cache: bool = True) -> SurfaceOperator:
+    """The surface operator from the disk cache (stored for E = 1 MPa, then scaled), or computed and cached."""
+    e, _ = _material(rig, params)
+    path = stiffness_cache_dir(cache_dir) / f"S-{surface_key(rig, params)}.npz"
+    if use_cache and path.exists():
+        try:
+            with np.load(path) as data:
+                unit = SurfaceOperator(*(np.array(data[name]) for name in _SURFACE_ARRAYS),
+                                       build_seconds=float(data["build_seconds"]))
+            return unit.scaled(e)
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged cache file: rebuild it
+    op = compute_surface_operator(rig, params)
+    if use_cache:
+        unit = op.scaled(1.0 / e)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, build_seconds=op.build_seconds, **{name: getattr(unit, name) for name in _SURFACE_ARRAYS})
+        os.replace(tmp, path)
+    return op
