@@ -1,0 +1,462 @@
+"""The streaming runtime: windows of events through SAE, tracker, depth, displacements and forces.
+
+Windows are fixed in time (``window_us``, 10 ms by default) or in event count
+(``window_events``, 20,000 in the paper's evaluation). Per window:
+
+1. front stage: the SAE on the network grid (only when the depth source needs it) and the
+   marker tracker;
+2. back stage: the depth map from a :class:`DepthSource` (the recording's ``/truth/depth``
+   nearest in time, or the ONNX network of :mod:`labrig.pipeline.depthnet`), the markers'
+   3D displacements, per-marker forces (the dense surface operator of
+   :func:`labrig.pipeline.ifem.build_surface_operator`), net force and contact location.
+
+With ``concurrent=True`` the two stages run in two threads joined by a bounded queue
+(window k's forces while window k+1 is tracked), as in the paper; numpy, scipy and
+onnxruntime release the GIL in their kernels. ``concurrent=False`` runs them in turn.
+
+The gel modulus is the fitted one (``calibration/gel.toml``) when present, else the rig's;
+the camera is the calibrated one (``calibration/intrinsics.toml`` + ``extrinsics.toml``)
+when present, else the rig's. :func:`setup_for_recording` resolves both for a recording.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import RigConfig, load_rig
+from labrig.errors import LabrigError
+from labrig.pipeline import displacement, forces, ifem, sae, tracking
+from labrig.recording import Recording
+from labrig.sim.camera import CameraModel
+
+Array = npt.NDArray[np.float64]
+
+DEFAULT_WINDOW_US = 10_000
+PAPER_WINDOW_EVENTS = 20_000
+STAGES = ("read", "sae", "track", "depth", "displacement", "forces")
+
+
+# -- depth sources -------------------------------------------------------------------------------
+
+
+class DepthSource(Protocol):
+    """Gives the normal-displacement map (90 x 112, mm into the gel) for a window."""
+
+    name: str
+    needs_sae: bool
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]: ...
+
+
+class TruthDepth:
+    """The recording's ``/truth/depth`` map nearest in time to the window's end (virtual rig only)."""
+
+    name = "truth"
+    needs_sae = False
+
+    def __init__(self, recording: Recording) -> None:
+        if "truth/depth" not in recording.streams or recording.rows("truth/depth") == 0:
+            raise LabrigError(f"{recording.path}: no /truth/depth (only virtual-rig recordings have it); use --depth model")
+        self.t_us = recording.column("truth/depth", "t_host_us")
+        self.maps = np.asarray(recording.column("truth/depth", "depth_mm"), np.float32)  # ~40 kB per solve, loaded once
+
+    def index(self, t_us: int) -> int:
+        k = int(np.searchsorted(self.t_us, t_us))
+        if k == 0:
+            return 0
+        if k >= len(self.t_us):
+            return len(self.t_us) - 1
+        return k if self.t_us[k] - t_us < t_us - self.t_us[k - 1] else k - 1
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]:
+        return self.maps[self.index(t1_us)]
+
+
+class ModelDepth:
+    """The depth network (:class:`labrig.pipeline.depthnet.DepthModel`, ONNX) on the window's SAE."""
+
+    needs_sae = True
+
+    def __init__(self, path: str | Path, threads: int = 1) -> None:
+        from labrig.pipeline.depthnet import DepthModel
+
+        self.model = DepthModel(path, threads=threads)
+        self.name = f"model:{self.model.name}"
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]:
+        assert sae_grid is not None
+        return self.model.depth_mm(sae_grid)
+
+
+def default_model_path(folder: str | Path = "models") -> Path:
+    """The newest ``*.onnx`` with a model card in ``folder``."""
+    candidates = sorted(Path(folder).glob("*.onnx"), key=lambda p: p.stat().st_mtime)
+    candidates = [p for p in candidates if p.with_suffix(".json").exists()]
+    if not candidates:
+        raise LabrigError(f"no depth network (NAME.onnx + NAME.json) in {folder}/; train one or use --depth truth")
+    return candidates[-1]
+
+
+# -- windows -------------------------------------------------------------------------------------
+
+
+def windows(recording: Recording, *, window_us: int | None = DEFAULT_WINDOW_US, window_events: int | None = None,
+            start_us: int = 0, end_us: int | None = None, read_us: int = 50_000
+            ) -> Iterator[tuple[int, int, npt.NDArray[Any]]]:
+    """(t0_us, t1_us, events) per window: fixed time, or fixed event count (t1 = the next window's first event).
+
+    Count windows read ahead in ``read_us`` slices and drop the final partial window.
+    """
+    end = recording.end_us() if end_us is None else int(end_us)
+    if (window_us is None) == (window_events is None):
+        raise ValueError("give exactly one of window_us and window_events")
+    if window_us is not None:
+        if window_us <= 0:
+            raise ValueError("window_us must be positive")
+        for t0 in range(int(start_us), end, int(window_us)):
+            t1 = min(t0 + int(window_us), end)
+            yield t0, t1, recording.events_between(t0, t1)
+        return
+    assert window_events is not None
+    if window_events <= 0:
+        raise ValueError("window_events must be positive")
+    buffer: list[npt.NDArray[Any]] = []
+    held = 0
+    t = int(start_us)
+    while t < end:
+        chunk = recording.events_between(t, min(t + read_us, end))
+        t += read_us
+        if len(chunk):
+            buffer.append(chunk)
+            held += len(chunk)
+        while held >= window_events:
+            events = np.concatenate(buffer) if len(buffer) > 1 else buffer[0]
+            window, rest = events[:window_events], events[window_events:]
+            t0 = int(window["t"][0])
+            t1 = int(rest["t"][0]) if len(rest) else int(window["t"][-1]) + 1
+            yield t0, t1, window
+            buffer, held = ([rest] if len(rest) else []), len(rest)
+
+
+# -- the pipeline --------------------------------------------------------------------------------
+
+
+@dataclass
+class WindowResult:
+    """One window's output. Forces are on the gel (pressing: Fz < 0), gel frame, N."""
+
+    index: int
+    t0_us: int
+    t1_us: int
+    n_events: int
+    positions_px: Array  # (M, 2) tracked marker centres
+    updated: npt.NDArray[np.bool_]  # (M,)
+    displacement_mm: Array  # (M, 3)
+    forces_n: Array  # (M, 3)
+    net_force_n: Array  # (3,)
+    contact_px: Array  # (2,), nan without contact
+    contact_mm: Array  # (2,), nan without contact
+    depth_mm: npt.NDArray[np.float32]  # (90, 112)
+    sae: npt.NDArray[np.float32] | None = None  # (2, 90, 112) when computed
+    seconds: dict[str, float] = field(default_factory=dict)  # per-stage processing time
+
+
+@dataclass(frozen=True)
+class PipelineSetup:
+    """Everything fixed for a run: rig, camera, rest pixels, gel modulus and where they came from."""
+
+    rig: RigConfig
+    camera: CameraModel
+    rest_px: Array
+    youngs_modulus_mpa: float
+    poisson_ratio: float
+    sources: dict[str, str]
+
+
+class Pipeline:
+    """The stages for one sensor; :meth:`process` runs one window, :meth:`run` streams a recording."""
+
+    def __init__(self, setup: PipelineSetup, depth: DepthSource, *,
+                 tracker_params: tracking.TrackerParams | None = None,
+                 surface_params: ifem.SurfaceParams | None = None, normal_mode: str = "contact",
+                 threshold_mm: float = 0.01, keep_sae: bool = False, cache_dir: str | Path | None = None) -> None:
+        self.setup = setup
+        self.depth = depth
+        rig = setup.rig
+        params = tracker_params or tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(rig))
+        self.tracker = tracking.Tracker(setup.rest_px, params)
+        base = surface_params or ifem.SurfaceParams()
+        from dataclasses import replace
+
+        self.surface_params = replace(base, youngs_modulus_mpa=setup.youngs_modulus_mpa,
+                                      poisson_ratio=setup.poisson_ratio)
+        self.operator = ifem.build_surface_operator(rig, self.surface_params, cache_dir=cache_dir)
+        self.surface = forces.SurfaceForces(self.operator, setup.camera, rig.roi, sae.GRID_SHAPE)
+        self.rest_mm = rig.markers.rest_positions_mm()
+        self.normal_mode = normal_mode
+        self.threshold_mm = threshold_mm
+        self.keep_sae = keep_sae
+        self._sae_buffer = np.zeros((2, *sae.GRID_SHAPE), np.float32)
+        self._index = 0
+
+    # The two stages (each returns the state the next one needs).
+
+    def front(self, t0_us: int, t1_us: int, events: npt.NDArray[Any], read_s: float = 0.0) -> dict[str, Any]:
+        """SAE (if needed) and tracking."""
+        seconds = {"read": read_s}
+        grid = None
+        start = time.perf_counter()
+        if self.depth.needs_sae or self.keep_sae:
+            grid = sae.sae_grid(events, t0_us, t1_us, self.setup.rig.roi,
+                                out=None if self.keep_sae else self._sae_buffer)
+        seconds["sae"] = time.perf_counter() - start
+        start = time.perf_counter()
+        positions, updated = self.tracker.update(events)
+        seconds["track"] = time.perf_counter() - start
+        state = {"index": self._index, "t0": t0_us, "t1": t1_us, "n": len(events), "sae": grid,
+                 "positions": positions.copy(), "updated": updated.copy(), "seconds": seconds}
+        self._index += 1
+        return state
+
+    def back(self, state: dict[str, Any]) -> WindowResult:
+        """Depth, displacements, forces, net force and contact location."""
+        seconds = state["seconds"]
+        start = time.perf_counter()
+        depth = self.depth.depth_mm(state["sae"], state["t0"], state["t1"])
+        seconds["depth"] = time.perf_counter() - start
+        start = time.perf_counter()
+        u = displacement.displacements_mm(state["positions"], depth, self.setup.camera, self.rest_mm,
+                                          self.setup.rig.roi, sample_px=self.setup.rest_px)
+        seconds["displacement"] = time.perf_counter() - start
+        start = time.perf_counter()
+        f = self.surface(depth, u, self.normal_mode, self.threshold_mm)
+        where = forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm)
+        seconds["forces"] = time.perf_counter() - start
+        nan2 = np.full(2, np.nan)
+        return WindowResult(state["index"], state["t0"], state["t1"], state["n"], state["positions"], state["updated"],
+                            u, f, forces.net_force_n(f), where.position_px if where else nan2,
+                            where.position_mm if where else nan2, depth,
+                            state["sae"] if self.keep_sae else None, seconds)
+
+    def process(self, t0_us: int, t1_us: int, events: npt.NDArray[Any]) -> WindowResult:
+        return self.back(self.front(t0_us, t1_us, events))
+
+    def run(self, recording: Recording, *, window_us: int | None = DEFAULT_WINDOW_US, window_events: int | None = None,
+            start_us: int = 0, end_us: int | None = None, concurrent: bool = True,
+            on_result: Callable[[WindowResult], None] | None = None) -> Iterator[WindowResult]:
+        """Stream ``recording`` through the pipeline, yielding each window's result in order."""
+        source = windows(recording, window_us=window_us, window_events=window_events, start_us=start_us, end_us=end_us)
+
+        def timed() -> Iterator[tuple[int, int, npt.NDArray[Any], float]]:
+            while True:
+                start = time.perf_counter()
+                try:
+                    t0, t1, ev = next(source)
+                except StopIteration:
+                    return
+                yield t0, t1, ev, time.perf_counter() - start
+
+        if not concurrent:
+            for t0, t1, ev, read_s in timed():
+                result = self.back(self.front(t0, t1, ev, read_s))
+                if on_result is not None:
+                    on_result(result)
+                yield result
+            return
+        states: queue.Queue[Any] = queue.Queue(maxsize=2)
+        done = object()
+        failure: list[BaseException] = []
+        stop = threading.Event()
+
+        def producer() -> None:
+            try:
+                for t0, t1, ev, read_s in timed():
+                    if stop.is_set():
+                        break
+                    states.put(self.front(t0, t1, ev, read_s))
+            except BaseException as exc:  # handed to the consumer
+                failure.append(exc)
+            finally:
+                states.put(done)
+
+        thread = threading.Thread(target=producer, name="labrig-pipeline-front", daemon=True)
+        thread.start()
+        try:
+            while True:
+                state = states.get()
+                if state is done:
+                    break
+                result = self.back(state)
+                if on_result is not None:
+                    on_result(result)
+                yield result
+        finally:
+            stop.set()
+            while thread.is_alive():  # unblock the producer if it waits on a full queue
+                try:
+                    states.get_nowait()
+                except queue.Empty:
+                    thread.join(0.01)
+            thread.join()
+        if failure:
+            raise failure[0]
+
+
+# -- configuration from a recording ---------------------------------------------------------------
+
+
+def rig_from_recording(recording: Recording) -> RigConfig | None:
+    """The rig TOML the recording carries (root attribute ``rig``), or None."""
+    text = recording.attrs.get("rig", "")
+    if not isinstance(text, str) or not text.strip():
+        return None
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "rig.toml"
+        path.write_text(text)
+        return load_rig(path)
+
+
+def _named_calibration(recording: Recording) -> dict[str, Path]:
+    """Calibration files the recording names (``extra_calibration``: JSON {path: sha256}) that still exist."""
+    raw = recording.attrs.get("extra_calibration", "")
+    try:
+        named = json.loads(raw) if isinstance(raw, str) and raw else {}
+    except json.JSONDecodeError:
+        named = {}
+    return {Path(p).name: Path(p) for p in named if Path(p).exists()}
+
+
+def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
+                        calibration_dir: str | Path | None = "calibration",
+                        youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None) -> PipelineSetup:
+    """Rig, camera, rest pixels and gel modulus for ``recording``.
+
+    Rig: ``rig``, else the one the recording carries, else calibration/rig.toml. Files: those
+    the recording names, else ``calibration_dir`` (None: none). Modulus: the argument, else
+    gel.toml, else the rig's [gel]. Camera: intrinsics.toml + extrinsics.toml, else the rig's.
+    """
+    from labrig.calibration.files import load_camera, load_extrinsics
+
+    rig = rig or rig_from_recording(recording) or load_rig()
+    sources: dict[str, str] = {"rig": str(rig.path)}
+    files = _named_calibration(recording)
+    if calibration_dir is not None:
+        for name in ("gel.toml", "intrinsics.toml", "extrinsics.toml"):
+            candidate = Path(calibration_dir) / name
+            if name not in files and candidate.exists():
+                files[name] = candidate
+    e, nu = rig.gel.youngs_modulus_mpa, rig.gel.poisson_ratio
+    sources["modulus"] = "rig [gel]"
+    if youngs_modulus_mpa is None and "gel.toml" in files:
+        from labrig.calibration.gel import load_gel
+
+        fitted = load_gel(files["gel.toml"])
+        e = float(fitted.get("youngs_modulus_mpa", e))
+        nu = float(fitted.get("poisson_ratio", nu))
+        sources["modulus"] = str(files["gel.toml"])
+    if youngs_modulus_mpa is not None:
+        e, sources["modulus"] = float(youngs_modulus_mpa), "argument"
+    if poisson_ratio is not None:
+        nu = float(poisson_ratio)
+    camera, rest_px = CameraModel.from_rig(rig), None
+    sources["camera"] = "rig"
+    if "intrinsics.toml" in files and "extrinsics.toml" in files:
+        camera = load_camera(files["intrinsics.toml"], files["extrinsics.toml"])
+        rest_px = np.asarray(load_extrinsics(files["extrinsics.toml"]).rest_px, np.float64)
+        sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
+    if rest_px is None:
+        rest_px = camera.project(rig.markers.rest_positions_mm())
+    return PipelineSetup(rig, camera, rest_px, e, nu, sources)
+
+
+def depth_source(kind: str, recording: Recording, model_path: str | Path | None = None, threads: int = 1) -> DepthSource:
+    """"truth" (the recording's /truth/depth) or "model" (the ONNX network, newest in models/ by default)."""
+    if kind == "truth":
+        return TruthDepth(recording)
+    if kind == "model":
+        return ModelDepth(model_path or default_model_path(), threads=threads)
+    raise LabrigError(f"depth source must be 'truth' or 'model', not {kind!r}")
+
+
+# -- result files --------------------------------------------------------------------------------
+
+RESULT_FORMAT = "labrig.forces"
+RESULT_VERSION = 1
+
+
+class ResultWriter:
+    """Per-window force fields into an HDF5 file (datasets grow one row per window)."""
+
+    FIELDS: tuple[tuple[str, str, tuple[int, ...], str], ...] = (
+        ("t0_us", "<i8", (), "us"), ("t1_us", "<i8", (), "us"), ("n_events", "<i8", (), ""),
+        ("positions_px", "<f4", ("M", 2), "px"), ("updated", "u1", ("M",), ""),
+        ("displacement_mm", "<f4", ("M", 3), "mm"), ("forces_n", "<f4", ("M", 3), "N"),
+        ("net_force_n", "<f8", (3,), "N"), ("contact_px", "<f8", (2,), "px"), ("contact_mm", "<f8", (2,), "mm"),
+        ("processing_s", "<f8", (), "s"),
+    )
+
+    def __init__(self, path: str | Path, n_markers: int, attrs: dict[str, Any], depth: bool = False) -> None:
+        import h5py
+
+        self.path = Path(path)
+        self.file = h5py.File(self.path, "w")
+        self.file.attrs["format"] = RESULT_FORMAT
+        self.file.attrs["format_version"] = RESULT_VERSION
+        for key, value in attrs.items():
+            self.file.attrs[key] = value
+        self.n = 0
+        for name, dtype, shape, unit in self.FIELDS:
+            dims = tuple(n_markers if d == "M" else d for d in shape)
+            ds = self.file.create_dataset(name, shape=(0, *dims), maxshape=(None, *dims), dtype=dtype,
+                                          chunks=(64, *dims), compression="gzip" if dims else None)
+            ds.attrs["unit"] = unit
+        if depth:
+            ds = self.file.create_dataset("depth_mm", shape=(0, *sae.GRID_SHAPE), maxshape=(None, *sae.GRID_SHAPE),
+                                          dtype="<f4", chunks=(8, *sae.GRID_SHAPE), compression="gzip")
+            ds.attrs["unit"] = "mm"
+
+    def write(self, r: WindowResult) -> None:
+        values = {"t0_us": r.t0_us, "t1_us": r.t1_us, "n_events": r.n_events, "positions_px": r.positions_px,
+                  "updated": r.updated, "displacement_mm": r.displacement_mm, "forces_n": r.forces_n,
+                  "net_force_n": r.net_force_n, "contact_px": r.contact_px, "contact_mm": r.contact_mm,
+                  "processing_s": sum(r.seconds.values())}
+        if "depth_mm" in self.file:
+            values["depth_mm"] = r.depth_mm
+        for name, value in values.items():
+            ds = self.file[name]
+            ds.resize(self.n + 1, axis=0)
+            ds[self.n] = value
+        self.n += 1
+
+    def close(self) -> None:
+        self.file.attrs["windows"] = self.n
+        self.file.close()
+
+    def __enter__(self) -> ResultWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def load_result(path: str | Path) -> dict[str, Any]:
+    """A result file as {dataset: array} plus ``attrs``."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if f.attrs.get("format") != RESULT_FORMAT:
+            raise LabrigError(f"{path}: not a labrig force result file")
+        out: dict[str, Any] = {name: f[name][()] for name in f}
+        out["attrs"] = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
+    return out
