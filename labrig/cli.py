@@ -17,6 +17,7 @@ from labrig.cli_camera import add_camera_commands
 from labrig.cli_devices import add_device_commands
 from labrig.cli_groundtruth import add_groundtruth_commands
 from labrig.cli_protocol import add_protocol_commands
+from labrig.cli_run import add_run_commands
 from labrig.cli_train import add_train_commands
 from labrig.errors import LabrigError
 
@@ -185,6 +186,7 @@ add_protocol_commands(app)
 add_calibrate_commands(app)
 add_groundtruth_commands(app)
 add_train_commands(app)
+add_run_commands(app)
 
 RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
 IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]

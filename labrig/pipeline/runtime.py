@@ -255,7 +255,11 @@ class Pipeline:
     def run(self, recording: Recording, *, window_us: int | None = DEFAULT_WINDOW_US, window_events: int | None = None,
             start_us: int = 0, end_us: int | None = None, concurrent: bool = True,
             on_result: Callable[[WindowResult], None] | None = None) -> Iterator[WindowResult]:
-        """Stream ``recording`` through the pipeline, yielding each window's result in order."""
+        """Stream ``recording`` through the pipeline, yielding each window's result in order.
+
+        ``window_events`` (if given) replaces the default time windows."""
+        if window_events is not None:
+            window_us = None
         source = windows(recording, window_us=window_us, window_events=window_events, start_us=start_us, end_us=end_us)
 
         def timed() -> Iterator[tuple[int, int, npt.NDArray[Any], float]]:
