@@ -421,13 +421,29 @@ class SurfaceOperator:
         pressed = np.flatnonzero(uz < -threshold_mm)
         if pressed.size == 0:
             return out
-        from scipy.linalg import solve
-
-        out[pressed, 2] = solve(self._inverse("k_zz")[np.ix_(pressed, pressed)], uz[pressed], assume_a="pos")
+        out[pressed, 2] = self._mixed_solve("k_zz", pressed, uz[pressed])
         both = np.concatenate([pressed, pressed + n])
-        ft = solve(self._inverse("k_tt")[np.ix_(both, both)], ut[pressed].T.reshape(-1), assume_a="pos")
+        ft = self._mixed_solve("k_tt", both, ut[pressed].T.reshape(-1))
         out[pressed, 0], out[pressed, 1] = ft[: pressed.size], ft[pressed.size:]
         return out
+
+    def _mixed_solve(self, name: str, held: npt.NDArray[np.int64], u: Array) -> Array:
+        """Forces on the ``held`` DOFs with displacements ``u`` there and the others free.
+
+        Small held sets: (C_hh)^-1 u with C = K^-1; large ones: the Schur complement over the
+        free set, K_hh - K_hf K_ff^-1 K_fh, so a window costs at most a half-size solve.
+        """
+        from scipy.linalg import solve
+
+        k = getattr(self, name)
+        if 2 * held.size <= len(k):
+            return np.asarray(solve(self._inverse(name)[np.ix_(held, held)], u, assume_a="pos"))
+        free = np.setdiff1d(np.arange(len(k)), held)
+        k_hu = k[np.ix_(held, held)] @ u
+        if free.size == 0:
+            return np.asarray(k_hu)
+        k_fh = k[np.ix_(free, held)]
+        return np.asarray(k_hu - k_fh.T @ solve(k[np.ix_(free, free)], k_fh @ u, assume_a="pos"))
 
     def forces_n(self, uz_nodes_mm: npt.ArrayLike, u_markers_mm: npt.ArrayLike, mode: str = "contact",
                  threshold_mm: float = 0.01) -> Array:

@@ -1,0 +1,157 @@
+"""Whole pipeline: real-time factor per 10 ms window, per-stage latency and peak memory.
+
+Setup (not timed): a simulated recording (6 mm sphere, 1 mm deep, 0.5 mm shear at 3 mm/s,
+the paper's probing sequence; about 1.6 s and 0.4 M events), the surface operator (from the
+disk cache, else built once: its build time is reported) and, for the network rows, depth
+networks: the newest trained one in ``models/`` if any, else untrained U-Nets of
+``--widths`` exported to ONNX in a temporary folder (the cost does not depend on the weights).
+
+Measured, per depth source and execution mode (serial: stages in turn; threads: tracking
+of window k+1 while window k's depth and forces run): processing time per window, as a
+share of the 10 ms window (the real-time factor; <= 1 keeps up, the issue aims at 0.5),
+median and p95 over every window, the wall time of the whole stream over its duration, the
+median latency of each stage, and the process's peak resident memory (ru_maxrss).
+Also the event-count mode (20,000 events per window, the paper's evaluation).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import resource
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _common import bench_main, emit
+
+from labrig.config import load_rig
+from labrig.indenters import load_indenter
+from labrig.pipeline import ifem, runtime
+from labrig.recording import Recording
+from labrig.sim.live import record_live
+from labrig.sim.motion import probing_path
+
+WINDOW_US = 10_000
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--widths", default="16,32", help="untrained U-Net widths to time when models/ has no network")
+    ap.add_argument("--repeat", type=int, default=2, help="passes over the recording per configuration (best kept)")
+    ap.add_argument("--json", action="store_true", help="print the figures as JSON")
+    return ap.parse_args(argv)
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _networks(folder: Path, widths: list[int]) -> list[tuple[str, Path]]:
+    try:
+        return [("model:" + runtime.default_model_path().stem, runtime.default_model_path())]
+    except Exception:
+        pass
+    try:
+        from labrig.pipeline.depthnet import UNetConfig, build_unet, export_onnx
+    except Exception:
+        return []
+    out = []
+    for width in widths:
+        path = folder / f"untrained-w{width}.onnx"
+        export_onnx(build_unet(UNetConfig(width=width)), path, card={"scale_mm": 2.5, "window_ms": 10.0,
+                                                                      "note": "untrained, for timing only"})
+        out.append((f"untrained U-Net w{width}", path))
+    return out
+
+
+def _measure(setup: runtime.PipelineSetup, rec: Recording, depth: runtime.DepthSource, concurrent: bool,
+             repeat: int, window_events: int | None = None) -> dict[str, Any]:
+    best: dict[str, Any] | None = None
+    for _ in range(repeat):
+        pipe = runtime.Pipeline(setup, depth)
+        start = time.perf_counter()
+        results = list(pipe.run(rec, window_us=None if window_events else WINDOW_US, window_events=window_events,
+                                concurrent=concurrent))
+        wall = time.perf_counter() - start
+        span_us = np.array([max(r.t1_us - r.t0_us, 1) for r in results], float)
+        busy = np.array([sum(r.seconds.values()) for r in results])
+        duration_s = (results[-1].t1_us - results[0].t0_us) / 1e6
+        figures = {
+            "windows": len(results),
+            "processing_ms_median": float(np.median(busy) * 1e3),
+            "processing_ms_p95": float(np.percentile(busy, 95) * 1e3),
+            "rtf_median": float(np.median(busy / span_us * 1e6)),
+            "rtf_p95": float(np.percentile(busy / span_us * 1e6, 95)),
+            "stream_wall_over_duration": wall / duration_s,
+            "stage_ms_median": {k: float(np.median([r.seconds[k] for r in results]) * 1e3) for k in runtime.STAGES},
+            "window_ms_median": float(np.median(span_us) / 1e3),
+        }
+        if best is None or figures["stream_wall_over_duration"] < best["stream_wall_over_duration"]:
+            best = figures
+    assert best is not None
+    return best
+
+
+def run(widths: str = "16,32", repeat: int = 2, progress: bool = True) -> dict[str, Any]:
+    rig = load_rig()
+    linear = dataclasses.replace(rig, sim=dataclasses.replace(
+        rig.sim, mechanics=dataclasses.replace(rig.sim.mechanics, stiffening=0.0)))
+    sphere = load_indenter("sphere")
+    figures: dict[str, Any] = {"window_ms": WINDOW_US / 1000, "configs": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        path = folder / "sphere.h5"
+        if progress:
+            print("simulating the recording ...", flush=True)
+        tool = probing_path(linear, sphere, depth_mm=1.0, shear_mm=0.5, normal_speed_mm_s=3.0, shear_speed_mm_s=3.0,
+                            wait_s=0.1)
+        record_live(path, linear, sphere, tool, seed=5, realtime=False)
+        start = time.perf_counter()
+        op = ifem.build_surface_operator(rig)
+        figures["operator_load_s"] = time.perf_counter() - start
+        figures["operator_build_s"] = op.build_seconds
+        figures["operator_nodes"] = len(op.node_xy_mm)
+        figures["rss_before_mb"] = _peak_rss_mb()
+        networks = _networks(folder, [int(w) for w in widths.split(",") if w.strip()])
+        with Recording(path) as rec:
+            setup = runtime.setup_for_recording(rec, calibration_dir=None)
+            figures["events"] = rec.n_events
+            sources: list[tuple[str, Any]] = [("truth", runtime.TruthDepth(rec))]
+            sources += [(name, runtime.ModelDepth(p, threads=1)) for name, p in networks]
+            for name, source in sources:
+                for concurrent in (False, True):
+                    key = f"{name} / {'threads' if concurrent else 'serial'}"
+                    if progress:
+                        print(f"timing {key} ...", flush=True)
+                    figures["configs"][key] = _measure(setup, rec, source, concurrent, repeat)
+            if progress:
+                print("timing 20,000-event windows ...", flush=True)
+            figures["configs"]["truth / threads / 20k events"] = _measure(setup, rec, sources[0][1], True, repeat,
+                                                                          window_events=20_000)
+    figures["peak_rss_mb"] = _peak_rss_mb()
+    return figures
+
+
+def render(f: dict[str, Any]) -> None:
+    rows = []
+    for key, c in f["configs"].items():
+        s = c["stage_ms_median"]
+        rows.append([key, str(c["windows"]), f"{c['window_ms_median']:.1f}", f"{c['processing_ms_median']:.2f}",
+                     f"{c['rtf_median']:.3f}", f"{c['rtf_p95']:.3f}", f"{c['stream_wall_over_duration']:.3f}",
+                     *(f"{s[k]:.3f}" for k in runtime.STAGES)])
+    emit("Pipeline per window (processing / window length = real-time factor; stage medians in ms)",
+         ["depth / mode", "windows", "window ms", "proc ms", "RTF med", "RTF p95", "wall / dur", *runtime.STAGES], rows,
+         [f"{f['events']:,} events; surface operator: {f['operator_nodes']} nodes, built in "
+          f"{f['operator_build_s']:.1f} s once, loaded in {f['operator_load_s'] * 1e3:.0f} ms; peak RSS "
+          f"{f['peak_rss_mb']:.0f} MB ({f['rss_before_mb']:.0f} MB before the networks). Target RTF <= 1 (aim 0.5)."])
+
+
+def main(argv: list[str] | None = None) -> None:
+    bench_main(parse_args, run, render, argv)
+
+
+if __name__ == "__main__":
+    main()
