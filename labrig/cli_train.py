@@ -40,7 +40,7 @@ def train_command(
     val_every: Annotated[int, typer.Option(help="Validation depth error every N steps (0: only at the end).")] = 200,
     val_windows: Annotated[int, typer.Option(help="Windows drawn once from the val split for validation.")] = 128,
     phases: Annotated[str, typer.Option(
-        help="Sample windows in the probing phases (normal_down to normal_up) or all.")] = "probing",
+        help="Sample windows in the probing phases (normal_down to normal_up, +-0.3 s) or all.")] = "probing",
     device: Annotated[str, typer.Option(help="auto (CUDA when present), cpu, cuda.")] = "auto",
     threads: Annotated[int | None, typer.Option(help="Torch CPU threads (default: torch's).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the model card as JSON.")] = False,

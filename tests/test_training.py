@@ -14,7 +14,7 @@ from labrig.config import RigConfig
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
 from labrig.training import TrainConfig, contact_aware_l1, depth_errors_mm, output_paths, train, uniform_l1
-from labrig.training.data import WindowSampler, open_campaign, torch_dataset
+from labrig.training.data import PHASE_MARGIN_S, WindowSampler, open_campaign, torch_dataset
 
 
 @pytest.fixture(scope="session")
@@ -83,7 +83,9 @@ def test_sampling_windows_and_nearest_ground_truth(campaign: Path) -> None:
         assert data.counts() == {"train": 1, "val": 1, "test": 0} and data.scale_mm == 2.5
         src = data.sources["train"][0]
         phases = {p.name: p for p in src.rec.phases()}
-        assert src.span_us[0] >= phases["normal_down"].t_start_us and src.span_us[1] <= phases["normal_up"].t_end_us
+        margin = PHASE_MARGIN_S * 1e6
+        assert src.span_us[0] >= phases["normal_down"].t_start_us - margin
+        assert src.span_us[1] <= phases["normal_up"].t_end_us + margin
         a, b = WindowSampler(data.sources["train"], 10_000, seed=3), WindowSampler(data.sources["train"], 10_000, seed=3)
         state = a.state()
         s1 = [a.sample() for _ in range(4)]
@@ -95,7 +97,7 @@ def test_sampling_windows_and_nearest_ground_truth(campaign: Path) -> None:
             assert s.sae.min() >= 0.0 and s.sae.max() <= 1.0 and not s.sae[:, :3].any() and not s.sae[:, 93:].any()
             assert s.target.min() >= 0.0 and s.target.max() <= 1.0
             assert abs(s.dt_gt_us) <= 5_000  # 100 Hz maps: at most half a period from the last event
-            assert s.sae.max() > 0.5  # the indenter moves: events throughout the window
+            assert s.sae.max() > 0.5 or not s.contact.any()  # in contact the markers move: events
         # the target is the map nearest the window's last event
         s = s1[0]
         i = int(np.argmin(np.abs(src.t_gt - s.t_last_us)))

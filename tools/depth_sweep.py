@@ -102,8 +102,9 @@ def main(argv: list[str] | None = None) -> int:
         table.add_row(str(r["width"]), f"{r['parameters'] / 1e6:.2f} M", str(r["steps"]), f"{r['samples_per_s']:.1f}",
                       _mm(v.get("total_mm")), _mm(v.get("contact_mm")), _mm(te.get("total_mm")), _mm(te.get("contact_mm")),
                       f"{r['ms_per_window_ort_1thread']:.2f}", "all met" if not misses else "misses " + ", ".join(misses))
-    Console().print(table)
-    Console().print(f"models and sweep.json in {args.out} (MAE on {args.eval_windows} random windows per split)")
+    out = Console(width=None if sys.stdout.isatty() else 160)
+    out.print(table)
+    out.print(f"models and sweep.json in {args.out} (MAE on {args.eval_windows} random windows per split)")
     return 0
 
 

@@ -8,8 +8,10 @@ nearest in time to the window's last event. Times are host microseconds througho
 base, the base of the sidecar's ``t_host_us``.
 
 Times are drawn uniformly over the recording's probing phases (``normal_down`` to
-``normal_up``: approach and retract are mostly an undeformed gel at rest) intersected with
-the span of its ground truth; ``phases="all"`` uses the whole recording.
+``normal_up``) widened by :data:`PHASE_MARGIN_S` on each side, intersected with the span of
+its ground truth: the approach and retract (seconds of an undeformed gel at rest with hardly
+any events) would otherwise fill most windows, while the margins still show the network the
+gel at rest. ``phases="all"`` uses the whole recording.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from labrig.pipeline.sae import GRID_SHAPE, pad_for_unet, sae_grid
 
 SPLITS = ("train", "val", "test")
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
+#: Margin around the probing phases (s): windows of the gel at rest, no contact, few events.
+PHASE_MARGIN_S = 0.3
 
 
 @dataclass
@@ -70,7 +74,8 @@ class Source:
         if phases == "probing":
             chosen = [p for p in self.rec.phases() if p.name in PROBING_PHASES]
             if chosen:
-                t0, t1 = max(t0, chosen[0].t_start_us), min(t1, chosen[-1].t_end_us)
+                margin = PHASE_MARGIN_S * 1e6
+                t0, t1 = max(t0, chosen[0].t_start_us - margin), min(t1, chosen[-1].t_end_us + margin)
         elif phases != "all":
             raise LabrigError(f"phases must be 'probing' or 'all', not {phases!r}")
         if t1 <= t0:
