@@ -30,6 +30,8 @@ from labrig.sim.truth import network_grid_gel_mm, truth_streams
 
 FT_RATE_HZ = 800.0
 CNC_RATE_HZ = 10.0
+#: A status report's time from GRBL sampling its position to the host stamping it, us.
+CNC_REPORT_TRANSIT_US = 1000
 #: The simulated F/T sensor's clock (its twin will own this).
 FT_CLOCK_ORIGIN_US = 2_000_000_000
 FT_CLOCK_DRIFT_PPM = -60.0
@@ -106,7 +108,9 @@ def record_live(
             _publish_chunk(writer, vr, out, receive_us)
             next_ft_us = _publish_ft(writer, vr, solves, next_ft_us, t1, ft_period_us, receive_us)
             while next_cnc_us < t1:
-                writer.put("cnc", t_host_us=receive_us, position_mm=tool_path(next_cnc_us)[0],
+                # A status report has no device clock: the host stamps it on arrival, a link's
+                # transit after GRBL sampled its position (not when this chunk is published).
+                writer.put("cnc", t_host_us=round(next_cnc_us) + CNC_REPORT_TRANSIT_US, position_mm=tool_path(next_cnc_us)[0],
                            feed_mm_min=0.0, state=b"Run")
                 next_cnc_us += 1e6 / CNC_RATE_HZ
             publish_truth(writer, out, grid_gel)
