@@ -3,8 +3,12 @@
 Today: the demo campaign (protocols/demo.toml: 6 probing runs, sphere and
 cylinder) on the virtual rig, through the real drivers (GRBL and Bota over
 pseudo-terminals, the EVK4 as EVT3 over a socket), rigs in parallel where cores allow,
-recorded with the truth; then `labrig inspect` summarizes and plots one
-recording. Ground truth, evaluation and a report join as they land.
+recorded with the truth; `labrig inspect` summarizes and plots one recording;
+`labrig groundtruth` makes the depth-map sidecars from what a lab has (CNC pose,
+calibration, gel modulus); `labrig run` streams one recording through the
+pipeline (tracker, depth, inverse FEM; the depth network joins when trained:
+until then the sim's true depth) and animates it. Evaluation and a report join
+as they land.
 
 Usage: python tools/demo.py OUT_DIR
 """
@@ -32,6 +36,9 @@ def main(out_dir: Path) -> int:
         [labrig, "sim", "tables"],
         [labrig, "campaign", str(campaign), "--out", str(data), "--workers", str(workers)],
         [labrig, "inspect", str(data / "demo-000.h5"), "--plot", str(out_dir / "demo-000.png")],
+        [labrig, "groundtruth", str(data), "--plot", str(out_dir / "groundtruth.png")],
+        [labrig, "run", str(data / "demo-000.h5"), "--depth", "truth", "--out", str(out_dir / "demo-000.forces.h5"),
+         "--view", str(out_dir / "demo-000.gif")],
     ]
     for command in steps:
         console.print(f"$ {' '.join(command)}", style="dim")
