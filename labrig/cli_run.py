@@ -1,7 +1,7 @@
 """``labrig run REC``: stream a recording through the inference pipeline and write the force fields.
 
-Mount on the main app with :func:`add_run_commands` (``cli.py``). ``--live`` (a live rig) is
-not implemented yet. User errors are :class:`LabrigError` s, printed as one line by ``labrig``.
+Mount on the main app with :func:`add_run_commands` (``cli.py``). User errors are
+:class:`LabrigError` s, printed as one line by ``labrig``.
 """
 
 from __future__ import annotations
@@ -38,7 +38,6 @@ def run(
     youngs_modulus_mpa: Annotated[float | None, typer.Option(
         help="Gel modulus, MPa (default: gel.toml, else the rig's).")] = None,
     serial: Annotated[bool, typer.Option(help="Run the stages in turn instead of in two threads.")] = False,
-    live: Annotated[bool, typer.Option(help="A live rig instead of a recording (not implemented yet).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
 ) -> None:
     """Stream RECORDING through SAE, tracker, depth, iFEM; per-window forces into --out, an animation into --view."""
@@ -46,8 +45,6 @@ def run(
     from labrig.pipeline import runtime
     from labrig.recording import Recording
 
-    if live:
-        raise LabrigError("labrig run --live is not implemented yet; record first, then run the recording")
     if window_ms is not None and window_events is not None:
         raise LabrigError("give --window-ms or --window-events, not both")
     if (window_ms is not None and window_ms <= 0) or (window_events is not None and window_events <= 0):

@@ -103,7 +103,6 @@ def test_labrig_run_writes_results_and_an_animation(recording: Path, tmp_path: P
 
 def test_labrig_run_rejects_bad_options(recording: Path, tmp_path: Path) -> None:
     for args, message in (((str(recording), "--window-ms", "10", "--window-events", "100"), "not both"),
-                          ((str(recording), "--live"), "not implemented"),
                           ((str(recording), "--view", str(tmp_path / "a.mp4")), "GIF"),
                           ((str(tmp_path / "none.h5"),), "no such recording")):
         result = _invoke(*args)
