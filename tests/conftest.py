@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import signal
+from collections.abc import Iterator
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -42,3 +44,17 @@ def sphere() -> Indenter:
 def table(rig: RigConfig, sphere: Indenter) -> ContactTable:
     """The sphere's contact table (cached on disk after the first build)."""
     return ContactTable.from_rig(sphere, rig)
+
+
+@pytest.fixture()
+def time_limit_20s() -> Iterator[None]:
+    """Fail a test that runs over 20 s (a hung socket, numba compiling on a cold cache) instead of hanging."""
+
+    def expire(*_: object) -> None:
+        raise TimeoutError("test ran over its 20 s limit")
+
+    old = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(20)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)

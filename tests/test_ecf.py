@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
-from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
@@ -30,18 +28,7 @@ needs_samples = pytest.mark.skipif(not DATA.is_dir(), reason=f"real samples not 
 MODES = ("ys_xs_ps_packed", "xs_ps_packed", "masked")
 
 
-@pytest.fixture(autouse=True)
-def _time_limit() -> Iterator[None]:
-    """Fail a test that runs over 20 s (numba compiles on a cold cache) instead of hanging."""
-
-    def expire(*_: object) -> None:
-        raise TimeoutError("test ran over its 20 s limit")
-
-    old = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(20)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
+pytestmark = pytest.mark.usefixtures("time_limit_20s")
 
 
 def _events(n: int, seed: int = 1, *, runs: bool = False) -> np.ndarray:

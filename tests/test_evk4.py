@@ -3,7 +3,6 @@ real Unix socket, the metavision adapter against a fake SDK module, and record_c
 
 from __future__ import annotations
 
-import signal
 import socket
 import sys
 import threading
@@ -33,18 +32,7 @@ from labrig.sim.evk4_twin import Evk4Twin, Evt3StreamEncoder
 LOOP_US = 1 << 24
 
 
-@pytest.fixture(autouse=True)
-def _time_limit() -> Iterator[None]:
-    """Fail a test that runs over 20 s (a hung socket) instead of hanging the run."""
-
-    def expire(*_: object) -> None:
-        raise TimeoutError("test ran over its 20 s limit")
-
-    old = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(20)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
+pytestmark = pytest.mark.usefixtures("time_limit_20s")
 
 
 def make_events(n: int, t0: int, span_us: int, seed: int = 0) -> np.ndarray:

@@ -93,6 +93,16 @@ def load_camera(intrinsics_path: str | Path, extrinsics_path: str | Path | None 
 # -- writing ----------------------------------------------------------------------------------------
 
 
+def save_text_atomic(path: str | Path, text: str) -> Path:
+    """Write ``text`` to ``path`` through a temporary file and a rename: a crash leaves the old file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+    return path
+
+
 def _value(v: Any) -> str:
     if isinstance(v, bool | np.bool_):
         return "true" if v else "false"
@@ -151,7 +161,7 @@ def write_intrinsics(result: IntrinsicsResult, path: str | Path = DEFAULT_INTRIN
         + "\n" + _table("source", _source(result.recording, result.recording_sha256))
     )
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    save_text_atomic(path, text)
     return path
 
 
@@ -189,7 +199,7 @@ def write_extrinsics(result: ExtrinsicsResult, path: str | Path = DEFAULT_EXTRIN
         + "\n" + _table("source", _source(result.recording, result.recording_sha256))
     )
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    save_text_atomic(path, text)
     return path
 
 

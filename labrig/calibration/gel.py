@@ -138,12 +138,9 @@ class GelFit:
         return "\n".join(lines) + "\n"
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(self.to_toml())
-        tmp.replace(path)
-        return path
+        from labrig.calibration.files import save_text_atomic
+
+        return save_text_atomic(path, self.to_toml())
 
 
 def _q(text: str) -> str:
