@@ -193,19 +193,18 @@ def _centroids_and_prior(pos, sums, neigh, rest, min_events, min_each, balance, 
             out[i, 1] = lam * sy / n + (1.0 - lam) * centroid[i, 1]
 
 
-class Tracker:
-    """The paper's marker tracker. ``update(events)`` per window -> (positions_px (M, 2), updated (M,))."""
+class _PatchTracker:
+    """What both trackers share: rest positions on the marker grid, and each marker's square patch
+    (half side ``_half`` px) clipped at the midpoints to its neighbours, painted into a label image."""
 
-    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams = TrackerParams()) -> None:
+    _half: float
+
+    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams | EvetacParams) -> None:
         self.params = params
         self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
         if len(self.rest_px) != params.grid_rows * params.grid_cols:
             raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
         self._neigh4 = grid_neighbours(params.grid_rows, params.grid_cols, 4)
-        self._prior = grid_neighbours(params.grid_rows, params.grid_cols, params.prior_connectivity)
-        self._half = params.patch_scale * params.marker_diameter_px / 2
-        self._sums = np.zeros((len(self.rest_px), 2, 3))
-        self.reset()
 
     def reset(self, positions_px: npt.ArrayLike | None = None) -> None:
         """Start again from the rest positions (or from ``positions_px``)."""
@@ -220,6 +219,19 @@ class Tracker:
         p = self.params
         _clipped_rects(self.positions_px, self._neigh4, self._half, p.width_px, p.height_px, self._rects)
         _repaint(self._label, self._painted, self._rects)
+
+
+class Tracker(_PatchTracker):
+    """The paper's marker tracker. ``update(events)`` per window -> (positions_px (M, 2), updated (M,))."""
+
+    params: TrackerParams
+
+    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams = TrackerParams()) -> None:
+        super().__init__(rest_px, params)
+        self._prior = grid_neighbours(params.grid_rows, params.grid_cols, params.prior_connectivity)
+        self._half = params.patch_scale * params.marker_diameter_px / 2
+        self._sums = np.zeros((len(self.rest_px), 2, 3))
+        self.reset()
 
     @property
     def patches_px(self) -> npt.NDArray[np.int64]:
@@ -314,15 +326,13 @@ def _springs(pos, neigh, rest_d2, gain):  # pragma: no cover - compiled
         pos[i, 1] += move[i, 1]
 
 
-class EvetacTracker:
+class EvetacTracker(_PatchTracker):
     """The baseline: ``update(events)`` -> (positions_px (M, 2), updated (M,))."""
 
+    params: EvetacParams
+
     def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams()) -> None:
-        self.params = params
-        self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
-        if len(self.rest_px) != params.grid_rows * params.grid_cols:
-            raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
-        self._neigh4 = grid_neighbours(params.grid_rows, params.grid_cols, 4)
+        super().__init__(rest_px, params)
         self._neigh = grid_neighbours(params.grid_rows, params.grid_cols, params.spring_connectivity)
         diff = self.rest_px[:, None, :] - self.rest_px[np.maximum(self._neigh, 0)]
         self._rest_d2 = np.where(self._neigh >= 0, (diff**2).sum(-1), 1.0)
@@ -330,19 +340,6 @@ class EvetacTracker:
         self._half = params.outer_radius * r
         self._sums = np.zeros((len(self.rest_px), 3))
         self.reset()
-
-    def reset(self, positions_px: npt.ArrayLike | None = None) -> None:
-        p = self.params
-        self.positions_px = self.rest_px.copy() if positions_px is None else np.array(positions_px, np.float64)
-        self._label = np.full((p.height_px, p.width_px), -1, np.int16)
-        self._painted = np.zeros((len(self.rest_px), 4), np.int64)
-        self._rects = np.zeros_like(self._painted)
-        self._sync()
-
-    def _sync(self) -> None:
-        p = self.params
-        _clipped_rects(self.positions_px, self._neigh4, self._half, p.width_px, p.height_px, self._rects)
-        _repaint(self._label, self._painted, self._rects)
 
     def update(self, events: npt.NDArray) -> tuple[Array, BoolArray]:
         p = self.params
@@ -363,5 +360,5 @@ class EvetacTracker:
             if p.spring:
                 _springs(pos, self._neigh, self._rest_d2, p.spring)
         self.positions_px = pos
-        self._sync()
+        self._sync_patches()
         return pos.copy(), updated
