@@ -288,7 +288,7 @@ def test_bota_unplugged_mid_stream_keeps_the_recorded_frames(tmp_path: Path) -> 
         sensor.start()
         wait_until(lambda: len(got) >= 200)
         server.unplug("ft")
-        wait_until(lambda: sensor.error is not None, 1.0)
+        wait_until(lambda: sensor.error is not None and bool(errors), 1.0)  # the callback follows the error
         assert isinstance(sensor.error, BotaDisconnected) and errors == [sensor.error]
         assert "disconnected" in str(sensor.error) and "reconnect" in str(sensor.error)
         n = len(got)
