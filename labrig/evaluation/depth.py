@@ -1,0 +1,94 @@
+"""Depth error of a network on one recording: per evaluation window, against the ground-truth sidecar.
+
+At each window's end the network sees the SAE of its own trained window (model card
+``window_ms``) ending there, and is compared with the sidecar's map nearest to the last
+event of that window, as in training (``labrig.training.data``): depth clipped to
+[0, scale], mean absolute error in mm over all cells, the contact cells and the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.errors import LabrigError
+from labrig.evaluation.windows import PAPER_WINDOW_EVENTS, window_ends_us
+
+BATCH = 32
+
+
+@dataclass(frozen=True)
+class DepthTask:
+    """One recording, one model. Windows: ``window_events`` events each, or ``window_us`` long."""
+
+    recording: str
+    model: str  # .onnx with its card
+    window_events: int | None = PAPER_WINDOW_EVENTS
+    window_us: int | None = None
+    max_windows: int | None = None  # evenly thinned when there are more
+
+
+def evaluate_depth(task: DepthTask) -> dict[str, Any]:
+    """Per-window depth errors (mm) of ``task.model`` on ``task.recording``.
+
+    Keys: ``t_us`` (W,) evaluation times, ``total_mm``, ``contact_mm`` (nan without contact),
+    ``noncontact_mm``, ``true_max_mm`` (the map's deepest cell), ``contact_cells``,
+    ``gt_offset_us`` (map time - last event), ``window_ms`` (the model's), ``infer_ms``
+    (median per window, batched).
+    """
+    import time
+
+    from labrig.config import Roi
+    from labrig.groundtruth import load_groundtruth, sidecar_path
+    from labrig.pipeline.depthnet import DepthModel
+    from labrig.pipeline.sae import GRID_SHAPE, sae_grid
+    from labrig.recording import Recording
+
+    model = DepthModel(task.model, threads=1)
+    side = sidecar_path(task.recording)
+    if not side.exists():
+        raise LabrigError(f"{task.recording}: no ground-truth sidecar {side.name}; run `labrig groundtruth DATA/` first")
+    gt = load_groundtruth(side)
+    roi = Roi(*(int(v) for v in gt.attrs["roi_px"]))
+    scale = np.float32(gt.scale_mm)
+    window_us = model.window_ms * 1000.0
+    with Recording(task.recording) as rec:
+        _, t1 = window_ends_us(rec, window_events=task.window_events, window_us=task.window_us)
+        if task.max_windows is not None and t1.size > task.max_windows:
+            t1 = t1[np.linspace(0, t1.size - 1, task.max_windows).round().astype(int)]
+        saes = np.zeros((t1.size, 2, *GRID_SHAPE), np.float32)
+        t_last = np.empty(t1.size)
+        for k, end in enumerate(t1):
+            events = rec.events_between(end - window_us, end)
+            sae_grid(events, end - window_us, end, roi, GRID_SHAPE, out=saes[k])
+            t_last[k] = float(events["t"].max()) if len(events) else float(end)
+    pred = np.zeros((t1.size, *GRID_SHAPE), np.float32)
+    seconds = []
+    for start in range(0, t1.size, BATCH):
+        tic = time.perf_counter()
+        pred[start:start + BATCH] = model.depth_mm(saes[start:start + BATCH])
+        seconds.append((time.perf_counter() - tic) / max(1, min(BATCH, t1.size - start)))
+    index = np.atleast_1d(gt.nearest_index(t_last))
+    true = np.clip(gt.depth_mm[index], 0.0, scale)
+    contact = gt.contact_mask[index] > 0
+    errors = per_map_errors_mm(pred, true, contact)
+    return {"t_us": t1, **errors, "true_max_mm": true.reshape(len(true), -1).max(1) if len(true) else np.zeros(0),
+            "contact_cells": contact.reshape(len(contact), -1).sum(1), "gt_offset_us": gt.t_us[index] - t_last,
+            "window_ms": model.window_ms, "model": model.name,
+            "infer_ms": float(np.median(seconds) * 1e3) if seconds else float("nan")}
+
+
+def per_map_errors_mm(pred_mm: npt.NDArray[np.floating], true_mm: npt.NDArray[np.floating],
+                      contact: npt.NDArray[np.bool_]) -> dict[str, npt.NDArray[np.float64]]:
+    """Per map: MAE over all cells, over the contact cells (nan if none), over the rest (nan if none), mm."""
+    n = len(pred_mm)
+    err = np.abs(np.asarray(pred_mm, np.float64) - np.asarray(true_mm, np.float64)).reshape(n, -1)
+    c = np.asarray(contact, bool).reshape(n, -1)
+    n_c, n_nc = c.sum(1), (~c).sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        contact_mm = np.where(n_c > 0, (err * c).sum(1) / n_c, np.nan)
+        noncontact_mm = np.where(n_nc > 0, (err * ~c).sum(1) / n_nc, np.nan)
+    return {"total_mm": err.mean(1) if n else np.zeros(0), "contact_mm": contact_mm, "noncontact_mm": noncontact_mm}

@@ -1,0 +1,149 @@
+"""Force error of the whole pipeline on one recording: summed per-marker forces against the F/T sensor.
+
+Per evaluation window (sequential 20,000-event windows by default) the pipeline tracks the
+markers on the window's events, the depth network sees its own trained window ending at the
+window's end, and the inverse FEM gives the per-marker forces. Their sum is compared with
+the F/T sensor's force over the depth window (tared, rotated into the gel frame by the rig
+registration, as the force on the gel), the depth map's centre of mass with the indenter's
+projected position (from the CNC pose), and, on the virtual rig, each marker's force with
+the sim's ``/truth/marker_forces``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.evaluation.windows import (
+    PAPER_WINDOW_EVENTS,
+    ft_axes_in_gel,
+    indenter_px,
+    measured_force_on_gel_n,
+    window_ends_us,
+)
+from labrig.recording import Recording
+
+PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
+
+
+@dataclass(frozen=True)
+class ForceTask:
+    """One recording through the pipeline. ``depth``: "truth" (the sim's map) or an .onnx network."""
+
+    recording: str
+    depth: str
+    window_events: int | None = PAPER_WINDOW_EVENTS
+    window_us: int | None = None
+    calibration_dir: str | None = "calibration"
+    youngs_modulus_mpa: float | None = None
+    patch_scale: float = 3.0
+    refine_lambda: float = 0.2
+    surface_refinement: int = 2
+    depth_window_ms: float = 10.0  # for depth="truth": the F/T averaging window
+
+
+class RecordingModelDepth:
+    """The depth network on the SAE of its own trained window ending at each evaluation window's end."""
+
+    needs_sae = False
+
+    def __init__(self, path: str | Path, recording: Recording, roi: Any) -> None:
+        from labrig.pipeline.depthnet import DepthModel
+        from labrig.pipeline.sae import GRID_SHAPE
+
+        self.model = DepthModel(path, threads=1)
+        self.name = f"model:{self.model.name}"
+        self.recording = recording
+        self.roi = roi
+        self.window_us = self.model.window_ms * 1000.0
+        self._sae = np.zeros((2, *GRID_SHAPE), np.float32)
+
+    def depth_mm(self, sae_grid: Any, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]:
+        from labrig.pipeline.sae import GRID_SHAPE
+        from labrig.pipeline.sae import sae_grid as make_sae
+
+        events = self.recording.events_between(t1_us - self.window_us, t1_us)
+        make_sae(events, t1_us - self.window_us, t1_us, self.roi, GRID_SHAPE, out=self._sae)
+        return self.model.depth_mm(self._sae)
+
+
+def evaluate_forces(task: ForceTask) -> dict[str, Any]:
+    """Per-window forces and errors of the pipeline on ``task.recording``.
+
+    Keys (W windows, M markers): ``t0_us``, ``t1_us``; ``predicted_n``, ``measured_n`` (F/T),
+    ``truth_n`` (sim, nan on hardware) (W, 3), all the force on the gel in the gel frame, N;
+    ``contact_error_px`` (W, 2) predicted - true contact position (nan where either is
+    missing); ``marker_mae_n`` (W, 3) per-marker MAE against the sim's field (nan on
+    hardware); ``probing`` (W,) window inside the probing phases; ``stage_ms`` {stage:
+    median}; ``drift_px`` (M,) start-end marker drift; ``ft_axes``, ``depth_source``.
+    """
+    from dataclasses import replace
+
+    from labrig.groundtruth import load_groundtruth, sidecar_path
+    from labrig.pipeline import ifem, runtime, tracking
+
+    path = Path(task.recording)
+    with Recording(path) as rec:
+        setup = runtime.setup_for_recording(rec, calibration_dir=task.calibration_dir,
+                                            youngs_modulus_mpa=task.youngs_modulus_mpa)
+        source: Any = (runtime.TruthDepth(rec) if task.depth == "truth"
+                       else RecordingModelDepth(task.depth, rec, setup.rig.roi))
+        params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
+                         patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
+        pipe = runtime.Pipeline(setup, source, tracker_params=params,
+                                surface_params=ifem.SurfaceParams(refinement=task.surface_refinement))
+        t0, t1 = window_ends_us(rec, window_events=task.window_events, window_us=task.window_us)
+        rows = [pipe.process(int(a), int(b), rec.events_between(a, b)) for a, b in zip(t0, t1)]
+        depth_window_us = getattr(source, "window_us", task.depth_window_ms * 1000.0)
+        rotation, ft_source = ft_axes_in_gel(rec, task.calibration_dir)
+        measured = measured_force_on_gel_n(rec, t1 - depth_window_us, t1, rotation)
+        truth_n, marker_mae = _truth(rec, t1, np.array([r.forces_n for r in rows]))
+        probing = _in_phases(rec, t1)
+    predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
+    contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
+    side = sidecar_path(path)
+    if side.exists():
+        gt = load_groundtruth(side)
+        true_px = indenter_px(gt, t1, setup.camera)
+        touching = np.atleast_1d(gt.contact_mask[np.atleast_1d(gt.nearest_index(t1))].reshape(len(t1), -1).any(1))
+        true_px[~touching] = np.nan
+    else:
+        true_px = np.full((len(t1), 2), np.nan)
+    stage_ms = {stage: float(np.median([r.seconds.get(stage, 0.0) for r in rows]) * 1e3) if rows else float("nan")
+                for stage in runtime.STAGES}
+    final = rows[-1].positions_px if rows else setup.rest_px
+    return {"t0_us": t0, "t1_us": t1, "predicted_n": predicted, "measured_n": measured, "truth_n": truth_n,
+            "contact_error_px": contact_px - true_px, "marker_mae_n": marker_mae, "probing": probing,
+            "stage_ms": stage_ms, "total_ms": float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
+            "drift_px": np.linalg.norm(final - setup.rest_px, axis=1), "ft_axes": ft_source,
+            "depth_source": source.name, "youngs_modulus_mpa": setup.youngs_modulus_mpa}
+
+
+def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]
+           ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """The sim's net force and per-marker MAE (W, 3) at the solves nearest ``t_us``; nan without truth."""
+    nan = np.full((len(t_us), 3), np.nan)
+    if "truth/marker_forces" not in rec.streams or rec.rows("truth/marker_forces") == 0:
+        return nan, nan.copy()
+    t_truth = rec.column("truth/marker_forces", "t_host_us")
+    index = np.clip(np.searchsorted(t_truth, t_us), 0, len(t_truth) - 1)
+    before = np.clip(index - 1, 0, len(t_truth) - 1)
+    index = np.where(np.abs(t_truth[before] - t_us) <= np.abs(t_truth[index] - t_us), before, index)
+    field = rec.column("truth/marker_forces", "force_n")[index].astype(np.float64)
+    if forces_n.size == 0:
+        return nan, nan.copy()
+    return field.sum(1), np.abs(forces_n - field).mean(1)
+
+
+def _in_phases(rec: Recording, t_us: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
+    inside = np.zeros(len(t_us), bool)
+    if "phases" not in rec.streams or rec.rows("phases") == 0:
+        return ~inside
+    for phase in rec.phases():
+        if phase.name in PROBING_PHASES:
+            inside |= (t_us >= phase.t_start_us) & (t_us < phase.t_end_us)
+    return inside
