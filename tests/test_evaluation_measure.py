@@ -119,3 +119,14 @@ def test_table3_on_hand_made_results() -> None:
     by_range = [row for row in tables.force_by_range([result]) if row["axis"] == "z" and row["windows"]]
     assert [row["range_n"] for row in by_range] == ["2-5", "10-15"]
     assert by_range[1]["under_prediction_n"] == pytest.approx(2.0)  # predicted 10 N against 12 N: 2 N under
+
+
+def test_layer_labels_beat_the_half_space_out_of_contact(probe: Path) -> None:
+    from labrig.evaluation.groundtruth_error import GroundTruthErrorTask, evaluate_groundtruth
+
+    layer = evaluate_groundtruth(GroundTruthErrorTask(str(probe), "layer"))
+    halfspace = evaluate_groundtruth(GroundTruthErrorTask(str(probe), "halfspace"))
+    assert layer["frames"] > 20 and layer["method"] and halfspace["elastic"] == "halfspace"
+    assert layer["mae_noncontact_mm"] < 0.03 < 0.05 < halfspace["mae_noncontact_mm"]  # docs/groundtruth.md
+    assert halfspace["mae_noncontact_mm"] > 5 * layer["mae_noncontact_mm"]
+    assert layer["mae_contact_mm"] < 0.15 and layer["mask_iou"] > 0.5

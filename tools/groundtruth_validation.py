@@ -1,7 +1,7 @@
 """Validate ground-truth maps against the virtual rig's true normal displacement (/truth/depth).
 
 For each simulated recording, elastic model (layer, half-space) and gel pose
-(the nominal pose a lab has before registration, and the sim's true pose as a
+(the registration in calibration/, or the nominal pose without one, and the sim's true pose as a
 perfect registration), the maps of ``labrig groundtruth`` are compared with the
 true field on the same network grid at the frames where the indenter touches
 the gel: mean absolute error in and out of the true contact (mm), the 95th
@@ -24,11 +24,7 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np
-
-from labrig.groundtruth import generate, lab_inputs
-from labrig.groundtruth.inputs import recording_rig
-from labrig.recording import Recording
+from labrig.evaluation.groundtruth_error import GroundTruthErrorTask, evaluate_groundtruth
 
 RUNS = (("sphere", 1.5), ("cylinder", 1.0), ("square", 1.0), ("ridge", 1.0))
 
@@ -51,36 +47,8 @@ def make_recordings(folder: Path) -> list[Path]:
 
 
 def validate(path: Path, elastic: str, pose: str) -> dict[str, float | str]:
-    with Recording(path) as rec:
-        truth = rec.stream("truth/depth")
-        contact = rec.stream("truth/contact")
-        rig, _ = recording_rig(str(rec.attrs.get("rig", "")))
-        indenter = str(rec.attrs["indenter"])
-    lab = None
-    if pose == "true":
-        from labrig.sim.motion import gel_in_machine
-
-        lab = lab_inputs(rig, gel_pose=gel_in_machine(rig, truth=True))
-    gt = generate(path, elastic=elastic, lab=lab)
-    idx = np.clip(np.searchsorted(truth["t_host_us"], gt.t_us, side="right") - 1, 0, None)
-    true_depth = truth["depth_mm"][idx]
-    true_mask = truth["contact_mask"][idx].astype(bool)
-    true_ind = np.interp(gt.t_us, contact["t_host_us"], contact["indentation_mm"])
-    frames = true_ind > 0
-    err = np.abs(gt.depth_mm[frames] - true_depth[frames])
-    inside, outside = true_mask[frames], ~true_mask[frames]
-    ours = gt.contact_mask[frames].astype(bool)
-    return {
-        "recording": path.name, "indenter": indenter, "elastic": elastic, "method": gt.attrs["contact_model"],
-        "pose": pose, "frames": int(frames.sum()),
-        "mae_contact_mm": float(err[inside].mean()),
-        "mae_noncontact_mm": float(err[outside].mean()),
-        "p95_noncontact_mm": float(np.percentile(err[outside], 95)),
-        "mae_total_mm": float(err.mean()),
-        "mask_iou": float((ours & inside).sum() / max((ours | inside).sum(), 1)),
-        "indentation_err_max_mm": float(np.abs(gt.indentation_mm[frames] - true_ind[frames]).max()),
-        "maps_per_s": float(gt.t_us.size / gt.seconds),
-    }
+    result = evaluate_groundtruth(GroundTruthErrorTask(str(path), elastic, pose))
+    return {"recording": path.name, **result, "indentation_err_max_mm": result["indentation_error_max_mm"]}
 
 
 def main() -> int:
@@ -90,7 +58,7 @@ def main() -> int:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         paths = args.recordings or make_recordings(Path(tmp))
-        rows = [validate(p, elastic, pose) for p in paths for pose in ("nominal", "true") for elastic in ("layer", "halfspace")]
+        rows = [validate(p, elastic, pose) for p in paths for pose in ("lab", "true") for elastic in ("layer", "halfspace")]
     if args.json:
         sys.stdout.write(json.dumps(rows, indent=2) + "\n")
         return 0

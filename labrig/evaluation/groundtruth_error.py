@@ -1,0 +1,70 @@
+"""How wrong the labels are: ground-truth maps of each elastic model against the sim's true normal displacement.
+
+Beyond the paper (which could not measure it): for a simulated recording, the maps
+``labrig groundtruth`` makes from what a lab has (CNC pose, registration, calibration,
+fitted modulus) are compared with ``/truth/depth`` on the same grid at the frames where
+the indenter touches the gel. The truth is read here only; the generator never reads it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from labrig.errors import LabrigError
+
+
+@dataclass(frozen=True)
+class GroundTruthErrorTask:
+    """One simulated recording, one elastic model ("layer" or "halfspace"), one gel pose.
+
+    ``pose``: "lab" (the registration in ``calibration_dir``, else the nominal pose) or "true"
+    (the sim's own pose: a perfect registration)."""
+
+    recording: str
+    elastic: str = "layer"
+    pose: str = "lab"
+    calibration_dir: str | None = "calibration"
+
+
+def evaluate_groundtruth(task: GroundTruthErrorTask) -> dict[str, Any]:
+    """MAE (mm) in and out of the true contact, p95 out of contact, total, the masks' IoU, the
+    indentation error and the generation rate (maps per second), over frames in contact."""
+    from labrig.groundtruth import generate, lab_inputs
+    from labrig.groundtruth.inputs import recording_rig
+    from labrig.recording import Recording
+
+    with Recording(task.recording) as rec:
+        if "truth/depth" not in rec.streams or rec.rows("truth/depth") == 0:
+            raise LabrigError(f"{task.recording}: no /truth/depth; label errors need a virtual-rig recording")
+        truth = rec.stream("truth/depth")
+        contact = rec.stream("truth/contact")
+        rig, _ = recording_rig(str(rec.attrs.get("rig", "")))
+        indenter = str(rec.attrs.get("indenter", ""))
+    lab = None
+    if task.pose == "true":
+        from labrig.sim.motion import gel_in_machine
+
+        lab = lab_inputs(rig, task.calibration_dir, gel_pose=gel_in_machine(rig, truth=True))
+    elif task.pose != "lab":
+        raise LabrigError(f"pose must be 'lab' or 'true', not {task.pose!r}")
+    gt = generate(task.recording, elastic=task.elastic, lab=lab, calibration_dir=task.calibration_dir)
+    index = np.clip(np.searchsorted(truth["t_host_us"], gt.t_us, side="right") - 1, 0, None)
+    true_depth = truth["depth_mm"][index]
+    true_mask = truth["contact_mask"][index].astype(bool)
+    true_indentation = np.interp(gt.t_us, contact["t_host_us"], contact["indentation_mm"])
+    frames = true_indentation > 0
+    if not frames.any():
+        raise LabrigError(f"{task.recording}: the indenter never touches the gel")
+    err = np.abs(gt.depth_mm[frames] - true_depth[frames])
+    inside, outside = true_mask[frames], ~true_mask[frames]
+    ours = gt.contact_mask[frames].astype(bool)
+    return {"indenter": indenter, "elastic": task.elastic, "method": gt.attrs["contact_model"], "pose": task.pose,
+            "frames": int(frames.sum()), "mae_contact_mm": float(err[inside].mean()),
+            "mae_noncontact_mm": float(err[outside].mean()), "p95_noncontact_mm": float(np.percentile(err[outside], 95)),
+            "mae_total_mm": float(err.mean()),
+            "mask_iou": float((ours & inside).sum() / max(int((ours | inside).sum()), 1)),
+            "indentation_error_max_mm": float(np.abs(gt.indentation_mm[frames] - true_indentation[frames]).max()),
+            "maps_per_s": float(gt.t_us.size / gt.seconds)}
