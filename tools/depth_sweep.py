@@ -9,6 +9,12 @@ and writes ``DIR/sweep.json``.
 
     .venv/bin/python tools/depth_sweep.py data/                       # widths 4, 8, 16; 20 min each
     .venv/bin/python tools/depth_sweep.py data/ --widths 4,8,16 --budget-min 5 --out models/sweep
+    .venv/bin/python tools/depth_sweep.py data/ --table2 --widths 8 --budget-min 5 --out models/sweep
+
+``--table2`` trains the paper's Table II instead, at one width: the contact-aware loss with
+windows of 5, 10, 30, 50 and 70 ms and the uniform loss at 10 ms (a model already in the
+folder, e.g. the width sweep's 10 ms one, is only re-measured). ``labrig evaluate --models
+DIR`` finds each row's model by its card.
 
 A rerun resumes each width from its checkpoint (an interrupted sweep loses at most
 ``--checkpoint-every`` steps); a finished width is only re-measured.
@@ -34,6 +40,7 @@ from labrig.training.trainer import split_errors
 TARGET_MS = 5.0
 PAPER_TOTAL_MM = 0.091
 PAPER_CONTACT_MM = 0.265
+TABLE2_WINDOWS_MS = (5.0, 10.0, 30.0, 50.0, 70.0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,23 +58,30 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--val-every", type=int, default=200)
     ap.add_argument("--checkpoint-every", type=int, default=200)
     ap.add_argument("--eval-windows", type=int, default=256, help="windows per split for the val/test MAE")
+    ap.add_argument("--table2", action="store_true",
+                    help="train the paper's Table II (windows 5-70 ms contact-aware, 10 ms uniform) at one width")
     ap.add_argument("--json", action="store_true", help="print the results as JSON")
     args = ap.parse_args(argv)
 
     widths = [int(w) for w in args.widths.split(",") if w.strip()]
     if len(widths) < 1 or any(w < 1 for w in widths):
         ap.error("--widths: give positive integers, e.g. 4,8,16")
+    if args.table2 and len(widths) != 1:
+        ap.error("--table2 trains at one width: give --widths W")
+    configs = ([(widths[0], window, "contact") for window in TABLE2_WINDOWS_MS] + [(widths[0], 10.0, "uniform")]
+               if args.table2 else [(width, args.window_ms, args.loss) for width in widths])
     console = Console(stderr=True)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for width in widths:
-        stem = args.out / f"depth-w{width}-{args.loss}-{args.window_ms:g}ms"
-        config = TrainConfig(width=width, window_ms=args.window_ms, loss=args.loss, time_budget_min=args.budget_min,
+    for width, window_ms, loss in configs:
+        stem = args.out / f"depth-w{width}-{loss}-{window_ms:g}ms"
+        config = TrainConfig(width=width, window_ms=window_ms, loss=loss, time_budget_min=args.budget_min,
                              batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads,
                              val_every=args.val_every, checkpoint_every=args.checkpoint_every)
         console.print(f"[bold]width {width}[/]: {args.budget_min:g} min -> {stem}.onnx")
         command = (f"python tools/depth_sweep.py {args.data} --widths {args.widths} --budget-min {args.budget_min:g} "
-                   f"--out {args.out} --window-ms {args.window_ms:g} --loss {args.loss} --seed {args.seed}")
+                   f"--out {args.out} --window-ms {window_ms:g} --loss {loss} --seed {args.seed}"
+                   + (" --table2" if args.table2 else ""))
         card = train(args.data, config, stem, resume=output_paths(stem)["checkpoint"].exists(), command=command,
                      show_progress=not args.json)
         onnx_path = output_paths(stem)["onnx"]
@@ -75,20 +89,22 @@ def main(argv: list[str] | None = None) -> int:
         test = split_errors(onnx_path, args.data, "test", args.eval_windows)
         latency = benchmark_ms(onnx_path, threads=1, repeats=200, warmup=20)
         t = card["training"]
-        rows.append({"width": width, "parameters": card["parameters"], "onnx": str(onnx_path),
+        rows.append({"width": width, "window_ms": window_ms, "loss": loss, "parameters": card["parameters"],
+                     "onnx": str(onnx_path),
                      "onnx_bytes": onnx_path.stat().st_size, "steps": t["steps"], "train_s": t["seconds"],
                      "samples_per_s": t["samples_per_s"], "final_loss": t["final_loss"], "ms_per_window_ort_1thread":
                      round(latency, 3), "val": val, "test": test, "reproduce": card["reproduce"]})
     summary = {"data": str(args.data), "budget_min": args.budget_min, "window_ms": args.window_ms, "loss": args.loss,
                "eval_windows": args.eval_windows, "targets": {"ms_per_window": TARGET_MS, "total_mm": PAPER_TOTAL_MM,
                                                               "contact_mm": PAPER_CONTACT_MM}, "widths": rows}
-    (args.out / "sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (args.out / ("table2.json" if args.table2 else "sweep.json")).write_text(json.dumps(summary, indent=2) + "\n")
     if args.json:
         sys.stdout.write(json.dumps(summary, indent=2) + "\n")
         return 0
-    table = Table(title=f"depth network sweep: {args.budget_min:g} min per width, {args.window_ms:g} ms, {args.loss} loss")
-    for col in ("width", "params", "steps", "windows/s", "val total", "val contact", "test total", "test contact",
-                "ms/window (ort, 1 thr)", "targets"):
+    what = "Table II models" if args.table2 else f"widths, {args.window_ms:g} ms, {args.loss} loss"
+    table = Table(title=f"depth network sweep: {args.budget_min:g} min per model, {what}")
+    for col in ("width", "window", "loss", "params", "steps", "windows/s", "val total", "val contact", "test total",
+                "test contact", "ms/window (ort, 1 thr)", "targets"):
         table.add_column(col, justify="right")
     for r in rows:
         v, te = r["val"] or {}, r["test"] or {}
@@ -99,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
             misses.append(f"total +{te['total_mm'] - PAPER_TOTAL_MM:.3f} mm")
         if te.get("contact_mm") is not None and te["contact_mm"] > PAPER_CONTACT_MM:
             misses.append(f"contact +{te['contact_mm'] - PAPER_CONTACT_MM:.3f} mm")
-        table.add_row(str(r["width"]), f"{r['parameters'] / 1e6:.2f} M", str(r["steps"]), f"{r['samples_per_s']:.1f}",
+        table.add_row(str(r["width"]), f"{r['window_ms']:g} ms", r["loss"], f"{r['parameters'] / 1e6:.2f} M",
+                      str(r["steps"]), f"{r['samples_per_s']:.1f}",
                       _mm(v.get("total_mm")), _mm(v.get("contact_mm")), _mm(te.get("total_mm")), _mm(te.get("contact_mm")),
                       f"{r['ms_per_window_ort_1thread']:.2f}", "all met" if not misses else "misses " + ", ".join(misses))
     out = Console(width=None if sys.stdout.isatty() else 160)
