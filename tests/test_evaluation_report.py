@@ -1,0 +1,211 @@
+"""The evaluation report (HTML, CSV, JSON, checks, terminal summary) and its charts."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
+from rich.console import Console
+
+from labrig.evaluation.report import MeanStd, Report, check_report, format_cell, print_summary, to_jsonable
+
+FORCE_ROWS = [
+    ["x", MeanStd(0.14, 0.12, 812), MeanStd(1.59, 4.62)],
+    ["y", MeanStd(0.10, 0.13, 812), MeanStd(1.55, 4.24)],
+    ["z", MeanStd(0.93, 1.00, 812), None],
+    {"Axis": "Total", "Force": MeanStd(0.94, 1.00), "Position": MeanStd(2.47, 6.19)},
+]
+
+
+def small_figure() -> Figure:
+    fig = Figure(figsize=(3, 2))
+    ax = fig.subplots()
+    ax.plot([0, 1, 2], [0.3, 0.1, 0.2])
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("force (N)")
+    return fig
+
+
+def sample_report(image: Path) -> Report:
+    report = Report("Evaluation <of> test & split", meta={"dataset": "data/", "split": "test"})
+    report.add_text("intro", "Windows of **10 ms**; raw numbers in [results.json](results.json).\n\n- one\n- `two <b>`")
+    report.section("Forces")
+    report.add_table(
+        "force_errors",
+        "Force and contact position errors",
+        ["Axis", "Force", "Position"],
+        FORCE_ROWS,
+        caption="mean ± std over test windows",
+        units={"Force": "N", "Position": "px"},
+    )
+    report.add_table(
+        "lost_tracks",
+        "Lost tracks per sequence",
+        ["Patch size", "Lost", "Error"],
+        [[2.0, 3, 0.12345], [3.0, np.int64(0), float("nan")], [4.0, 12, np.float32(1.5)]],
+        units={"Patch size": "marker diameters", "Error": "px"},
+    )
+    report.add_figure("force_time", "Net force over time", small_figure(), caption="predicted vs measured")
+    report.section("Runtime")
+    report.add_figure("runtime", "Stage latencies", image)
+    report.add_json("depth_error_mm", {"per_window": np.array([0.1, 0.2, np.nan]), "count": np.int64(3)})
+    return report
+
+
+@pytest.fixture()
+def written(tmp_path: Path) -> Path:
+    image = tmp_path / "runtime.png"
+    small_figure().savefig(image)
+    out = tmp_path / "report"
+    sample_report(image).write(out)
+    return out
+
+
+def test_written_report_has_page_tables_figures_and_json(written: Path) -> None:
+    assert check_report(written) == []
+    page = (written / "index.html").read_text(encoding="utf-8")
+    assert "Evaluation &lt;of&gt; test &amp; split" in page
+    assert "<code>two &lt;b&gt;</code>" in page
+    assert "0.14 ± 0.12" in page and "0.93 ± 1.00" in page
+    assert 'class="missing"' in page
+    assert "<script" not in page and "<link" not in page and "url(" not in page
+    assert (written / "figures" / "force_time.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (written / "figures" / "runtime.png").stat().st_size > 0
+
+    results = json.loads((written / "results.json").read_text(encoding="utf-8"))
+    assert set(results) >= {"title", "meta", "sections", "tables", "figures", "text", "data", "files"}
+    table = results["tables"]["force_errors"]
+    assert [c["key"] for c in table["columns"]] == ["axis", "force_n", "position_px"]
+    assert table["rows"][0]["force_n"] == {"mean": 0.14, "std": 0.12, "n": 812}
+    assert table["rows"][2]["position_px"] is None
+    assert results["tables"]["lost_tracks"]["rows"][1]["error_px"] is None
+    assert results["data"]["depth_error_mm"] == {"per_window": [0.1, 0.2, None], "count": 3}
+    assert results["figures"]["runtime"]["path"] == "figures/runtime.png"
+    assert [s["key"] for s in results["sections"]] == ["top", "forces", "runtime"]
+
+
+def test_csv_round_trips_the_numbers(written: Path) -> None:
+    with (written / "tables" / "force_errors.csv").open(newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["axis", "force_n_mean", "force_n_std", "position_px_mean", "position_px_std"]
+    for row, expected in zip(rows, FORCE_ROWS):
+        cells = list(expected.values()) if isinstance(expected, dict) else expected
+        assert row["axis"] == cells[0]
+        assert float(row["force_n_mean"]) == cells[1].mean and float(row["force_n_std"]) == cells[1].std
+    assert rows[2]["position_px_mean"] == "" and rows[2]["position_px_std"] == ""
+
+    with (written / "tables" / "lost_tracks.csv").open(newline="", encoding="utf-8") as f:
+        lost = list(csv.DictReader(f))
+    assert list(lost[0]) == ["patch_size_marker_diameters", "lost", "error_px"]
+    assert float(lost[0]["error_px"]) == 0.12345 and lost[1]["error_px"] == "" and int(lost[2]["lost"]) == 12
+
+
+def test_check_report_finds_a_missing_image(written: Path) -> None:
+    (written / "figures" / "runtime.png").unlink()
+    problems = check_report(written)
+    assert any("figures/runtime.png" in p for p in problems)
+
+
+def test_check_report_finds_broken_html(written: Path) -> None:
+    page = written / "index.html"
+    text = page.read_text(encoding="utf-8")
+    page.write_text(text.replace("</table>", "", 1), encoding="utf-8")
+    assert any("</div> closes" in p or "never closed" in p for p in check_report(written))
+    page.write_text(text[: len(text) // 2], encoding="utf-8")
+    assert any("never closed" in p for p in check_report(written))
+    page.write_text(text.replace('href="#table-force_errors"', 'href="#nowhere"'), encoding="utf-8")
+    assert any("#nowhere" in p for p in check_report(written))
+
+
+def test_check_report_finds_a_missing_csv_and_page(written: Path) -> None:
+    (written / "tables" / "lost_tracks.csv").unlink()
+    assert any("lost_tracks.csv" in p for p in check_report(written))
+    (written / "index.html").unlink()
+    assert check_report(written) == [f"{written / 'index.html'}: missing (never written, or the writer stopped before the end)"]
+
+
+def test_rewrite_removes_files_the_new_report_drops(written: Path) -> None:
+    (written / "notes.txt").write_text("mine")
+    Report("Smaller").add_table("only", "Only table", ["a"], [[1.0]]).write(written)
+    assert not (written / "tables" / "force_errors.csv").exists()
+    assert not (written / "figures" / "runtime.png").exists()
+    assert (written / "notes.txt").read_text() == "mine"
+    assert check_report(written) == []
+
+
+def test_failed_write_leaves_no_page(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "report"
+    Report("First").add_text("a", "first").write(out)
+    monkeypatch.setattr("labrig.evaluation.report.table_csv", lambda table: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        Report("Second").add_table("t", "T", ["a"], [[1.0]]).write(out)
+    assert not (out / "index.html").exists()
+    assert not [p for p in out.rglob("*.tmp")]
+
+
+def test_builder_rejects_bad_keys_and_rows() -> None:
+    report = Report("r").add_text("same", "x").section("Same", key="same")
+    with pytest.raises(ValueError, match="already used"):
+        report.section("Same")
+    with pytest.raises(ValueError, match="already used"):
+        report.add_table("same", "T", ["a"], [[1]])
+    with pytest.raises(ValueError, match="letters, digits"):
+        report.add_text("../escape", "x")
+    with pytest.raises(ValueError, match="2 cells for 1 columns"):
+        report.add_table("t", "T", ["a"], [[1, 2]])
+    with pytest.raises(ValueError, match="no column named"):
+        report.add_table("u", "U", ["a"], [[1]], units={"b": "N"})
+    with pytest.raises(TypeError):
+        report.add_table("v", "V", ["a"], [[object()]])
+
+
+def test_links_other_than_web_and_relative_are_left_as_text(tmp_path: Path) -> None:
+    report = Report("r").add_text("t", "[click](javascript:alert(1)) and [ok](https://example.org)")
+    page = report.write(tmp_path).read_text(encoding="utf-8")
+    assert 'href="javascript' not in page and 'href="https://example.org"' in page
+
+
+def test_cell_formatting() -> None:
+    assert format_cell(None) == "\u2013"
+    assert format_cell(MeanStd(0.091, 0.081)) == "0.091 ± 0.081"
+    assert format_cell(MeanStd(12.3456, 1.2)) == "12.3 ± 1.2"
+    assert format_cell(3) == "3"
+    assert format_cell(0.5, 2) == "0.50"
+    assert format_cell(1234567.0) == "1.23e+06"
+    assert str(MeanStd.of([1.0, 3.0, np.nan])) == "2.0 ± 1.0"
+    assert MeanStd.of([np.nan]).n == 0
+    assert to_jsonable({"a": np.float64(np.inf), "b": (np.int32(2), Path("x"))}) == {"a": None, "b": [2, "x"]}
+
+
+def test_print_summary_renders_tables(tmp_path: Path) -> None:
+    image = tmp_path / "runtime.png"
+    small_figure().savefig(image)
+    report = sample_report(image)
+    console = Console(record=True, width=120, color_system=None)
+    print_summary(report, console)
+    text = console.export_text()
+    assert "Force (N)" in text and "0.14 ± 0.12" in text and "Lost tracks per sequence" in text
+    assert "2 figures" in text
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")
+def test_chromium_renders_the_page(written: Path, tmp_path: Path) -> None:
+    from PIL import Image
+
+    shot = tmp_path / "page.png"
+    subprocess.run(
+        [
+            "chromium", "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+            "--no-first-run", f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1100,1400",
+            f"--screenshot={shot}", (written / "index.html").as_uri(),
+        ],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=float)
+    assert pixels.std() > 10, "the screenshot is blank"
