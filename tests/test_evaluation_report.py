@@ -13,6 +13,7 @@ import pytest
 from matplotlib.figure import Figure
 from rich.console import Console
 
+from labrig.evaluation import charts
 from labrig.evaluation.report import MeanStd, Report, check_report, format_cell, print_summary, to_jsonable
 
 FORCE_ROWS = [
@@ -209,3 +210,85 @@ def test_chromium_renders_the_page(written: Path, tmp_path: Path) -> None:
     )  # fmt: skip
     pixels = np.asarray(Image.open(shot).convert("L"), dtype=float)
     assert pixels.std() > 10, "the screenshot is blank"
+
+
+# -- charts ---------------------------------------------------------------------------------------
+
+
+def test_pareto_front_and_knee_on_a_clear_elbow() -> None:
+    latency = [1.0, 2.0, 3.0, 6.0, 10.0, 4.0]
+    error = [1.0, 0.25, 0.2, 0.15, 0.1, 0.9]
+    assert charts.pareto_front(latency, error).tolist() == [0, 1, 2, 3, 4]
+    assert charts.knee_index(latency, error) == 1
+    assert charts.knee_index([1.0, 2.0, 3.0], [3.0, 2.0, 1.0]) is None
+    assert charts.knee_index([1.0, 2.0], [2.0, 1.0]) is None
+
+
+def test_recommend_takes_the_fastest_within_tolerance() -> None:
+    points = [("w4", 1.0, 0.40), ("w8", 2.0, 0.103), ("w16", 5.0, 0.100), ("w32", 9.0, 0.099), ("broken", 0.5, float("nan"))]
+    assert charts.recommend(points).label == "w8"
+    assert charts.recommend(points, tolerance=0.015).label == "w16"
+    assert charts.recommend([("a", 2.0, 0.1), ("b", 2.0, 0.09)]).label == "b"
+    with pytest.raises(ValueError):
+        charts.recommend([("x", float("nan"), 1.0)])
+
+
+def test_breakdown_point() -> None:
+    x = [0.0, 1.0, 2.0, 4.0]
+    assert charts.breakdown_point(x, [1.0, 1.2, 1.5, 1.9]) is None
+    assert charts.breakdown_point(x, [1.0, 1.5, 3.0, 4.0]) == pytest.approx(1.0 + 0.5 / 1.5)
+    assert charts.breakdown_point([4.0, 0.0, 2.0, 1.0], [4.0, 1.0, 3.0, 1.5]) == pytest.approx(1.0 + 0.5 / 1.5)
+    assert charts.breakdown_point(x, [1.0, 1.5, 3.0, 4.0], baseline=0.5) == 0.0
+    assert charts.breakdown_point(x, [1.0, 1.2, float("nan"), 4.0]) == 2.0
+    assert charts.breakdown_point([1.0, 10.0, 100.0], [1.0, 1.0, 3.0], log_x=True) == pytest.approx(10.0**1.5)
+    assert charts.breakdown_point(x, [1.0, 1.1, 1.3, 1.4], factor=1.25) == pytest.approx(2.0 - 0.05 / 0.2)
+    with pytest.raises(ValueError, match="baseline"):
+        charts.breakdown_point(x, [0.0, 1.0, 2.0, 3.0])
+
+
+def test_group_by_range() -> None:
+    groups = charts.group_by_range([0.5, 1.0, 2.0, 3.0, -1.0, np.nan], [1, 2, 3, 4, 5, 6], [0.0, 1.0, 2.0])
+    assert [g.tolist() for g in groups] == [[1.0], [2.0, 3.0]]
+
+
+def png_ok(path: Path) -> bool:
+    return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5000
+
+
+def test_charts_write_pngs(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    force = {"x": rng.uniform(0, 4, 400), "y": rng.uniform(0, 4, 400), "z": rng.uniform(0, 20, 400)}
+    error = {k: np.abs(rng.normal(0, 0.1 + 0.05 * v)) for k, v in force.items()}
+    bins = {"x": [0, 1, 2, 3, 4], "y": [0, 1, 2, 3, 4], "z": [0, 5, 10, 15, 20]}
+    labels = {"value_name": "ground-truth |F|", "value_unit": "N", "error_name": "absolute error", "error_unit": "N"}
+    charts.error_by_range(force, error, bins, **labels, out=tmp_path / "box.png")
+    depth = rng.uniform(0, 2, 300)
+    charts.error_by_range(
+        depth, rng.normal(0, 0.1, 300), [0, 0.5, 1, 1.5, 2, 2.5], value_name="ground-truth depth", value_unit="mm",
+        error_name="depth error", error_unit="mm", kind="violin", out=tmp_path / "violin.png",
+    )  # fmt: skip
+    points = [("w4", 1.0, 0.4), ("w8", 2.0, 0.2), ("w16", 4.0, 0.15), ("w32", 9.0, 0.14), ("slow", 5.0, 0.3)]
+    charts.pareto(points, error_name="force MAE", error_unit="N", out=tmp_path / "pareto.png")
+    noise = [0.0, 1.0, 2.0, 4.0]
+    charts.breakdown(
+        noise, {"paper tracker": [0.3, 0.35, 0.5, 0.9], "Evetac baseline": [0.4, 0.9, np.nan, np.nan]},
+        x_name="event noise rate", x_unit="Hz/px", error_name="tracking error", error_unit="px", out=tmp_path / "breakdown.png",
+    )  # fmt: skip
+    t = np.linspace(0.0, 3.0, 300)
+    measured = np.c_[np.sin(t), np.cos(t), 5 * t]
+    t_pred = t[::10]
+    charts.time_series(
+        t, measured, measured[::10] + 0.1, t_predicted_s=t_pred, phases=[("Normal Down", 0.2, 1.0)], out=tmp_path / "ts.png"
+    )
+    charts.runtime_bars({"SAE": rng.normal(0.8, 0.1, 50), "tracking": 4.6, "forces": [9.0, 12.0]}, out=tmp_path / "runtime.png")
+    for name in ("box", "violin", "pareto", "breakdown", "ts", "runtime"):
+        assert png_ok(tmp_path / f"{name}.png"), name
+
+
+def test_chart_axes_have_units() -> None:
+    fig = charts.time_series([0.0, 1.0], [[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]], [[1.0, 2.0, 3.0], [1.5, 2.0, 3.0]])
+    labels = [ax.get_ylabel() for ax in fig.axes] + [fig.axes[-1].get_xlabel()]
+    assert labels == ["Fx (N)", "Fy (N)", "Fz (N)", "time (s)"]
+    assert "MAE 0.25 N" in [t.get_text() for t in fig.axes[0].texts]
+    fig = charts.pareto([("a", 1.0, 1.0)], error_name="depth MAE", error_unit="mm", budget_ms=None)
+    assert (fig.axes[0].get_xlabel(), fig.axes[0].get_ylabel()) == ("latency per window (ms)", "depth MAE (mm)")
