@@ -55,6 +55,7 @@ def sample_report(image: Path) -> Report:
     report.add_figure("force_time", "Net force over time", small_figure(), caption="predicted vs measured")
     report.section("Runtime")
     report.add_figure("runtime", "Stage latencies", image)
+    report.add_table("runtime", "Stage latencies", ["stage", "latency"], [["forces", 9.6]], units={"latency": "ms"})
     report.add_json("depth_error_mm", {"per_window": np.array([0.1, 0.2, np.nan]), "count": np.int64(3)})
     return report
 
@@ -89,6 +90,7 @@ def test_written_report_has_page_tables_figures_and_json(written: Path) -> None:
     assert results["data"]["depth_error_mm"] == {"per_window": [0.1, 0.2, None], "count": 3}
     assert results["figures"]["runtime"]["path"] == "figures/runtime.png"
     assert [s["key"] for s in results["sections"]] == ["top", "forces", "runtime"]
+    assert results["sections"][2]["items"] == [{"kind": "figure", "key": "runtime"}, {"kind": "table", "key": "runtime"}]
 
 
 def test_csv_round_trips_the_numbers(written: Path) -> None:
@@ -151,15 +153,17 @@ def test_failed_write_leaves_no_page(tmp_path: Path, monkeypatch: pytest.MonkeyP
 
 
 def test_builder_rejects_bad_keys_and_rows() -> None:
-    report = Report("r").add_text("same", "x").section("Same", key="same")
-    with pytest.raises(ValueError, match="already used"):
+    report = Report("r").add_text("same", "x").section("Same", key="same").add_table("same", "T", ["a"], [[1]])
+    with pytest.raises(ValueError, match="section key 'same' is already used"):
         report.section("Same")
-    with pytest.raises(ValueError, match="already used"):
+    with pytest.raises(ValueError, match="table key 'same' is already used"):
         report.add_table("same", "T", ["a"], [[1]])
     with pytest.raises(ValueError, match="letters, digits"):
         report.add_text("../escape", "x")
     with pytest.raises(ValueError, match="2 cells for 1 columns"):
         report.add_table("t", "T", ["a"], [[1, 2]])
+    with pytest.raises(ValueError, match="no column: \\['b'\\]"):
+        report.add_table("w", "W", ["a"], [{"a": 1, "b": 2}])
     with pytest.raises(ValueError, match="no column named"):
         report.add_table("u", "U", ["a"], [[1]], units={"b": "N"})
     with pytest.raises(TypeError):
@@ -180,6 +184,7 @@ def test_cell_formatting() -> None:
     assert format_cell(0.5, 2) == "0.50"
     assert format_cell(1234567.0) == "1.23e+06"
     assert str(MeanStd.of([1.0, 3.0, np.nan])) == "2.0 ± 1.0"
+    assert format_cell(MeanStd(0.14, float("nan"))) == "0.140"
     assert MeanStd.of([np.nan]).n == 0
     assert to_jsonable({"a": np.float64(np.inf), "b": (np.int32(2), Path("x"))}) == {"a": None, "b": [2, "x"]}
 

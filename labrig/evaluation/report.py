@@ -80,6 +80,8 @@ class Column:
 
 @dataclass(frozen=True)
 class Table:
+    """A table as added: cells as given (None where missing) and the HTML's decimals per column."""
+
     key: str
     title: str
     columns: tuple[Column, ...]
@@ -100,6 +102,8 @@ class Table:
 
 @dataclass(frozen=True)
 class FigureItem:
+    """An image's bytes and its file name suffix; written to :attr:`path` inside the report folder."""
+
     key: str
     title: str
     data: bytes
@@ -113,12 +117,16 @@ class FigureItem:
 
 @dataclass(frozen=True)
 class Text:
+    """Plain text or the Markdown subset of :func:`render_markdown`."""
+
     key: str
     text: str
 
 
 @dataclass(frozen=True)
 class Section:
+    """A heading and the items under it; the report's first section has no title."""
+
     key: str
     title: str
     items: list[Table | FigureItem | Text] = field(default_factory=list)
@@ -139,14 +147,15 @@ def _magnitude_decimals(magnitude: float, significant: int) -> int:
 
 
 def column_decimals(cells: Sequence[Cell]) -> int | None:
-    """Decimals for a column: 3 significant digits of its median magnitude, or 2 of its median std.
+    """Decimals for a column: 2 significant digits of its median std, or else 3 of its median magnitude.
 
     None when the column has no float to round (integers and strings are shown as they are).
     """
     stds = [c.std for c in cells if isinstance(c, MeanStd) and math.isfinite(c.std) and c.std > 0]
     if stds:
         return _magnitude_decimals(float(np.median(stds)), 2)
-    floats = [abs(c) for c in cells if isinstance(c, float) and math.isfinite(c) and c != 0]
+    values = [c.mean if isinstance(c, MeanStd) else c for c in cells]
+    floats = [abs(c) for c in values if isinstance(c, float) and math.isfinite(c) and c != 0]
     if floats:
         return _magnitude_decimals(float(np.median(floats)), 3)
     return None
@@ -160,6 +169,8 @@ def format_cell(cell: Cell, decimals: int | None = None) -> str:
         return "yes" if cell else "no"
     if isinstance(cell, str):
         return cell
+    if isinstance(cell, MeanStd) and not math.isfinite(cell.std):
+        return format_cell(cell.mean, decimals)
     if isinstance(cell, MeanStd):
         d = decimals if decimals is not None else _magnitude_decimals(cell.std or cell.mean, 2)
         return f"{_format_float(cell.mean, d)} ± {_format_float(cell.std, d)}"
@@ -228,9 +239,9 @@ def _cell(value: Any) -> Cell:
 class Report:
     """An evaluation report built item by item; :meth:`write` renders it.
 
-    Every item key (of a table, figure, text or JSON item) is unique in a report and names the
-    item's file (``tables/KEY.csv``, ``figures/KEY.png``) and its anchor (``#table-KEY``,
-    ``#figure-KEY``, ``#text-KEY``); section keys are unique among sections (``#section-KEY``).
+    A key is unique among the items of its kind (sections, tables, figures, texts, JSON items;
+    a table and a figure may share one) and names the item's file (``tables/KEY.csv``,
+    ``figures/KEY.png``) and its anchor in the page (``#table-KEY``, ``#section-KEY``, ...).
     """
 
     def __init__(self, title: str, meta: Mapping[str, Any] | None = None) -> None:
@@ -238,27 +249,27 @@ class Report:
         self.meta: dict[str, Any] = dict(meta or {})
         self.sections: list[Section] = [Section("top", "")]
         self.data: dict[str, Any] = {}
-        self._keys: set[str] = set()
+        self._keys: dict[str, set[str]] = {kind: set() for kind in ("section", "table", "figure", "text", "data")}
+        self._keys["section"].add("top")
         self.written_to: Path | None = None
 
-    def _claim(self, key: str, taken: set[str] | None = None) -> str:
-        taken = self._keys if taken is None else taken
+    def _claim(self, kind: str, key: str) -> str:
         if not _KEY.match(key):
             raise ValueError(f"key {key!r}: letters, digits, '_', '.' and '-' only, not starting with a dot or dash")
-        if key in taken:
-            raise ValueError(f"key {key!r} is already used in this report")
-        taken.add(key)
+        if key in self._keys[kind]:
+            raise ValueError(f"{kind} key {key!r} is already used in this report")
+        self._keys[kind].add(key)
         return key
 
     def section(self, title: str, key: str | None = None) -> Report:
         """Start a section (its key defaults to the title's :func:`slug`): items added after it go under this heading."""
-        self.sections.append(Section(self._claim(key or slug(title), {s.key for s in self.sections}), title))
+        self.sections.append(Section(self._claim("section", key or slug(title)), title))
         return self
 
     def add_text(self, key: str, text: str) -> Report:
         """A paragraph of plain text or a small Markdown subset (blank-line paragraphs, ``-`` lists,
         ``**bold**``, ``*italic*``, `` `code` ``, ``[text](link)``)."""
-        self.sections[-1].items.append(Text(self._claim(key), text))
+        self.sections[-1].items.append(Text(self._claim("text", key), text))
         return self
 
     def add_table(
@@ -289,6 +300,8 @@ class Report:
             raise ValueError(f"table {key!r}: column keys {col_keys} are empty or not unique")
         table_rows = []
         for row in rows:
+            if isinstance(row, Mapping) and set(row) - set(columns):
+                raise ValueError(f"table {key!r}: a row has cells for no column: {sorted(set(row) - set(columns))}")
             cells = [row.get(c) for c in columns] if isinstance(row, Mapping) else list(row)
             if len(cells) != len(cols):
                 raise ValueError(f"table {key!r}: a row has {len(cells)} cells for {len(cols)} columns")
@@ -298,7 +311,7 @@ class Report:
             digits = tuple(decimals.get(c.name, column_decimals(cells)) for c, cells in zip(cols, by_column))
         else:
             digits = tuple(decimals if decimals is not None else column_decimals(cells) for cells in by_column)
-        table = Table(self._claim(key), title, cols, tuple(table_rows), caption, digits)
+        table = Table(self._claim("table", key), title, cols, tuple(table_rows), caption, digits)
         self.sections[-1].items.append(table)
         return self
 
@@ -316,12 +329,12 @@ class Report:
             buffer = io.BytesIO()
             figure.savefig(buffer, format="png", dpi=dpi)
             data, suffix = buffer.getvalue(), ".png"
-        self.sections[-1].items.append(FigureItem(self._claim(key), title, data, suffix, caption))
+        self.sections[-1].items.append(FigureItem(self._claim("figure", key), title, data, suffix, caption))
         return self
 
     def add_json(self, key: str, obj: Any) -> Report:
         """Raw numbers for ``results.json`` under ``data.KEY`` (name units in the keys: ``error_mm``)."""
-        self.data[self._claim(key)] = to_jsonable(obj)
+        self.data[self._claim("data", key)] = to_jsonable(obj)
         return self
 
     @property
@@ -337,7 +350,10 @@ class Report:
         return {
             "title": self.title,
             "meta": to_jsonable(self.meta),
-            "sections": [{"key": s.key, "title": s.title, "items": [i.key for i in s.items]} for s in self.sections],
+            "sections": [
+                {"key": s.key, "title": s.title, "items": [{"kind": _kind(i), "key": i.key} for i in s.items]}
+                for s in self.sections
+            ],
             "tables": {t.key: _table_json(t) for t in self.tables},
             "figures": {f.key: {"title": f.title, "caption": f.caption, "path": f.path} for f in self.figures},
             "text": {i.key: i.text for s in self.sections for i in s.items if isinstance(i, Text)},
@@ -474,10 +490,13 @@ def _e(text: object) -> str:
     return html.escape(str(text), quote=True)
 
 
+def _kind(item: Section | Table | FigureItem | Text) -> str:
+    return {Section: "section", Table: "table", FigureItem: "figure", Text: "text"}[type(item)]
+
+
 def anchor(item: Section | Table | FigureItem | Text) -> str:
     """The element id of an item in the page: its kind and key, ``table-force_errors``."""
-    kind = {Section: "section", Table: "table", FigureItem: "figure", Text: "text"}[type(item)]
-    return _e(f"{kind}-{item.key}")
+    return _e(f"{_kind(item)}-{item.key}")
 
 
 def _safe_href(href: str) -> bool:
