@@ -124,6 +124,8 @@ def test_check_report_finds_broken_html(written: Path) -> None:
     assert any("never closed" in p for p in check_report(written))
     page.write_text(text.replace('href="#table-force_errors"', 'href="#nowhere"'), encoding="utf-8")
     assert any("#nowhere" in p for p in check_report(written))
+    page.write_text(text.replace('href="results.json"', 'href="/etc/hostname"'), encoding="utf-8")
+    assert any("absolute path /etc/hostname" in p for p in check_report(written))
 
 
 def test_check_report_finds_a_missing_csv_and_page(written: Path) -> None:

@@ -705,6 +705,8 @@ def check_report(out_dir: str | os.PathLike[str]) -> list[str]:
     for tag, link, line in checker.links:
         if link.startswith("#") and link[1:] not in checker.ids:
             problems.append(f"index.html line {line}: <{tag}> links to #{link[1:]}, which is not on the page")
+        elif _is_local(link) and link.startswith("/"):
+            problems.append(f"index.html line {line}: <{tag}> links to the absolute path {link}; the folder would not move")
         elif _is_local(link):
             target = out / unquote(link.split("#")[0].split("?")[0])
             if not target.is_file():
