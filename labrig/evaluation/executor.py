@@ -1,0 +1,402 @@
+"""Run one pure function over many tasks, in parallel, with every result cached on disk.
+
+:func:`run_tasks` sends ``fn(task)`` for each task through a ``concurrent.futures`` executor:
+in this process (``workers=1``), local processes (spawn context, one per core by default), or
+a Dask cluster (``scheduler="tcp://host:8786"``, the optional ``eval-dask`` extra). Results
+come back in task order.
+
+Contract for ``fn`` and tasks: ``fn`` is a module-level function (picklable by name); a task
+is a dict or a frozen dataclass of plain values (str, int, float, bool, None, lists and
+nested dicts of them). Results are dicts of numbers, strings, None, numpy arrays, lists and
+nested dicts (tuples come back as lists).
+
+Cache: one ``.npz`` per result under ``cache_dir/<fn>/<key>.npz``, ``key`` = SHA-256 of
+
+* the function's qualified name and its ``cache_version`` attribute (bump it when the
+  function's results change; code changes are not detected otherwise);
+* the task's inputs as canonical JSON (``1`` and ``1.0`` are different inputs);
+* for every string input naming an existing file: its size, modification time (ns) and a
+  sampled BLAKE2 hash (the first and last 64 KiB and 16 evenly spaced 64 KiB blocks, so at
+  most 1.1 MiB read even for a recording of hundreds of MB); for an existing directory: the
+  name, size and mtime of each file directly in it.
+
+So a rewritten or touched file misses, while an unchanged one costs a stat and about a
+megabyte of reading. An entry is written to a temporary file and renamed into place, so an
+interrupted run never leaves a corrupt entry; an unreadable one counts as a miss.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import pickle
+import time
+import traceback
+import uuid
+import warnings
+import zipfile
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from labrig.errors import LabrigError
+
+Task = Mapping[str, Any] | Any  # a dict, or a frozen dataclass instance
+Result = dict[str, Any]
+Progress = Callable[[int, int], None]
+
+SAMPLE_BLOCK_BYTES = 64 * 1024
+SAMPLE_BLOCKS = 16
+CACHE_FORMAT = 1
+MAX_LISTED_FAILURES = 10  # failures named one by one in a TasksFailed message
+
+
+class _HasExecutor(Protocol):
+    """A dask.distributed ``Client`` (or anything else that hands out a concurrent.futures executor)."""
+
+    def get_executor(self, **kwargs: Any) -> Executor: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskFailure:
+    """One task that raised: its position, inputs, the error's type and message, and the full traceback text."""
+
+    index: int
+    task: dict[str, Any]
+    error: str
+    message: str
+    traceback: str
+
+    def describe(self) -> str:
+        where = _innermost_frame(self.traceback)
+        return f"task {self.index} {json.dumps(self.task, default=str)}: {self.error}: {self.message}{where}"
+
+
+class TaskResults(list[Result | None]):
+    """Results in task order (None where a task failed), with what the cache did and what failed."""
+
+    def __init__(self, results: Sequence[Result | None], *, hits: int, misses: int,
+                 failures: Sequence[TaskFailure], seconds: float) -> None:
+        super().__init__(results)
+        self.hits = hits  # tasks answered from the cache
+        self.misses = misses  # tasks computed (including those that failed)
+        self.failures = list(failures)
+        self.seconds = seconds  # wall time of the whole run, s
+
+    def summary(self) -> str:
+        failed = f", {len(self.failures)} failed" if self.failures else ""
+        return f"{len(self)} tasks: {self.hits} cached, {self.misses} computed{failed} in {self.seconds:.1f} s"
+
+
+class TasksFailed(LabrigError):
+    """Some tasks raised; ``results`` holds every result (None for the failed ones), ``failures`` the details."""
+
+    def __init__(self, results: TaskResults) -> None:
+        self.results = results
+        self.failures = results.failures
+        lines = [f"{len(self.failures)} of {len(results)} tasks failed; the others' results are kept (and cached), "
+                 "so after fixing the cause a rerun computes only these:"]
+        lines += [f"  {f.describe()}" for f in self.failures[:MAX_LISTED_FAILURES]]
+        rest = self.failures[MAX_LISTED_FAILURES:]
+        if rest:
+            kinds = sorted({f.error for f in rest})
+            lines.append(f"  ... and {len(rest)} more ({', '.join(kinds)}); all are in .failures")
+        super().__init__("\n".join(lines))
+
+
+def default_cache_dir() -> Path:
+    """``$LABRIG_CACHE/eval``, else ``~/.cache/labrig/eval``."""
+    root = os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
+    return Path(root) / "eval"
+
+
+def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: int | None = None,
+              scheduler: str | _HasExecutor | None = None, cache_dir: str | Path | None = None,
+              use_cache: bool = True, progress: Progress | None = None, raise_on_error: bool = True) -> TaskResults:
+    """``[fn(task) for task in tasks]``, in parallel and cached; see the module docstring.
+
+    ``workers``: local processes (default: one per core); 1 runs in this process, no pool.
+    ``scheduler``: a Dask scheduler address (or a ``distributed.Client``); overrides ``workers``.
+    ``progress(done, total)`` is called in this thread as tasks finish (cache hits first).
+    A task that raises does not stop the others; with ``raise_on_error`` the run then ends in
+    :class:`TasksFailed` (which carries all results), else the failures are in ``.failures``.
+    """
+    started = time.perf_counter()
+    inputs = [task_inputs(task) for task in tasks]
+    store = ResultCache(cache_dir or default_cache_dir(), fn) if use_cache else None
+    fingerprints: dict[tuple[str, int, int], str] = {}
+    keys = [store.key(item, fingerprints) if store else "" for item in inputs]
+    results: list[Result | None] = [None] * len(tasks)
+    todo = []
+    for i, key in enumerate(keys):
+        cached = store.load(key) if store else None
+        if cached is None:
+            todo.append(i)
+        else:
+            results[i] = cached
+    total, done = len(tasks), len(tasks) - len(todo)
+    if progress is not None:
+        progress(done, total)
+    failures: list[TaskFailure] = []
+
+    def finish(i: int, outcome: Result | BaseException) -> None:
+        nonlocal done
+        if isinstance(outcome, BaseException):
+            failures.append(_failure(i, inputs[i], outcome))
+        else:
+            results[i] = outcome
+            if store is not None:
+                store.save(keys[i], outcome, inputs[i])
+        done += 1
+        if progress is not None:
+            progress(done, total)
+
+    if todo:
+        if scheduler is None and workers == 1:
+            for i in todo:
+                finish(i, _call(fn, tasks[i]))
+        else:
+            _run_on_executor(fn, tasks, todo, finish, workers, scheduler)
+    failures.sort(key=lambda f: f.index)
+    out = TaskResults(results, hits=total - len(todo), misses=len(todo), failures=failures,
+                      seconds=time.perf_counter() - started)
+    if failures and raise_on_error:
+        raise TasksFailed(out)
+    return out
+
+
+def _call(fn: Callable[[Any], Result], task: Task) -> Result | BaseException:
+    try:
+        return fn(task)
+    except Exception as exc:
+        return exc
+
+
+def _run_on_executor(fn: Callable[[Any], Result], tasks: Sequence[Task], todo: list[int],
+                     finish: Callable[[int, Result | BaseException], None], workers: int | None,
+                     scheduler: str | _HasExecutor | None) -> None:
+    """Submit the tasks ``todo`` to local processes or a Dask cluster and ``finish`` each as it completes."""
+    try:
+        pickle.dumps(fn)
+    except (pickle.PicklingError, AttributeError, TypeError) as exc:
+        raise TypeError(f"{fn!r} cannot be sent to worker processes ({exc}); give a module-level function") from None
+    client = None
+    if scheduler is None:
+        import multiprocessing
+
+        n = max(1, min(workers or os.cpu_count() or 1, len(todo)))
+        executor: Executor = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+    elif isinstance(scheduler, str):
+        client = _dask_client(scheduler)
+        executor = client.get_executor(pure=False)
+    else:
+        executor = scheduler.get_executor(pure=False)
+    try:
+        futures: dict[Future[Result], int] = {executor.submit(fn, tasks[i]): i for i in todo}
+        for future in as_completed(futures):
+            error = future.exception()
+            finish(futures[future], error if error is not None else future.result())
+    finally:  # everything has finished unless interrupted: then cancel what has not started
+        if isinstance(executor, ProcessPoolExecutor):
+            executor.shutdown(wait=True, cancel_futures=True)
+        else:
+            executor.shutdown(wait=False)
+        if client is not None:
+            client.close()
+
+
+def _dask_client(address: str) -> Any:
+    try:
+        from dask.distributed import Client
+    except ImportError:
+        raise LabrigError(f"--scheduler {address} needs dask.distributed: pip install 'labrig[eval-dask]' "
+                          "(or dask[distributed]), or drop --scheduler to use local processes") from None
+    try:
+        return Client(address, timeout=30)
+    except OSError as exc:
+        raise LabrigError(f"cannot reach the Dask scheduler at {address} ({exc}); start one with "
+                          "`dask scheduler` and `dask worker ADDRESS`, or drop --scheduler") from None
+
+
+def _failure(index: int, task: dict[str, Any], exc: BaseException) -> TaskFailure:
+    text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    return TaskFailure(index, task, type(exc).__name__, str(exc).splitlines()[0] if str(exc) else "", text)
+
+
+def _innermost_frame(text: str) -> str:
+    """' (at FILE:LINE in FUNC)' of the deepest frame of a traceback's text, '' if none."""
+    frames = [line.strip() for line in text.splitlines() if line.strip().startswith('File "')]
+    if not frames:
+        return ""
+    file_part, _, rest = frames[-1].partition(", line ")
+    line, _, func = rest.partition(", in ")
+    return f" (at {file_part[6:-1]}:{line} in {func})"
+
+
+# -- task inputs and their files --------------------------------------------------------------------
+
+
+def task_inputs(task: Task) -> dict[str, Any]:
+    """A task's inputs as a plain JSON-able dict (Paths become strings); TypeError for anything else."""
+    if dataclasses.is_dataclass(task) and not isinstance(task, type):
+        raw: Mapping[str, Any] = {f.name: getattr(task, f.name) for f in dataclasses.fields(task)}
+    elif isinstance(task, Mapping):
+        raw = task
+    else:
+        raise TypeError(f"a task must be a dict or a dataclass instance, not {type(task).__name__}")
+    return {str(k): _plain_input(v, str(k)) for k, v in raw.items()}
+
+
+def _plain_input(value: Any, name: str) -> Any:
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, list | tuple):
+        return [_plain_input(v, name) for v in value]
+    if isinstance(value, Mapping):
+        return {str(k): _plain_input(v, name) for k, v in value.items()}
+    raise TypeError(f"task input {name!r} is a {type(value).__name__}; tasks hold only paths, numbers, "
+                    "strings, bools, None, lists and dicts of them")
+
+
+def _strings(value: Any) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, list):
+        return [s for v in value for s in _strings(v)]
+    if isinstance(value, dict):
+        return [s for v in value.values() for s in _strings(v)]
+    return []
+
+
+def file_fingerprint(path: str | Path, memo: dict[tuple[str, int, int], str] | None = None) -> str:
+    """Size, mtime (ns) and a sampled BLAKE2 hash of a file (see the module docstring)."""
+    stat = os.stat(path)
+    memo_key = (os.path.abspath(path), stat.st_size, stat.st_mtime_ns)
+    if memo is not None and memo_key in memo:
+        return memo[memo_key]
+    digest = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        if stat.st_size <= SAMPLE_BLOCK_BYTES * (SAMPLE_BLOCKS + 2):
+            digest.update(f.read())
+        else:
+            last = stat.st_size - SAMPLE_BLOCK_BYTES
+            for offset in np.linspace(0, last, SAMPLE_BLOCKS + 2).astype(np.int64):
+                f.seek(int(offset))
+                digest.update(f.read(SAMPLE_BLOCK_BYTES))
+    text = f"{stat.st_size}:{stat.st_mtime_ns}:{digest.hexdigest()}"
+    if memo is not None:
+        memo[memo_key] = text
+    return text
+
+
+def _directory_fingerprint(path: str) -> list[list[Any]]:
+    entries = []
+    with os.scandir(path) as scan:
+        for entry in scan:
+            if entry.is_file():
+                stat = entry.stat()
+                entries.append([entry.name, stat.st_size, stat.st_mtime_ns])
+    return sorted(entries)
+
+
+# -- the result cache -----------------------------------------------------------------------------
+
+
+class ResultCache:
+    """Results of one function on disk, one ``KEY.npz`` each: arrays as members, the rest as JSON."""
+
+    def __init__(self, root: str | Path, fn: Callable[..., Any]) -> None:
+        self.name = f"{fn.__module__}.{fn.__qualname__}"
+        self.version = str(getattr(fn, "cache_version", ""))
+        self.folder = Path(root) / self.name
+
+    def key(self, inputs: dict[str, Any], memo: dict[tuple[str, int, int], str] | None = None) -> str:
+        """SHA-256 (hex) of the function, its version, the inputs and the inputs' files."""
+        files: dict[str, Any] = {}
+        for text in _strings(inputs):
+            if "\n" in text or len(text) > 4096 or not text:
+                continue
+            if os.path.isfile(text):
+                files[text] = file_fingerprint(text, memo)
+            elif os.path.isdir(text):
+                files[text] = _directory_fingerprint(text)
+        blob = json.dumps([CACHE_FORMAT, self.name, self.version, inputs, files], sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+    def path(self, key: str) -> Path:
+        return self.folder / f"{key}.npz"
+
+    def load(self, key: str) -> Result | None:
+        """The stored result, or None (absent or unreadable: an unreadable entry is removed)."""
+        path = self.path(key)
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {name: data[name] for name in data.files if name != "__json__"}
+                document = json.loads(str(data["__json__"]))
+            return _decode(document["result"], arrays)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # JSONDecodeError is a ValueError
+            path.unlink(missing_ok=True)
+            return None
+
+    def save(self, key: str, result: Result, inputs: dict[str, Any]) -> None:
+        """Store atomically (temporary file, then rename); a result that is not plain data is not cached."""
+        arrays: dict[str, np.ndarray] = {}
+        try:
+            encoded = _encode(result, arrays)
+        except TypeError as exc:
+            warnings.warn(f"{self.name}: result not cached ({exc})", stacklevel=3)
+            return
+        document = {"function": self.name, "version": self.version, "inputs": inputs, "result": encoded,
+                    "saved_unix_s": time.time()}
+        self.folder.mkdir(parents=True, exist_ok=True)
+        temporary = self.folder / f".{key}.{uuid.uuid4().hex}.tmp"
+        try:
+            with open(temporary, "wb") as f:
+                np.savez(f, __json__=np.array(json.dumps(document)), **arrays)
+            os.replace(temporary, self.path(key))
+        finally:
+            temporary.unlink(missing_ok=True)
+
+
+def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
+    """JSON-able form of a result; arrays go to ``arrays`` and are referenced as {"__array__": name}."""
+    if isinstance(value, np.ndarray):
+        if value.dtype.hasobject:
+            raise TypeError("object arrays cannot be cached")
+        name = f"a{len(arrays)}"
+        arrays[name] = value
+        return {"__array__": name}
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, list | tuple):
+        return [_encode(v, arrays) for v in value]
+    if isinstance(value, Mapping):
+        if not all(isinstance(k, str) for k in value):
+            raise TypeError("result dict keys must be strings")
+        if "__array__" in value:
+            raise TypeError("'__array__' is reserved in cached results")
+        return {k: _encode(v, arrays) for k, v in value.items()}
+    raise TypeError(f"a {type(value).__name__} is not plain result data")
+
+
+def _decode(value: Any, arrays: Mapping[str, np.ndarray]) -> Any:
+    if isinstance(value, dict):
+        if set(value) == {"__array__"}:
+            return arrays[value["__array__"]]
+        return {k: _decode(v, arrays) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_decode(v, arrays) for v in value]
+    return value
