@@ -15,6 +15,7 @@ from labrig import __version__
 from labrig.cli_calibrate import add_calibrate_commands
 from labrig.cli_camera import add_camera_commands
 from labrig.cli_devices import add_device_commands
+from labrig.cli_evaluate import add_evaluate_commands
 from labrig.cli_groundtruth import add_groundtruth_commands
 from labrig.cli_protocol import add_protocol_commands
 from labrig.cli_run import add_run_commands
@@ -186,6 +187,7 @@ add_protocol_commands(app)
 add_calibrate_commands(app)
 add_groundtruth_commands(app)
 add_train_commands(app)
+add_evaluate_commands(app)
 add_run_commands(app)
 
 RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]

@@ -9,6 +9,7 @@ event of that window, as in training (``labrig.training.data``): depth clipped t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,7 @@ class DepthTask:
     window_events: int | None = PAPER_WINDOW_EVENTS
     window_us: int | None = None
     max_windows: int | None = None  # evenly thinned when there are more
+    sidecar: str = ""  # the ground truth (default NAME.gt.h5 beside the recording); named so caches see it change
 
 
 def evaluate_depth(task: DepthTask) -> dict[str, Any]:
@@ -48,7 +50,7 @@ def evaluate_depth(task: DepthTask) -> dict[str, Any]:
     from labrig.recording import Recording
 
     model = DepthModel(task.model, threads=1)
-    side = sidecar_path(task.recording)
+    side = Path(task.sidecar) if task.sidecar else sidecar_path(task.recording)
     if not side.exists():
         raise LabrigError(f"{task.recording}: no ground-truth sidecar {side.name}; run `labrig groundtruth DATA/` first")
     gt = load_groundtruth(side)
@@ -79,6 +81,9 @@ def evaluate_depth(task: DepthTask) -> dict[str, Any]:
             "contact_cells": contact.reshape(len(contact), -1).sum(1), "gt_offset_us": gt.t_us[index] - t_last,
             "window_ms": model.window_ms, "model": model.name,
             "infer_ms": float(np.median(seconds) * 1e3) if seconds else float("nan")}
+
+
+evaluate_depth.cache_version = "1"  # type: ignore[attr-defined]
 
 
 def per_map_errors_mm(pred_mm: npt.NDArray[np.floating], true_mm: npt.NDArray[np.floating],

@@ -44,6 +44,7 @@ class ForceTask:
     refine_lambda: float = 0.2
     surface_refinement: int = 2
     depth_window_ms: float = 10.0  # for depth="truth": the F/T averaging window
+    sidecar: str = ""  # the ground truth for the indenter's position (default NAME.gt.h5 beside the recording)
 
 
 class RecordingModelDepth:
@@ -105,7 +106,7 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
         probing = _in_phases(rec, t1)
     predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
     contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
-    side = sidecar_path(path)
+    side = Path(task.sidecar) if task.sidecar else sidecar_path(path)
     if side.exists():
         gt = load_groundtruth(side)
         true_px = indenter_px(gt, t1, setup.camera)
@@ -121,6 +122,9 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
             "stage_ms": stage_ms, "total_ms": float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
             "drift_px": np.linalg.norm(final - setup.rest_px, axis=1), "ft_axes": ft_source,
             "depth_source": source.name, "youngs_modulus_mpa": setup.youngs_modulus_mpa}
+
+
+evaluate_forces.cache_version = "1"  # type: ignore[attr-defined]
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

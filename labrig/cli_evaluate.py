@@ -1,0 +1,78 @@
+"""``labrig evaluate DATA``: the paper's tables and figures for a campaign, in a static report.
+
+Mount on the main app with :func:`add_evaluate_commands` (``cli.py``). User errors (no
+manifest, missing sidecars, bad options) are :class:`LabrigError` s, printed as one line.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def evaluate_command(
+    data: Annotated[Path, typer.Argument(help="Campaign folder (manifest.csv, recordings, NAME.gt.h5 sidecars).")],
+    split: Annotated[str, typer.Option(help="Which recordings: test, val, train or all.")] = "test",
+    model: Annotated[Path | None, typer.Option(help="Depth network .onnx (default: the bundled one).")] = None,
+    models: Annotated[Path | None, typer.Option(
+        "--models", help="Folder of Table II networks (tools/depth_sweep.py --table2); missing rows are reported.")] = None,
+    out: Annotated[Path, typer.Option(help="Report folder: index.html, figures/, tables/*.csv, results.json.")] = Path(
+        "report"),
+    window_events: Annotated[int | None, typer.Option(help="Events per evaluation window (default 20000, the paper's).")
+                             ] = None,
+    window_ms: Annotated[float | None, typer.Option(help="Fixed-time evaluation windows (ms) instead.")] = None,
+    calibration: Annotated[Path, typer.Option(help="Calibration folder (gel, camera, rig registration).")] = Path(
+        "calibration"),
+    workers: Annotated[int | None, typer.Option(help="Local processes (default: one per core; 1: in this process).")
+                       ] = None,
+    scheduler: Annotated[str | None, typer.Option(help="A Dask scheduler address (tcp://host:8786) to run the tasks on.")
+                         ] = None,
+    no_cache: Annotated[bool, typer.Option("--no-cache", help="Recompute every task (results are still stored).")] = False,
+    table1: Annotated[bool, typer.Option(help="Track each recording at 5 patch sizes x 2 for Table I.")] = True,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
+) -> None:
+    """Evaluate the pipeline on DATA: Tables I-III, errors per range, runtime, dense and label errors; a report."""
+    from labrig.evaluation.evaluate import EvaluationSettings, build_report, evaluate_campaign
+    from labrig.evaluation.report import check_report, print_summary
+
+    settings = EvaluationSettings(
+        data=data, split=split, model=model, models_dir=models,
+        window_events=window_events if window_events is not None or window_ms is not None else 20_000,
+        window_ms=window_ms, calibration_dir=calibration, workers=workers, scheduler=scheduler,
+        use_cache=not no_cache, table1=table1)
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, console=err_console, disable=as_json) as bar:
+        ids: dict[str, int] = {}
+
+        def progress(kind: str, done: int, total: int) -> None:
+            if kind not in ids:
+                ids[kind] = bar.add_task(kind, total=total)
+            bar.update(ids[kind], completed=done, total=total)
+
+        evaluation = evaluate_campaign(settings, progress)
+        report = build_report(evaluation)
+        index = report.write(out)
+    problems = check_report(out)
+    summary = {**evaluation.summary, "report": str(index), "report_problems": problems}
+    if as_json:
+        sys.stdout.write(json.dumps(summary, indent=2, default=float) + "\n")
+        return
+    print_summary(report, console)
+    for problem in problems:
+        err_console.print(f"[yellow]report: {escape(problem)}[/]")
+    console.print(f"report: [bold]{escape(str(index))}[/]")
+
+
+def add_evaluate_commands(app: typer.Typer) -> None:
+    """Mount ``evaluate`` on the main app."""
+    app.command("evaluate")(evaluate_command)

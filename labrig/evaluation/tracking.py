@@ -1,0 +1,232 @@
+"""Marker tracking on one recording: the paper's lost tracks (Table I) and, on the virtual rig, the true error.
+
+The paper's metric (section "Marker tracking evaluation", after Evetac): probing sequences
+start and end with the gel at rest, so a marker whose tracked position ends more than
+15 px (about one marker diameter) from where it started is a lost track. The virtual rig
+also records every marker's true image position (``/truth/markers``, 1 kHz), so there the
+tracker's error is measured directly at each window's end, and a track counts as lost by
+the truth when that error exceeds 15 px at any time (it may have recovered by the end,
+which the start-end proxy cannot see).
+
+:func:`track_recording` is a pure task for :func:`labrig.evaluation.executor.run_tasks`;
+:func:`table_lost_tracks` turns its results into Table I rows (mean and std over recordings).
+
+Settings map onto the trackers as follows. ``patch_scale`` is the patch side in marker
+diameters (the paper's 1x-5x); for the Evetac-style baseline it sets the annulus' outer
+radius to the same half side (``outer_radius = patch_scale`` marker radii). ``refine``
+switches the grid-aware refinement: lambda 0.2 or 0 for the paper's tracker, the neighbour
+springs (gain 0.1 or 0) for the baseline.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.errors import LabrigError
+
+Array = npt.NDArray[np.float64]
+
+LOST_PX = 15.0  # the paper's threshold: start-end drift (px) above which a track is lost
+PAPER_LAMBDA = 0.2  # the paper's refinement weight
+EVETAC_SPRING = 0.1  # the baseline's neighbour-spring gain when refined
+TRACKERS = ("paper", "paper-published", "evetac")
+REST_SOURCES = ("calibration", "rig")
+TABLE_PATCH_SCALES = (1.0, 2.0, 3.0, 4.0, 5.0)
+
+
+@dataclass(frozen=True)
+class TrackingTask:
+    """One recording, one tracker setting. Windows: ``window_us`` long (default 10 ms) or ``window_events`` each.
+
+    ``tracker``: "paper" (the bundled tracker with its event gates), "paper-published" (no gate,
+    no two-polarity test: the tracker as the paper describes it) or "evetac" (the baseline).
+    ``rest``: where the markers' rest pixels come from: "calibration" (the extrinsics the
+    recording names, else ``calibration_dir``'s, as ``labrig run`` resolves them; the rig's
+    camera when there are none) or "rig" (the rig's own camera model).
+    """
+
+    recording: str
+    tracker: str = "paper"
+    patch_scale: float = 3.0
+    refine: bool = True
+    window_us: int | None = 10_000
+    window_events: int | None = None
+    rest: str = "calibration"
+    calibration_dir: str | None = "calibration"
+    lost_px: float = LOST_PX
+
+
+def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float) -> Any:
+    """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide."""
+    from labrig.pipeline.tracking import EvetacParams, EvetacTracker, Tracker, TrackerParams
+
+    if task.patch_scale <= 0:
+        raise LabrigError(f"patch_scale must be positive (a multiple of the marker diameter), not {task.patch_scale}")
+    if task.tracker == "evetac":
+        spring = EVETAC_SPRING if task.refine else 0.0
+        params = EvetacParams(marker_diameter_px=diameter_px, outer_radius=float(task.patch_scale), spring=spring)
+        return EvetacTracker(rest_px, params)
+    lam = PAPER_LAMBDA if task.refine else 0.0
+    base = TrackerParams(marker_diameter_px=diameter_px, patch_scale=float(task.patch_scale), refine_lambda=lam)
+    if task.tracker == "paper":
+        return Tracker(rest_px, base)
+    if task.tracker == "paper-published":
+        return Tracker(rest_px, replace(base, gate_diameters=None, min_each_polarity=0))
+    raise LabrigError(f"tracker must be one of {', '.join(TRACKERS)}, not {task.tracker!r}")
+
+
+def track_recording(task: TrackingTask | Mapping[str, Any]) -> dict[str, Any]:
+    """Track ``task.recording`` window by window; lost tracks, drift and (virtual rig) true errors.
+
+    Keys (M markers, W windows): ``recording``, ``tracker``, ``patch_scale``, ``refine``,
+    ``window_us``, ``window_events`` (the settings); ``rest_source`` (str), ``marker_diameter_px``;
+    ``n_windows``, ``n_markers``; ``drift_px`` (M,) |end - start| of each track, px;
+    ``lost_tracks`` (count with drift > ``lost_px``), ``drift_max_px``; ``track_ms_median``,
+    ``track_ms_p95`` (the tracker's update per window, ms); ``has_truth``. With truth (else
+    None): ``error_median_px``, ``error_p95_px``, ``error_max_px`` over every marker and window;
+    ``error_max_per_marker_px`` (M,); ``lost_by_truth`` (markers ever more than ``lost_px``
+    off); ``t1_us`` (W,) window ends and ``window_error_p95_px`` (W,); ``truth_end_offset_max_px``
+    (how far the true markers end from where they started: the proxy's premise).
+    """
+    from labrig.pipeline.runtime import windows
+    from labrig.pipeline.tracking import marker_diameter_px
+    from labrig.recording import Recording
+
+    task = task if isinstance(task, TrackingTask) else TrackingTask(**task)
+    with Recording(task.recording) as rec:
+        rig, rest_px, rest_source = rest_pixels(rec, task.rest, task.calibration_dir)
+        diameter = marker_diameter_px(rig)
+        tracker = tracker_for(task, rest_px, diameter)
+        ends, positions, seconds = [], [], []
+        for _, t1, events in windows(rec, window_us=task.window_us, window_events=task.window_events):
+            tic = time.perf_counter()
+            p, _ = tracker.update(events)
+            seconds.append(time.perf_counter() - tic)
+            ends.append(t1)
+            positions.append(p)
+        truth = _truth_markers(rec)
+    if not positions:
+        raise LabrigError(f"{task.recording}: no tracking windows (the recording has no events?)")
+    track = np.asarray(positions)  # (W, M, 2)
+    drift = np.linalg.norm(track[-1] - rest_px, axis=1)
+    ms = np.asarray(seconds) * 1e3
+    out: dict[str, Any] = {
+        "recording": str(task.recording), "tracker": task.tracker, "patch_scale": float(task.patch_scale),
+        "refine": bool(task.refine), "window_us": task.window_us, "window_events": task.window_events,
+        "rest_source": rest_source, "marker_diameter_px": diameter,
+        "n_windows": len(track), "n_markers": track.shape[1],
+        "drift_px": drift, "lost_tracks": int((drift > task.lost_px).sum()), "drift_max_px": float(drift.max()),
+        "track_ms_median": float(np.median(ms)), "track_ms_p95": float(np.percentile(ms, 95)),
+    }
+    out.update(truth_errors(track, np.asarray(ends, np.float64), truth, task.lost_px))
+    return out
+
+
+track_recording.cache_version = "1"  # type: ignore[attr-defined]
+
+
+def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str]:
+    """(rig, rest pixels (M, 2), where they came from) for an open recording; see :class:`TrackingTask`."""
+    from labrig.config import load_rig
+    from labrig.pipeline.runtime import rig_from_recording, setup_for_recording
+    from labrig.pipeline.tracking import rest_positions_px
+
+    if rest == "calibration":
+        setup = setup_for_recording(rec, calibration_dir=calibration_dir)
+        return setup.rig, np.asarray(setup.rest_px, np.float64), setup.sources["camera"]
+    if rest == "rig":
+        carried = rig_from_recording(rec)
+        rig = carried or load_rig()
+        return rig, rest_positions_px(rig), "rig camera (" + ("the recording's rig" if carried else str(rig.path)) + ")"
+    raise LabrigError(f"rest must be one of {', '.join(REST_SOURCES)}, not {rest!r}")
+
+
+def _truth_markers(rec: Any) -> tuple[Array, Array] | None:
+    """(t_us (T,), position_px (T, M, 2)) of ``/truth/markers``, or None on a recording without it."""
+    if "truth/markers" not in rec.streams or rec.rows("truth/markers") == 0:
+        return None
+    t = rec.column("truth/markers", "t_host_us").astype(np.float64)
+    return t, rec.column("truth/markers", "position_px").astype(np.float64)
+
+
+def truth_at(t_truth_us: Array, truth_px: Array, t_us: Array) -> Array:
+    """True positions (W, M, 2) px at times ``t_us`` (W,), linear between the truth's samples (held at the ends)."""
+    upper = np.clip(np.searchsorted(t_truth_us, t_us), 1, max(len(t_truth_us) - 1, 1))
+    lower = upper - 1
+    span = np.maximum(t_truth_us[upper] - t_truth_us[lower], 1e-9)
+    w = np.clip((t_us - t_truth_us[lower]) / span, 0.0, 1.0)[:, None, None]
+    return truth_px[lower] + w * (truth_px[upper] - truth_px[lower])
+
+
+def truth_errors(track_px: Array, t1_us: Array, truth: tuple[Array, Array] | None, lost_px: float) -> dict[str, Any]:
+    """Error keys of :func:`track_recording` for a track (W, M, 2) at window ends ``t1_us`` (W,); None without truth."""
+    names = ("error_median_px", "error_p95_px", "error_max_px", "error_max_per_marker_px", "lost_by_truth",
+             "t1_us", "window_error_p95_px", "truth_end_offset_max_px")
+    if truth is None:
+        return {"has_truth": False, **dict.fromkeys(names)}
+    t_truth, truth_px = truth
+    if truth_px.shape[1] != track_px.shape[1]:
+        raise LabrigError(f"/truth/markers has {truth_px.shape[1]} markers, the tracker {track_px.shape[1]}")
+    error = np.linalg.norm(track_px - truth_at(t_truth, truth_px, t1_us), axis=2)  # (W, M)
+    per_marker = error.max(axis=0)
+    return {
+        "has_truth": True,
+        "error_median_px": float(np.median(error)), "error_p95_px": float(np.percentile(error, 95)),
+        "error_max_px": float(error.max()), "error_max_per_marker_px": per_marker,
+        "lost_by_truth": int((per_marker > lost_px).sum()),
+        "t1_us": t1_us.astype(np.int64), "window_error_p95_px": np.percentile(error, 95, axis=1),
+        "truth_end_offset_max_px": float(np.linalg.norm(truth_px[-1] - truth_px[0], axis=1).max()),
+    }
+
+
+# -- Table I ------------------------------------------------------------------------------------------
+
+
+def table_tasks(recordings: Iterable[str], *, patch_scales: Sequence[float] = TABLE_PATCH_SCALES,
+                refine: Sequence[bool] = (True, False), **settings: Any) -> list[TrackingTask]:
+    """Every (recording, refinement, patch scale) of Table I as tasks; ``settings`` are other TrackingTask fields."""
+    known = {f.name for f in fields(TrackingTask)} - {"recording", "patch_scale", "refine"}
+    unknown = set(settings) - known
+    if unknown:
+        raise LabrigError(f"unknown tracking settings {sorted(unknown)}; use {sorted(known)}")
+    return [TrackingTask(str(path), patch_scale=float(scale), refine=r, **settings)
+            for path in recordings for r in refine for scale in patch_scales]
+
+
+def table_lost_tracks(results: Iterable[Mapping[str, Any] | None]) -> list[dict[str, Any]]:
+    """Table I rows: per (tracker, window, refinement, patch scale), lost tracks per sequence over recordings.
+
+    Row keys: ``tracker``, ``window_us``, ``window_events``, ``refine``, ``patch_scale``,
+    ``recordings`` (count), ``lost_mean``, ``lost_std`` (population std over recordings, tracks);
+    ``lost_by_truth_mean``, ``lost_by_truth_std``, ``error_p95_px_mean`` (mean of the
+    recordings' p95 true error, px) over the recordings with truth (None if none has it);
+    ``track_ms_median`` (median over recordings of the per-recording median, ms). Failed tasks
+    (None) are skipped. Rows are sorted by tracker, window, refinement first, then patch scale.
+    """
+    groups: dict[tuple[Any, ...], list[Mapping[str, Any]]] = {}
+    for r in results:
+        if r is not None:
+            key = (r["tracker"], r["window_us"], r["window_events"], bool(r["refine"]), float(r["patch_scale"]))
+            groups.setdefault(key, []).append(r)
+    rows = []
+    for key in sorted(groups, key=lambda k: (k[0], k[1] or 0, k[2] or 0, not k[3], k[4])):
+        group = groups[key]
+        lost = np.array([r["lost_tracks"] for r in group], np.float64)
+        with_truth = [r for r in group if r.get("has_truth")]
+        by_truth = np.array([r["lost_by_truth"] for r in with_truth], np.float64)
+        p95 = np.array([r["error_p95_px"] for r in with_truth], np.float64)
+        rows.append({
+            "tracker": key[0], "window_us": key[1], "window_events": key[2], "refine": key[3], "patch_scale": key[4],
+            "recordings": len(group), "lost_mean": float(lost.mean()), "lost_std": float(lost.std()),
+            "lost_by_truth_mean": float(by_truth.mean()) if with_truth else None,
+            "lost_by_truth_std": float(by_truth.std()) if with_truth else None,
+            "error_p95_px_mean": float(p95.mean()) if with_truth else None,
+            "track_ms_median": float(np.median([r["track_ms_median"] for r in group])),
+        })
+    return rows
