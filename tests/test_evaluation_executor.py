@@ -151,6 +151,8 @@ def test_process_pool_matches_in_process_and_reports_failures(tmp_path: Path, fi
 def test_bad_tasks_and_functions_are_refused(tmp_path: Path, files: list[Path]) -> None:
     with pytest.raises(TypeError, match="task input 'path' is a ndarray"):
         run_tasks(summarise_file, [{"path": np.zeros(3)}], workers=1, cache_dir=tmp_path)
+    with pytest.raises(LabrigError, match="workers must be at least 1"):
+        run_tasks(summarise_file, [{"path": str(files[0])}], workers=0, use_cache=False)
     with pytest.raises(TypeError, match="module-level function"):
         run_tasks(lambda task: {}, [{"a": 1}], workers=2, use_cache=False)
     # A path given as a Path is the same input as its string.

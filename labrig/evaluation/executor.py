@@ -126,6 +126,8 @@ def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: in
     A task that raises does not stop the others; with ``raise_on_error`` the run then ends in
     :class:`TasksFailed` (which carries all results), else the failures are in ``.failures``.
     """
+    if workers is not None and workers < 1:
+        raise LabrigError(f"workers must be at least 1 (1 runs in this process), not {workers}")
     started = time.perf_counter()
     inputs = [task_inputs(task) for task in tasks]
     store = ResultCache(cache_dir or default_cache_dir(), fn) if use_cache else None
