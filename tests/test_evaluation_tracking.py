@@ -180,7 +180,8 @@ def test_pool_and_dask_agree_with_in_process(presses: list[str], tmp_path: Path)
     tasks = [TrackingTask(p, patch_scale=2.0, refine=k % 2 == 0) for k, p in enumerate(presses)]
     local = run_tasks(track_recording, tasks, workers=1, use_cache=False)
     pooled = run_tasks(track_recording, tasks, workers=2, use_cache=False)
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None,
+                                  local_directory=str(tmp_path / "dask")) as cluster:
         on_dask = run_tasks(track_recording, tasks, scheduler=cluster.scheduler_address, cache_dir=tmp_path)
         failing = run_tasks(track_recording, [TrackingTask(presses[0], tracker="kalman")], scheduler=cluster.scheduler_address,
                             use_cache=False, raise_on_error=False)
