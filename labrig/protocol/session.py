@@ -9,6 +9,10 @@ With no hardware configured the session starts the virtual rig in a child
 process (:class:`~labrig.sim.world_process.WorldProcess`: its twins on ptys
 and a Unix socket, as ``labrig sim serve``) and opens it with the same
 drivers; it also writes the rig's truth into each recording.
+
+Chunk listeners (:meth:`RigSession.add_chunk_listener`) see every camera chunk too, whether
+a recording is current or not, after the recording got it: the live pipeline
+(``labrig run --live``) reads the same stream this way instead of opening the camera twice.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import contextlib
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,7 +31,7 @@ import numpy as np
 from labrig.clock import HostClock, MonotonicClock
 from labrig.config import RigConfig
 from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
-from labrig.devices.evk4 import Camera, open_camera
+from labrig.devices.evk4 import Camera, EventChunk, open_camera
 from labrig.devices.grbl import Grbl, StatusSample
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
@@ -96,6 +101,9 @@ class RigSession:
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
         self.camera_events = 0
         self.last_camera_ns = 0
+        self._listeners: tuple[Callable[[EventChunk], None], ...] = ()
+        #: The first exception a chunk listener raised (that listener was removed; recording went on).
+        self.listener_error: BaseException | None = None
 
     @property
     def virtual(self) -> bool:
@@ -165,6 +173,29 @@ class RigSession:
         self._truth_thread = threading.Thread(target=self._pump_truth, name="labrig-truth-pump", daemon=True)
         self._truth_thread.start()
         return self.world.paths
+
+    # -- camera chunk listeners ----------------------------------------------------------------
+
+    def add_chunk_listener(self, listener: Callable[[EventChunk], None]) -> None:
+        """Hand every camera chunk to ``listener`` as well, on the camera pump thread, after the
+        current recording (if any) got it. ``listener`` must return at once (queue the chunk,
+        drop it when full): the pump also feeds the recording. One that raises is removed and its
+        exception kept in :attr:`listener_error`; the recording is not affected."""
+        with self._lock:
+            self._listeners = (*self._listeners, listener)
+
+    def remove_chunk_listener(self, listener: Callable[[EventChunk], None]) -> None:
+        with self._lock:
+            self._listeners = tuple(f for f in self._listeners if f is not listener)
+
+    def _notify_listeners(self, chunk: EventChunk) -> None:
+        for listener in self._listeners:
+            try:
+                listener(chunk)
+            except Exception as exc:  # a listener's bug must not stop the recording
+                if self.listener_error is None:
+                    self.listener_error = exc
+                self.remove_chunk_listener(listener)
 
     # -- recordings ---------------------------------------------------------------------------
 
@@ -241,12 +272,13 @@ class RigSession:
             self.last_camera_ns = chunk.t_host_ns
             self.camera_events += int(chunk.events.size)
             writer = self._writer
-            if writer is None:
-                continue
-            t_host_us = (chunk.t_host_ns - writer.t0_host_ns) // NS_PER_US
-            ev = chunk.events
-            if ev.size:
-                writer.put_events(ev["x"], ev["y"], ev["p"], ev["t"], t_host_us)
-            if chunk.triggers.size:
-                tr = chunk.triggers
-                writer.put("triggers", t_device_us=tr["t"], polarity=tr["p"], channel=tr["id"])
+            if writer is not None:
+                t_host_us = (chunk.t_host_ns - writer.t0_host_ns) // NS_PER_US
+                ev = chunk.events
+                if ev.size:
+                    writer.put_events(ev["x"], ev["y"], ev["p"], ev["t"], t_host_us)
+                if chunk.triggers.size:
+                    tr = chunk.triggers
+                    writer.put("triggers", t_device_us=tr["t"], polarity=tr["p"], channel=tr["id"])
+            if self._listeners:
+                self._notify_listeners(chunk)
