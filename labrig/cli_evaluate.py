@@ -37,8 +37,13 @@ def evaluate_command(
                        ] = None,
     scheduler: Annotated[str | None, typer.Option(help="A Dask scheduler address (tcp://host:8786) to run the tasks on.")
                          ] = None,
+    cache: Annotated[Path | None, typer.Option(help="Result cache folder (default $LABRIG_CACHE/eval or ~/.cache/labrig/eval).")
+                     ] = None,
     no_cache: Annotated[bool, typer.Option("--no-cache", help="Recompute every task (results are still stored).")] = False,
     table1: Annotated[bool, typer.Option(help="Track each recording at 5 patch sizes x 2 for Table I.")] = True,
+    sweep: Annotated[bool, typer.Option("--sweep", help="Also chart accuracy against latency over the pipeline's knobs.")
+                     ] = False,
+    sweep_recordings: Annotated[int, typer.Option(help="Recordings the sweep uses (spread over the split; 0: all).")] = 4,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
 ) -> None:
     """Evaluate the pipeline on DATA: Tables I-III, errors per range, runtime, dense and label errors; a report."""
@@ -48,8 +53,12 @@ def evaluate_command(
     settings = EvaluationSettings(
         data=data, split=split, model=model, models_dir=models,
         window_events=window_events if window_events is not None or window_ms is not None else 20_000,
-        window_ms=window_ms, calibration_dir=calibration, workers=workers, scheduler=scheduler,
-        use_cache=not no_cache, table1=table1)
+        window_ms=window_ms, calibration_dir=calibration, workers=workers, scheduler=scheduler, cache_dir=cache,
+        use_cache=not no_cache, table1=table1, sweep=sweep, sweep_recordings=sweep_recordings or None)
+    if sweep_recordings < 0:
+        from labrig.errors import LabrigError
+
+        raise LabrigError("--sweep-recordings must be 0 (all) or positive")
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=err_console, disable=as_json) as bar:
         ids: dict[str, int] = {}

@@ -57,8 +57,8 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path: Path) -> None:
     out = tmp_path / "report"
     args = ["evaluate", str(campaign), "--model", str(models / "depth-w2-contact-10ms.onnx"), "--models", str(models),
-            "--out", str(out), "--window-events", "30000", "--workers", "1", "--json"]
-    result = runner.invoke(app, args, env={"LABRIG_CACHE": str(tmp_path / "cache")})
+            "--out", str(out), "--window-events", "30000", "--workers", "1", "--json", "--cache", str(tmp_path / "cache")]
+    result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["recordings"] == 2 and summary["report_problems"] == []
@@ -75,7 +75,7 @@ def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path
     html = (out / "index.html").read_text()
     assert "Table III" in html and "figures/force_by_range_plot.png" in html
 
-    again = runner.invoke(app, args, env={"LABRIG_CACHE": str(tmp_path / "cache")})  # every task from the cache
+    again = runner.invoke(app, args)  # every task from the cache
     assert again.exit_code == 0, again.output
     cache = json.loads(again.stdout)["cache"]
     assert set(cache) == {"forces", "depth", "tracking", "labels"}
@@ -97,3 +97,41 @@ def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
         result = runner.invoke(app, ["evaluate", *args])
         assert isinstance(result.exception, LabrigError), (args, result.exception)  # `labrig` prints it, exit 2
         assert message in str(result.exception), (args, str(result.exception))
+
+
+def test_sweep_charts_accuracy_against_latency(campaign: Path, models: Path, tmp_path: Path) -> None:
+    from labrig.evaluation.executor import run_tasks
+    from labrig.evaluation.report import Report
+    from labrig.evaluation.sweep import add_sweep_to_report, run_sweep
+    from labrig.pipeline.depthnet import build_unet, export_onnx
+
+    export_onnx(build_unet(width=4).eval(), models / "depth-w4-contact-10ms.onnx",
+                {"name": "w4", "scale_mm": 2.5, "window_ms": 10.0, "loss": {"name": "contact"}, "architecture": {"width": 4}})
+
+    def run(kind: str, fn, tasks):  # type: ignore[no-untyped-def]
+        return list(run_tasks(fn, tasks, workers=1, cache_dir=tmp_path / "cache"))
+
+    sweep = run_sweep([str(campaign / "r0.h5")], models / "depth-w2-contact-10ms.onnx", models, run,
+                      calibration_dir="calibration", window_events=30_000, mesh_refinements=(1, 2))
+    by_metric = {m: [p for p in sweep.points if p.metric == m] for m in ("tracking", "depth", "forces")}
+    assert len(by_metric["tracking"]) == 20 and len(by_metric["forces"]) == 6
+    assert {p.label for p in by_metric["depth"]} >= {"width 2", "width 4", "30 ms (w2)"}
+    assert set(sweep.recommendations) == {"tracking", "depth", "forces"}
+    for metric, chosen in sweep.recommendations.items():
+        best = min(p.error for p in by_metric[metric])
+        assert chosen.error <= best * 1.05 + 1e-12
+        assert all(p.latency_ms >= chosen.latency_ms for p in by_metric[metric] if p.error <= best * 1.05)
+    from labrig.evaluation.charts import knee_index
+
+    for metric, points in by_metric.items():  # the knee is the front's (latencies are measured, so it may move)
+        k = knee_index([p.latency_ms for p in points], [p.error for p in points])
+        assert sweep.knees[metric] is (points[k] if k is not None else None)
+    assert min(p.error for p in by_metric["tracking"] if "1x" in p.label) > 1.5 * min(p.error for p in by_metric["tracking"])
+    report = Report("sweep")
+    add_sweep_to_report(report, sweep)
+    from labrig.evaluation.report import check_report
+
+    report.write(tmp_path / "r")
+    assert check_report(tmp_path / "r") == [] and (tmp_path / "r" / "figures" / "pareto_forces.png").exists()
+    marks = (tmp_path / "r" / "tables" / "sweep_tracking.csv").read_text()
+    assert "recommended" in marks and ("knee" in marks) == (sweep.knees["tracking"] is not None)

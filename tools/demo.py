@@ -6,9 +6,9 @@ pseudo-terminals, the EVK4 as EVT3 over a socket), rigs in parallel where cores 
 recorded with the truth; `labrig inspect` summarizes and plots one recording;
 `labrig groundtruth` makes the depth-map sidecars from what a lab has (CNC pose,
 calibration, gel modulus); `labrig run` streams one recording through the
-pipeline (tracker, depth, inverse FEM; the depth network joins when trained:
-until then the sim's true depth) and animates it. Evaluation and a report join
-as they land.
+pipeline (tracker, the sim's true depth, inverse FEM) and animates it;
+`labrig evaluate` feeds every recording to the pipeline with the bundled depth
+network and writes the report (demo-out/report/index.html).
 
 Usage: python tools/demo.py OUT_DIR
 """
@@ -39,12 +39,14 @@ def main(out_dir: Path) -> int:
         [labrig, "groundtruth", str(data), "--plot", str(out_dir / "groundtruth.png")],
         [labrig, "run", str(data / "demo-000.h5"), "--depth", "truth", "--out", str(out_dir / "demo-000.forces.h5"),
          "--view", str(out_dir / "demo-000.gif")],
+        [labrig, "evaluate", str(data), "--split", "all", "--out", str(out_dir / "report")],
     ]
     for command in steps:
         console.print(f"$ {' '.join(command)}", style="dim")
         code = subprocess.call(command)
         if code:
             return code
+    console.print(f"report: [bold]{out_dir / 'report' / 'index.html'}[/]")
     return 0
 
 

@@ -52,6 +52,8 @@ class EvaluationSettings:
     patch_scales: tuple[float, ...] = TABLE_PATCH_SCALES
     table1: bool = True
     label_errors: bool = True
+    sweep: bool = False
+    sweep_recordings: int | None = 4  # the sweep's recordings: the first N of the split (None: all)
 
     def check(self) -> None:
         if self.split not in SPLITS:
@@ -84,6 +86,7 @@ class Evaluation:
     labels: list[dict[str, Any]] = field(default_factory=list)
     table2_models: dict[tuple[str, float], str | None] = field(default_factory=dict)
     cache: dict[str, str] = field(default_factory=dict)  # kind -> "hits/misses" summary
+    sweep: Any = None  # labrig.evaluation.sweep.SweepResult with --sweep
     summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -165,8 +168,20 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
     if settings.label_errors and simulated:
         ev.labels = run("labels", evaluate_groundtruth, [GroundTruthErrorTask(p, elastic, "lab", calibration)
                                                           for elastic in ("layer", "halfspace") for p in simulated])
+    if settings.sweep:
+        from labrig.evaluation.sweep import run_sweep
+
+        chosen = paths if settings.sweep_recordings is None else _spread(paths, settings.sweep_recordings)
+        ev.sweep = run_sweep(chosen, model, settings.models_dir, run, calibration, **windows)
     ev.summary = headline(ev)
     return ev
+
+
+def _spread(items: list[str], n: int) -> list[str]:
+    """``n`` items spread evenly over ``items`` (campaigns list indenters in groups)."""
+    if n >= len(items):
+        return items
+    return [items[i] for i in np.linspace(0, len(items) - 1, n).round().astype(int)]
 
 
 def _runner(settings: EvaluationSettings, ev: Evaluation, progress: Progress | None) -> Callable[..., list[Any]]:
@@ -210,6 +225,10 @@ def headline(ev: Evaluation) -> dict[str, Any]:
     if ev.tracking:
         best = [r for r in table_lost_tracks(ev.tracking) if r["refine"] and r["patch_scale"] == 3.0]
         out["lost_tracks_per_sequence"] = best[0]["lost_mean"] if best else None
+    if ev.sweep is not None:
+        out["sweep_recommended"] = {metric: {"setting": p.label, "latency_ms": p.latency_ms, "error": p.error}
+                                    for metric, p in ev.sweep.recommendations.items()}
+        out["sweep_knee"] = {metric: (p.label if p else None) for metric, p in ev.sweep.knees.items()}
     return out
 
 
@@ -234,6 +253,10 @@ def build_report(ev: Evaluation) -> Report:
     _runtime_section(report, ev)
     if ev.labels:
         _labels_section(report, ev)
+    if ev.sweep is not None:
+        from labrig.evaluation.sweep import add_sweep_to_report
+
+        add_sweep_to_report(report, ev.sweep)
     report.add_json("summary", ev.summary)
     return report
 
