@@ -1,6 +1,8 @@
-"""``labrig run REC``: stream a recording through the inference pipeline and write the force fields.
+"""``labrig run REC`` / ``labrig run --live``: stream a recording, or the rig's camera, through the
+inference pipeline and write the force fields.
 
-Mount on the main app with :func:`add_run_commands` (``cli.py``). User errors are
+Mount on the main app with :func:`add_run_commands` (``cli.py``). The live path is in
+:mod:`labrig.cli_run_live` (its work in :mod:`labrig.pipeline.live`). User errors are
 :class:`LabrigError` s, printed as one line by ``labrig``.
 """
 
@@ -8,6 +10,7 @@ from __future__ import annotations
 
 import json
 import time
+from array import array
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -24,27 +27,63 @@ err_console = Console(stderr=True)
 
 
 def run(
-    recording: Annotated[Path, typer.Argument(help="A recording (.h5).")],
-    window_ms: Annotated[float | None, typer.Option(help="Fixed-time windows, ms (default 10).")] = None,
+    recording: Annotated[Path | None, typer.Argument(help="A recording (.h5); or --live.")] = None,
+    live: Annotated[bool, typer.Option("--live", help=(
+        "Stream the camera of the rig file's [devices] instead of a recording; with a probing run "
+        "(--indenter/--protocol, always on the embedded virtual rig) for as long as the run lasts."))] = False,
+    seconds: Annotated[float | None, typer.Option(help="--live, camera only: stop after this long (default: Ctrl-C).")] = None,
+    indenter: Annotated[str | None, typer.Option(help="--live: run one probing run with this indenter meanwhile.")] = None,
+    protocol: Annotated[Path | None, typer.Option(
+        help="--live: the probing run's protocol (default protocols/probe.toml).")] = None,
+    at: Annotated[str | None, typer.Option("--at", help="--live: the probing run's contact location X,Y, gel mm.")] = None,
+    depth_mm: Annotated[float | None, typer.Option(help="--live: the probing run's depth below contact, mm.")] = None,
+    save_recording: Annotated[Path | None, typer.Option(
+        help="--live: keep the probing run's recording here (.h5; default: compared with, then deleted).")] = None,
+    max_lag_ms: Annotated[float | None, typer.Option(
+        help="--live: skip depth and forces of windows older than this, ms (default 100; tracking goes on).")] = None,
+    window_ms: Annotated[float | None, typer.Option(
+        help="Fixed-time windows, ms (default 10; live: the network's trained window).")] = None,
     window_events: Annotated[int | None, typer.Option(help="Fixed-count windows (the paper's evaluation: 20000).")] = None,
-    depth: Annotated[str, typer.Option(help="Depth source: truth (the recording's /truth/depth) or model (ONNX).")] = "truth",
+    depth: Annotated[str | None, typer.Option(
+        help="Depth source: truth (the recording's /truth/depth; the default for REC) or model (ONNX; live).")] = None,
     model: Annotated[Path | None, typer.Option(help="Depth network .onnx (default: the newest in models/).")] = None,
     out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
     view: Annotated[Path | None, typer.Option(help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.")] = None,
     view_every: Annotated[int, typer.Option(help="Every n-th window in the animation.")] = 3,
     calibration: Annotated[Path | None, typer.Option(
-        help="Folder with gel.toml, intrinsics.toml, extrinsics.toml (default: calibration/ if present).")] = None,
-    rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in the recording).")] = None,
+        help="Folder with gel.toml, intrinsics.toml, extrinsics.toml (default: calibration/ if present; live: the rig "
+             "file's folder).")] = None,
+    rig_path: Annotated[Path | None, typer.Option("--rig", help=(
+        "Rig TOML (default: the one stored in the recording; live: calibration/rig.toml)."))] = None,
     youngs_modulus_mpa: Annotated[float | None, typer.Option(
         help="Gel modulus, MPa (default: gel.toml, else the rig's).")] = None,
     serial: Annotated[bool, typer.Option(help="Run the stages in turn instead of in two threads.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
 ) -> None:
-    """Stream RECORDING through SAE, tracker, depth, iFEM; per-window forces into --out, an animation into --view."""
+    """Stream RECORDING (or the live camera) through SAE, tracker, depth, iFEM; per-window forces into
+    --out, an animation into --view."""
     from labrig.config import load_rig
     from labrig.pipeline import runtime
     from labrig.recording import Recording
 
+    if live:
+        if recording is not None:
+            raise LabrigError(f"give a recording ({recording}) or --live, not both")
+        if serial:
+            raise LabrigError("--serial applies to a recording; the live pipeline always runs its two stages in two threads")
+        from labrig.cli_run_live import LiveOptions, run_live
+
+        run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every, calibration, rig_path,
+                             youngs_modulus_mpa, seconds, indenter, protocol, at, depth_mm, save_recording, max_lag_ms,
+                             as_json))
+        return
+    if recording is None:
+        raise LabrigError("give a recording (labrig run REC) or --live (the rig's camera)")
+    live_only = {"--seconds": seconds, "--indenter": indenter, "--protocol": protocol, "--at": at, "--depth-mm": depth_mm,
+                 "--save-recording": save_recording, "--max-lag-ms": max_lag_ms}
+    if given := [flag for flag, value in live_only.items() if value is not None]:
+        raise LabrigError(f"{', '.join(given)} only apply to --live; drop them to run a recording")
+    depth = depth or "truth"
     if window_ms is not None and window_events is not None:
         raise LabrigError("give --window-ms or --window-events, not both")
     if (window_ms is not None and window_ms <= 0) or (window_events is not None and window_events <= 0):
@@ -67,7 +106,7 @@ def run(
                  "poisson_ratio": setup.poisson_ratio, "sources": json.dumps(setup.sources)}
         writer = runtime.ResultWriter(out, len(setup.rest_px), attrs) if out is not None else None
         start = time.perf_counter()
-        results = []
+        log = WindowLog()
         try:
             for r in pipe.run(rec, window_us=window_us, window_events=window_events, concurrent=not serial):
                 if writer is not None:
@@ -75,14 +114,14 @@ def run(
                 if view is not None and r.index % max(view_every, 1) == 0:
                     frames.append(r)
                 r.sae = None if view is None or r.index % max(view_every, 1) else r.sae
-                results.append((r.t0_us, r.t1_us, r.n_events, r.net_force_n, r.seconds))
+                log.add(r)
         finally:
             if writer is not None:
                 writer.close()
         wall = time.perf_counter() - start
-    if not results:
+    if not len(log):
         raise LabrigError(f"{recording}: no windows (no events?)")
-    summary = _summary(recording, results, wall, source.name, setup, window_us, window_events, out, view)
+    summary = window_summary(str(recording), log, wall, source.name, setup, window_us, window_events, out, view)
     if view is not None:
         write_view(frames, setup, view)
     if as_json:
@@ -91,21 +130,45 @@ def run(
         _print(summary)
 
 
-def _summary(recording: Path, results: list[Any], wall: float, depth: str, setup: Any, window_us: int | None,
-             window_events: int | None, out: Path | None, view: Path | None) -> dict[str, Any]:
-    t0 = np.array([r[0] for r in results])
-    t1 = np.array([r[1] for r in results])
-    net = np.array([r[3] for r in results])
-    busy = np.array([sum(r[4].values()) for r in results])
-    stages = {k: float(np.median([r[4].get(k, 0.0) for r in results]) * 1000) for k in results[0][4]}
+class WindowLog:
+    """What the summary needs of each window, 8 bytes a value (a live run may last hours): times (us),
+    event count, net force (N, on the gel) and each stage's seconds."""
+
+    def __init__(self) -> None:
+        self.t0_us, self.t1_us, self.n_events = array("q"), array("q"), array("q")
+        self.net_force_n = array("d")
+        self.stage_s: dict[str, array[float]] = {}
+
+    def add(self, r: Any) -> None:
+        self.t0_us.append(r.t0_us)
+        self.t1_us.append(r.t1_us)
+        self.n_events.append(r.n_events)
+        self.net_force_n.extend(float(v) for v in r.net_force_n)
+        for name, seconds in r.seconds.items():
+            self.stage_s.setdefault(name, array("d", [0.0] * (len(self.t0_us) - 1))).append(seconds)
+
+    def __len__(self) -> int:
+        return len(self.t0_us)
+
+    def net(self) -> np.ndarray:
+        """(W, 3) N."""
+        return np.asarray(self.net_force_n).reshape(-1, 3)
+
+
+def window_summary(recording: str | None, log: WindowLog, wall: float, depth: str, setup: Any, window_us: int | None,
+                   window_events: int | None, out: Path | None, view: Path | None) -> dict[str, Any]:
+    """The run's summary (stable keys, units in names)."""
+    t0, t1, net = np.asarray(log.t0_us), np.asarray(log.t1_us), log.net()
+    busy = np.sum([np.asarray(v) for v in log.stage_s.values()], axis=0)
+    stages = {k: float(np.median(v) * 1000) for k, v in log.stage_s.items()}
     k = int(np.argmin(net[:, 2]))
     return {
-        "recording": str(recording), "depth_source": depth, "windows": len(results),
+        "recording": recording, "depth_source": depth, "windows": len(log),
         "window_us": window_us, "window_events": window_events, "duration_s": float((t1[-1] - t0[0]) / 1e6),
         "wall_s": wall, "processing_per_window_ms": float(np.median(busy) * 1000),
         "real_time_factor": float(np.median(busy / np.maximum(t1 - t0, 1) * 1e6)),
         "stage_median_ms": stages, "youngs_modulus_mpa": setup.youngs_modulus_mpa, "sources": setup.sources,
-        "peak_normal_force_n": float(-net[k, 2]), "peak_at_us": int(t1[k]),
+        "peak_normal_force_n": float(-net[k, 2]) + 0.0, "peak_at_us": int(t1[k]),
         "peak_net_force_n": [float(v) for v in net[k]], "out": str(out) if out else None, "view": str(view) if view else None,
     }
 
