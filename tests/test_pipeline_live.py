@@ -157,13 +157,19 @@ class _FlatDepth:
 
 
 class _ListSource:
-    """Chunks from a list, then the end of the stream."""
+    """Chunks from a list, then the end of the stream; ``pause_before`` {index: seconds} delays some."""
 
-    def __init__(self, chunks: list[EventChunk]) -> None:
+    def __init__(self, chunks: list[EventChunk], pause_before: dict[int, float] | None = None) -> None:
         self.chunks = list(chunks)
+        self.pause_before = pause_before or {}
+        self.served = 0
 
     def read(self, timeout_s: float | None = None) -> EventChunk | None:
-        return self.chunks.pop(0) if self.chunks else None
+        if not self.chunks:
+            return None
+        time.sleep(self.pause_before.get(self.served, 0.0))
+        self.served += 1
+        return self.chunks.pop(0)
 
     @property
     def ended(self) -> bool:
@@ -184,20 +190,36 @@ def _marker_events(setup: runtime.PipelineSetup, t0_us: int, n_windows: int) -> 
     return ev
 
 
-def test_windows_older_than_the_max_lag_are_tracked_but_skipped(setup: runtime.PipelineSetup) -> None:
-    now = time.monotonic_ns()
-    events, empty = _marker_events(setup, 0, 5), np.zeros(0, TRIGGER_DTYPE)
-    # one chunk per window; the second arrived 1 s ago (the pipeline was stuck), so the first
-    # window, which it closed, is stale; the others arrive "in the future" (never stale)
-    chunks = [EventChunk(events[k * 200:(k + 1) * 200], empty, now + (-1 if k == 1 else 1) * 10**9) for k in range(5)]
+def _window_chunks(setup: runtime.PipelineSetup, host_ns: list[int]) -> list[EventChunk]:
+    """One chunk per 10 ms window of marker events, arriving at ``host_ns``."""
+    events = _marker_events(setup, 0, len(host_ns))
+    return [EventChunk(events[k * 200:(k + 1) * 200], np.zeros(0, TRIGGER_DTYPE), t) for k, t in enumerate(host_ns)]
+
+
+def test_a_window_older_than_the_max_lag_is_tracked_but_skipped(setup: runtime.PipelineSetup) -> None:
+    now, second = time.monotonic_ns(), 10**9
+    # the second chunk arrived 1 s ago (the pipeline was stuck), so the first window, which it
+    # closed, is stale; the others arrive "in the future" (never stale); a pause after the
+    # stale one lets the back stage meet it alone
+    chunks = _window_chunks(setup, [now + second, now - second, now + second, now + second, now + second])
     depth = _FlatDepth()
-    runner = LiveRunner(runtime.Pipeline(setup, depth), _ListSource(chunks), window_us=10_000, max_lag_ms=100)
+    runner = LiveRunner(runtime.Pipeline(setup, depth), _ListSource(chunks, {2: 0.3}), window_us=10_000, max_lag_ms=100)
     results = list(runner.run())
     s = runner.stats
     assert s.windows == 5 and s.skipped == 1 and s.processed == 4 == len(results)
     assert [r.t0_us for r in results] == [10_000, 20_000, 30_000, 40_000]
     assert s.late == 0 and s.end_reason == "the stream ended"
     assert all(v > 0 for v in depth.seen)  # each window's own SAE reached the depth source
+
+
+def test_a_stale_backlog_is_skipped_up_to_the_newest_window(setup: runtime.PipelineSetup) -> None:
+    now, second = time.monotonic_ns(), 10**9
+    # windows 0-4 closed by chunks that arrived 1 s ago; window 5 by a fresh one, 6 at the end
+    chunks = _window_chunks(setup, [now - second] * 6 + [now + second])
+    runner = LiveRunner(runtime.Pipeline(setup, _FlatDepth()), _ListSource(chunks), window_us=10_000, max_lag_ms=100)
+    done = [r.t0_us // 10_000 for r in runner.run()]
+    # the back stage never computes a stale window; once behind it jumps to the newest queued
+    assert done in ([5, 6], [6]) and runner.stats.skipped == 7 - len(done)
 
 
 def test_the_front_runs_ahead_without_overwriting_the_sae_the_back_stage_reads(setup: runtime.PipelineSetup) -> None:

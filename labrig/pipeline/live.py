@@ -17,10 +17,12 @@ Real time (:class:`LiveRunner`): the front stage (windowing, SAE, tracker) runs 
 thread and sees every window, so markers stay tracked; the back stage (depth, displacements,
 forces, and whatever the caller does with each result) runs in the caller's thread. A
 window's age is the host time since the chunk that closed it arrived. When the back stage
-reaches a window older than ``max_lag_ms`` (default 100 ms), it **skips** it: tracked only,
-no depth, forces or result, so the forces shown are never older than that and a slow stretch
-is caught up at once. (Also skipped: windows that find the queue between the stages full, 256
-windows.) A processed window whose result was ready more than one window span after it
+reaches a window older than ``max_lag_ms`` (default 100 ms), it **skips** it and every window
+queued behind it but the newest, and goes on with that one: skipped windows are tracked only,
+no depth, forces or result. So the forces shown are never much older than ``max_lag_ms`` and
+a slow stretch is caught up at once; a pipeline slower than real time gives runs of
+consecutive windows with jumps between them. (Also skipped: windows that find the queue
+between the stages full, 256 windows.) A processed window whose result was ready more than one window span after it
 closed is counted **late**. Sources deliver chunks in bursts (a camera's USB transfers; the
 virtual rig's camera about every 50 ms), so a burst of windows is processed one after the
 other and its last ones can be late without the pipeline falling behind on average: the
@@ -308,18 +310,19 @@ class LiveRunner:
         thread = threading.Thread(target=self._front, args=(states, stop, halt, deadline_ns, failure),
                                   name="labrig-live-front", daemon=True)
         thread.start()
+        done = False
         try:
-            while True:
+            while not done:
                 try:
                     state = states.get(timeout=0.1)
                 except queue.Empty:
                     continue
                 if state is _DONE:
                     break
-                age_ms = (self.clock.now_ns() - state["t_host_ns"]) / 1e6
-                if self.max_lag_ms is not None and age_ms > self.max_lag_ms:
-                    self.stats.skipped += 1
-                    continue
+                if self._stale(state):
+                    state, done = self._newest(states, state)
+                    if state is None:
+                        continue
                 result = self.pipeline.back(state)
                 self._account(state, result)
                 yield result
@@ -333,6 +336,29 @@ class LiveRunner:
             self.stats.wall_s = (self.clock.now_ns() - start_ns) / 1e9
         if failure:
             raise failure[0]
+
+    def _stale(self, state: dict[str, Any]) -> bool:
+        age_ms = (self.clock.now_ns() - state["t_host_ns"]) / 1e6
+        return self.max_lag_ms is not None and age_ms > self.max_lag_ms
+
+    def _newest(self, states: queue.Queue[Any], stale: dict[str, Any]) -> tuple[dict[str, Any] | None, bool]:
+        """Catch up after ``stale``: skip it and every window queued behind it but the newest, which
+        is returned unless it is stale too; and whether the stream ended behind it."""
+        newest, done = stale, False
+        while not done:
+            try:
+                item = states.get_nowait()
+            except queue.Empty:
+                break
+            if item is _DONE:
+                done = True
+            else:
+                self.stats.skipped += 1
+                newest = item
+        if self._stale(newest):
+            self.stats.skipped += 1
+            return None, done
+        return newest, done
 
     def _account(self, state: dict[str, Any], result: WindowResult) -> None:
         latency_ms = (self.clock.now_ns() - state["t_host_ns"]) / 1e6
