@@ -15,7 +15,10 @@ rig pose, the event model); everything else is what a lab knows about its rig.
 
 from __future__ import annotations
 
+import json
+import re
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -170,9 +173,15 @@ def load_rig(path: str | Path = DEFAULT_RIG) -> RigConfig:
     path = Path(path)
     try:
         text = path.read_text()
-        data = tomllib.loads(text)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such rig file") from None
+    return parse_rig(text, path)
+
+
+def parse_rig(text: str, path: Path) -> RigConfig:
+    """Validate a rig TOML's ``text``; errors name ``path`` (where the text came from)."""
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     sim = _table(data, "sim", path)
@@ -195,6 +204,52 @@ def load_rig(path: str | Path = DEFAULT_RIG) -> RigConfig:
     )
     _check(config)
     return config
+
+
+TomlValue = bool | int | float | str | tuple[float, ...]
+
+
+def rig_with(rig: RigConfig, changes: Mapping[str, TomlValue]) -> RigConfig:
+    """A copy of ``rig`` with some values changed, e.g. ``{"sim.events.shot_noise_rate_hz": 5.0}``.
+
+    Keys are ``section.name`` (``sim.events.shot_noise_rate_hz``, ``gel.friction``). The TOML
+    text is rewritten line by line (comments and layout kept), so the copy's ``text``, which a
+    recording stores, states the changed values; ``path`` stays the original's. A key the
+    text does not hold is a :class:`ConfigError`.
+    """
+    lines = rig.text.splitlines(keepends=True)
+    for key, value in changes.items():
+        section, _, name = key.rpartition(".")
+        if not section:
+            raise ConfigError(f"{key!r}: give section.name, e.g. 'sim.events.shot_noise_rate_hz'")
+        current = ""
+        for i, line in enumerate(lines):
+            header = _SECTION.match(line)
+            if header:
+                current = header.group(1).strip()
+                continue
+            match = _ASSIGNMENT.match(line)
+            if current == section and match and match.group("name") == name:
+                lines[i] = f"{match.group('head')}{_toml_value(value)}{match.group('tail')}"
+                break
+        else:
+            raise ConfigError(f"{rig.path}: no key {name!r} in [{section}] to change")
+    return parse_rig("".join(lines), rig.path)
+
+
+_SECTION = re.compile(r"^\s*\[([^\[\]]+)\]\s*(#.*)?$")
+_ASSIGNMENT = re.compile(r'^(?P<head>\s*(?P<name>[A-Za-z0-9_-]+)\s*=\s*)(?P<value>"[^"]*"|\[[^\]]*\]|[^#\s]+)'
+                         r"(?P<tail>[^\S\n]*(#.*)?\n?)$")
+
+
+def _toml_value(value: TomlValue) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    return "[" + ", ".join(_toml_value(v) for v in value) + "]"
 
 
 def _table(data: dict[str, Any], name: str, path: Path, prefix: str = "") -> dict[str, Any]:

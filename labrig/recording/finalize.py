@@ -82,6 +82,23 @@ def _fit_camera_triggers(column, envelope: ClockModel | None) -> ClockModel | No
     return fit_triggers(dev, host, fallback=envelope) if dev.size else envelope
 
 
+def store_clock_model(path: Path, device: str, model: ClockModel) -> None:
+    """Replace the stored clock model of ``device`` in a finalized recording (``method`` as the model says).
+
+    For a rig that does not resync a device's clock: the recording then maps that device's
+    time with ``model`` (e.g. an offset and drift from a sync long before) instead of the fit
+    over its own data. The fit's residual attributes are left out, the model has none.
+    """
+    with h5py.File(path, "r+") as f:
+        if not f.attrs.get("finalized", False):
+            raise ValueError(f"{path} is not finalized; store a clock model after the recording is closed")
+        if device in f["clock"]:
+            del f["clock"][device]
+        group = f["clock"].create_group(device)
+        for key, value in model.to_attrs().items():
+            group.attrs[key] = value
+
+
 def finalize_file(
     path: Path,
     exit_status: str,

@@ -26,6 +26,8 @@ Model (after ESIM and v2e, as summarised in the shared reference notes, events.m
 * **Shot noise**: Poisson events at ``shot_noise_rate_hz`` per pixel in total,
   half ON and half OFF, uniform in time, leaving R unchanged; one that would
   fall within the refractory period of another event of its pixel is dropped.
+* **Dead pixels** (optional ``dead`` mask): a dead pixel emits nothing (its
+  events, signal and noise alike, are dropped at the output).
 
 Cost: a step updates only the pixels given to it plus the pixels whose
 low-pass has not settled (|Lf - L| > settle_log); a dense block of changed
@@ -131,9 +133,17 @@ class EventSensor:
         y0: int = 0,
         t_us: int = 0,
         seed: int = 0,
+        dead: npt.ArrayLike | None = None,
     ) -> None:
+        """``dead``: an optional (height, width) boolean mask of pixels that never emit an event."""
         self.params, self.width, self.height, self.x0, self.y0 = params, width, height, x0, y0
         n = width * height
+        self.dead: npt.NDArray[np.bool_] | None = None
+        if dead is not None:
+            mask = np.asarray(dead, dtype=bool)
+            if mask.shape != (height, width):
+                raise ValueError(f"the dead-pixel mask is {mask.shape}, not (height, width) = ({height}, {width})")
+            self.dead = mask.ravel() if mask.any() else None
         intensity = np.asarray(initial_intensity, dtype=np.float64).ravel()
         if intensity.size != n:
             raise ValueError(f"initial_intensity has {intensity.size} values, not {width}x{height}")
@@ -172,9 +182,10 @@ class EventSensor:
 
     @classmethod
     def from_rig(
-        cls, rig: RigConfig, initial_intensity: npt.ArrayLike, *, t_us: int = 0, seed: int = 0, params: EventParams | None = None
+        cls, rig: RigConfig, initial_intensity: npt.ArrayLike, *, t_us: int = 0, seed: int = 0,
+        params: EventParams | None = None, dead: npt.ArrayLike | None = None,
     ) -> EventSensor:
-        """Pixels over the rig's ROI with the rig's event parameters (or ``params``)."""
+        """Pixels over the rig's ROI with the rig's event parameters (or ``params``); ``dead``: (height, width) mask."""
         roi = rig.roi
         return cls(
             params or EventParams.from_rig(rig),
@@ -185,6 +196,7 @@ class EventSensor:
             y0=roi.y0_px,
             t_us=t_us,
             seed=seed,
+            dead=dead,
         )
 
     @property
@@ -223,6 +235,9 @@ class EventSensor:
             noise,
         )
         self.t_us = t1_us
+        if self.dead is not None:
+            alive = ~self.dead[pix]
+            pix, pol, t = pix[alive], pol[alive], t[alive]
         # Sort by (t, pixel, polarity) through one int64 key; equal keys are identical events.
         order = np.argsort(((t - t0_us) * self.size + pix) * 2 + pol)
         pix, pol, t = pix[order], pol[order], t[order]

@@ -20,10 +20,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from labrig.clock import HostClock, MonotonicClock
+from labrig.clock import ClockModel, HostClock, MonotonicClock
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
 from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
+from labrig.recording.finalize import store_clock_model
 from labrig.sim.motion import PiecewiseLinearPath
 from labrig.sim.rig import RigOutput, Solve, VirtualRig
 from labrig.sim.truth import network_grid_gel_mm, truth_streams
@@ -60,10 +61,14 @@ def record_live(
     clock: HostClock | None = None,
     virtual_rig: VirtualRig | None = None,
     progress: Callable[[float], None] | None = None,
+    camera_clock_model: ClockModel | None = None,
 ) -> LiveResult:
     """Simulate ``tool_path`` and record it; paced to the host clock when ``realtime``.
 
     ``progress`` is called with the simulated seconds done after each chunk.
+    ``camera_clock_model``: a rig that does not resync the camera clock; the recording maps
+    camera time with this model (e.g. from a sync long before) instead of the one fitted
+    on its own events and trigger edges.
     """
     vr = virtual_rig or VirtualRig(rig, indenter, seed=seed)
     clock = clock or MonotonicClock()
@@ -119,6 +124,8 @@ def record_live(
             if progress is not None:
                 progress(t1 / 1e6)
         writer.phase_end(duration_us)
+    if camera_clock_model is not None:
+        store_clock_model(writer.result.path, "camera", camera_clock_model)
     return LiveResult(writer.result, duration_us / 1e6, time.perf_counter() - wall0, max_lag_us / 1000,  # type: ignore[arg-type]
                       late, chunks, events)
 

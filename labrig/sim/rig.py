@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, Roi
 from labrig.frames import Pose, rotvec_to_matrix, wrench_about
 from labrig.indenters import Indenter
 from labrig.sim.camera import CameraModel
@@ -106,7 +106,9 @@ class VirtualRig:
         max_solve_interval_us: int = 50_000,
         max_render_interval_us: int = 10_000,
         track: ContactTrack | None = None,
+        dead_pixels: Roi | None = None,
     ) -> None:
+        """``dead_pixels``: a rectangle of sensor pixels that emit no events (a dead region), or None."""
         self.rig = rig
         self.indenter = indenter
         self.camera = CameraModel.from_rig(rig)
@@ -121,7 +123,7 @@ class VirtualRig:
         self.cells = _marker_cells(rig)
         self.renderer = Renderer(rig, self.camera)
         self.renderer.prepare_shading()
-        self.sensor = EventSensor.from_rig(rig, self.renderer.image, t_us=0, seed=seed)
+        self.sensor = EventSensor.from_rig(rig, self.renderer.image, t_us=0, seed=seed, dead=_dead_mask(rig.roi, dead_pixels))
         self.solve_step_mm = solve_step_mm
         self.min_solve_interval_us = min_solve_interval_us
         self.max_solve_interval_us = max_solve_interval_us
@@ -376,6 +378,18 @@ class VirtualRig:
             return None
         f = solve.fields
         return DepthField(f.x_mm + solve.anchor_mm[0], f.y_mm + solve.anchor_mm[1], np.asarray(f.depth_mm, np.float64))
+
+
+def _dead_mask(roi: Roi, dead: Roi | None) -> npt.NDArray[np.bool_] | None:
+    """(height, width) mask over the ROI of the sensor pixels inside ``dead`` (sensor pixels, ends exclusive)."""
+    if dead is None:
+        return None
+    mask = np.zeros((roi.height_px, roi.width_px), dtype=bool)
+    y0, y1 = max(dead.y0_px - roi.y0_px, 0), min(dead.y1_px - roi.y0_px, roi.height_px)
+    x0, x1 = max(dead.x0_px - roi.x0_px, 0), min(dead.x1_px - roi.x0_px, roi.width_px)
+    if y1 > y0 and x1 > x0:
+        mask[y0:y1, x0:x1] = True
+    return mask
 
 
 @dataclass(frozen=True)
