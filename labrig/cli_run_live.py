@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import typer
 from rich import box
 from rich.live import Live
 from rich.markup import escape
@@ -111,6 +112,8 @@ def run_live(o: LiveOptions) -> None:
         print(json.dumps(summary, indent=2))
     else:
         _print(summary)
+    if summary["probe"] is not None and summary["probe"]["exit_status"] != "complete":
+        raise typer.Exit(1)  # as `labrig record`: the probing run did not complete
 
 
 def _check(o: LiveOptions) -> None:
@@ -240,7 +243,7 @@ def _with_probe(o: LiveOptions, rig: Any, devices: Any, pipe: Any, sink: _Sink, 
                     sink.take(result)
             run = stream.outcome()
             assert session.camera is not None
-            camera_drops = session.camera.stats
+            camera_drops, camera_error = session.camera.stats, session.camera.error
         log = sink.log
         comparison = live_rig.compare_with_ft(run.path, log.t0_us, log.t1_us, log.net(), calibration_dir) if len(log) else None
     probe = {"indenter": spec.indenter, "protocol": str(protocol_path), "exit_status": run.exit_status,
@@ -249,7 +252,8 @@ def _with_probe(o: LiveOptions, rig: Any, devices: Any, pipe: Any, sink: _Sink, 
     return {"stats": stream.live.stats, "recording": probe["recording"],
             "dropped_chunks": camera_drops.dropped_chunks + stream.tap.stats.dropped_chunks,
             "dropped_events": camera_drops.dropped_events + stream.tap.stats.dropped_events,
-            "camera_error": None, "probe": probe, "ft_comparison": comparison}
+            "camera_error": None if camera_error is None else str(camera_error), "probe": probe,
+            "ft_comparison": comparison}
 
 
 # -- results, view, Ctrl-C -------------------------------------------------------------------------------
