@@ -29,7 +29,7 @@ err_console = Console(stderr=True)
 def run(
     recording: Annotated[Path | None, typer.Argument(help="A recording (.h5); or --live.")] = None,
     live: Annotated[bool, typer.Option("--live", help=(
-        "Stream the camera of the rig file's [devices] instead of a recording; with a probing run "
+        "Stream the camera of the rig file's \\[devices] instead of a recording; with a probing run "
         "(--indenter/--protocol, always on the embedded virtual rig) for as long as the run lasts."))] = False,
     seconds: Annotated[float | None, typer.Option(help="--live, camera only: stop after this long (default: Ctrl-C).")] = None,
     indenter: Annotated[str | None, typer.Option(help="--live: run one probing run with this indenter meanwhile.")] = None,
