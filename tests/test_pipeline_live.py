@@ -400,7 +400,7 @@ def test_bad_inputs_say_what_to_do_in_one_line(small_recording: Path, tmp_path: 
         (("run", "--live", "--seconds", "5"), ROOT, "one probing run"),
         (("run", small_recording, "--seconds", "5"), ROOT, "only apply to --live"),
         (("run", "--live", "--rig", tmp_path / "rig.toml", "--seconds", "1"), ROOT, "no such socket"),
-        (("run", "--live", "--rig", ROOT / "calibration" / "rig.toml"), tmp_path, "--model X.onnx"),
+        (("run", "--live", "--model", tmp_path / "none.onnx"), ROOT, "no such depth network"),
     ]
     procs = [subprocess.Popen([sys.executable, "-m", "labrig.cli", *map(str, args)], stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True, cwd=cwd) for args, cwd, _ in cases]
@@ -410,3 +410,15 @@ def test_bad_inputs_say_what_to_do_in_one_line(small_recording: Path, tmp_path: 
         assert proc.returncode == 2, (args, stderr)
         assert "Traceback" not in stderr and lines[0].startswith("error:"), (args, stderr)
         assert expected in " ".join(lines), (args, stderr)
+
+
+def test_no_depth_network_says_what_to_do(monkeypatch: pytest.MonkeyPatch) -> None:
+    from labrig.cli_run_live import _default_model
+    from labrig.errors import LabrigError
+
+    def nothing(folder: str = "models") -> Path:
+        raise LabrigError("no depth network in models/")
+
+    monkeypatch.setattr(runtime, "default_model_path", nothing)
+    with pytest.raises(LabrigError, match=r"pass --model X\.onnx, or train one with `labrig train DATA/`"):
+        _default_model()
