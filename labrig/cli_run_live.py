@@ -119,7 +119,7 @@ def run_live(o: LiveOptions) -> None:
 def _check(o: LiveOptions) -> None:
     if o.depth == "truth":
         raise LabrigError("--depth truth reads a recording's /truth/depth, which a live stream has not: "
-                          "live depth comes from the network (--model X.onnx, default the newest in models/)")
+                          "live depth comes from the network (--model X.onnx, default: newest in models/, else bundled)")
     if o.depth not in (None, "model"):
         raise LabrigError(f"--depth {o.depth!r}: live depth comes from the network (model)")
     if o.max_lag_ms is not None and o.max_lag_ms <= 0:

@@ -100,12 +100,12 @@ class ModelDepth:
 
 
 def default_model_path(folder: str | Path = "models") -> Path:
-    """The newest ``*.onnx`` with a model card in ``folder``."""
+    """The newest ``*.onnx`` with a model card in ``folder`` (your own trained networks), else the bundled one."""
+    from labrig.models import bundled_model_path
+
     candidates = sorted(Path(folder).glob("*.onnx"), key=lambda p: p.stat().st_mtime)
     candidates = [p for p in candidates if p.with_suffix(".json").exists()]
-    if not candidates:
-        raise LabrigError(f"no depth network (NAME.onnx + NAME.json) in {folder}/; train one or use --depth truth")
-    return candidates[-1]
+    return candidates[-1] if candidates else bundled_model_path()
 
 
 # -- windows -------------------------------------------------------------------------------------
