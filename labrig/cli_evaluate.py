@@ -44,6 +44,10 @@ def evaluate_command(
     sweep: Annotated[bool, typer.Option("--sweep", help="Also chart accuracy against latency over the pipeline's knobs.")
                      ] = False,
     sweep_recordings: Annotated[int, typer.Option(help="Recordings the sweep uses (spread over the split; 0: all).")] = 4,
+    stress: Annotated[bool, typer.Option("--stress", help="Also push each method along stress axes on the virtual rig "
+                                         "until it breaks (force range, speed, slip, noise, contrast, window, clock, "
+                                         "dead pixels).")] = False,
+    stress_grid: Annotated[str, typer.Option(help="The stress axes' values: full, or reduced (3 per axis).")] = "full",
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
 ) -> None:
     """Evaluate the pipeline on DATA: Tables I-III, errors per range, runtime, dense and label errors; a report."""
@@ -54,7 +58,8 @@ def evaluate_command(
         data=data, split=split, model=model, models_dir=models,
         window_events=window_events if window_events is not None or window_ms is not None else 20_000,
         window_ms=window_ms, calibration_dir=calibration, workers=workers, scheduler=scheduler, cache_dir=cache,
-        use_cache=not no_cache, table1=table1, sweep=sweep, sweep_recordings=sweep_recordings or None)
+        use_cache=not no_cache, table1=table1, sweep=sweep, sweep_recordings=sweep_recordings or None,
+        stress=stress, stress_grid=stress_grid)
     if sweep_recordings < 0:
         from labrig.errors import LabrigError
 

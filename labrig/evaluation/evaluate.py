@@ -55,6 +55,8 @@ class EvaluationSettings:
     label_errors: bool = True
     sweep: bool = False
     sweep_recordings: int | None = 4  # the sweep's recordings: the first N of the split (None: all)
+    stress: bool = False  # the stress suite on the virtual rig (labrig.evaluation.stress)
+    stress_grid: str = "full"  # or "reduced"
 
     def check(self) -> None:
         if self.split not in SPLITS:
@@ -66,6 +68,8 @@ class EvaluationSettings:
             raise LabrigError("--window-events and --window-ms must be positive")
         if self.models_dir is not None and not Path(self.models_dir).is_dir():
             raise LabrigError(f"--models {self.models_dir}: not a folder (give the folder tools/depth_sweep.py wrote)")
+        if self.stress_grid not in ("full", "reduced"):
+            raise LabrigError(f"--stress-grid must be full or reduced, not {self.stress_grid!r}")
         if self.model is not None and not Path(self.model).exists():
             raise LabrigError(f"--model {self.model}: no such file (give a depth network .onnx with its .json card)")
 
@@ -88,6 +92,7 @@ class Evaluation:
     table2_models: dict[tuple[str, float], str | None] = field(default_factory=dict)
     cache: dict[str, str] = field(default_factory=dict)  # kind -> "hits/misses" summary
     sweep: Any = None  # labrig.evaluation.sweep.SweepResult with --sweep
+    stress: Any = None  # labrig.evaluation.stress.StressResult with --stress
     summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -175,6 +180,10 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
 
         chosen = paths if settings.sweep_recordings is None else _spread(paths, settings.sweep_recordings)
         ev.sweep = run_sweep(chosen, model, settings.models_dir, run, calibration, **windows)
+    if settings.stress:
+        from labrig.evaluation.stress import run_stress
+
+        ev.stress = run_stress(run, grid=settings.stress_grid, model=str(model), calibration_dir=calibration)
     ev.summary = headline(ev)
     return ev
 
@@ -232,6 +241,10 @@ def headline(ev: Evaluation) -> dict[str, Any]:
         out["sweep_recommended"] = {metric: {"setting": p.label, "latency_ms": p.latency_ms, "error": p.error}
                                     for metric, p in ev.sweep.recommendations.items()}
         out["sweep_knee"] = {metric: (p.label if p else None) for metric, p in ev.sweep.knees.items()}
+    if ev.stress is not None:
+        from labrig.evaluation.stress import stress_summary
+
+        out["stress_breakdown"] = stress_summary(ev.stress)
     return out
 
 
@@ -260,6 +273,10 @@ def build_report(ev: Evaluation) -> Report:
         from labrig.evaluation.sweep import add_sweep_to_report
 
         add_sweep_to_report(report, ev.sweep)
+    if ev.stress is not None:
+        from labrig.evaluation.stress import add_stress_to_report
+
+        add_stress_to_report(report, ev.stress)
     report.add_json("summary", ev.summary)
     return report
 

@@ -1,0 +1,331 @@
+"""``labrig evaluate --stress``: push each method along each stress axis on the virtual rig until it breaks.
+
+Every (axis, value) of :data:`labrig.evaluation.stress_axes.AXES` is a short probing run on
+the virtual rig with one knob pushed; the methods are measured on it against the sim's truth:
+
+* tracking: the bundled tracker ("paper", 3x patch), the tracker as published
+  ("paper-published", 1x) and the Evetac-style baseline ("evetac", 1x), each refined and at
+  its best patch in Table I on the virtual rig: p95 true error (px) and tracks lost by the
+  truth (ever more than 15 px off), :func:`labrig.evaluation.tracking.track_recording`;
+* forces: the pipeline with the sim's true depth ("forces-truth", so the stress falls on
+  tracking and the inverse FEM) and, given a network, with it ("forces-model"): the mean
+  norm of the error against the F/T sensor over the probing phases, as a percentage of the
+  mean measured force (N in the results too), :func:`labrig.evaluation.forces.evaluate_forces`.
+
+A method breaks where its error reaches twice the error at the least-stressed value
+(:func:`labrig.evaluation.charts.breakdown_point`) or, for trackers, where more tracks are
+lost than there; None: it did not break within the grid.
+
+One task per distinct scene (:func:`measure_scene`, through the cached executor): the
+default probe, shared by the baselines of most axes and by every window length, is
+simulated once and measured with every window and method asked of it.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.lines import Line2D
+
+from labrig.config import DEFAULT_RIG
+from labrig.evaluation import charts
+from labrig.evaluation.report import Report
+from labrig.evaluation.stress_axes import AXES, StressAxis
+from labrig.evaluation.stress_scene import StressScene, record_scene, stressed_rig
+
+#: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
+TRACKERS = {"paper": 3.0, "paper-published": 1.0, "evetac": 1.0}
+FORCES_TRUTH, FORCES_MODEL = "forces-truth", "forces-model"
+FACTOR = 2.0
+Run = Callable[[str, Callable[[Any], dict[str, Any]], list[Any]], list[Any]]
+
+
+@dataclass(frozen=True)
+class StressTask:
+    """One scene (``StressScene`` fields as a dict) and what to measure on it: every window x method."""
+
+    scene: dict[str, Any]
+    windows_ms: tuple[float, ...] = (10.0,)
+    trackers: tuple[str, ...] = tuple(TRACKERS)
+    forces: bool = True
+    model: str | None = None  # a depth network (.onnx) for "forces-model"
+    calibration_dir: str | None = "calibration"
+
+
+def measure_scene(task: StressTask | dict[str, Any]) -> dict[str, Any]:
+    """Record the task's scene in a temporary folder and measure every window and method on it.
+
+    Keys: ``scene`` (facts of the run, :func:`record_scene`), ``tracking`` {window key:
+    {tracker: {error_p95_px, error_median_px, lost_by_truth, lost_tracks}}}, ``forces``
+    {window key: {method: {error_pct, error_n, error_z_n, measured_mean_n, windows}}};
+    window keys are :func:`window_key` of the window in ms.
+    """
+    from labrig.evaluation.forces import ForceTask, evaluate_forces
+    from labrig.evaluation.tracking import TrackingTask, track_recording
+    from labrig.groundtruth import sidecar_path
+
+    task = task if isinstance(task, StressTask) else StressTask(**task)
+    scene = StressScene(**task.scene)
+    out: dict[str, Any] = {"tracking": {}, "forces": {}}
+    with tempfile.TemporaryDirectory(prefix="labrig-stress-") as folder:
+        recording = str(Path(folder) / "stress.h5")
+        out["scene"] = record_scene(scene, recording)
+        for window_ms in task.windows_ms:
+            window_us = round(window_ms * 1000)
+            tracking = {}
+            for tracker in task.trackers:
+                r = track_recording(TrackingTask(recording, tracker=tracker, patch_scale=TRACKERS[tracker], refine=True,
+                                                 window_us=window_us, calibration_dir=task.calibration_dir))
+                tracking[tracker] = {k: r[k] for k in ("error_p95_px", "error_median_px", "lost_by_truth", "lost_tracks")}
+            out["tracking"][window_key(window_ms)] = tracking
+            depths = ([("truth", FORCES_TRUTH)] if task.forces else []) + ([(task.model, FORCES_MODEL)]
+                                                                           if task.forces and task.model else [])
+            forces = {}
+            for depth, method in depths:
+                r = evaluate_forces(ForceTask(recording, depth, window_events=None, window_us=window_us,
+                                              calibration_dir=task.calibration_dir,
+                                              sidecar=str(sidecar_path(recording))))
+                forces[method] = force_errors(r)
+            out["forces"][window_key(window_ms)] = forces
+    return out
+
+
+measure_scene.cache_version = "1"  # type: ignore[attr-defined]
+
+
+def window_key(window_ms: float) -> str:
+    return f"{float(window_ms):g}ms"
+
+
+def force_errors(result: dict[str, Any]) -> dict[str, float]:
+    """Error of an :func:`evaluate_forces` result over its probing windows: mean |error| (N, norm and z) and
+    the same as a percentage of the mean |measured force|."""
+    probing = np.asarray(result["probing"], bool)
+    error = (result["predicted_n"] - result["measured_n"])[probing]
+    measured = np.linalg.norm(result["measured_n"][probing], axis=1)
+    if not len(error):
+        return {"error_pct": float("nan"), "error_n": float("nan"), "error_z_n": float("nan"),
+                "measured_mean_n": float("nan"), "windows": 0}
+    norm = np.linalg.norm(error, axis=1)
+    return {"error_pct": float(100 * norm.mean() / max(measured.mean(), 1e-9)), "error_n": float(norm.mean()),
+            "error_z_n": float(np.abs(error[:, 2]).mean()), "measured_mean_n": float(measured.mean()),
+            "windows": len(error)}
+
+
+# -- the suite ------------------------------------------------------------------------------------
+
+
+@dataclass
+class Breakdown:
+    """Where one method broke on one axis: ``value`` (axis unit; None: not within the grid) and why."""
+
+    axis: str
+    metric: str
+    method: str
+    value: float | None
+    cause: str  # "error x2", "tracks lost", "" when it did not break
+    error_doubles_at: float | None
+    tracks_lost_at: float | None
+
+
+@dataclass
+class StressCurve:
+    """One method's error along one axis: ``error`` per value (px for tracking, % for forces), ``lost`` (trackers)."""
+
+    axis: str
+    metric: str
+    method: str
+    values: list[float]
+    error: list[float]
+    lost: list[int] | None = None
+    error_n: list[float] | None = None
+
+
+@dataclass
+class StressResult:
+    grid: str
+    axes: list[StressAxis]
+    curves: list[StressCurve]
+    breakdowns: list[Breakdown]
+    scenes: dict[str, list[dict[str, Any]]] = field(default_factory=dict)  # axis -> facts per value
+
+
+def plan(axes: Sequence[StressAxis], grid: str, base: StressScene) -> list[tuple[StressScene, list[float],
+                                                                                    list[tuple[StressAxis, float]]]]:
+    """Distinct scenes in first-use order: (scene, its windows, the (axis, value) points that use it)."""
+    scenes: dict[StressScene, tuple[list[float], list[tuple[StressAxis, float]]]] = {}
+    for axis in axes:
+        for value in axis.values(grid):
+            windows, points = scenes.setdefault(axis.scene(value, base), ([], []))
+            if axis.window_ms(value) not in windows:
+                windows.append(axis.window_ms(value))
+            points.append((axis, value))
+    return [(scene, windows, points) for scene, (windows, points) in scenes.items()]
+
+
+def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | None = None, model: str | None = None,
+               calibration_dir: str | None = "calibration", base: StressScene | None = None) -> StressResult:
+    """Every axis over its grid; ``run(kind, fn, tasks) -> results`` runs the tasks (parallel, cached).
+
+    ``axes``: default :data:`AXES`; ``base``: the least-stressed scene (default: the default
+    probe on ``calibration_dir``'s ``rig.toml``, else the bundled rig); ``model``: a depth
+    network for "forces-model".
+    """
+    axes = list(AXES if axes is None else axes)
+    base = base or StressScene(rig=rig_file(calibration_dir))
+    rig = stressed_rig(base)
+    if base.shot_noise_rate_hz is None:  # spelled out, so the noise axis' baseline is the default scene
+        base = StressScene(**{**asdict(base), "shot_noise_rate_hz": rig.sim.events.shot_noise_rate_hz})
+    scenes = plan(axes, grid, base)
+    tasks = []
+    for scene, windows, points in scenes:
+        metrics = {metric for axis, _ in points for metric in axis.metrics}
+        tasks.append(StressTask(asdict(scene), tuple(windows), trackers=tuple(TRACKERS) if "tracking" in metrics else (),
+                                forces="forces" in metrics, model=model, calibration_dir=calibration_dir))
+    results = run("stress", measure_scene, tasks)
+    measured: dict[tuple[str, float], tuple[dict[str, Any], str]] = {}
+    for (_, _, points), result in zip(scenes, results):
+        for axis, value in points:
+            measured[(axis.key, value)] = (result, window_key(axis.window_ms(value)))
+    curves, breakdowns, facts = [], [], {}
+    for axis in axes:
+        values = list(axis.values(grid))
+        facts[axis.key] = [dict(measured[(axis.key, v)][0]["scene"]) if measured[(axis.key, v)][0] else {}
+                           for v in values]
+        for metric in axis.metrics:
+            for method in _methods(metric, model):
+                curve = _curve(axis, metric, method, values, measured)
+                curves.append(curve)
+                breakdowns.append(breakdown_of(curve, log_x=axis.log_x))
+    return StressResult(grid, list(axes), curves, breakdowns, facts)
+
+
+def rig_file(calibration_dir: str | None) -> str:
+    """The rig the stress scenes run on: ``calibration_dir/rig.toml`` if there is one, else the bundled rig."""
+    candidate = Path(calibration_dir) / "rig.toml" if calibration_dir else None
+    return str(candidate.resolve()) if candidate is not None and candidate.exists() else str(DEFAULT_RIG)
+
+
+def _methods(metric: str, model: str | None) -> list[str]:
+    if metric == "tracking":
+        return list(TRACKERS)
+    return [FORCES_TRUTH] + ([FORCES_MODEL] if model else [])
+
+
+def _curve(axis: StressAxis, metric: str, method: str, values: list[float],
+           measured: dict[tuple[str, float], tuple[dict[str, Any] | None, str]]) -> StressCurve:
+    error, lost, newtons = [], [], []
+    for value in values:
+        result, window = measured[(axis.key, value)]
+        entry = (result or {}).get(metric, {}).get(window, {}).get(method) if result else None
+        if metric == "tracking":
+            error.append(float(entry["error_p95_px"]) if entry else float("nan"))
+            lost.append(int(entry["lost_by_truth"]) if entry else -1)
+        else:
+            error.append(float(entry["error_pct"]) if entry else float("nan"))
+            newtons.append(float(entry["error_n"]) if entry else float("nan"))
+    return StressCurve(axis.key, metric, method, values, error, lost if metric == "tracking" else None,
+                       newtons if metric == "forces" else None)
+
+
+def breakdown_of(curve: StressCurve, factor: float = FACTOR, log_x: bool = False) -> Breakdown:
+    """The first value where the error reaches ``factor`` x the least-stressed value's or more tracks are lost."""
+    x, error = np.asarray(curve.values, float), np.asarray(curve.error, float)
+    doubles = None
+    if np.isfinite(error[0]) and error[0] > 0:
+        doubles = charts.breakdown_point(x, error, factor, log_x=log_x and bool(np.all(x > 0)))
+    lost_at = None
+    if curve.lost is not None:
+        lost = np.asarray(curve.lost)
+        more = np.flatnonzero(lost > lost[0])
+        lost_at = float(x[more[0]]) if more.size else None
+    found = [(v, cause) for v, cause in ((doubles, "error x2"), (lost_at, "tracks lost")) if v is not None]
+    value, cause = min(found, key=lambda item: item[0]) if found else (None, "")
+    return Breakdown(curve.axis, curve.metric, curve.method, value, cause, doubles, lost_at)
+
+
+# -- report and summary ----------------------------------------------------------------------------
+
+
+METRIC_LABELS = {"tracking": ("p95 tracking error", "px"), "forces": ("force error", "% of the force")}
+
+
+def add_stress_to_report(report: Report, result: StressResult) -> None:
+    """Section "Stability where methods fail": one chart per axis and metric, the breakdown table, the scenes."""
+    report.section("Stability where methods fail", "stress")
+    report.add_text("stress_note", (
+        f"Each axis pushes one knob of a short probing run on the virtual rig ({result.grid} grid; the default: a "
+        "1 mm sphere press with 0.5 mm of shear at 3 mm/s, 10 ms windows). Tracking: p95 error against the sim's "
+        "markers; forces: mean norm of the error against the F/T sensor over the probing phases, as a percentage "
+        "of the mean measured force. A method breaks where its error doubles against the least-stressed value "
+        "(diamond, dashed line) or, for trackers, where tracks are lost (ever more than 15 px off the truth) that "
+        "were not lost there. None: no breakdown within the grid.\n\n"
+        + "\n".join(f"- **{a.title}** ({a.x_name}, {a.unit}): {a.what}." for a in result.axes)))
+    for axis in result.axes:
+        for metric in axis.metrics:
+            curves = [c for c in result.curves if c.axis == axis.key and c.metric == metric]
+            name, unit = METRIC_LABELS[metric]
+            lost = {c.method: c.lost for c in curves if c.lost}
+            caption = "Tracks lost by the truth per value: " + "; ".join(
+                f"{m} {', '.join(str(n) for n in v)}" for m, v in lost.items()) if lost else ""
+            figure = charts.breakdown(np.asarray(curves[0].values), {c.method: np.asarray(c.error) for c in curves},
+                                      x_name=axis.x_name, x_unit=axis.unit, error_name=name, error_unit=unit,
+                                      factor=FACTOR, log_x=axis.log_x)
+            mark_breakdowns(figure, curves, [b for c in curves for b in result.breakdowns
+                                             if (b.axis, b.metric, b.method) == (c.axis, c.metric, c.method)], axis.unit)
+            report.add_figure(f"stress_{axis.key}_{metric}", f"{axis.title}: {name}", figure, caption=caption)
+    titles = {a.key: a for a in result.axes}
+    report.add_table("stress_breakdown", "Breakdown points", ["axis", "metric", "method", "breaks at", "unit", "cause",
+                                                              "error x2 at", "tracks lost at"],
+                     [[titles[b.axis].title, b.metric, b.method, b.value, titles[b.axis].unit, b.cause or "did not break",
+                       b.error_doubles_at, b.tracks_lost_at] for b in result.breakdowns],
+                     caption="The first value (in the axis' unit) where the method's error doubles or it loses tracks; "
+                             "a dash: not within the grid.")
+    rows = []
+    for axis in result.axes:
+        for value, facts in zip(axis.values(result.grid), result.scenes.get(axis.key, [])):
+            rows.append([axis.title, value, axis.unit, facts.get("duration_s"), facts.get("events"),
+                         facts.get("peak_force_n"), facts.get("slip_ratio_max"), facts.get("clock_skew_max_ms")])
+    report.add_table("stress_scenes", "Stressed scenes", ["axis", "value", "unit", "duration", "events", "peak force",
+                                                           "slip ratio", "clock skew"], rows,
+                     units={"duration": "s", "peak force": "N", "clock skew": "ms"},
+                     caption="From the sim's truth: slip ratio = largest |tangential| / (friction x normal) force "
+                             "while pressing (1: gross slip); clock skew: the largest event time error of an "
+                             "unsynced camera clock.")
+    report.add_json("stress", {"grid": result.grid, "breakdown": stress_summary(result),
+                               "curves": [asdict(c) for c in result.curves]})
+
+
+def mark_breakdowns(figure: Any, curves: Sequence[StressCurve], breakdowns: Sequence[Breakdown], unit: str) -> None:
+    """Finish a :func:`charts.breakdown` figure: a triangle where each tracker first loses tracks (its colour)
+    and legend entries that give each method's breakdown, by doubling or by lost tracks."""
+    ax = figure.axes[0]
+    for i, (curve, b) in enumerate(zip(curves, breakdowns)):
+        if b.tracks_lost_at is not None:
+            k = curve.values.index(b.tracks_lost_at)
+            ax.plot([b.tracks_lost_at], [curve.error[k]], marker="v", ms=10, ls="", zorder=5,
+                    color=charts.CYCLE[i % len(charts.CYCLE)], markeredgecolor="black")
+    handles, _ = ax.get_legend_handles_labels()
+    labels = [f"{b.method}: breaks at {b.value:.3g} {unit} ({b.cause})" if b.value is not None
+              else f"{b.method}: no breakdown up to {max(c.values):.3g} {unit}" for c, b in zip(curves, breakdowns)]
+    if any(not np.all(np.isfinite(c.error)) for c in curves):
+        handles.append(Line2D([], [], ls="", marker="x", color="#555555"))
+        labels.append("no finite error (top edge)")
+    if any(b.tracks_lost_at is not None for b in breakdowns):
+        handles.append(Line2D([], [], ls="", marker="v", color="#555555", markeredgecolor="black"))
+        labels.append("tracks lost (more than at the least stress)")
+    ax.legend(handles, labels, fontsize=8, title=f"dotted: {FACTOR:g} x baseline error", title_fontsize=7)
+
+
+def stress_summary(result: StressResult) -> dict[str, dict[str, float | None]]:
+    """``{axis_unit: {method: breakdown value or None}}`` (e.g. ``event_noise_hz``), for ``--json``."""
+    keys = {a.key: a.json_key for a in result.axes}
+    out: dict[str, dict[str, float | None]] = {}
+    for b in result.breakdowns:
+        out.setdefault(keys[b.axis], {})[b.method] = b.value
+    return out

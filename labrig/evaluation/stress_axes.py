@@ -1,0 +1,101 @@
+"""The stress axes of ``labrig evaluate --stress``: what each one pushes, over which values, and what it measures.
+
+Each axis turns one knob of the scene (a field of
+:class:`labrig.evaluation.stress_scene.StressScene`) or of the pipeline (``window_ms``) away
+from the default probe (a 1 mm sphere press, 0.5 mm of shear, 3 mm/s, 10 ms windows), in
+order of rising stress: the first value of each grid is the least stressed, the baseline a
+breakdown is measured against. The full grid is for reports; the reduced grid (the first,
+a middle and the last value, about) fits a test budget.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from labrig.errors import LabrigError
+from labrig.evaluation.stress_scene import StressScene
+
+GRIDS = ("full", "reduced")
+DEFAULT_WINDOW_MS = 10.0
+#: What an axis can measure: marker tracking (p95 true error, px; tracks lost) and forces (error, % of the force).
+METRICS = ("tracking", "forces")
+
+
+@dataclass(frozen=True)
+class StressAxis:
+    """One stress axis. ``knob``: the :class:`StressScene` field the value sets, or ``window_ms``."""
+
+    key: str  # stable name (report keys, --json)
+    title: str
+    x_name: str  # the chart's x label
+    unit: str
+    unit_key: str  # the unit in JSON keys (``event_noise_hz``)
+    knob: str
+    full: tuple[float, ...]
+    reduced: tuple[float, ...]
+    metrics: tuple[str, ...]
+    what: str  # how a value changes the scene, one sentence
+    log_x: bool = False
+
+    def values(self, grid: str) -> tuple[float, ...]:
+        if grid not in GRIDS:
+            raise LabrigError(f"stress grid must be one of {', '.join(GRIDS)}, not {grid!r}")
+        return self.full if grid == "full" else self.reduced
+
+    def scene(self, value: float, base: StressScene) -> StressScene:
+        """``base`` with this axis' knob at ``value`` (unchanged for a pipeline knob)."""
+        return base if self.knob == "window_ms" else replace(base, **{self.knob: value})
+
+    def window_ms(self, value: float) -> float:
+        return float(value) if self.knob == "window_ms" else DEFAULT_WINDOW_MS
+
+    @property
+    def json_key(self) -> str:
+        return f"{self.key}_{self.unit_key}"
+
+
+AXES: tuple[StressAxis, ...] = (
+    StressAxis(
+        "force_range", "Indentation force beyond the calibrated range", "indentation depth", "mm", "mm", "depth_mm",
+        full=(0.5, 0.75, 1.0, 1.5, 2.0, 2.25), reduced=(0.5, 1.0, 2.25), metrics=("forces",),
+        what="presses deeper than the gel calibration did (sphere to 1.0 mm): the virtual gel stiffens "
+             "(1 + 0.6 depth / thickness) while the inverse FEM stays linear"),
+    StressAxis(
+        "speed", "Indentation and shear speed", "indenter speed", "mm/s", "mm_s", "speed_mm_s",
+        full=(3.0, 6.0, 12.0, 24.0, 48.0, 96.0), reduced=(3.0, 12.0, 96.0), metrics=("tracking", "forces"), log_x=True,
+        what="moves the indenter faster, normal and shear phases alike"),
+    StressAxis(
+        "shear_slip", "Shear until slip", "shear distance", "mm", "mm", "shear_mm",
+        full=(0.25, 0.5, 1.0, 1.5, 2.0, 3.0), reduced=(0.25, 1.0, 3.0), metrics=("tracking", "forces"),
+        what="shears further at 1 mm depth, through partial slip into gross slip (friction 1.0)"),
+    StressAxis(
+        "event_noise", "Event noise rate", "noise events", "Hz per pixel", "hz", "shot_noise_rate_hz",
+        full=(0.05, 0.5, 1.0, 2.0, 5.0, 10.0), reduced=(0.05, 2.0, 10.0), metrics=("tracking", "forces"), log_x=True,
+        what="raises the pixels' shot-noise rate (half ON, half OFF, uniform in time)"),
+    StressAxis(
+        "marker_contrast", "Marker contrast", "marker dimming", "x", "x", "marker_dimming",
+        full=(1.0, 2.0, 4.0, 6.0, 8.0, 10.0), reduced=(1.0, 4.0, 10.0), metrics=("tracking", "forces"),
+        what="dims the markers by this factor against the black membrane (brightness 0.9 / factor vs 0.08; "
+             "at 10x a marker edge is below one event threshold)"),
+    StressAxis(
+        "window_length", "Window length", "window", "ms", "ms", "window_ms",
+        full=(10.0, 20.0, 50.0, 100.0, 200.0), reduced=(10.0, 50.0, 200.0), metrics=("tracking", "forces"),
+        log_x=True, what="lengthens the pipeline's fixed-time windows (the scene is the default probe)"),
+    StressAxis(
+        "clock_drift", "Clock drift without resync", "time since the last camera clock sync", "min", "min",
+        "sync_age_min", full=(0.0, 1.0, 5.0, 15.0, 30.0, 60.0, 120.0), reduced=(0.0, 15.0, 120.0),
+        metrics=("tracking", "forces"),
+        what="maps camera time with an offset-only sync this long before the run: the camera's 35 ppm drift "
+             "skews events against the F/T sensor by 2.1 ms a minute"),
+    StressAxis(
+        "dead_region", "Dead region of pixels", "dead square side", "mm", "mm", "dead_side_mm",
+        full=(0.0, 2.0, 4.0, 6.0, 8.0, 12.0), reduced=(0.0, 4.0, 12.0), metrics=("tracking", "forces"),
+        what="kills the sensor pixels of a square this wide on the gel, centred on the press"),
+)
+
+
+def axis_named(key: str) -> StressAxis:
+    for axis in AXES:
+        if axis.key == key:
+            return axis
+    raise LabrigError(f"no stress axis {key!r}; axes: {', '.join(a.key for a in AXES)}")

@@ -1,0 +1,148 @@
+"""A stressed scene on the virtual rig: one short probing run with some sensor or motion knob pushed.
+
+:class:`StressScene` holds every knob a stress axis may turn, as plain values (so it can be
+part of a cached task's inputs); :func:`record_scene` simulates it into a recording with its
+ground-truth sidecar. Each knob is the sim's own:
+
+* motion: the probing path's depth (mm), shear distance (mm) and speed (mm/s, normal and
+  shear alike), :func:`labrig.sim.motion.probing_path`;
+* ``shot_noise_rate_hz``: the DVS pixels' noise events per pixel per second
+  (``[sim.events] shot_noise_rate_hz``);
+* ``marker_dimming``: the markers' brightness divided by this factor
+  (``[sim.lighting] marker_level``), so their contrast against the black membrane falls;
+* ``dead_side_mm``: a square of dead sensor pixels (no events), ``dead_side_mm`` wide on the
+  gel and centred on the probed location (:class:`labrig.sim.rig.VirtualRig` ``dead_pixels``);
+* ``stiffening``: the gel's large-strain stiffening (``[sim.mechanics] stiffening``; 0: a
+  linear gel, the control for the force-range axis);
+* ``sync_age_min``: the camera clock is not resynced: the recording maps camera time with an
+  offset-only sync made this many minutes before the run, so the camera's true drift
+  (``[sim.camera_clock] drift_ppm``) skews every event by drift x (age + t)
+  (:func:`labrig.sim.live.record_live` ``camera_clock_model``). None: the recording's own fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from labrig.clock import ClockModel
+from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
+from labrig.errors import LabrigError
+
+US_PER_MIN = 60_000_000
+
+
+@dataclass(frozen=True)
+class StressScene:
+    """One probing run: the sphere pressed ``depth_mm``, sheared ``shear_mm`` and back, at ``speed_mm_s``.
+
+    Defaults: a 1 mm press with 0.5 mm of shear at 3 mm/s, 0.1 s waits (about 1.4 s in all);
+    the sensor as the rig file says. See the module docstring for each knob.
+    """
+
+    rig: str = str(DEFAULT_RIG)
+    indenter: str = "sphere"
+    depth_mm: float = 1.0
+    shear_mm: float = 0.5
+    speed_mm_s: float = 3.0
+    wait_s: float = 0.1
+    approach_mm: float = 0.2
+    shot_noise_rate_hz: float | None = None
+    marker_dimming: float = 1.0
+    dead_side_mm: float = 0.0
+    sync_age_min: float | None = None
+    stiffening: float | None = None
+    seed: int = 3
+
+    def check(self) -> None:
+        if self.depth_mm <= 0 or self.speed_mm_s <= 0 or self.shear_mm < 0 or self.wait_s < 0:
+            raise LabrigError(f"stress scene: depth and speed must be positive, shear and waits not negative ({self})")
+        if self.marker_dimming < 1:
+            raise LabrigError(f"stress scene: marker_dimming is a factor >= 1 (markers that much dimmer), "
+                              f"not {self.marker_dimming}")
+        if self.dead_side_mm < 0 or (self.sync_age_min is not None and self.sync_age_min < 0):
+            raise LabrigError("stress scene: dead_side_mm and sync_age_min must not be negative")
+        if self.shot_noise_rate_hz is not None and self.shot_noise_rate_hz < 0:
+            raise LabrigError(f"stress scene: shot_noise_rate_hz must not be negative, not {self.shot_noise_rate_hz}")
+
+
+def stressed_rig(scene: StressScene) -> RigConfig:
+    """The scene's rig: the rig file with the scene's noise rate, marker brightness and stiffening (its text says so)."""
+    rig = load_rig(scene.rig)
+    changes: dict[str, float] = {}
+    if scene.stiffening is not None:
+        changes["sim.mechanics.stiffening"] = float(scene.stiffening)
+    if scene.shot_noise_rate_hz is not None:
+        changes["sim.events.shot_noise_rate_hz"] = float(scene.shot_noise_rate_hz)
+    if scene.marker_dimming != 1.0:
+        changes["sim.lighting.marker_level"] = rig.sim.lighting.marker_level / scene.marker_dimming
+    return rig_with(rig, changes) if changes else rig
+
+
+def dead_region_px(rig: RigConfig, side_mm: float, centre_mm: tuple[float, float] = (0.0, 0.0)) -> Roi | None:
+    """Sensor pixels (the sim's true camera) covering a square ``side_mm`` wide on the gel around ``centre_mm``."""
+    from labrig.sim.camera import CameraModel
+
+    if side_mm <= 0:
+        return None
+    half = side_mm / 2
+    corners = np.array([[centre_mm[0] + sx * half, centre_mm[1] + sy * half, 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    px = CameraModel.from_rig(rig).project(corners)
+    lo, hi = np.floor(px.min(axis=0)).astype(int), np.ceil(px.max(axis=0)).astype(int) + 1
+    return Roi(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+
+
+def unsynced_camera_clock(rig: RigConfig, sync_age_min: float) -> ClockModel:
+    """The camera clock model of an offset-only sync ``sync_age_min`` before the run (world time 0).
+
+    The sync pinned device time to host time exactly but knew no drift (rate 1); the camera
+    runs at ``[sim.camera_clock] drift_ppm``, so an event at world time t lands at
+    t + drift x (age + t) in the recording.
+    """
+    clock = rig.sim.camera_clock
+    t_sync_us = -float(sync_age_min) * US_PER_MIN
+    device_at_sync = clock.origin_us + t_sync_us * (1 + clock.drift_ppm * 1e-6)
+    return ClockModel(device_ref_us=device_at_sync, host_ref_us=t_sync_us, drift_ppm=0.0, method="unsynced")
+
+
+def record_scene(scene: StressScene, out: str | Path) -> dict[str, Any]:
+    """Simulate ``scene`` into the recording ``out`` (not real time) and write its sidecar ``NAME.gt.h5``.
+
+    Returns facts of the run from the sim's truth: ``duration_s``, ``events``,
+    ``peak_force_n`` (largest |force on the gel|), ``peak_normal_n``, ``slip_ratio_max``
+    (largest |tangential| / (friction x normal) while pressing: 1 is gross slip),
+    ``clock_skew_max_ms`` (the unsynced clock's largest event time error, 0 when synced).
+    """
+    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.indenters import load_indenter
+    from labrig.recording import Recording
+    from labrig.sim.live import record_live
+    from labrig.sim.motion import probing_path
+    from labrig.sim.rig import VirtualRig
+
+    scene.check()
+    rig = stressed_rig(scene)
+    indenter = load_indenter(scene.indenter)
+    path = probing_path(rig, indenter, depth_mm=scene.depth_mm, shear_mm=scene.shear_mm,
+                        normal_speed_mm_s=scene.speed_mm_s, shear_speed_mm_s=scene.speed_mm_s, wait_s=scene.wait_s,
+                        approach_mm=scene.approach_mm)
+    vr = VirtualRig(rig, indenter, seed=scene.seed, dead_pixels=dead_region_px(rig, scene.dead_side_mm))
+    clock = None if scene.sync_age_min is None else unsynced_camera_clock(rig, scene.sync_age_min)
+    result = record_live(out, rig, indenter, path, seed=scene.seed, realtime=False, virtual_rig=vr,
+                         camera_clock_model=clock)
+    write_sidecar(generate(out, rate_hz=100), sidecar_path(out))
+    with Recording(out) as rec:
+        force = rec.column("truth/contact", "force_n").astype(np.float64)
+    normal = np.abs(force[:, 2])
+    tangential = np.linalg.norm(force[:, :2], axis=1)
+    pressing = normal > 0.05 * max(float(normal.max()), 1e-9)
+    slip = tangential[pressing] / (rig.gel.friction * normal[pressing]) if pressing.any() else np.zeros(1)
+    drift = rig.sim.camera_clock.drift_ppm * 1e-6
+    skew_ms = 0.0 if scene.sync_age_min is None else abs(drift) * (scene.sync_age_min * US_PER_MIN
+                                                                   + path.duration_us) / 1e3
+    return {"duration_s": result.sim_duration_s, "events": int(result.events),
+            "peak_force_n": float(np.linalg.norm(force, axis=1).max()), "peak_normal_n": float(normal.max()),
+            "slip_ratio_max": float(slip.max()), "clock_skew_max_ms": float(skew_ms)}
