@@ -95,7 +95,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-measure_scene.cache_version = "1"  # type: ignore[attr-defined]
+measure_scene.cache_version = "2"  # type: ignore[attr-defined]
 
 
 def window_key(window_ms: float) -> str:
@@ -295,7 +295,7 @@ def add_stress_to_report(report: Report, result: StressResult) -> None:
                                                            "slip ratio", "clock skew"], rows,
                      units={"duration": "s", "peak force": "N", "clock skew": "ms"},
                      caption="From the sim's truth: slip ratio = largest |tangential| / (friction x normal) force "
-                             "while pressing (1: gross slip); clock skew: the largest event time error of an "
+                             "from the shear to the unloading (1: gross slip); clock skew: the largest event time error of an "
                              "unsynced camera clock.")
     report.add_json("stress", {"grid": result.grid, "breakdown": stress_summary(result),
                                "curves": [asdict(c) for c in result.curves]})

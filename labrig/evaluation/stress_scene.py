@@ -113,7 +113,8 @@ def record_scene(scene: StressScene, out: str | Path) -> dict[str, Any]:
 
     Returns facts of the run from the sim's truth: ``duration_s``, ``events``,
     ``peak_force_n`` (largest |force on the gel|), ``peak_normal_n``, ``slip_ratio_max``
-    (largest |tangential| / (friction x normal) while pressing: 1 is gross slip),
+    (largest |tangential| / (friction x normal) from the shear to the unloading, at full
+    depth: 1 is gross slip),
     ``clock_skew_max_ms`` (the unsynced clock's largest event time error, 0 when synced).
     """
     from labrig.groundtruth import generate, sidecar_path, write_sidecar
@@ -135,11 +136,13 @@ def record_scene(scene: StressScene, out: str | Path) -> dict[str, Any]:
                          camera_clock_model=clock)
     write_sidecar(generate(out, rate_hz=100), sidecar_path(out))
     with Recording(out) as rec:
+        t_us = rec.column("truth/contact", "t_host_us")
         force = rec.column("truth/contact", "force_n").astype(np.float64)
+        phases = {p.name: p for p in reversed(rec.phases())}  # the first of each name
     normal = np.abs(force[:, 2])
     tangential = np.linalg.norm(force[:, :2], axis=1)
-    pressing = normal > 0.05 * max(float(normal.max()), 1e-9)
-    slip = tangential[pressing] / (rig.gel.friction * normal[pressing]) if pressing.any() else np.zeros(1)
+    sheared = (t_us >= phases["shear"].t_start_us) & (t_us < phases["normal_up"].t_start_us) & (normal > 0)
+    slip = tangential[sheared] / (rig.gel.friction * normal[sheared]) if sheared.any() else np.zeros(1)
     drift = rig.sim.camera_clock.drift_ppm * 1e-6
     skew_ms = 0.0 if scene.sync_age_min is None else abs(drift) * (scene.sync_age_min * US_PER_MIN
                                                                    + path.duration_us) / 1e3
