@@ -67,3 +67,24 @@ def test_a_virtual_rig_with_a_dead_region(rig: RigConfig, sphere: Indenter, tabl
     assert vr.sensor.dead is not None and vr.sensor.dead.sum() == 20 * 30
     mask = vr.sensor.dead.reshape(roi.height_px, roi.width_px)
     assert mask[10:40, :20].all() and not mask[:10].any()
+
+
+def test_record_live_keeps_an_unsynced_camera_clock(rig: RigConfig, sphere: Indenter, table: ContactTable,
+                                                    tmp_path: Path) -> None:
+    """An offset-only sync an hour before the run: the camera's 35 ppm drift puts every event 126 ms late."""
+    from labrig.evaluation.stress_scene import unsynced_camera_clock
+    from labrig.sim.live import record_live
+    from labrig.sim.motion import probing_path
+
+    path = probing_path(rig, sphere, depth_mm=0.3, shear_mm=0.0, normal_speed_mm_s=10.0, wait_s=0.0, approach_mm=0.1)
+    model = unsynced_camera_clock(rig, 60.0)
+    out = tmp_path / "unsynced.h5"
+    record_live(out, rig, sphere, path, seed=1, realtime=False, virtual_rig=VirtualRig(rig, sphere, table=table),
+                camera_clock_model=model)
+    skew_us = rig.sim.camera_clock.drift_ppm * 1e-6 * 60 * 60e6
+    with Recording(out) as rec:
+        assert rec.clock_model("camera") == model
+        events = rec.events_between(0, 2e6)
+        truth_start = int(rec.column("truth/contact", "t_host_us")[0])
+    assert skew_us == pytest.approx(126_000)
+    assert len(events) > 1000 and events["t"].min() >= truth_start + skew_us - 1

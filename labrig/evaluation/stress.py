@@ -188,15 +188,14 @@ def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | Non
         tasks.append(StressTask(asdict(scene), tuple(windows), trackers=tuple(TRACKERS) if "tracking" in metrics else (),
                                 forces="forces" in metrics, model=model, calibration_dir=calibration_dir))
     results = run("stress", measure_scene, tasks)
-    measured: dict[tuple[str, float], tuple[dict[str, Any], str]] = {}
+    measured: dict[tuple[str, float], tuple[dict[str, Any] | None, str]] = {}
     for (_, _, points), result in zip(scenes, results):
         for axis, value in points:
             measured[(axis.key, value)] = (result, window_key(axis.window_ms(value)))
     curves, breakdowns, facts = [], [], {}
     for axis in axes:
         values = list(axis.values(grid))
-        facts[axis.key] = [dict(measured[(axis.key, v)][0]["scene"]) if measured[(axis.key, v)][0] else {}
-                           for v in values]
+        facts[axis.key] = [dict((measured[(axis.key, v)][0] or {}).get("scene", {})) for v in values]
         for metric in axis.metrics:
             for method in _methods(metric, model):
                 curve = _curve(axis, metric, method, values, measured)

@@ -11,6 +11,7 @@ a middle and the last value, about) fits a test budget.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 from labrig.errors import LabrigError
 from labrig.evaluation.stress_scene import StressScene
@@ -44,7 +45,8 @@ class StressAxis:
 
     def scene(self, value: float, base: StressScene) -> StressScene:
         """``base`` with this axis' knob at ``value`` (unchanged for a pipeline knob)."""
-        return base if self.knob == "window_ms" else replace(base, **{self.knob: value})
+        changes: dict[str, Any] = {} if self.knob == "window_ms" else {self.knob: value}
+        return replace(base, **changes)
 
     def window_ms(self, value: float) -> float:
         return float(value) if self.knob == "window_ms" else DEFAULT_WINDOW_MS

@@ -125,7 +125,7 @@ def record_live(
                 progress(t1 / 1e6)
         writer.phase_end(duration_us)
     if camera_clock_model is not None:
-        store_clock_model(writer.result.path, "camera", camera_clock_model)
+        store_clock_model(writer.path, "camera", camera_clock_model)
     return LiveResult(writer.result, duration_us / 1e6, time.perf_counter() - wall0, max_lag_us / 1000,  # type: ignore[arg-type]
                       late, chunks, events)
 
