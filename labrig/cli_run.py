@@ -173,13 +173,18 @@ def window_summary(recording: str | None, log: WindowLog, wall: float, depth: st
     }
 
 
-def _print(s: dict[str, Any]) -> None:
-    table = Table(title=f"labrig run {Path(s['recording']).name} ({s['depth_source']} depth)")
+def stage_table(stage_median_ms: dict[str, float], title: str | None = None) -> Table:
+    """The per-stage median latencies (ms) as a rich table."""
+    table = Table(title=title)
     table.add_column("stage")
     table.add_column("median ms", justify="right")
-    for name, ms in s["stage_median_ms"].items():
+    for name, ms in stage_median_ms.items():
         table.add_row(name, f"{ms:.3f}")
-    console.print(table)
+    return table
+
+
+def _print(s: dict[str, Any]) -> None:
+    console.print(stage_table(s["stage_median_ms"], f"labrig run {Path(s['recording']).name} ({s['depth_source']} depth)"))
     mode = f"{s['window_events']} events" if s["window_events"] else f"{s['window_us'] / 1000:g} ms"
     console.print(f"{s['windows']} windows of {mode} over {s['duration_s']:.2f} s in {s['wall_s']:.2f} s; "
                   f"processing {s['processing_per_window_ms']:.2f} ms per window (real-time factor "

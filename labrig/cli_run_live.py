@@ -29,7 +29,7 @@ from rich.live import Live
 from rich.markup import escape
 from rich.table import Table
 
-from labrig.cli_run import WindowLog, console, err_console, window_summary, write_view
+from labrig.cli_run import WindowLog, console, err_console, stage_table, window_summary, write_view
 from labrig.errors import LabrigError
 
 #: Windows kept for --view (the last ones; every --view-every-th).
@@ -378,12 +378,7 @@ def _ctrl_c(action: Callable[[], str]) -> Iterator[None]:
 
 def _print(s: dict[str, Any]) -> None:
     console.print(f"[bold]labrig run --live[/]: {escape(s['source'])}, {escape(s['depth_source'])} depth")
-    table = Table()
-    table.add_column("stage")
-    table.add_column("median ms", justify="right")
-    for name, ms in s["stage_median_ms"].items():
-        table.add_row(name, f"{ms:.3f}")
-    console.print(table)
+    console.print(stage_table(s["stage_median_ms"]))
     mode = f"{s['window_events']} events" if s["window_events"] else f"{s['window_us'] / 1000:g} ms"
     console.print(f"{s['windows_tracked']} windows of {mode} tracked over {s['stream_s']:.2f} s of camera time "
                   f"(wall {s['stream_wall_s']:.2f} s, {s['end_reason']}): {s['windows_processed']} with forces, "
