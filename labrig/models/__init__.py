@@ -11,7 +11,7 @@ from pathlib import Path
 
 from labrig.errors import LabrigError
 
-BUNDLED_NAME = "depth-w8-contact-10ms"
+BUNDLED_NAME = "depth-w4-contact-10ms"
 FOLDER = Path(__file__).resolve().parent
 
 

@@ -1,0 +1,61 @@
+"""Ship a trained depth network as the bundled model (labrig/models/): the .onnx and its card, with provenance.
+
+Copies ``MODEL.onnx`` and its card to ``labrig/models/BUNDLED_NAME.{onnx,json}``, adding to
+the card a ``bundled`` section: the sweep it was chosen from (``sweep.json`` beside it: each
+width's val/test errors and latency), why it was chosen, the campaign's manifest digest and
+the commands that rebuild it from nothing (campaign, ground truth, training).
+
+    .venv/bin/python tools/bundle_model.py models/sweep/depth-w8-contact-10ms.onnx \\
+        --campaign-command "labrig campaign protocols/paper.toml --out data/paper --workers 2" \\
+        --reason "fastest width within 5 % of the best test contact error"
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import sys
+from pathlib import Path
+
+from labrig.models import BUNDLED_NAME, FOLDER
+from labrig.pipeline.depthnet import read_card, write_card
+
+MAX_BYTES = 10_000_000
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("model", type=Path, help="the trained .onnx (its .json card beside it)")
+    ap.add_argument("--campaign-command", required=True, help="the command that recorded the training campaign")
+    ap.add_argument("--groundtruth-command", default="", help="the ground-truth command (default: labrig groundtruth DATA)")
+    ap.add_argument("--reason", required=True, help="why this model (from the sweep)")
+    args = ap.parse_args(argv)
+    onnx = args.model.with_suffix(".onnx")
+    if not onnx.exists() or not onnx.with_suffix(".json").exists():
+        ap.error(f"{onnx}: needs NAME.onnx and NAME.json")
+    if onnx.stat().st_size > MAX_BYTES:
+        ap.error(f"{onnx} is {onnx.stat().st_size / 1e6:.1f} MB; the bundled model must stay under 10 MB")
+    card = read_card(onnx.with_suffix(".json"))
+    data = Path(card["training_data"]["campaign"])
+    manifest = data / "manifest.csv"
+    sweep_json = onnx.parent / "sweep.json"
+    sweep = json.loads(sweep_json.read_text()) if sweep_json.exists() else None
+    card["bundled"] = {
+        "source": str(onnx),
+        "reason": args.reason,
+        "sweep": sweep,
+        "campaign_manifest_sha256": hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.exists() else None,
+        "rebuild": [args.campaign_command, args.groundtruth_command or f"labrig groundtruth {data}",
+                    card.get("command", ""), f"python tools/bundle_model.py {onnx} ..."],
+    }
+    target = FOLDER / f"{BUNDLED_NAME}.onnx"
+    shutil.copyfile(onnx, target)
+    write_card(card, target.with_suffix(".json"))
+    print(f"{target} ({target.stat().st_size / 1e6:.1f} MB) and its card", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
