@@ -293,7 +293,8 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
                        {"x": 0.14, "y": 0.10, "z": 0.93, "total": 0.94}[r["axis"]]] for r in rows],
                      caption="Summed per-marker forces against the F/T sensor (force on the gel, gel frame), mean ± std "
                              "over windows in the probing phases; position: the depth map's centre of mass against the "
-                             "indenter's projected position (from the CNC pose). Total: norm of the error vector.",
+                             "contact centre where the indenter touched (CNC pose; the maps are indexed by the surface "
+                             "at rest, so shear does not move it). Total: norm of the error vector.",
                      units={"force": "N", "position": "px", "paper force": "N"})
     error, measured, _ = tables.force_errors(ev.forces)
     panels = {axis: np.abs(measured[:, i]) for i, axis in enumerate("xyz")}

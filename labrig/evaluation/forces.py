@@ -4,8 +4,8 @@ Per evaluation window (sequential 20,000-event windows by default) the pipeline 
 markers on the window's events, the depth network sees its own trained window ending at the
 window's end, and the inverse FEM gives the per-marker forces. Their sum is compared with
 the F/T sensor's force over the depth window (tared, rotated into the gel frame by the rig
-registration, as the force on the gel), the depth map's centre of mass with the indenter's
-projected position (from the CNC pose), and, on the virtual rig, each marker's force with
+registration, as the force on the gel), the depth map's centre of mass with the true contact
+centre (where the indenter touched, from the CNC pose), and, on the virtual rig, each marker's force with
 the sim's ``/truth/marker_forces``.
 """
 
@@ -20,8 +20,8 @@ import numpy.typing as npt
 
 from labrig.evaluation.windows import (
     PAPER_WINDOW_EVENTS,
+    contact_centre_px,
     ft_axes_in_gel,
-    indenter_px,
     measured_force_on_gel_n,
     window_ends_us,
 )
@@ -109,7 +109,7 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
     side = Path(task.sidecar) if task.sidecar else sidecar_path(path)
     if side.exists():
         gt = load_groundtruth(side)
-        true_px = indenter_px(gt, t1, setup.camera)
+        true_px = contact_centre_px(gt, t1, setup.camera)
         touching = np.atleast_1d(gt.contact_mask[np.atleast_1d(gt.nearest_index(t1))].reshape(len(t1), -1).any(1))
         true_px[~touching] = np.nan
     else:
@@ -124,7 +124,7 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
             "depth_source": source.name, "youngs_modulus_mpa": setup.youngs_modulus_mpa}
 
 
-evaluate_forces.cache_version = "1"  # type: ignore[attr-defined]
+evaluate_forces.cache_version = "2"  # type: ignore[attr-defined]
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

@@ -1,4 +1,4 @@
-"""Evaluation windows and what a lab measures at them: the F/T sensor in the gel frame, the indenter's position.
+"""Evaluation windows and what a lab measures at them: the F/T sensor in the gel frame, the contact's position.
 
 The paper evaluates on sequential windows of 20,000 events per test recording; each
 window's end is an evaluation time. The depth network always sees the window it was
@@ -107,12 +107,19 @@ def measured_force_on_gel_n(recording: Recording, t0_us: npt.ArrayLike, t1_us: n
 # -- where the indenter is --------------------------------------------------------------------
 
 
-def indenter_px(groundtruth: Any, t_us: npt.ArrayLike, camera: Any) -> F64:
-    """The indenter tip's gel-surface position projected into the camera (px), at the maps nearest ``t_us``.
+def contact_centre_px(groundtruth: Any, t_us: npt.ArrayLike, camera: Any) -> F64:
+    """The true contact centre projected into the camera (px) at the maps nearest ``t_us``; nan out of contact.
 
-    From the sidecar's ``tip_gel_mm`` (the CNC pose through the rig registration: what a lab has).
+    The sidecar's ``anchor_gel_mm``: where the indenter first touched, from the CNC pose through the
+    registration (what a lab has). The depth maps are indexed by the surface point each cell saw at
+    rest, so a sheared contact stays centred there while the tip moves on; the map's centre of mass
+    is compared with this point, not with the moving tip.
     """
     index = np.atleast_1d(groundtruth.nearest_index(np.asarray(t_us, np.float64)))
-    tip = np.asarray(groundtruth.tip_gel_mm, np.float64)[index]
-    surface = np.column_stack([tip[:, 0], tip[:, 1], np.zeros(len(tip))])
-    return np.asarray(camera.project(surface), np.float64)
+    anchor = np.asarray(groundtruth.anchor_gel_mm, np.float64)[index]
+    surface = np.column_stack([anchor[:, 0], anchor[:, 1], np.zeros(len(anchor))])
+    out = np.full((len(anchor), 2), np.nan)
+    inside = np.isfinite(anchor).all(1)
+    if inside.any():
+        out[inside] = np.asarray(camera.project(surface[inside]), np.float64)
+    return out
