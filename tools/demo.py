@@ -46,7 +46,6 @@ def main(out_dir: Path) -> int:
         code = subprocess.call(command)
         if code:
             return code
-    console.print(f"report: [bold]{out_dir / 'report' / 'index.html'}[/]")
     return 0
 
 
