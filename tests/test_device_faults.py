@@ -246,9 +246,13 @@ def test_grbl_stream_held_by_a_feed_hold_waits_without_timing_out_and_a_reset_re
         grbl.move_to(-20, feed_mm_min=1200)
         grbl.feed_hold()
         thread, errors = start_stream(grbl, [f"G1X-{20 + 0.1 * i:.1f}" for i in range(1, 31)])
-        time.sleep(0.6)  # three response timeouts: a hold holds back oks, that is no fault
-        assert thread.is_alive() and not errors and twin.state.startswith("Hold")
-        assert twin.planner_blocks == 15 and grbl.protocol.in_flight  # planner full: GRBL withholds the ok
+        held_since = time.monotonic()
+        # planner full: GRBL withholds the ok (waited for, not slept: a loaded host is slow to fill it)
+        wait_until(lambda: twin.planner_blocks == 15 and bool(grbl.protocol.in_flight), timeout_s=5.0)
+        time.sleep(max(0.0, 0.6 - (time.monotonic() - held_since)))  # three response timeouts
+        assert not errors, f"a hold holds back oks, that is no fault: {errors!r}"
+        assert thread.is_alive(), "the stream must still be waiting"
+        assert twin.state.startswith("Hold"), twin.state
         _, error, took = bounded(grbl.soft_reset, 3.0)
         assert error is None and took < 1.0
         thread.join(1.0)
