@@ -41,6 +41,7 @@ F64 = npt.NDArray[np.float64]
 
 #: Extra time allowed on top of a move's nominal duration, s.
 MOVE_MARGIN_S = 5.0
+CAMERA_SHORTFALL_US = 50_000  # a camera stream ending this much before the run's end is reported
 #: A force target is approached at the normal speed up to this fraction, then at FINE_SPEED_MM_S.
 APPROACH_FRACTION = 0.7
 FINE_SPEED_MM_S = 0.3
@@ -155,7 +156,11 @@ class ProbeRunner:
         finally:
             end_ns = self.session.clock.now_ns()
             writer.phase_end((end_ns - writer.t0_host_ns) // NS_PER_US)
-            self.session.end(end_ns)
+            behind_us = self.session.end(end_ns)
+            if behind_us > CAMERA_SHORTFALL_US:
+                result.reason = "; ".join(filter(None, [result.reason, (
+                    f"the camera stream stops {behind_us / 1e6:.2f} s before the run's end (the camera fell "
+                    "behind and stalled): the events after that are missing")]))
             self._writer = None
             recording = writer.close(result.exit_status, result.reason)
             result.path = recording.path

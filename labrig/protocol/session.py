@@ -100,7 +100,8 @@ class RigSession:
         self._pump: threading.Thread | None = None
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
         self.camera_events = 0
-        self.last_camera_ns = 0
+        self.last_camera_ns = 0  # host time the newest chunk arrived
+        self.last_camera_device_us = -1  # camera time of its newest event
         self._listeners: tuple[Callable[[EventChunk], None], ...] = ()
         #: The first exception a chunk listener raised (that listener was removed; recording went on).
         self.listener_error: BaseException | None = None
@@ -203,16 +204,43 @@ class RigSession:
         with self._lock:
             self._writer = writer
 
-    def end(self, end_host_ns: int, timeout_s: float = 5.0) -> None:
-        """Let late data (camera events up to ``end_host_ns``, the rig's truth) arrive, then stop routing."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+    def end(self, end_host_ns: int, stall_s: float = 5.0, limit_s: float = 120.0) -> int:
+        """Let late data (camera events up to ``end_host_ns``, the rig's truth) arrive, then stop routing.
+
+        Waits as long as the late streams make progress (a camera that lags behind a loaded host
+        still delivers everything), at most ``limit_s``; gives up after ``stall_s`` without
+        progress. Returns how far (us) the camera stream stopped short of ``end_host_ns``
+        (0: it caught up).
+        """
+        start = time.monotonic()
+        last_progress, seen = start, (self.last_camera_device_us, self._world_progress())
+        while time.monotonic() - start < limit_s:
             world_done = self.world is None or self._world_t_us() + self.world.origin_us >= end_host_ns // NS_PER_US
-            if world_done and self.last_camera_ns >= end_host_ns:
+            if world_done and self._camera_reached_ns() >= end_host_ns:
+                break
+            now = (self.last_camera_device_us, self._world_progress())
+            if now != seen:
+                last_progress, seen = time.monotonic(), now
+            elif time.monotonic() - last_progress > stall_s:
                 break
             time.sleep(0.01)
+        behind_us = 0 if self.camera is None else max(0, (end_host_ns - self._camera_reached_ns()) // NS_PER_US)
         with self._lock:
             self._writer = None
+        return behind_us
+
+    def _camera_reached_ns(self) -> int:
+        """Host time of the newest event delivered (the recording's live camera clock model): a
+        chunk's arrival time says nothing when the camera lags (the virtual rig's renderer on a
+        loaded host). The arrival time until there is a model."""
+        writer = self._writer
+        model = writer.clock_model("camera") if writer is not None else None
+        if writer is None or model is None or self.last_camera_device_us < 0:
+            return self.last_camera_ns
+        return writer.t0_host_ns + int(model.to_host_us(self.last_camera_device_us)) * NS_PER_US
+
+    def _world_progress(self) -> int:
+        return self._world_t_us() if self.world is not None else 0
 
     def _world_t_us(self) -> int:
         world = self.world
@@ -270,6 +298,8 @@ class RigSession:
                     return
                 continue
             self.last_camera_ns = chunk.t_host_ns
+            if chunk.t_device_us >= 0:
+                self.last_camera_device_us = chunk.t_device_us
             self.camera_events += int(chunk.events.size)
             writer = self._writer
             if writer is not None:
