@@ -147,11 +147,12 @@ class _FlatDepth:
 
     name = "flat"
     needs_sae = True
+    window_us = None
 
     def __init__(self) -> None:
         self.seen: list[float] = []
 
-    def depth_mm(self, sae_grid: Any, t0_us: int, t1_us: int) -> np.ndarray:
+    def depth_mm(self, sae_grid: Any, t0_us: int, t1_us: int, n_events: int) -> np.ndarray:
         self.seen.append(float(sae_grid.sum()))
         return np.zeros((90, 112), np.float32)
 

@@ -40,36 +40,12 @@ class ForceTask:
     window_us: int | None = None
     calibration_dir: str | None = "calibration"
     youngs_modulus_mpa: float | None = None
+    stiffening: float | None = None  # None: the calibrated gel's (gel.toml); 0: a linear gel, the paper's
     patch_scale: float = 3.0
     refine_lambda: float = 0.2
     surface_refinement: int = 2
     depth_window_ms: float = 10.0  # for depth="truth": the F/T averaging window
     sidecar: str = ""  # the ground truth for the indenter's position (default NAME.gt.h5 beside the recording)
-
-
-class RecordingModelDepth:
-    """The depth network on the SAE of its own trained window ending at each evaluation window's end."""
-
-    needs_sae = False
-
-    def __init__(self, path: str | Path, recording: Recording, roi: Any) -> None:
-        from labrig.pipeline.depthnet import DepthModel
-        from labrig.pipeline.sae import GRID_SHAPE
-
-        self.model = DepthModel(path, threads=1)
-        self.name = f"model:{self.model.name}"
-        self.recording = recording
-        self.roi = roi
-        self.window_us = self.model.window_ms * 1000.0
-        self._sae = np.zeros((2, *GRID_SHAPE), np.float32)
-
-    def depth_mm(self, sae_grid: Any, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]:
-        from labrig.pipeline.sae import GRID_SHAPE
-        from labrig.pipeline.sae import sae_grid as make_sae
-
-        events = self.recording.events_between(t1_us - self.window_us, t1_us)
-        make_sae(events, t1_us - self.window_us, t1_us, self.roi, GRID_SHAPE, out=self._sae)
-        return self.model.depth_mm(self._sae)
 
 
 def evaluate_forces(task: ForceTask) -> dict[str, Any]:
@@ -90,16 +66,15 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
     path = Path(task.recording)
     with Recording(path) as rec:
         setup = runtime.setup_for_recording(rec, calibration_dir=task.calibration_dir,
-                                            youngs_modulus_mpa=task.youngs_modulus_mpa)
-        source: Any = (runtime.TruthDepth(rec) if task.depth == "truth"
-                       else RecordingModelDepth(task.depth, rec, setup.rig.roi))
+                                            youngs_modulus_mpa=task.youngs_modulus_mpa, stiffening=task.stiffening)
+        source: Any = runtime.TruthDepth(rec) if task.depth == "truth" else runtime.ModelDepth(task.depth)
         params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,
                                 surface_params=ifem.SurfaceParams(refinement=task.surface_refinement))
         t0, t1 = window_ends_us(rec, window_events=task.window_events, window_us=task.window_us)
         rows = [pipe.process(int(a), int(b), rec.events_between(a, b)) for a, b in zip(t0, t1)]
-        depth_window_us = getattr(source, "window_us", task.depth_window_ms * 1000.0)
+        depth_window_us = source.window_us or task.depth_window_ms * 1000.0
         rotation, ft_source = ft_axes_in_gel(rec, task.calibration_dir)
         measured = measured_force_on_gel_n(rec, t1 - depth_window_us, t1, rotation)
         truth_n, marker_mae = _truth(rec, t1, np.array([r.forces_n for r in rows]))
@@ -124,7 +99,7 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
             "depth_source": source.name, "youngs_modulus_mpa": setup.youngs_modulus_mpa}
 
 
-evaluate_forces.cache_version = "2"  # type: ignore[attr-defined]
+evaluate_forces.cache_version = "3"  # type: ignore[attr-defined]  # 3: quiet windows hold the depth map  # type: ignore[attr-defined]
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

@@ -8,7 +8,8 @@ the virtual rig with one knob pushed; the methods are measured on it against the
   its best patch in Table I on the virtual rig: p95 true error (px) and tracks lost by the
   truth (ever more than 15 px off), :func:`labrig.evaluation.tracking.track_recording`;
 * forces: the pipeline with the sim's true depth ("forces-truth", so the stress falls on
-  tracking and the inverse FEM) and, given a network, with it ("forces-model"): the mean
+  tracking and the inverse FEM), the same with the paper's linear gel instead of the
+  calibrated stiffening ("forces-linear") and, given a network, with it ("forces-model"): the mean
   norm of the error against the F/T sensor over the probing phases, as a percentage of the
   mean measured force (N in the results too), :func:`labrig.evaluation.forces.evaluate_forces`.
 
@@ -40,7 +41,7 @@ from labrig.evaluation.stress_scene import StressScene, record_scene, stressed_r
 
 #: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
 TRACKERS = {"paper": 3.0, "paper-published": 1.0, "evetac": 1.0}
-FORCES_TRUTH, FORCES_MODEL = "forces-truth", "forces-model"
+FORCES_TRUTH, FORCES_LINEAR, FORCES_MODEL = "forces-truth", "forces-linear", "forces-model"
 FACTOR = 2.0
 Run = Callable[[str, Callable[[Any], dict[str, Any]], list[Any]], list[Any]]
 
@@ -83,19 +84,19 @@ def measure_scene(task: StressTask | dict[str, Any]) -> dict[str, Any]:
                                                  window_us=window_us, calibration_dir=task.calibration_dir))
                 tracking[tracker] = {k: r[k] for k in ("error_p95_px", "error_median_px", "lost_by_truth", "lost_tracks")}
             out["tracking"][window_key(window_ms)] = tracking
-            depths = ([("truth", FORCES_TRUTH)] if task.forces else []) + ([(task.model, FORCES_MODEL)]
-                                                                           if task.forces and task.model else [])
+            depths = ([("truth", FORCES_TRUTH, None), ("truth", FORCES_LINEAR, 0.0)] if task.forces else []) + (
+                [(task.model, FORCES_MODEL, None)] if task.forces and task.model else [])
             forces = {}
-            for depth, method in depths:
+            for depth, method, stiffening in depths:
                 r = evaluate_forces(ForceTask(recording, depth, window_events=None, window_us=window_us,
-                                              calibration_dir=task.calibration_dir,
+                                              calibration_dir=task.calibration_dir, stiffening=stiffening,
                                               sidecar=str(sidecar_path(recording))))
                 forces[method] = force_errors(r)
             out["forces"][window_key(window_ms)] = forces
     return out
 
 
-measure_scene.cache_version = "2"  # type: ignore[attr-defined]
+measure_scene.cache_version = "3"  # type: ignore[attr-defined]
 
 
 def window_key(window_ms: float) -> str:
@@ -213,7 +214,7 @@ def rig_file(calibration_dir: str | None) -> str:
 def _methods(metric: str, model: str | None) -> list[str]:
     if metric == "tracking":
         return list(TRACKERS)
-    return [FORCES_TRUTH] + ([FORCES_MODEL] if model else [])
+    return [FORCES_TRUTH, FORCES_LINEAR] + ([FORCES_MODEL] if model else [])
 
 
 def _curve(axis: StressAxis, metric: str, method: str, values: list[float],

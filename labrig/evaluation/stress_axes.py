@@ -61,7 +61,7 @@ AXES: tuple[StressAxis, ...] = (
         "force_range", "Indentation force beyond the calibrated range", "indentation depth", "mm", "mm", "depth_mm",
         full=(0.5, 0.75, 1.0, 1.5, 2.0, 2.25), reduced=(0.5, 1.0, 2.25), metrics=("forces",),
         what="presses deeper than the gel calibration did (sphere to 1.0 mm): the virtual gel stiffens "
-             "(1 + 0.6 depth / thickness) while the inverse FEM stays linear"),
+             "(1 + 0.6 depth / thickness); the linear inverse FEM does not, the calibrated stiffening extrapolates"),
     StressAxis(
         "speed", "Indentation and shear speed", "indenter speed", "mm/s", "mm_s", "speed_mm_s",
         full=(3.0, 6.0, 12.0, 24.0, 48.0, 96.0), reduced=(3.0, 12.0, 96.0), metrics=("tracking", "forces"), log_x=True,

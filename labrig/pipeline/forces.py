@@ -8,6 +8,11 @@ Units: K in N/mm, U in mm (M, 3) -> F in N (M, 3), the force applied to the
 gel at each marker, gel frame (pressing gives Fz < 0, as ``/truth/marker_forces``).
 The contact location is the centre of mass of the depth map (positive depth
 only) on the network grid, in sensor pixels and on the gel surface at rest (mm).
+
+Silicone stiffens at large strain. The gel calibration (``labrig calibrate gel``) fits
+E_eff = E (1 + stiffening * d / h) over indentation depth d and layer thickness h; forces
+from the linear operator scale by that factor at the map's deepest point
+(:func:`stiffening_factor`; stiffening 0 is the paper's linear gel).
 """
 
 from __future__ import annotations
@@ -59,6 +64,14 @@ class SurfaceForces:
         ``mode`` "contact" (default): the map is used only where deeper than ``threshold_mm``,
         the rest of the surface is traction-free; "field": the whole map is prescribed."""
         return self.operator.forces_n(-self.node_depths_mm(depth_map_mm), displacements_mm, mode, threshold_mm)
+
+
+def stiffening_factor(depth_map_mm: npt.ArrayLike, thickness_mm: float, stiffening: float) -> float:
+    """1 + stiffening * max(depth, 0) / thickness: the calibrated large-strain factor on the linear forces."""
+    if stiffening == 0.0:
+        return 1.0
+    deepest_mm = max(float(np.max(depth_map_mm)), 0.0)
+    return 1.0 + float(stiffening) * deepest_mm / float(thickness_mm)
 
 
 def net_force_n(forces_n: npt.ArrayLike) -> Array:

@@ -37,6 +37,7 @@ import numpy.typing as npt
 from labrig.config import RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.pipeline import displacement, forces, ifem, sae, tracking
+from labrig.pipeline.quiet import QuietHold, QuietParams
 from labrig.recording import Recording
 from labrig.sim.camera import CameraModel
 
@@ -44,6 +45,7 @@ Array = npt.NDArray[np.float64]
 
 DEFAULT_WINDOW_US = 10_000
 PAPER_WINDOW_EVENTS = 20_000
+DEFAULT_QUIET = QuietParams()
 STAGES = ("read", "sae", "track", "depth", "displacement", "forces")
 
 
@@ -51,12 +53,19 @@ STAGES = ("read", "sae", "track", "depth", "displacement", "forces")
 
 
 class DepthSource(Protocol):
-    """Gives the normal-displacement map (90 x 112, mm into the gel) for a window."""
+    """Gives the normal-displacement map (90 x 112, mm into the gel) for a window.
+
+    ``window_us``: the span the source's SAE covers, ending at the pipeline window's end
+    (None: the pipeline window itself). ``depth_mm`` gets that span's SAE (None unless
+    ``needs_sae``), its bounds and how many events fell in it.
+    """
 
     name: str
     needs_sae: bool
+    window_us: float | None
 
-    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]: ...
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int) -> npt.NDArray[np.float32]: ...
 
 
 class TruthDepth:
@@ -64,6 +73,7 @@ class TruthDepth:
 
     name = "truth"
     needs_sae = False
+    window_us: float | None = None
 
     def __init__(self, recording: Recording) -> None:
         if "truth/depth" not in recording.streams or recording.rows("truth/depth") == 0:
@@ -79,24 +89,37 @@ class TruthDepth:
             return len(self.t_us) - 1
         return k if self.t_us[k] - t_us < t_us - self.t_us[k - 1] else k - 1
 
-    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]:
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int = 0) -> npt.NDArray[np.float32]:
         return self.maps[self.index(t1_us)]
 
 
 class ModelDepth:
-    """The depth network (:class:`labrig.pipeline.depthnet.DepthModel`, ONNX) on the window's SAE."""
+    """The depth network (:class:`labrig.pipeline.depthnet.DepthModel`, ONNX) on the SAE of the
+    window it was trained on (model card ``window_ms``) ending at each pipeline window's end.
+
+    ``quiet``: windows at the noise floor keep the last active map (:mod:`labrig.pipeline.quiet`);
+    None feeds every window to the network.
+    """
 
     needs_sae = True
 
-    def __init__(self, path: str | Path, threads: int = 1) -> None:
+    def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | None = DEFAULT_QUIET) -> None:
         from labrig.pipeline.depthnet import DepthModel
 
         self.model = DepthModel(path, threads=threads)
         self.name = f"model:{self.model.name}"
+        self.window_us: float | None = self.model.window_ms * 1000.0
+        self.hold = QuietHold(sae.GRID_SHAPE, quiet) if quiet is not None else None
 
-    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int) -> npt.NDArray[np.float32]:
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int) -> npt.NDArray[np.float32]:
         assert sae_grid is not None
-        return self.model.depth_mm(sae_grid)
+        if self.hold is None:
+            return self.model.depth_mm(sae_grid)
+        if self.hold(n_events, t1_us - t0_us):
+            return self.hold.held_mm
+        return self.hold.update(self.model.depth_mm(sae_grid))
 
 
 def default_model_path(folder: str | Path = "models") -> Path:
@@ -182,6 +205,7 @@ class PipelineSetup:
     youngs_modulus_mpa: float
     poisson_ratio: float
     sources: dict[str, str]
+    stiffening: float = 0.0  # E_eff = E (1 + stiffening * depth / thickness); 0: linear (the paper's)
 
 
 class Pipeline:
@@ -208,6 +232,7 @@ class Pipeline:
         self.threshold_mm = threshold_mm
         self.keep_sae = keep_sae
         self._index = 0
+        self._recent: list[npt.NDArray[Any]] = []  # events of the depth source's window
 
     # The two stages (each returns the state the next one needs).
 
@@ -219,13 +244,15 @@ class Pipeline:
         seconds = {"read": read_s}
         grid = None
         start = time.perf_counter()
+        d0_us, d_events = self._depth_window(t0_us, t1_us, events)
         if self.depth.needs_sae or self.keep_sae:
-            grid = sae.sae_grid(events, t0_us, t1_us, self.setup.rig.roi)
+            grid = sae.sae_grid(d_events, d0_us, t1_us, self.setup.rig.roi)
         seconds["sae"] = time.perf_counter() - start
         start = time.perf_counter()
         positions, updated = self.tracker.update(events)
         seconds["track"] = time.perf_counter() - start
         state = {"index": self._index, "t0": t0_us, "t1": t1_us, "n": len(events), "sae": grid,
+                 "d0": d0_us, "d_n": len(d_events),
                  "positions": positions.copy(), "updated": updated.copy(), "seconds": seconds}
         self._index += 1
         return state
@@ -234,7 +261,7 @@ class Pipeline:
         """Depth, displacements, forces, net force and contact location."""
         seconds = state["seconds"]
         start = time.perf_counter()
-        depth = self.depth.depth_mm(state["sae"], state["t0"], state["t1"])
+        depth = self.depth.depth_mm(state["sae"], state["d0"], state["t1"], state["d_n"])
         seconds["depth"] = time.perf_counter() - start
         start = time.perf_counter()
         u = displacement.displacements_mm(state["positions"], depth, self.setup.camera, self.rest_mm,
@@ -242,6 +269,7 @@ class Pipeline:
         seconds["displacement"] = time.perf_counter() - start
         start = time.perf_counter()
         f = self.surface(depth, u, self.normal_mode, self.threshold_mm)
+        f *= forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening)
         where = forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm)
         seconds["forces"] = time.perf_counter() - start
         nan2 = np.full(2, np.nan)
@@ -249,6 +277,23 @@ class Pipeline:
                             u, f, forces.net_force_n(f), where.position_px if where else nan2,
                             where.position_mm if where else nan2, depth,
                             state["sae"] if self.keep_sae else None, seconds)
+
+    def _depth_window(self, t0_us: int, t1_us: int, events: npt.NDArray[Any]) -> tuple[int, npt.NDArray[Any]]:
+        """(start, events) of the depth source's window ending at ``t1_us``.
+
+        Windows shorter than the source's (count windows in a fast press) reach back into the
+        events of earlier windows, kept here; longer ones (count windows at rest) are cut."""
+        span = self.depth.window_us
+        if span is None:
+            return t0_us, events
+        d0 = round(t1_us - span)
+        self._recent.append(events)
+        while len(self._recent) > 1 and (len(self._recent[0]) == 0 or int(self._recent[0]["t"][-1]) < d0):
+            self._recent.pop(0)
+        held = np.concatenate(self._recent) if len(self._recent) > 1 else self._recent[0]
+        first = int(np.searchsorted(held["t"], d0))
+        self._recent = [held[first:]]
+        return d0, self._recent[0]
 
     def process(self, t0_us: int, t1_us: int, events: npt.NDArray[Any]) -> WindowResult:
         return self.back(self.front(t0_us, t1_us, events))
@@ -344,7 +389,8 @@ def _named_calibration(recording: Recording) -> dict[str, Path]:
 
 def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
                         calibration_dir: str | Path | None = "calibration",
-                        youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None) -> PipelineSetup:
+                        youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None,
+                        stiffening: float | None = None) -> PipelineSetup:
     """Rig, camera, rest pixels and gel modulus for ``recording``.
 
     Rig: ``rig``, else the one the recording carries, else calibration/rig.toml. Files: those
@@ -352,17 +398,17 @@ def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
     """
     rig = rig or rig_from_recording(recording) or load_rig()
     return setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=youngs_modulus_mpa,
-                         poisson_ratio=poisson_ratio, named=_named_calibration(recording))
+                         poisson_ratio=poisson_ratio, stiffening=stiffening, named=_named_calibration(recording))
 
 
 def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calibration",
                   youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None,
-                  named: dict[str, Path] | None = None) -> PipelineSetup:
-    """Camera, rest pixels and gel modulus for ``rig`` (a live stream, or a recording's rig).
+                  stiffening: float | None = None, named: dict[str, Path] | None = None) -> PipelineSetup:
+    """Camera, rest pixels and gel law for ``rig`` (a live stream, or a recording's rig).
 
-    Files: ``named`` ({file name: path}) first, else ``calibration_dir`` (None: none). Modulus:
-    the argument, else gel.toml, else the rig's [gel]. Camera: intrinsics.toml + extrinsics.toml,
-    else the rig's.
+    Files: ``named`` ({file name: path}) first, else ``calibration_dir`` (None: none). Modulus
+    and stiffening: the arguments, else gel.toml, else the rig's [gel] modulus and a linear gel
+    (stiffening 0). Camera: intrinsics.toml + extrinsics.toml, else the rig's.
     """
     from labrig.calibration.files import load_camera, load_extrinsics
 
@@ -373,19 +419,24 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calib
             candidate = Path(calibration_dir) / name
             if name not in files and candidate.exists():
                 files[name] = candidate
-    e, nu = rig.gel.youngs_modulus_mpa, rig.gel.poisson_ratio
-    sources["modulus"] = "rig [gel]"
-    if youngs_modulus_mpa is None and "gel.toml" in files:
+    e, nu, b = rig.gel.youngs_modulus_mpa, rig.gel.poisson_ratio, 0.0
+    sources["modulus"], sources["stiffening"] = "rig [gel]", "linear gel"
+    if "gel.toml" in files and (youngs_modulus_mpa is None or stiffening is None):
         from labrig.calibration.gel import load_gel
 
         fitted = load_gel(files["gel.toml"])
-        e = float(fitted.get("youngs_modulus_mpa", e))
-        nu = float(fitted.get("poisson_ratio", nu))
-        sources["modulus"] = str(files["gel.toml"])
+        if youngs_modulus_mpa is None:
+            e = float(fitted.get("youngs_modulus_mpa", e))
+            nu = float(fitted.get("poisson_ratio", nu))
+            sources["modulus"] = str(files["gel.toml"])
+        if stiffening is None and "stiffening" in fitted:
+            b, sources["stiffening"] = float(fitted["stiffening"]), str(files["gel.toml"])
     if youngs_modulus_mpa is not None:
         e, sources["modulus"] = float(youngs_modulus_mpa), "argument"
     if poisson_ratio is not None:
         nu = float(poisson_ratio)
+    if stiffening is not None:
+        b, sources["stiffening"] = float(stiffening), "argument"
     camera, rest_px = CameraModel.from_rig(rig), None
     sources["camera"] = "rig"
     if "intrinsics.toml" in files and "extrinsics.toml" in files:
@@ -394,7 +445,7 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calib
         sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
     if rest_px is None:
         rest_px = camera.project(rig.markers.rest_positions_mm())
-    return PipelineSetup(rig, camera, rest_px, e, nu, sources)
+    return PipelineSetup(rig, camera, rest_px, e, nu, sources, stiffening=b)
 
 
 def depth_source(kind: str, recording: Recording, model_path: str | Path | None = None, threads: int = 1) -> DepthSource:

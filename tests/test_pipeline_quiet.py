@@ -1,0 +1,137 @@
+"""Quiet windows keep the last active depth map; the network sees its own window; the calibrated gel stiffens."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from labrig.config import RigConfig
+from labrig.models import bundled_model_path
+from labrig.pipeline import forces, runtime
+from labrig.pipeline.quiet import NoiseFloor, QuietParams, held_source, quiet_flags
+from labrig.recording import EVENT_DTYPE
+
+NOISE, MOTION = 470, 2500  # events per 10 ms window over the ROI: the virtual rig at rest and in a press
+
+
+def _noise(rig: RigConfig, t0_us: int, t1_us: int, n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    r = rig.roi
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["x"] = rng.integers(r.x0_px, r.x1_px, n)
+    ev["y"] = rng.integers(r.y0_px, r.y1_px, n)
+    ev["p"] = rng.integers(0, 2, n)
+    ev["t"] = np.sort(rng.integers(t0_us, t1_us, n))
+    return ev
+
+
+def test_the_noise_floor_tells_rest_from_motion_and_a_stream_starts_quiet() -> None:
+    rng = np.random.default_rng(1)
+    counts = np.concatenate([rng.poisson(NOISE, 50), rng.poisson(MOTION, 30), rng.poisson(NOISE, 40),
+                             rng.poisson(900, 5)])  # a slow movement: twice the noise
+    quiet = quiet_flags(counts, 10_000)
+    assert quiet[:50].all() and not quiet[50:80].any() and quiet[80:120].all() and not quiet[120:].any()
+    floor = NoiseFloor()
+    assert floor.is_quiet(MOTION, 10_000)  # the first window defines the floor
+    assert floor.is_quiet(0, 10_000)
+
+
+def test_the_noise_floor_forgets_a_quieter_past() -> None:
+    floor = NoiseFloor(QuietParams(history_windows=20))
+    for _ in range(20):
+        floor.is_quiet(100, 10_000)
+    for _ in range(20):
+        floor.is_quiet(NOISE, 10_000)  # the light came on: more noise
+    assert floor.is_quiet(NOISE, 10_000) and not floor.is_quiet(MOTION, 10_000)
+
+
+def test_held_source_points_quiet_windows_at_the_last_active_one() -> None:
+    quiet = np.array([1, 1, 0, 0, 1, 1, 0, 1], bool)
+    assert held_source(quiet).tolist() == [-1, -1, 2, 3, 3, 3, 6, 6]
+    assert held_source(np.zeros(0, bool)).size == 0
+
+
+class _Spy:
+    """A depth source with its own 30 ms window that remembers what it was given."""
+
+    name = "spy"
+    needs_sae = True
+
+    def __init__(self, window_us: float | None) -> None:
+        self.window_us = window_us
+        self.calls: list[tuple[int, int, int, float]] = []
+
+    def depth_mm(self, sae_grid: Any, t0_us: int, t1_us: int, n_events: int) -> np.ndarray:
+        self.calls.append((t0_us, t1_us, n_events, float(sae_grid.sum())))
+        return np.zeros((90, 112), np.float32)
+
+
+@pytest.fixture(scope="module")
+def setup(rig: RigConfig) -> runtime.PipelineSetup:
+    return runtime.setup_for_rig(rig, calibration_dir=None)
+
+
+def test_the_depth_source_sees_its_own_window_ending_at_each_window_end(rig: RigConfig,
+                                                                       setup: runtime.PipelineSetup) -> None:
+    spy = _Spy(30_000.0)
+    pipe = runtime.Pipeline(setup, spy)
+    bounds = [(0, 10_000), (10_000, 12_000), (12_000, 14_000), (14_000, 60_000)]  # count windows: short, then long
+    per_window = [300, 300, 300, 300]
+    for (t0, t1), n in zip(bounds, per_window):
+        pipe.process(t0, t1, _noise(rig, t0, t1, n, seed=t0))
+    starts = [c[0] for c in spy.calls]
+    assert starts == [-20_000, -18_000, -16_000, 30_000]
+    assert [c[2] for c in spy.calls] == [300, 600, 900, pytest.approx(300 * 30 / 46, abs=40)]
+    default = _Spy(None)
+    runtime.Pipeline(setup, default).process(0, 10_000, _noise(rig, 0, 10_000, 300))
+    assert default.calls[0][:3] == (0, 10_000, 300)
+
+
+def test_the_network_holds_its_last_active_map_through_quiet_windows(rig: RigConfig,
+                                                                     setup: runtime.PipelineSetup) -> None:
+    network = runtime.ModelDepth(bundled_model_path())
+    unheld = runtime.ModelDepth(bundled_model_path(), quiet=None)
+    held_pipe, raw_pipe = runtime.Pipeline(setup, network), runtime.Pipeline(setup, unheld)
+    counts = [NOISE] * 20 + [MOTION] * 3 + [NOISE] * 10
+    held, raw = [], []
+    for k, n in enumerate(counts):
+        ev = _noise(rig, k * 10_000, (k + 1) * 10_000, n, seed=k)
+        held.append(held_pipe.process(k * 10_000, (k + 1) * 10_000, ev))
+        raw.append(raw_pipe.process(k * 10_000, (k + 1) * 10_000, ev))
+    assert all(not r.depth_mm.any() and not r.net_force_n.any() for r in held[:20])  # at rest: nothing, not a dimple
+    assert any(np.abs(r.depth_mm).max() > 0 for r in raw[:20])  # what the network alone answers to noise
+    assert all(np.array_equal(r.depth_mm, held[22].depth_mm) for r in held[23:])
+
+
+def test_the_calibrated_stiffening_scales_the_linear_forces(rig: RigConfig, tmp_path: Path) -> None:
+    assert forces.stiffening_factor(np.array([[0.0, 2.0]]), 4.0, 0.6) == pytest.approx(1.3)
+    assert forces.stiffening_factor(np.array([[-1.0]]), 4.0, 0.6) == 1.0
+    assert forces.stiffening_factor(np.array([[2.0]]), 4.0, 0.0) == 1.0
+    (tmp_path / "gel.toml").write_text("youngs_modulus_mpa = 0.4\npoisson_ratio = 0.48\nstiffening = 0.6\n")
+    fitted = runtime.setup_for_rig(rig, calibration_dir=tmp_path)
+    assert fitted.stiffening == 0.6 and fitted.sources["stiffening"].endswith("gel.toml")
+    assert runtime.setup_for_rig(rig, calibration_dir=tmp_path, stiffening=0.0).stiffening == 0.0
+    assert runtime.setup_for_rig(rig, calibration_dir=None).stiffening == 0.0
+    depth = np.zeros((90, 112), np.float32)
+    depth[40:50, 50:60] = 2.0
+    linear = runtime.Pipeline(runtime.setup_for_rig(rig, calibration_dir=tmp_path, stiffening=0.0),
+                              _Fixed(depth)).process(0, 10_000, _noise(rig, 0, 10_000, 10))
+    stiff = runtime.Pipeline(fitted, _Fixed(depth)).process(0, 10_000, _noise(rig, 0, 10_000, 10))
+    factor = 1 + 0.6 * 2.0 / rig.gel.thickness_mm
+    assert linear.net_force_n[2] < -1.0
+    np.testing.assert_allclose(stiff.net_force_n, factor * linear.net_force_n, rtol=1e-9)
+
+
+class _Fixed:
+    name = "fixed"
+    needs_sae = False
+    window_us = None
+
+    def __init__(self, depth_mm: np.ndarray) -> None:
+        self.map = depth_mm
+
+    def depth_mm(self, sae_grid: Any, t0_us: int, t1_us: int, n_events: int) -> np.ndarray:
+        return self.map
