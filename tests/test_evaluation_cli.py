@@ -62,7 +62,8 @@ def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["recordings"] == 2 and summary["report_problems"] == []
-    for key in ("force_x_mae_n", "force_z_mae_n", "depth_total_mm", "pipeline_ms", "lost_tracks_per_sequence"):
+    for key in ("force_x_mae_n", "force_z_mae_n", "depth_total_mm", "pipeline_ms", "lost_tracks_per_sequence",
+                "force_z_mae_true_depth_n"):
         assert summary[key] is not None and summary[key] >= 0, key
     assert check_report(out) == []
     results = json.loads((out / "results.json").read_text())
@@ -78,7 +79,7 @@ def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path
     again = runner.invoke(app, args)  # every task from the cache
     assert again.exit_code == 0, again.output
     cache = json.loads(again.stdout)["cache"]
-    assert set(cache) == {"forces", "depth", "tracking", "labels"}
+    assert set(cache) == {"forces", "forces-truth", "depth", "tracking", "labels"}
     assert all(" 0 computed" in line for line in cache.values()), cache
 
 
