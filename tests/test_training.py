@@ -173,3 +173,28 @@ def test_cli_train_json_and_errors(campaign: Path, tmp_path: Path) -> None:
     assert isinstance(bad.exception, LabrigError) and "--loss must be one of" in str(bad.exception)
     empty = runner.invoke(app, ["train", str(tmp_path)])
     assert isinstance(empty.exception, LabrigError) and "manifest.csv" in str(empty.exception)
+
+
+def test_windows_are_drawn_only_where_the_camera_has_events(campaign: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A camera that stalled leaves a dented gel without events: those windows would teach a dimple from nothing."""
+    from labrig.evaluation.windows import camera_shortfall_s
+    from labrig.recording import Recording
+
+    with Recording(campaign / "a.h5") as rec:
+        end_us = rec.events_end_us()
+        assert end_us is not None and end_us == int(rec.events_between(0, rec.end_us() + 1)["t"].max())
+        assert camera_shortfall_s(rec) < 0.05
+        phases = {p.name: p for p in rec.phases()}
+        cut = (phases["normal_down"].t_end_us + phases["normal_up"].t_start_us) // 2
+        before = phases["normal_down"].t_start_us - PHASE_MARGIN_S * 1e6 - 1
+    monkeypatch.setattr(Recording, "events_end_us", lambda self: cut)
+    data = open_campaign(campaign)
+    try:
+        assert data.sources["train"][0].span_us[1] == cut
+        with Recording(campaign / "a.h5") as rec:
+            assert camera_shortfall_s(rec) == pytest.approx((rec.phases()[-1].t_end_us - cut) / 1e6)
+    finally:
+        data.close()
+    monkeypatch.setattr(Recording, "events_end_us", lambda self: before)  # stalled before the probing
+    with pytest.raises(LabrigError, match="no usable recording in the train split"):
+        open_campaign(campaign)

@@ -95,6 +95,7 @@ class Evaluation:
     sweep: Any = None  # labrig.evaluation.sweep.SweepResult with --sweep
     stress: Any = None  # labrig.evaluation.stress.StressResult with --stress
     summary: dict[str, Any] = field(default_factory=dict)
+    camera_short_s: dict[str, float] = field(default_factory=dict)  # recording -> events missing at the end (s)
 
 
 def campaign_recordings(data: Path, split: str) -> list[Path]:
@@ -172,6 +173,7 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
         ev.tracking = run("tracking", track_recording,
                           [t for tracker in TABLE1_TRACKERS for t in table_tasks(
                               paths, patch_scales=settings.patch_scales, calibration_dir=calibration, tracker=tracker)])
+    ev.camera_short_s = _camera_shortfalls(paths)
     simulated = [p for p in paths if _has_truth(p)]
     if simulated:
         ev.forces_truth = run("forces-truth", evaluate_forces, [
@@ -211,6 +213,20 @@ def _runner(settings: EvaluationSettings, ev: Evaluation, progress: Progress | N
     return run
 
 
+def _camera_shortfalls(paths: list[str], tolerance_s: float = 0.1) -> dict[str, float]:
+    """Recordings whose camera stream stops more than ``tolerance_s`` before the protocol ends."""
+    from labrig.evaluation.windows import camera_shortfall_s
+    from labrig.recording import Recording
+
+    out = {}
+    for path in paths:
+        with Recording(path) as rec:
+            short = camera_shortfall_s(rec)
+        if short > tolerance_s:
+            out[Path(path).name] = round(short, 2)
+    return out
+
+
 def _has_truth(path: str) -> bool:
     from labrig.recording import Recording
 
@@ -236,7 +252,7 @@ def headline(ev: Evaluation) -> dict[str, Any]:
         "depth_total_mm": depth["total_mm"], "depth_contact_mm": depth["contact_mm"],
         "depth_noncontact_mm": depth["noncontact_mm"],
         "pipeline_ms": runtime["total_ms"], "pipeline_rate_hz": runtime["rate_hz"],
-        "paper": PAPER, "cache": ev.cache,
+        "paper": PAPER, "cache": ev.cache, "camera_stream_short_s": ev.camera_short_s,
     }
     if ev.forces_truth:
         truth = {row["axis"]: row for row in tables.table3(ev.forces_truth)}
@@ -270,6 +286,12 @@ def build_report(ev: Evaluation) -> Report:
         f"{len(ev.recordings)} recordings of the **{s.split}** split of `{s.data}`, evaluated on sequential windows "
         f"of {windows}; depth network `{ev.model.name}`. The paper's figures are its floor: force MAE (0.14, 0.10, "
         "0.93) N, depth MAE 0.091 mm (0.265 mm in contact), 2.8 lost tracks per sequence, 2.47 px contact position."))
+    if ev.camera_short_s:
+        listed = ", ".join(f"{name} ({short:g} s)" for name, short in sorted(ev.camera_short_s.items()))
+        report.add_text("data_warnings", (
+            f"**Data warning.** In {len(ev.camera_short_s)} of {len(ev.recordings)} recordings the camera's events "
+            f"stop before the protocol ends: {listed}. Windows there have no events and are not scored (count "
+            "windows end at the last event); the pipeline's figures cover less of those runs. Record them again."))
     _forces_section(report, ev)
     _depth_section(report, ev)
     if ev.tracking:

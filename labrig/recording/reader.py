@@ -217,6 +217,14 @@ class Recording:
     def n_events(self) -> int:
         return self._rows["events"]
 
+    def events_end_us(self) -> int | None:
+        """Host time (us) of the newest event (None without events): where the camera stream stops."""
+        n = self.n_events
+        if n == 0:
+            return None
+        tail = self.column("events", "t_device_us", max(0, n - 4096), n)  # device times may step back a little
+        return int(self.clock_model("camera").to_host_us_int(tail.max()))
+
     def event_index(self) -> tuple[int, npt.NDArray[np.int64]]:
         """(start_bin, first_row per bin) of the event time index, cached."""
         if self._event_index is None:

@@ -9,9 +9,11 @@ base, the base of the sidecar's ``t_host_us``.
 
 Times are drawn uniformly over the recording's probing phases (``normal_down`` to
 ``normal_up``) widened by :data:`PHASE_MARGIN_S` on each side, intersected with the span of
-its ground truth: the approach and retract (seconds of an undeformed gel at rest with hardly
-any events) would otherwise fill most windows, while the margins still show the network the
-gel at rest. ``phases="all"`` uses the whole recording.
+its ground truth and with the camera's stream: the approach and retract (seconds of an
+undeformed gel at rest with hardly any events) would otherwise fill most windows, while the
+margins still show the network the gel at rest. ``phases="all"`` uses the whole recording.
+Where a camera stream stopped early (a stalled camera) there are no events, not even noise,
+beside a dented gel: such windows taught the network to draw a dimple from nothing.
 """
 
 from __future__ import annotations
@@ -78,8 +80,10 @@ class Source:
                 t0, t1 = max(t0, chosen[0].t_start_us - margin), min(t1, chosen[-1].t_end_us + margin)
         elif phases != "all":
             raise LabrigError(f"phases must be 'probing' or 'all', not {phases!r}")
+        events_end = self.rec.events_end_us()
+        t1 = min(t1, float(events_end) if events_end is not None else t0)
         if t1 <= t0:
-            raise LabrigError(f"{self.path}: its probing phases and its ground truth do not overlap")
+            raise LabrigError(f"{self.path}: its probing phases, its ground truth and its camera events do not overlap")
         return t0, t1
 
     def nearest(self, t_us: float) -> int:
