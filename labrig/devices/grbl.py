@@ -929,9 +929,17 @@ class Grbl:
             return
         now = self.now_us()
         deadline = self._deadline_us(ticket)
-        if now >= deadline:
+        if now >= deadline and not self._awaiting_fresh_status(deadline, now):
             raise self._timeout(ticket, now)
-        self._cond.wait(min(0.05, (deadline - now) / 1e6))
+        self._cond.wait(min(0.05, max(deadline - now, 10_000) / 1e6))
+
+    def _awaiting_fresh_status(self, deadline_us: float, now_us: int) -> bool:
+        """Past a line's deadline, a lost 'ok' is only concluded from a status report newer than
+        the deadline: a report from before it (the poller starved on a loaded host) may say Idle
+        from before the cycle started. Without any report for 1 s the controller is unresponsive."""
+        sample = self._last_sample
+        return (self.poll_hz > 0 and sample is not None and sample.t_host_us < deadline_us
+                and now_us - sample.t_host_us <= 1e6)
 
     def _wait_ticket(self, ticket: _Ticket) -> None:
         with self._cond:
