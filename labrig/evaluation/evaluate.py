@@ -173,8 +173,7 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
         ev.tracking = run("tracking", track_recording,
                           [t for tracker in TABLE1_TRACKERS for t in table_tasks(
                               paths, patch_scales=settings.patch_scales, calibration_dir=calibration, tracker=tracker)])
-    ev.camera_short_s = _camera_shortfalls(paths)
-    simulated = [p for p in paths if _has_truth(p)]
+    simulated, ev.camera_short_s = _scan_recordings(paths)
     if simulated:
         ev.forces_truth = run("forces-truth", evaluate_forces, [
             ForceTask(p, "truth", calibration_dir=calibration, sidecar=str(sidecar_path(p)), **windows)
@@ -213,25 +212,21 @@ def _runner(settings: EvaluationSettings, ev: Evaluation, progress: Progress | N
     return run
 
 
-def _camera_shortfalls(paths: list[str], tolerance_s: float = 0.1) -> dict[str, float]:
-    """Recordings whose camera stream stops more than ``tolerance_s`` before the protocol ends."""
+def _scan_recordings(paths: list[str], tolerance_s: float = 0.1) -> tuple[list[str], dict[str, float]]:
+    """One look at each recording: those with the sim's truth (virtual rig), and those whose camera
+    stream stops more than ``tolerance_s`` before the protocol ends (name -> seconds missing)."""
     from labrig.evaluation.windows import camera_shortfall_s
     from labrig.recording import Recording
 
-    out = {}
+    simulated, short = [], {}
     for path in paths:
         with Recording(path) as rec:
-            short = camera_shortfall_s(rec)
-        if short > tolerance_s:
-            out[Path(path).name] = round(short, 2)
-    return out
-
-
-def _has_truth(path: str) -> bool:
-    from labrig.recording import Recording
-
-    with Recording(path) as rec:
-        return "truth/depth" in rec.streams and rec.rows("truth/depth") > 0
+            if "truth/depth" in rec.streams and rec.rows("truth/depth") > 0:
+                simulated.append(path)
+            missing_s = camera_shortfall_s(rec)
+        if missing_s > tolerance_s:
+            short[Path(path).name] = round(missing_s, 2)
+    return simulated, short
 
 
 # -- headline numbers --------------------------------------------------------------------------
