@@ -11,7 +11,7 @@ import pytest
 from labrig.config import RigConfig
 from labrig.models import bundled_model_path
 from labrig.pipeline import forces, runtime
-from labrig.pipeline.quiet import NoiseFloor, QuietParams, held_source, quiet_flags
+from labrig.pipeline.quiet import NoiseFloor, QuietParams
 from labrig.recording import EVENT_DTYPE
 
 NOISE, MOTION = 470, 2500  # events per 10 ms window over the ROI: the virtual rig at rest and in a press
@@ -32,7 +32,8 @@ def test_the_noise_floor_tells_rest_from_motion_and_a_stream_starts_quiet() -> N
     rng = np.random.default_rng(1)
     counts = np.concatenate([rng.poisson(NOISE, 50), rng.poisson(MOTION, 30), rng.poisson(NOISE, 40),
                              rng.poisson(900, 5)])  # a slow movement: twice the noise
-    quiet = quiet_flags(counts, 10_000)
+    stream = NoiseFloor()
+    quiet = np.array([stream.is_quiet(int(n), 10_000) for n in counts])
     assert quiet[:50].all() and not quiet[50:80].any() and quiet[80:120].all() and not quiet[120:].any()
     floor = NoiseFloor()
     assert floor.is_quiet(MOTION, 10_000)  # the first window defines the floor
@@ -46,12 +47,6 @@ def test_the_noise_floor_forgets_a_quieter_past() -> None:
     for _ in range(20):
         floor.is_quiet(NOISE, 10_000)  # the light came on: more noise
     assert floor.is_quiet(NOISE, 10_000) and not floor.is_quiet(MOTION, 10_000)
-
-
-def test_held_source_points_quiet_windows_at_the_last_active_one() -> None:
-    quiet = np.array([1, 1, 0, 0, 1, 1, 0, 1], bool)
-    assert held_source(quiet).tolist() == [-1, -1, 2, 3, 3, 3, 6, 6]
-    assert held_source(np.zeros(0, bool)).size == 0
 
 
 class _Spy:

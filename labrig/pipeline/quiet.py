@@ -58,19 +58,6 @@ class NoiseFloor:
         return rate_hz < self.params.quiet_ratio * self.floor_hz or n_events == 0
 
 
-def quiet_flags(n_events: npt.ArrayLike, duration_us: float, params: QuietParams = QuietParams()) -> npt.NDArray[np.bool_]:
-    """:meth:`NoiseFloor.is_quiet` over a sequence of windows of one length, in order."""
-    floor = NoiseFloor(params)
-    return np.array([floor.is_quiet(int(n), duration_us) for n in np.asarray(n_events).ravel()], bool)
-
-
-def held_source(quiet: npt.NDArray[np.bool_]) -> npt.NDArray[np.int64]:
-    """Per window, the index of the window whose depth it shows: itself if active, else the last
-    active one before it, else -1 (no motion yet: zeros)."""
-    index = np.where(~np.asarray(quiet, bool), np.arange(len(quiet)), -1)
-    return np.maximum.accumulate(index) if len(index) else index.astype(np.int64)
-
-
 class QuietHold:
     """Keeps the last active window's depth map through quiet windows (zeros before any motion)."""
 

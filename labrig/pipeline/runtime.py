@@ -410,7 +410,7 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calib
     and stiffening: the arguments, else gel.toml, else the rig's [gel] modulus and a linear gel
     (stiffening 0). Camera: intrinsics.toml + extrinsics.toml, else the rig's.
     """
-    from labrig.calibration.files import load_camera, load_extrinsics
+    from labrig.calibration.files import camera_from_calibration, load_extrinsics, load_intrinsics
 
     sources: dict[str, str] = {"rig": str(rig.path)}
     files = dict(named or {})
@@ -440,8 +440,9 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calib
     camera, rest_px = CameraModel.from_rig(rig), None
     sources["camera"] = "rig"
     if "intrinsics.toml" in files and "extrinsics.toml" in files:
-        camera = load_camera(files["intrinsics.toml"], files["extrinsics.toml"])
-        rest_px = np.asarray(load_extrinsics(files["extrinsics.toml"]).rest_px, np.float64)
+        extrinsics = load_extrinsics(files["extrinsics.toml"])
+        camera = camera_from_calibration(load_intrinsics(files["intrinsics.toml"]), extrinsics)
+        rest_px = np.asarray(extrinsics.rest_px, np.float64)
         sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
     if rest_px is None:
         rest_px = camera.project(rig.markers.rest_positions_mm())
