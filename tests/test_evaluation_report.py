@@ -231,6 +231,12 @@ def test_pareto_front_and_knee_on_a_clear_elbow() -> None:
     assert charts.knee_index([1.0, 2.0], [2.0, 1.0]) is None
 
 
+def test_pareto_labels_one_setting_reached_by_two_knobs_once() -> None:
+    points = [("width 4", 11.6, 0.21), ("10 ms (w4)", 11.6, 0.21), ("width 8", 13.7, 0.27)]
+    texts = [t.get_text() for t in charts.pareto(points, error_name="depth MAE", error_unit="mm").axes[0].texts]
+    assert sorted(texts) == ["width 4 = 10 ms (w4)", "width 8"]
+
+
 def test_recommend_takes_the_fastest_within_tolerance() -> None:
     points = [("w4", 1.0, 0.40), ("w8", 2.0, 0.103), ("w16", 5.0, 0.100), ("w32", 9.0, 0.099), ("broken", 0.5, float("nan"))]
     assert charts.recommend(points).label == "w8"

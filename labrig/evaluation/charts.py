@@ -259,9 +259,12 @@ def pareto(
     ax.scatter(lat[on_front], err[on_front], color=CYCLE[0], s=36, label="Pareto front", zorder=3)
     if front.size:
         ax.step(lat[front], err[front], where="post", color=CYCLE[0], lw=1.2, zorder=2)
+    labels_at: dict[tuple[float, float], list[str]] = {}
     for c in candidates:
         if np.isfinite(c.latency_ms) and np.isfinite(c.error):
-            ax.annotate(c.label, (c.latency_ms, c.error), xytext=(4, 4), textcoords="offset points", fontsize=7)
+            labels_at.setdefault((c.latency_ms, c.error), []).append(c.label)
+    for (latency_ms, error), labels in labels_at.items():  # one setting reached by two knobs: one label
+        ax.annotate(" = ".join(labels), (latency_ms, error), xytext=(4, 4), textcoords="offset points", fontsize=7)
     if front.size:
         best = err[front[-1]]
         ax.axhspan(best, best + tolerance * abs(best), color="#2ca02c", alpha=0.12, lw=0, label=f"within {tolerance:.0%} of best")
