@@ -43,6 +43,9 @@ def train_command(
         help="Sample windows in the probing phases (normal_down to normal_up, +-0.3 s) or all.")] = "probing",
     device: Annotated[str, typer.Option(help="auto (CUDA when present), cpu, cuda.")] = "auto",
     threads: Annotated[int | None, typer.Option(help="Torch CPU threads (default: torch's).")] = None,
+    noise_hz: Annotated[float, typer.Option(
+        help="Background-noise augmentation: half the windows get extra noise events up to this rate "
+             "(Hz per pixel, log-uniform from 0.02); 0: off.")] = 0.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print the model card as JSON.")] = False,
 ) -> None:
     """Train the depth U-Net on a campaign's train split; validate on its val split; export ONNX + model card."""
@@ -51,7 +54,7 @@ def train_command(
     config = TrainConfig(width=width, pools=pools, window_ms=window_ms, loss=loss, lambda_c=lambda_c, steps=steps,
                          time_budget_min=time_budget_min, batch_size=batch_size, lr=lr, seed=seed,
                          checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows,
-                         phases=phases, device=device, threads=threads)
+                         phases=phases, device=device, threads=threads, noise_hz=noise_hz)
     config.check()
     if out is None:
         out = Path("models") / f"depth-w{width}-{loss}-{window_ms:g}ms"

@@ -198,3 +198,72 @@ def test_windows_are_drawn_only_where_the_camera_has_events(campaign: Path, monk
     monkeypatch.setattr(Recording, "events_end_us", lambda self: before)  # stalled before the probing
     with pytest.raises(LabrigError, match="no usable recording in the train split"):
         open_campaign(campaign)
+
+
+# ----------------------------------------------------------------------------------------- noise augmentation
+
+
+def test_background_noise_is_uniform_poisson_over_the_roi() -> None:
+    from labrig.config import Roi
+    from labrig.training.data import background_noise
+
+    roi = Roi(100, 50, 300, 250)  # 200 x 200 px
+    rng = np.random.default_rng(0)
+    ev = background_noise(roi, 1_000.0, 11_000.0, 2.0, rng)  # 2 Hz x 40,000 px x 10 ms = 800 expected
+    assert abs(len(ev) - 800) < 4 * np.sqrt(800)
+    assert ev["x"].min() >= 100 and ev["x"].max() < 300 and ev["y"].min() >= 50 and ev["y"].max() < 250
+    assert ev["t"].min() >= 1_000 and ev["t"].max() < 11_000 and np.all(np.diff(ev["t"].astype(np.int64)) >= 0)
+    assert 0.4 < ev["p"].mean() < 0.6
+    assert len(background_noise(roi, 0.0, 10_000.0, 0.0, rng)) == 0
+
+
+def test_noise_augment_draws_log_uniform_rates_for_a_share_of_windows() -> None:
+    from labrig.training.data import NoiseAugment
+
+    aug = NoiseAugment(max_hz=2.0, min_hz=0.02, fraction=0.5)
+    rng = np.random.default_rng(1)
+    rates = np.array([aug.draw_hz(rng) for _ in range(4000)])
+    noisy = rates[rates > 0]
+    assert 0.45 < len(noisy) / len(rates) < 0.55
+    assert noisy.min() >= 0.02 and noisy.max() <= 2.0
+    assert abs(np.median(np.log10(noisy)) - np.log10(0.2)) < 0.1  # log-uniform: the median is the geometric mean
+    with pytest.raises(LabrigError, match="noise rates"):
+        NoiseAugment(max_hz=0.01)
+    with pytest.raises(LabrigError, match="--noise-hz"):
+        TrainConfig(noise_hz=-1.0).check()
+
+
+def test_noise_fills_the_sae_but_leaves_the_target(campaign: Path) -> None:
+    from labrig.training.data import background_noise
+
+    data = open_campaign(campaign)
+    try:
+        src = data.sources["train"][0]
+        start = src.span_us[0] + 0.3 * (src.span_us[1] - src.span_us[0])
+        clean = src.window(start, 10_000)
+        noise = background_noise(src.roi, start, start + 10_000, 1.0, np.random.default_rng(2))
+        noisy = src.window(start, 10_000, noise=noise)
+        assert np.array_equal(noisy.target, clean.target) and noisy.t_last_us == clean.t_last_us
+        assert np.count_nonzero(noisy.sae) > np.count_nonzero(clean.sae) + 1000
+        assert np.all(noisy.sae >= clean.sae)  # the latest event per cell: extra events only make it later
+        sampler = WindowSampler(data.sources["train"], 10_000, seed=3, noise=TrainConfig(noise_hz=2.0).noise)
+        counts = [np.count_nonzero(sampler.sample().sae) for _ in range(12)]
+        assert max(counts) > 3 * min(counts)  # some windows clean, some noisy
+    finally:
+        data.close()
+
+
+def test_the_card_and_the_reproduce_line_name_the_augmentation(campaign: Path, tmp_path: Path) -> None:
+    cfg = {"val_every": 0, "checkpoint_every": 2, **TINY}
+    card = train(campaign, TrainConfig(steps=2, noise_hz=1.5, **cfg), tmp_path / "n", show_progress=False)
+    assert card["augmentation"] == {"background_noise": {"min_hz": 0.02, "max_hz": 1.5, "fraction": 0.5}}
+    assert "--noise-hz 1.5" in card["reproduce"]
+    with pytest.raises(LabrigError, match=r"noise_hz was 1\.5"):
+        train(campaign, TrainConfig(steps=4, **cfg), tmp_path / "n", resume=True, show_progress=False)
+    ckpt_path = output_paths(tmp_path / "old")["checkpoint"]
+    train(campaign, TrainConfig(steps=2, **cfg), tmp_path / "old", show_progress=False)
+    ckpt = torch.load(ckpt_path, weights_only=False)
+    del ckpt["config"]["noise_hz"]  # a checkpoint from before the augmentation existed
+    torch.save(ckpt, ckpt_path)
+    resumed = train(campaign, TrainConfig(steps=3, **cfg), tmp_path / "old", resume=True, show_progress=False)
+    assert resumed["training"]["steps"] == 3 and resumed["augmentation"] is None

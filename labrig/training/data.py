@@ -14,6 +14,12 @@ undeformed gel at rest with hardly any events) would otherwise fill most windows
 margins still show the network the gel at rest. ``phases="all"`` uses the whole recording.
 Where a camera stream stopped early (a stalled camera) there are no events, not even noise,
 beside a dented gel: such windows taught the network to draw a dimple from nothing.
+
+**Background-noise augmentation** (:class:`NoiseAugment`): a share of the windows get extra
+noise events, uniform over the ROI's pixels and the window, at a rate drawn log-uniformly
+per window. A network trained at one sensor's noise level draws dimples from a noisier
+sensor's SAE (the stress suite's event-noise axis); a real sensor's background rate
+varies with the sensor, its biases, the light and the temperature.
 """
 
 from __future__ import annotations
@@ -35,6 +41,47 @@ SPLITS = ("train", "val", "test")
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
 #: Margin around the probing phases (s): windows of the gel at rest, no contact, few events.
 PHASE_MARGIN_S = 0.3
+
+
+@dataclass(frozen=True)
+class NoiseAugment:
+    """Extra background noise for a ``fraction`` of the windows: rate log-uniform in
+    ``[min_hz, max_hz]`` events per pixel per second, uniform over the ROI's pixels."""
+
+    max_hz: float
+    min_hz: float = 0.02
+    fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.min_hz <= self.max_hz:
+            raise LabrigError(f"noise rates must satisfy 0 < {self.min_hz} <= {self.max_hz} Hz per pixel")
+        if not 0.0 <= self.fraction <= 1.0:
+            raise LabrigError("the noisy share of the windows must be within [0, 1]")
+
+    def draw_hz(self, rng: np.random.Generator) -> float:
+        """The extra rate for one window (0 for the clean share)."""
+        if rng.uniform() >= self.fraction:
+            return 0.0
+        return float(np.exp(rng.uniform(np.log(self.min_hz), np.log(self.max_hz))))
+
+    def describe(self) -> dict[str, float]:
+        return {"min_hz": self.min_hz, "max_hz": self.max_hz, "fraction": self.fraction}
+
+
+def background_noise(roi: Roi, t0_us: float, t1_us: float, rate_hz: float,
+                     rng: np.random.Generator) -> npt.NDArray:
+    """Noise events (``EVENT_DTYPE``, sorted in time) at ``rate_hz`` per pixel over ``roi`` and
+    ``[t0_us, t1_us)``: Poisson count, uniform pixel, time and polarity."""
+    from labrig.recording import EVENT_DTYPE
+
+    mean = rate_hz * roi.width_px * roi.height_px * max(t1_us - t0_us, 0.0) * 1e-6
+    n = int(rng.poisson(mean)) if mean > 0 else 0
+    events = np.zeros(n, EVENT_DTYPE)
+    events["x"] = rng.integers(roi.x0_px, roi.x1_px, n)
+    events["y"] = rng.integers(roi.y0_px, roi.y1_px, n)
+    events["p"] = rng.integers(0, 2, n)
+    events["t"] = np.sort(rng.integers(int(t0_us), max(int(t1_us), int(t0_us) + 1), n))
+    return events
 
 
 @dataclass
@@ -92,11 +139,19 @@ class Source:
             i -= 1
         return i
 
-    def window(self, t0_us: float, window_us: float, index: int = -1) -> Sample:
-        """The SAE of ``[t0, t0 + window)`` and the map nearest to its last event (window end if none)."""
+    def window(self, t0_us: float, window_us: float, index: int = -1,
+               noise: npt.NDArray | None = None) -> Sample:
+        """The SAE of ``[t0, t0 + window)`` and the map nearest to its last event (window end if none).
+
+        ``noise``: extra events in the window (augmentation); they do not move the ground
+        truth's time, which follows the recording's own last event.
+        """
         events = self.rec.events_between(t0_us, t0_us + window_us)
-        sae = pad_for_unet(sae_grid(events, t0_us, t0_us + window_us, self.roi, GRID_SHAPE))
         t_last = float(events["t"].max()) if len(events) else t0_us + window_us
+        if noise is not None and len(noise):
+            events = np.concatenate([events, noise.astype(events.dtype)])
+            events = events[np.argsort(events["t"], kind="stable")]
+        sae = pad_for_unet(sae_grid(events, t0_us, t0_us + window_us, self.roi, GRID_SHAPE))
         i = self.nearest(t_last)
         depth = self.gt["depth_mm"][i]
         target = np.clip(depth / np.float32(self.scale_mm), 0.0, 1.0).astype(np.float32)
@@ -182,11 +237,12 @@ class WindowSampler:
     arrays; :meth:`state` / :meth:`set_state` capture the generator for resume.
     """
 
-    def __init__(self, sources: list[Source], window_us: float, seed: int) -> None:
+    def __init__(self, sources: list[Source], window_us: float, seed: int, noise: NoiseAugment | None = None) -> None:
         if not sources:
             raise LabrigError("no recordings to sample from")
         self.sources = sources
         self.window_us = float(window_us)
+        self.noise = noise
         self.rng = np.random.default_rng(seed)
 
     def sample(self) -> Sample:
@@ -194,7 +250,11 @@ class WindowSampler:
         src = self.sources[k]
         t0, t1 = src.span_us
         start = float(self.rng.uniform(t0, max(t0, t1 - self.window_us)))
-        return src.window(start, self.window_us, k)
+        extra = None
+        if self.noise is not None:
+            rate_hz = self.noise.draw_hz(self.rng)
+            extra = background_noise(src.roi, start, start + self.window_us, rate_hz, self.rng) if rate_hz else None
+        return src.window(start, self.window_us, k, extra)
 
     def __iter__(self) -> Iterator[Sample]:
         while True:

@@ -24,12 +24,17 @@ import numpy as np
 
 from labrig.errors import LabrigError
 from labrig.pipeline.sae import crop_from_unet
+from labrig.training.data import NoiseAugment
 from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
 
 DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
 #: Settings that must match for a resume.
-RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases")
+RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases", "noise_hz")
+#: Resume keys a checkpoint may predate, with the value it then had.
+RESUME_DEFAULTS = {"noise_hz": 0.0}
+#: Lowest extra noise rate of the augmentation (Hz per pixel): below the sensor's own.
+NOISE_MIN_HZ = 0.02
 
 
 @dataclass
@@ -50,6 +55,7 @@ class TrainConfig:
     phases: str = "probing"
     device: str = "auto"
     threads: int | None = None
+    noise_hz: float = 0.0  # background-noise augmentation: up to this rate (Hz per pixel) on half the windows; 0: off
 
     def check(self) -> None:
         if self.loss not in LOSSES:
@@ -66,6 +72,13 @@ class TrainConfig:
             raise LabrigError("--time-budget-min must be positive")
         if self.phases not in ("probing", "all"):
             raise LabrigError("--phases must be probing or all")
+        if self.noise_hz < 0:
+            raise LabrigError("--noise-hz must be 0 (off) or a positive rate in Hz per pixel")
+
+    @property
+    def noise(self) -> NoiseAugment | None:
+        """The background-noise augmentation, or None."""
+        return NoiseAugment(max_hz=self.noise_hz, min_hz=min(NOISE_MIN_HZ, self.noise_hz)) if self.noise_hz > 0 else None
 
     @property
     def max_steps(self) -> int | None:
@@ -134,7 +147,7 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
         torch.manual_seed(config.seed)
         model = build_unet(UNetConfig(width=config.width, pools=config.pools)).to(device)
         optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-        sampler = WindowSampler(data.sources["train"], window_us, config.seed)
+        sampler = WindowSampler(data.sources["train"], window_us, config.seed, config.noise)
         val_sources = data.sources.get("val", [])
         val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET) if val_sources else None
         loss_fn = loss_function(config.loss, config.lambda_c)
@@ -143,6 +156,7 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
         if resume:
             ckpt = torch.load(paths["checkpoint"], map_location=device, weights_only=False)
             before = ckpt["config"]
+            before = {**RESUME_DEFAULTS, **before}
             changed = [k for k in RESUME_KEYS if before.get(k) != getattr(config, k)]
             if changed:
                 raise LabrigError(f"--resume: {', '.join(f'{k} was {before.get(k)!r}' for k in changed)} in "
@@ -221,6 +235,7 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
             "training_data": data.describe(),
             "sampling": f"uniform recording, uniform start time within its {config.phases} phases; ground truth "
                         "nearest to the window's last event",
+            "augmentation": {"background_noise": config.noise.describe()} if config.noise else None,
             "training": {"steps": step, "batch_size": config.batch_size, "samples": n_samples, "optimizer": "Adam",
                          "lr": config.lr, "seed": config.seed, "seconds": round(elapsed_s, 1),
                          "samples_per_s": round(n_samples / elapsed_s, 1) if elapsed_s > 0 else None,
@@ -267,6 +282,8 @@ def _reproduce(data_dir: str | Path, c: TrainConfig, out: Path, steps: int) -> s
         parts += ["--lambda-c", f"{c.lambda_c:g}"]
     if c.phases != "probing":
         parts += ["--phases", c.phases]
+    if c.noise_hz > 0:
+        parts += ["--noise-hz", f"{c.noise_hz:g}"]
     if c.val_every != 200 or c.val_windows != 128:
         parts += ["--val-every", str(c.val_every), "--val-windows", str(c.val_windows)]
     return " ".join(parts)
