@@ -11,7 +11,8 @@ import pytest
 from labrig.config import RigConfig
 from labrig.models import bundled_model_path
 from labrig.pipeline import forces, runtime
-from labrig.pipeline.quiet import NoiseFloor, QuietParams
+from labrig.pipeline.quiet import NoiseFloor, QuietHold, QuietParams, TileActivity, active_cells_per_tile
+from labrig.pipeline.sae import GRID_SHAPE, sae_grid
 from labrig.recording import EVENT_DTYPE
 
 NOISE, MOTION = 470, 2500  # events per 10 ms window over the ROI: the virtual rig at rest and in a press
@@ -130,3 +131,59 @@ class _Fixed:
 
     def depth_mm(self, sae_grid: Any, t0_us: int, t1_us: int, n_events: int) -> np.ndarray:
         return self.map
+
+
+def test_active_cells_are_summed_per_tile() -> None:
+    sae = np.zeros((2, 6, 8), np.float32)
+    sae[0, 0, 0] = sae[1, 0, 0] = 0.5  # one cell, both polarities: counted once
+    sae[1, 5, 7] = 0.9
+    sae[0, 2:4, 4:6] = 0.1
+    np.testing.assert_array_equal(active_cells_per_tile(sae, (2, 2)), [[1, 2], [0, 3]])
+    with pytest.raises(ValueError, match="tiles"):
+        QuietParams(tiles=(0, 3))
+
+
+def _grid(rig: RigConfig, rate_hz: float, seed: int, press: bool = False) -> tuple[np.ndarray, int]:
+    """One 10 ms window's SAE and event count: uniform noise at ``rate_hz`` per pixel, plus a local press."""
+    r = rig.roi
+    n = np.random.default_rng(seed).poisson(rate_hz * r.width_px * r.height_px * 0.01)
+    ev = _noise(rig, 0, 10_000, n, seed)
+    if press:  # 3,000 events in a 160 px (about 6 mm) square: the markers around a slow press
+        local = _noise(rig, 0, 10_000, 3_000, seed + 1)
+        local["x"] = r.x0_px + 280 + local["x"] % 160
+        local["y"] = r.y0_px + 250 + local["y"] % 160
+        ev = np.sort(np.concatenate([ev, local]), order="t")
+    return sae_grid(ev, 0, 10_000, r, GRID_SHAPE), len(ev)
+
+
+def test_tiles_find_a_local_press_the_total_rate_misses_in_heavy_noise(rig: RigConfig) -> None:
+    rate_only = QuietHold(GRID_SHAPE, QuietParams())
+    tiled = QuietHold(GRID_SHAPE, QuietParams(tiles=(6, 7)))
+    for k in range(40):  # 2 Hz per pixel: about 9,800 noise events per window
+        grid, n = _grid(rig, 2.0, k)
+        assert rate_only(n, 10_000) and tiled(n, 10_000, grid), k
+    grid, n = _grid(rig, 2.0, 99, press=True)
+    assert rate_only(n, 10_000)  # 3,000 more events on 9,800 is within 1.6x the floor: "quiet"
+    assert not tiled(n, 10_000, grid)  # one tile far above its own floor: motion
+    quiet_windows = sum(tiled(n, 10_000, g) for g, n in (_grid(rig, 2.0, 200 + k) for k in range(200)))
+    assert quiet_windows >= 198  # noise alone rarely looks like motion (6 sigma on one of 42 tiles)
+
+
+def test_a_hot_pixel_raises_only_its_own_tile_floor(rig: RigConfig) -> None:
+    tiles = TileActivity(QuietParams(tiles=(6, 7), refresh_windows=4))
+    for k in range(40):
+        grid, _ = _grid(rig, 0.05, k)
+        grid[0, 10, 10] = 0.5  # a hot pixel: active in every window
+        grid[1, 11, 10] = 0.7
+        assert not tiles.is_active(grid), k
+    grid, _ = _grid(rig, 0.05, 77, press=True)
+    assert tiles.is_active(grid)
+
+
+def test_the_gate_follows_the_network_card() -> None:
+    assert runtime.ModelDepth("default").hold.tiles is None  # type: ignore[union-attr]
+    robust = runtime.ModelDepth("noise-robust")
+    assert robust.hold is not None and robust.hold.tiles is not None
+    assert robust.model.card["augmentation"]["background_noise"]["max_hz"] == 2.0
+    assert runtime.quiet_params_for({"augmentation": None}).tiles is None
+    assert runtime.ModelDepth("default", quiet=None).hold is None

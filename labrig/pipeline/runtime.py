@@ -27,7 +27,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -46,6 +46,8 @@ Array = npt.NDArray[np.float64]
 DEFAULT_WINDOW_US = 10_000
 PAPER_WINDOW_EVENTS = 20_000
 DEFAULT_QUIET = QuietParams()
+#: Tiles (rows x columns over the SAE grid) watched for motion with a noise-trained network.
+NOISE_TILES = (6, 7)
 STAGES = ("read", "sae", "track", "depth", "displacement", "forces")
 
 
@@ -98,18 +100,25 @@ class ModelDepth:
     """The depth network (:class:`labrig.pipeline.depthnet.DepthModel`, ONNX) on the SAE of the
     window it was trained on (model card ``window_ms``) ending at each pipeline window's end.
 
-    ``quiet``: windows at the noise floor keep the last active map (:mod:`labrig.pipeline.quiet`);
-    None feeds every window to the network.
+    ``path``: an ``.onnx`` with its card, or a bundled network's name (``default``,
+    ``noise-robust``). ``quiet``: windows at the noise floor keep the last active map
+    (:mod:`labrig.pipeline.quiet`); ``"auto"`` also watches each SAE tile for motion when the
+    network was trained with background-noise augmentation (:func:`quiet_params_for`); None
+    feeds every window to the network.
     """
 
     needs_sae = True
 
-    def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | None = DEFAULT_QUIET) -> None:
+    def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | str | None = "auto") -> None:
+        from labrig.models import model_path
         from labrig.pipeline.depthnet import DepthModel
 
-        self.model = DepthModel(path, threads=threads)
+        self.model = DepthModel(model_path(path), threads=threads)
         self.name = f"model:{self.model.name}"
         self.window_us: float | None = self.model.window_ms * 1000.0
+        if quiet == "auto":
+            quiet = quiet_params_for(self.model.card)
+        assert not isinstance(quiet, str), f"quiet must be QuietParams, None or 'auto', not {quiet!r}"
         self.hold = QuietHold(sae.GRID_SHAPE, quiet) if quiet is not None else None
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
@@ -117,9 +126,17 @@ class ModelDepth:
         assert sae_grid is not None
         if self.hold is None:
             return self.model.depth_mm(sae_grid)
-        if self.hold(n_events, t1_us - t0_us):
+        if self.hold(n_events, t1_us - t0_us, sae_grid):
             return self.hold.held_mm
         return self.hold.update(self.model.depth_mm(sae_grid))
+
+
+def quiet_params_for(card: dict[str, Any]) -> QuietParams:
+    """The quiet-window gate for a network: the rate gate, plus per-tile activity when it was
+    trained on noisy windows. A network trained clean draws dimples from a noisy SAE, so
+    the more sensitive tile test would hand it more of them (measured in docs/evaluation.md)."""
+    noise_trained = bool((card.get("augmentation") or {}).get("background_noise"))
+    return replace(DEFAULT_QUIET, tiles=NOISE_TILES) if noise_trained else DEFAULT_QUIET
 
 
 def default_model_path(folder: str | Path = "models") -> Path:
