@@ -46,7 +46,9 @@ def run(
     window_events: Annotated[int | None, typer.Option(help="Fixed-count windows (the paper's evaluation: 20000).")] = None,
     depth: Annotated[str | None, typer.Option(
         help="Depth source: truth (the recording's /truth/depth; the default for REC) or model (ONNX; live).")] = None,
-    model: Annotated[Path | None, typer.Option(help="Depth network .onnx (default: newest in models/, else bundled).")] = None,
+    model: Annotated[Path | None, typer.Option(
+        help="Depth network: an .onnx with its card, or a bundled one (default, noise-robust); "
+             "default: newest in models/, else bundled.")] = None,
     out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
     view: Annotated[Path | None, typer.Option(help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.")] = None,
     view_every: Annotated[int, typer.Option(help="Every n-th window in the animation.")] = 3,

@@ -1,6 +1,7 @@
 """Ship a trained depth network as the bundled model (labrig/models/): the .onnx and its card, with provenance.
 
-Copies ``MODEL.onnx`` and its card to ``labrig/models/BUNDLED_NAME.{onnx,json}``, adding to
+Copies ``MODEL.onnx`` and its card to ``labrig/models/NAME.{onnx,json}`` (``--as``: the slot in
+``labrig.models.BUNDLED``, ``default`` or ``noise-robust``), adding to
 the card a ``bundled`` section: the sweep it was chosen from (``sweep.json`` beside it: each
 width's val/test errors and latency), why it was chosen, the campaign's manifest digest and
 the commands that rebuild it from nothing (campaign, ground truth, training).
@@ -19,7 +20,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from labrig.models import BUNDLED_NAME, FOLDER
+from labrig.models import BUNDLED, FOLDER
 from labrig.pipeline.depthnet import read_card, write_card
 
 MAX_BYTES = 10_000_000
@@ -31,6 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--campaign-command", required=True, help="the command that recorded the training campaign")
     ap.add_argument("--groundtruth-command", default="", help="the ground-truth command (default: labrig groundtruth DATA)")
     ap.add_argument("--reason", required=True, help="why this model (from the sweep)")
+    ap.add_argument("--as", dest="slot", default="default", choices=sorted(BUNDLED),
+                    help="which bundled network it becomes (default: default)")
     args = ap.parse_args(argv)
     onnx = args.model.with_suffix(".onnx")
     if not onnx.exists() or not onnx.with_suffix(".json").exists():
@@ -50,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         "rebuild": [args.campaign_command, args.groundtruth_command or f"labrig groundtruth {data}",
                     card.get("command", ""), f"python tools/bundle_model.py {onnx} ..."],
     }
-    target = FOLDER / f"{BUNDLED_NAME}.onnx"
+    target = FOLDER / f"{BUNDLED[args.slot]}.onnx"
     shutil.copyfile(onnx, target)
     write_card(card, target.with_suffix(".json"))
     print(f"{target} ({target.stat().st_size / 1e6:.1f} MB) and its card", file=sys.stderr)

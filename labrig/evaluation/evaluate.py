@@ -27,6 +27,7 @@ from labrig.evaluation.groundtruth_error import GroundTruthErrorTask, evaluate_g
 from labrig.evaluation.report import MeanStd, Report
 from labrig.evaluation.tracking import TABLE_PATCH_SCALES, table_lost_tracks, table_tasks, track_recording
 from labrig.evaluation.windows import PAPER_WINDOW_EVENTS
+from labrig.models import BUNDLED, bundled_model_path, model_path
 
 SPLITS = ("train", "val", "test", "all")
 PAPER = {"force_x_mae_n": 0.14, "force_y_mae_n": 0.10, "force_z_mae_n": 0.93, "force_total_mae_n": 0.94,
@@ -70,8 +71,9 @@ class EvaluationSettings:
             raise LabrigError(f"--models {self.models_dir}: not a folder (give the folder tools/depth_sweep.py wrote)")
         if self.stress_grid not in ("full", "reduced"):
             raise LabrigError(f"--stress-grid must be full or reduced, not {self.stress_grid!r}")
-        if self.model is not None and not Path(self.model).exists():
-            raise LabrigError(f"--model {self.model}: no such file (give a depth network .onnx with its .json card)")
+        if self.model is not None and not model_path(self.model).exists():
+            raise LabrigError(f"--model {self.model}: no such file (give a depth network .onnx with its .json card, "
+                              f"or a bundled one: {', '.join(BUNDLED)})")
 
     @property
     def window_us(self) -> int | None:
@@ -121,7 +123,6 @@ def campaign_recordings(data: Path, split: str) -> list[Path]:
 
 
 def default_model() -> Path:
-    from labrig.models import bundled_model_path
 
     return bundled_model_path()
 
@@ -154,7 +155,7 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
     if no_truth:
         raise LabrigError(f"no ground truth for {', '.join(no_truth[:3])}"
                           f"{' and more' if len(no_truth) > 3 else ''}; run `labrig groundtruth {settings.data}` first")
-    model = Path(settings.model) if settings.model is not None else default_model()
+    model = model_path(settings.model) if settings.model is not None else default_model()
     width = read_card(model.with_suffix(".json")).get("architecture", {}).get("width")
     ev = Evaluation(settings, recordings, model, table2_models=table2_models(settings.models_dir, width))
     run = _runner(settings, ev, progress)

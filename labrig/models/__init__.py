@@ -1,8 +1,10 @@
-"""The bundled depth network: trained on a virtual-rig campaign, shipped with its model card.
+"""The bundled depth networks: trained on a virtual-rig campaign, shipped with their model cards.
 
-``NAME.onnx`` + ``NAME.json`` (the card: architecture, training data, window, loss, val and
-test errors, and the exact command that reproduces it). ``labrig evaluate`` and
-``labrig run --depth model`` use it unless given another model.
+``NAME.onnx`` + ``NAME.json`` (the card: architecture, training data, window, loss,
+augmentation, val and test errors, and the exact command that reproduces it).
+``labrig evaluate`` and ``labrig run --depth model`` use ``default`` unless given another model;
+``--model noise-robust`` picks the network trained with background-noise augmentation (the
+pipeline then also watches each tile of the SAE for motion, :mod:`labrig.pipeline.quiet`).
 """
 
 from __future__ import annotations
@@ -11,14 +13,25 @@ from pathlib import Path
 
 from labrig.errors import LabrigError
 
-BUNDLED_NAME = "depth-w4-contact-10ms"
+#: Bundled networks by the name ``--model`` accepts.
+BUNDLED = {"default": "depth-w4-contact-10ms", "noise-robust": "depth-w4-contact-10ms-noise"}
+BUNDLED_NAME = BUNDLED["default"]
 FOLDER = Path(__file__).resolve().parent
 
 
-def bundled_model_path() -> Path:
-    """The bundled ``.onnx`` (its card is the ``.json`` beside it)."""
-    path = FOLDER / f"{BUNDLED_NAME}.onnx"
+def bundled_model_path(name: str = "default") -> Path:
+    """A bundled ``.onnx`` by its name in :data:`BUNDLED` (its card is the ``.json`` beside it)."""
+    if name not in BUNDLED:
+        raise LabrigError(f"no bundled depth network {name!r}; the bundled ones are {', '.join(BUNDLED)}")
+    path = FOLDER / f"{BUNDLED[name]}.onnx"
     if not path.exists() or not path.with_suffix(".json").exists():
         raise LabrigError(f"the bundled depth network {path.name} is missing from {FOLDER}; reinstall labrig, "
                           "or train one with `labrig train DATA/` and pass it with --model")
     return path
+
+
+def model_path(spec: str | Path) -> Path:
+    """``--model``'s value: a bundled network's name (``default``, ``noise-robust``) or an ``.onnx`` path."""
+    if str(spec) in BUNDLED and not Path(spec).exists():
+        return bundled_model_path(str(spec))
+    return Path(spec)

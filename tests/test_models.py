@@ -1,0 +1,32 @@
+"""The bundled depth networks: found by name, shipped with their cards, small."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from labrig.errors import LabrigError
+from labrig.models import BUNDLED, bundled_model_path, model_path
+from labrig.pipeline.depthnet import read_card
+
+
+@pytest.mark.parametrize("name", sorted(BUNDLED))
+def test_each_bundled_network_ships_with_its_card(name: str) -> None:
+    path = bundled_model_path(name)
+    card = read_card(path.with_suffix(".json"))
+    assert path.stat().st_size < 10_000_000
+    assert card["window_ms"] == 10.0 and card["bundled"]["reason"]
+    assert card["reproduce"].startswith("labrig train ")
+    assert ("--noise-hz" in card["reproduce"]) == (name == "noise-robust")
+
+
+def test_model_names_and_paths(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert model_path("noise-robust") == bundled_model_path("noise-robust")
+    assert model_path("default") == bundled_model_path()
+    assert model_path(tmp_path / "mine.onnx") == tmp_path / "mine.onnx"
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "default").write_text("")  # a file of that name wins over the bundled name
+    assert model_path("default") == Path("default")
+    with pytest.raises(LabrigError, match="the bundled ones are default, noise-robust"):
+        bundled_model_path("huge")
