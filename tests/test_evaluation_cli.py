@@ -63,7 +63,7 @@ def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path
     summary = json.loads(result.stdout)
     assert summary["recordings"] == 2 and summary["report_problems"] == []
     for key in ("force_x_mae_n", "force_z_mae_n", "depth_total_mm", "pipeline_ms", "lost_tracks_per_sequence",
-                "force_z_mae_true_depth_n"):
+                "force_z_mae_true_depth_n", "position_total_mae_true_depth_px"):
         assert summary[key] is not None and summary[key] >= 0, key
     assert check_report(out) == []
     results = json.loads((out / "results.json").read_text())

@@ -253,6 +253,7 @@ def headline(ev: Evaluation) -> dict[str, Any]:
     if ev.forces_truth:
         truth = {row["axis"]: row for row in tables.table3(ev.forces_truth)}
         out.update({f"force_{a}_mae_true_depth_n": truth[a]["force_mae_n"] for a in ("x", "y", "z", "total")})
+        out["position_total_mae_true_depth_px"] = truth["total"]["position_mae_px"]
     if ev.tracking:
         best = [r for r in table_lost_tracks(ev.tracking)
                 if r["tracker"] == "paper" and r["refine"] and r["patch_scale"] == 3.0]
@@ -315,10 +316,12 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
     report.section("Forces (Table III)", "forces")
     rows = tables.table3(ev.forces)
     truth = {r["axis"]: r for r in tables.table3(ev.forces_truth)} if ev.forces_truth else {}
-    columns = ["axis", "force", "position", *(["force, true depth"] if truth else []), "paper force"]
+    columns = ["axis", "force", "position", *(["force, true depth", "position, true depth"] if truth else []),
+               "paper force"]
     report.add_table("table3", "Force and contact position errors", columns,
                      [[r["axis"], _ms(r["force_mae_n"], r["force_std_n"]), _ms(r["position_mae_px"], r["position_std_px"]),
-                       *([_ms(truth[r["axis"]]["force_mae_n"], truth[r["axis"]]["force_std_n"])] if truth else []),
+                       *([_ms(truth[r["axis"]]["force_mae_n"], truth[r["axis"]]["force_std_n"]),
+                          _ms(truth[r["axis"]]["position_mae_px"], truth[r["axis"]]["position_std_px"])] if truth else []),
                        PAPER[f"force_{r['axis']}_mae_n"]] for r in rows],
                      caption="Summed per-marker forces against the F/T sensor (force on the gel, gel frame), mean ± std "
                              "over windows in the probing phases; position: the depth map's centre of mass against the "
@@ -326,7 +329,8 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
                              "at rest, so shear does not move it). Total: norm of the error vector. 'True depth' "
                              "(virtual-rig recordings): the same pipeline fed the sim's depth maps instead of the "
                              "network's, so what is left is tracking, the inverse FEM and the gel law.",
-                     units={"force": "N", "position": "px", "force, true depth": "N", "paper force": "N"})
+                     units={"force": "N", "position": "px", "force, true depth": "N", "position, true depth": "px",
+                            "paper force": "N"})
     error, measured, _ = tables.force_errors(ev.forces)
     panels = {axis: np.abs(measured[:, i]) for i, axis in enumerate("xyz")}
     errs = {axis: np.abs(error[:, i]) for i, axis in enumerate("xyz")}
