@@ -114,3 +114,53 @@ def test_grid_neighbours_and_parameter_checks(rig: RigConfig) -> None:
         Tracker(np.zeros((10, 2)))
     with pytest.raises(ValueError):
         grid_neighbours(3, 3, 6)
+
+
+def _with_noise(events: np.ndarray, rig: RigConfig, t0_us: int, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
+    from labrig.training.data import background_noise
+
+    noise = background_noise(rig.roi, t0_us, t0_us + WINDOW_US, rate_hz, rng).astype(events.dtype)
+    return np.sort(np.concatenate([events, noise]), order="t")
+
+
+def test_background_subtraction_keeps_the_gated_tracker_on_its_markers_in_noise(rig: RigConfig,
+                                                                               probe_recording: Path) -> None:
+    """At 2 Hz per pixel (6 noise events per polarity in a gate per 10 ms) the noise alone passes the
+    event minimums: without subtraction the tracks random-walk and lag; with it they follow."""
+    base = TrackerParams(marker_diameter_px=marker_diameter_px(rig))
+    results = {}
+    for subtract in (True, False):
+        tracker = Tracker(rest_positions_px(rig), TrackerParams(**{**base.__dict__, "noise_subtraction": subtract}))
+        rng = np.random.default_rng(11)
+        with Recording(probe_recording) as rec:
+            truth = rec.stream("truth/markers")
+            errors = []
+            for t0 in range(0, rec.end_us() - WINDOW_US + 1, WINDOW_US):
+                positions, _ = tracker.update(_with_noise(rec.events_between(t0, t0 + WINDOW_US), rig, t0, 2.0, rng))
+                k = min(int(np.searchsorted(truth["t_host_us"], t0 + WINDOW_US)), len(truth) - 1)
+                errors.append(np.linalg.norm(positions - truth["position_px"][k], axis=1))
+        results[subtract] = np.array(errors)
+    assert np.percentile(results[True], 95) < 0.6 * np.percentile(results[False], 95)
+    assert np.percentile(results[True], 95) < 4.0  # 8.1 px without
+    assert (results[True][-1] < LOST_PX).all()  # no track lost at the end
+
+
+def test_subtract_background_recovers_the_signal_centroid() -> None:
+    from labrig.pipeline.tracking import subtract_background
+
+    gate2 = 14.0**2
+    centre = np.array([[100.0, 100.0], [300.0, 100.0], [500.0, 100.0]])
+    patches = np.array([[c[0] - 21, c[0] + 21, c[1] - 21, c[1] + 21] for c in centre], np.int64)
+    rho = 0.02  # noise events per px per polarity: 12.3 in a gate, 23 in the ring outside it
+    ring = 42 * 42 - np.pi * gate2
+    outside = np.full((3, 2), rho * ring)
+    expected = rho * np.pi * gate2
+    sums = np.zeros((3, 2, 3))
+    sums[:, :, 0] = expected + 20.0  # 20 signal events per polarity at (x + 5, y - 3) on top of the noise
+    sums[:, :, 1] = expected * centre[:, None, 0] + 20.0 * (centre[:, None, 0] + 5.0)
+    sums[:, :, 2] = expected * centre[:, None, 1] + 20.0 * (centre[:, None, 1] - 3.0)
+    sums[2, 1, :] = [expected + 5.0, (expected + 5.0) * 500.0, (expected + 5.0) * 100.0]  # 5 events: under 3 sigma
+    subtract_background(sums, outside, patches, gate2, centre)
+    np.testing.assert_allclose(sums[:2, :, 1] / sums[:2, :, 0], np.repeat(centre[:2, 0:1] + 5.0, 2, axis=1))
+    np.testing.assert_allclose(sums[:2, :, 2] / sums[:2, :, 0], np.repeat(centre[:2, 1:2] - 3.0, 2, axis=1))
+    assert np.all(sums[2, 1] == 0.0) and sums[2, 0, 0] == pytest.approx(20.0)

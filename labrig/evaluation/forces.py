@@ -99,7 +99,7 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
             "depth_source": source.name, "youngs_modulus_mpa": setup.youngs_modulus_mpa}
 
 
-evaluate_forces.cache_version = "5"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks
+evaluate_forces.cache_version = "7"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

@@ -96,7 +96,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-measure_scene.cache_version = "5"  # type: ignore[attr-defined]
+measure_scene.cache_version = "7"  # type: ignore[attr-defined]
 
 
 def window_key(window_ms: float) -> str:

@@ -128,7 +128,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-track_recording.cache_version = "1"  # type: ignore[attr-defined]
+track_recording.cache_version = "3"  # type: ignore[attr-defined]
 
 
 def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str]:

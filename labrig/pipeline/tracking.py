@@ -84,6 +84,7 @@ class TrackerParams:
     polarity_balance: bool = True  # average the ON and OFF centroids when both are present
     gate_diameters: float | None = 1.0  # keep only events this close (in diameters) to the centre; None: whole patch
     gate_passes: int = 1  # re-centre the gate on the centroid and sum again (mean shift)
+    noise_subtraction: bool = True  # with a gate: take the expected background events out of each gate's sums
     grid_rows: int = 12
     grid_cols: int = 13
     width_px: int = 1280
@@ -143,8 +144,9 @@ def _repaint(label, old, new):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _sum_events(x, y, p, label, centre, gate2, sums):  # pragma: no cover - compiled
-    """sums[m, polarity] += (count, sum x, sum y) over the events in marker m's patch (and gate, if gate2 > 0)."""
+def _sum_events(x, y, p, label, centre, gate2, sums, outside):  # pragma: no cover - compiled
+    """sums[m, polarity] += (count, sum x, sum y) over the events in marker m's patch (and gate, if gate2 > 0);
+    outside[m, polarity] += 1 for the patch's events outside the gate."""
     h, w = label.shape
     for i in range(x.shape[0]):
         xi, yi = int(x[i]), int(y[i])
@@ -152,11 +154,12 @@ def _sum_events(x, y, p, label, centre, gate2, sums):  # pragma: no cover - comp
             continue
         m = label[yi, xi]
         if m >= 0:
+            ch = 1 if p[i] else 0
             if gate2 > 0.0:
                 dx, dy = xi - centre[m, 0], yi - centre[m, 1]
                 if dx * dx + dy * dy > gate2:
+                    outside[m, ch] += 1.0
                     continue
-            ch = 1 if p[i] else 0
             sums[m, ch, 0] += 1.0
             sums[m, ch, 1] += xi
             sums[m, ch, 2] += yi
@@ -168,6 +171,9 @@ def _centroids_and_prior(pos, sums, neigh, rest, min_events, min_each, balance, 
     centroid = pos.copy()
     for i in range(m):
         n_off, n_on = sums[i, 0, 0], sums[i, 1, 0]
+        if n_off <= 0.0 and n_on <= 0.0:
+            updated[i] = False
+            continue
         updated[i] = n_off + n_on >= min_events and n_off >= min_each and n_on >= min_each
         if not updated[i]:
             continue
@@ -191,6 +197,37 @@ def _centroids_and_prior(pos, sums, neigh, rest, min_events, min_each, balance, 
         if n:
             out[i, 0] = lam * sx / n + (1.0 - lam) * centroid[i, 0]
             out[i, 1] = lam * sy / n + (1.0 - lam) * centroid[i, 1]
+
+
+#: Standard deviations of the expected noise a gate's events must exceed (per polarity).
+NOISE_SIGMAS = 3.0
+
+
+def subtract_background(sums: npt.NDArray[np.float64], outside: npt.NDArray[np.float64],
+                        patches: npt.NDArray[np.int64], gate2_px2: float, centre_px: Array) -> None:
+    """Take the expected background (noise) events out of each gate's sums, in place.
+
+    Noise events are spread evenly, so inside a gate of area ``pi gate2`` they are expected
+    ``rho pi gate2`` times per polarity, centred on the gate's centre: left in, they pull a
+    moving marker's centroid back to its last position, and at 1-2 Hz per pixel (6-12 events
+    a gate per 10 ms) they alone pass the event minimums and the track random-walks. ``rho``
+    (events / px per polarity) is the median over markers of the events in each patch outside
+    its gate over that area: a moving marker's own events outside its gate move few markers.
+    A polarity whose excess over the expected noise is under three of the noise's standard
+    deviations is dropped (that marker is not updated): at 5-10 Hz per pixel the excess of a
+    slow marker is itself noise, and a centroid of noise minus its mean random-walks.
+    """
+    side = (patches[:, 1] - patches[:, 0]) * (patches[:, 3] - patches[:, 2])
+    ring_px2 = side - np.pi * gate2_px2
+    usable = ring_px2 > 0.25 * np.maximum(side, 1)
+    if not usable.any():
+        return
+    rho = np.median(outside[usable] / ring_px2[usable, None], axis=0)  # (2,): OFF, ON
+    expected = rho * np.pi * gate2_px2
+    sums[:, :, 0] -= expected
+    sums[:, :, 1] -= expected * centre_px[:, 0:1]
+    sums[:, :, 2] -= expected * centre_px[:, 1:2]
+    sums[sums[:, :, 0] < NOISE_SIGMAS * np.sqrt(expected)] = 0.0
 
 
 class _PatchTracker:
@@ -231,6 +268,7 @@ class Tracker(_PatchTracker):
         self._prior = grid_neighbours(params.grid_rows, params.grid_cols, params.prior_connectivity)
         self._half = params.patch_scale * params.marker_diameter_px / 2
         self._sums = np.zeros((len(self.rest_px), 2, 3))
+        self._outside = np.zeros((len(self.rest_px), 2))
         self.reset()
 
     @property
@@ -247,8 +285,11 @@ class Tracker(_PatchTracker):
         centre = self.positions_px
         for k in range(p.gate_passes if gate2 else 1):
             self._sums[...] = 0.0
+            self._outside[...] = 0.0
             if len(events):
-                _sum_events(events["x"], events["y"], events["p"], self._label, centre, gate2, self._sums)
+                _sum_events(events["x"], events["y"], events["p"], self._label, centre, gate2, self._sums, self._outside)
+            if gate2 and p.noise_subtraction:
+                subtract_background(self._sums, self._outside, self._painted, gate2, centre)
             lam = float(p.refine_lambda) if k == (p.gate_passes if gate2 else 1) - 1 else 0.0
             _centroids_and_prior(centre, self._sums, self._prior, self.rest_px, float(p.min_events),
                                  float(p.min_each_polarity), p.polarity_balance, lam, out, updated)
