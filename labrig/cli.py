@@ -177,6 +177,14 @@ def devices(as_json: JsonOption = False) -> None:
         console.print(f"camera: {d.kind} (USB {d.vid:04x}:{d.pid:04x}, bus {d.bus}, address {d.address})")
     if not found.usb_error and not cameras:
         console.print("no event camera on USB (the virtual rig is used when no hardware is configured)")
+    sdk = found.metavision_sdk
+    if sdk is not None and sdk.importable:
+        console.print(f"Metavision SDK: metavision_hal imports ({sdk.module_path}); plugins: "
+                      f"{', '.join(sdk.plugins) or 'none found'} in {', '.join(sdk.plugin_dirs) or 'no plugin folder'}; "
+                      f"cameras it sees: {', '.join(sdk.cameras) or 'none'}" + (f"; [yellow]{sdk.error}[/]" if sdk.error else ""))
+    elif sdk is not None:
+        console.print(f"Metavision SDK: not importable ({sdk.error}); the camera = \"metavision\" backend needs it "
+                      "(README, 'Metavision SDK')")
 
 
 sim_app = typer.Typer(help="The virtual rig: simulated probing runs and its precomputed contact tables.", no_args_is_help=True)

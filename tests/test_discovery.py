@@ -33,7 +33,7 @@ def test_devices_command_works_without_hardware() -> None:
                             timeout=60, check=False)
     assert result.returncode == 0, result.stderr
     found = json.loads(result.stdout)
-    assert set(found) == {"serial_ports", "usb_devices", "usb_error"}
+    assert set(found) == {"serial_ports", "usb_devices", "usb_error", "metavision_sdk"}
     text = subprocess.run([sys.executable, "-m", "labrig.cli", "devices"], capture_output=True, text=True, timeout=60,
                           check=False)
     assert text.returncode == 0 and ("USB" in text.stdout or "camera" in text.stdout)

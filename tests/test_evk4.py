@@ -1,13 +1,11 @@
-"""The camera interface (labrig.devices.evk4): raw replay, the sim backend against Evk4Twin over a
-real Unix socket, the metavision adapter against a fake SDK module, and record_camera."""
+"""The camera interface (labrig.devices.camera): raw replay, the sim backend against Evk4Twin over a
+real Unix socket, and record_camera (the metavision backend: test_camera_metavision.py)."""
 
 from __future__ import annotations
 
 import socket
-import sys
 import threading
 import time
-import types
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -15,17 +13,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from labrig.devices.evk4 import (
-    SDK_MISSING,
+from labrig.devices.camera import (
     CameraError,
     EventChunk,
-    MetavisionCamera,
     RawReplayCamera,
     SimCamera,
     open_camera,
     record_camera,
 )
-from labrig.devices.raw import TRIGGER_DTYPE, Evt3Decoder, encode_evt3, write_raw
+from labrig.devices.raw import TRIGGER_DTYPE, Evt3Decoder, write_raw
 from labrig.eventtypes import EVENT_DTYPE
 from labrig.sim.evk4_twin import Evk4Twin, Evt3StreamEncoder
 
@@ -270,191 +266,6 @@ def test_twin_rejects_events_the_stream_cannot_carry(twin: Evk4Twin) -> None:
     bad["x"][1] = 1280
     with pytest.raises(ValueError, match="outside"):
         twin.feed(bad)
-
-
-# -- metavision adapter vs a fake SDK ----------------------------------------------------------------
-
-
-class _Facility:
-    pass
-
-
-def fake_metavision_hal(buffers: list[bytes], serials: tuple[str, ...] = ("00ca0009",)) -> types.ModuleType:
-    """A stand-in for ``metavision_hal`` written from Prophesee's documented Python HAL API only
-    (docs.prophesee.ai "HAL Python bindings API", OpenEB's metavision_hal_get_started sample):
-    ``DeviceDiscovery.open(serial)``; facilities ``get_i_geometry`` (get_width/get_height),
-    ``get_i_hw_identification`` (get_serial, get_sensor_info().name,
-    get_current_data_encoding_format), ``get_i_ll_biases`` (set/get/get_all_biases),
-    ``get_i_roi`` (set_window(I_ROI.Window(x, y, w, h)), enable), ``get_i_trigger_in``
-    (enable/disable(I_TriggerIn.Channel.MAIN|AUX)), ``get_i_events_stream`` (start, stop,
-    poll_buffer, get_latest_raw_data), ``get_i_events_stream_decoder`` (decode),
-    ``get_i_event_cd_decoder`` / ``get_i_event_ext_trigger_decoder``
-    (add_event_buffer_callback). It is not the SDK: the adapter is tested against our
-    reading of the documentation, not against real hardware. Raw buffers are EVT3 bytes,
-    decoded by labrig's decoder into the SDK's event layouts (CD x u2, y u2, p i2, t i8;
-    trigger p i2, t i8, id i2).
-    """
-    hal = types.ModuleType("metavision_hal")
-    log: list[tuple[Any, ...]] = []
-    hal.log = log  # type: ignore[attr-defined]
-
-    class Window:
-        def __init__(self, x: int, y: int, width: int, height: int) -> None:
-            self.x, self.y, self.width, self.height = x, y, width, height
-
-    class Channel:
-        MAIN, AUX, LOOPBACK = "MAIN", "AUX", "LOOPBACK"
-
-    hal.I_ROI = types.SimpleNamespace(Window=Window)  # type: ignore[attr-defined]
-    hal.I_TriggerIn = types.SimpleNamespace(Channel=Channel)  # type: ignore[attr-defined]
-
-    class Device:
-        def __init__(self, serial: str) -> None:
-            self.serial = serial
-            self.biases = {"bias_diff_on": 0, "bias_diff_off": 0, "bias_diff": 0, "bias_fo": 0, "bias_hpf": 0, "bias_refr": 0}
-            self.cd_callbacks: list[Any] = []
-            self.tr_callbacks: list[Any] = []
-            self.pending = list(buffers)
-            self.latest = b""
-            self.running = False
-            self.decoder = Evt3Decoder(1280, 720)
-
-        def get_i_geometry(self) -> Any:
-            return types.SimpleNamespace(get_width=lambda: 1280, get_height=lambda: 720)
-
-        def get_i_hw_identification(self) -> Any:
-            info = types.SimpleNamespace(name="IMX636", major_version=4, minor_version=2)
-            return types.SimpleNamespace(
-                get_serial=lambda: self.serial, get_sensor_info=lambda: info, get_current_data_encoding_format=lambda: "EVT3"
-            )
-
-        def get_i_ll_biases(self) -> Any:
-            dev = self
-
-            class Biases:
-                def set(self, bias_name: str, bias_value: int) -> bool:
-                    log.append(("bias", bias_name, bias_value))
-                    dev.biases[bias_name] = bias_value
-                    return True
-
-                def get(self, bias_name: str) -> int:
-                    return dev.biases[bias_name]
-
-                def get_all_biases(self) -> dict[str, int]:
-                    return dict(dev.biases)
-
-            return Biases()
-
-        def get_i_roi(self) -> Any:
-            return types.SimpleNamespace(
-                set_window=lambda roi: log.append(("roi", roi.x, roi.y, roi.width, roi.height)),
-                enable=lambda on: log.append(("roi_enable", on)),
-            )
-
-        def get_i_trigger_in(self) -> Any:
-            def enable(channel: str) -> bool:
-                log.append(("trigger_enable", channel))
-                return True
-
-            return types.SimpleNamespace(enable=enable, disable=lambda channel: log.append(("trigger_disable", channel)) or True)
-
-        def get_i_events_stream(self) -> Any:
-            dev = self
-
-            def poll_buffer() -> int:
-                if not dev.running:
-                    return 0
-                if not dev.pending:
-                    return -1  # the documented "end / error" value
-                dev.latest = dev.pending.pop(0)
-                return 1
-
-            def start() -> None:
-                dev.running = True
-                log.append(("start",))
-
-            def stop() -> None:
-                dev.running = False
-                log.append(("stop",))
-
-            return types.SimpleNamespace(
-                start=start,
-                stop=stop,
-                poll_buffer=poll_buffer,
-                get_latest_raw_data=lambda: np.frombuffer(dev.latest, np.uint8),
-            )
-
-        def get_i_events_stream_decoder(self) -> Any:
-            dev = self
-
-            def decode(raw: np.ndarray) -> None:
-                out = dev.decoder.feed(raw)
-                cd = np.zeros(out.events.size, [("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")])
-                for name in ("x", "y", "p", "t"):
-                    cd[name] = out.events[name]
-                tr = np.zeros(out.triggers.size, [("p", "<i2"), ("t", "<i8"), ("id", "<i2")])
-                for name in ("p", "t", "id"):
-                    tr[name] = out.triggers[name]
-                half = cd.size // 2  # the SDK may call back several times per buffer
-                for cb in dev.cd_callbacks:
-                    cb(cd[:half])
-                    cb(cd[half:])
-                for cb in dev.tr_callbacks:
-                    cb(tr)
-
-            return types.SimpleNamespace(decode=decode)
-
-        def get_i_event_cd_decoder(self) -> Any:
-            return types.SimpleNamespace(add_event_buffer_callback=self.cd_callbacks.append)
-
-        def get_i_event_ext_trigger_decoder(self) -> Any:
-            return types.SimpleNamespace(add_event_buffer_callback=self.tr_callbacks.append)
-
-    def open_device(serial: str) -> Device | None:
-        if serial == "":
-            return Device(serials[0])
-        return Device(serial) if serial in serials else None
-
-    hal.DeviceDiscovery = types.SimpleNamespace(open=open_device)  # type: ignore[attr-defined]
-    return hal
-
-
-def test_metavision_adapter_against_the_documented_api(monkeypatch: pytest.MonkeyPatch) -> None:
-    ev = make_events(6000, 100_000, 3000)
-    tr = triggers([(100_500, 1, 0), (101_500, 0, 0)])
-    payload = encode_evt3(ev, tr)
-    buffers = [payload[i : i + 1001] for i in range(0, len(payload), 1001)]  # odd sizes split words
-    hal = fake_metavision_hal(buffers)
-    monkeypatch.setitem(sys.modules, "metavision_hal", hal)
-    with open_camera("metavision", serial="") as cam:
-        assert isinstance(cam, MetavisionCamera)
-        assert cam.info.serial == "00ca0009" and cam.info.sensor == "IMX636" and cam.info.width == 1280
-        assert ("trigger_enable", "MAIN") in hal.log  # trigger-in main enabled on open
-        cam.set_bias("bias_diff_off", 30)
-        cam.set_roi(10, 20, 300, 400)
-        cam.enable_trigger_in(1)
-        with pytest.raises(CameraError, match="trigger channel 5"):
-            cam.enable_trigger_in(5)
-        cam.start()
-        inside = (ev["x"] >= 10) & (ev["x"] < 310) & (ev["y"] >= 20) & (ev["y"] < 420)
-        got_ev, got_tr, chunks = collect(cam, int(inside.sum()), tr.size)
-        assert cam.read(timeout_s=1.0) is None and cam.ended
-    assert ("bias", "bias_diff_off", 30) in hal.log and ("roi", 10, 20, 300, 400) in hal.log
-    assert ("roi_enable", True) in hal.log and ("trigger_enable", "AUX") in hal.log
-    assert hal.log[-1] == ("stop",)
-    assert np.array_equal(got_ev, ev[inside]) and np.array_equal(got_tr, tr)
-    assert got_ev.dtype == EVENT_DTYPE and got_tr.dtype == TRIGGER_DTYPE
-    assert len(chunks) > 1
-
-
-def test_metavision_without_the_sdk_or_camera(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(sys.modules, "metavision_hal", None)  # import raises ImportError
-    with pytest.raises(CameraError, match="needs the Metavision SDK / OpenEB from Prophesee"):
-        MetavisionCamera().open()
-    assert "Metavision SDK / OpenEB" in SDK_MISSING
-    monkeypatch.setitem(sys.modules, "metavision_hal", fake_metavision_hal([]))
-    with pytest.raises(CameraError, match="no camera with serial 123"):
-        MetavisionCamera("123").open()
 
 
 # -- recording -------------------------------------------------------------------------------------

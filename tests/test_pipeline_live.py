@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from labrig.config import RigConfig
-from labrig.devices.evk4 import EventChunk
+from labrig.devices.camera import EventChunk
 from labrig.devices.raw import TRIGGER_DTYPE
 from labrig.eventtypes import EVENT_DTYPE
 from labrig.indenters import Indenter

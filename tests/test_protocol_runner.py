@@ -135,6 +135,20 @@ def test_losing_the_ft_sensor_stops_and_retracts(rig: RigConfig, sphere: Indente
     _assert_retracted_and_saved(result, session, "F/T sensor lost")
 
 
+def test_a_broken_camera_stream_stops_and_retracts(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """A failure in the camera's reader thread aborts the run with its reason (never a silently short recording)."""
+    _, session = live
+    runner = _runner(session, rig, sphere)
+
+    def broken(data: bytes) -> None:
+        raise RuntimeError("USB transfer error")
+
+    _when_phase(runner, "wait", lambda: setattr(session.camera._decoder, "feed", broken))  # type: ignore[union-attr]
+    result = runner.run(QUICK, tmp_path / "cam.h5")
+    _assert_retracted_and_saved(result, session, "camera lost")
+    assert "USB transfer error" in result.reason
+
+
 def test_ctrl_c_twice_holds_and_retracts_at_once(rig: RigConfig, sphere: Indenter, live, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     _, session = live
     stop = StopRequest()

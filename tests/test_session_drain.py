@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 from labrig.clock import ClockModel
 from labrig.config import RigConfig
@@ -26,7 +27,7 @@ class _Writer:
 
 def _session(rig: RigConfig) -> RigSession:
     session = RigSession(rig, DeviceConfig(), SafetyLimits())
-    session.camera = object()  # type: ignore[assignment]  # a camera is attached; end() only reads its progress
+    session.camera = SimpleNamespace(error=None)  # type: ignore[assignment]  # a camera is attached, streaming fine
     session._writer = _Writer()  # type: ignore[assignment]
     return session
 

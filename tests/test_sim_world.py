@@ -14,7 +14,7 @@ import pytest
 
 from labrig.config import load_rig
 from labrig.devices.bota import BotaSensor, BotaSettings
-from labrig.devices.evk4 import open_camera
+from labrig.devices.camera import open_camera
 from labrig.devices.grbl import Grbl
 from labrig.indenters import load_indenter
 from labrig.sim.motion import gel_in_machine

@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from labrig.devices.camera.metavision import MetavisionSdk, metavision_sdk
+
 #: (vendor id, product id) -> what it is. Product id None: any product of the vendor.
 USB_IDS: dict[tuple[int, int | None], str] = {
     (0x04B4, 0x00F5): "Prophesee EVK4 (IMX636)",
@@ -55,6 +57,8 @@ class Discovery:
     serial_ports: list[SerialPortInfo]
     usb_devices: list[UsbDeviceInfo]
     usb_error: str = ""
+    #: The Metavision SDK / OpenEB install, if any (the metavision camera backend needs it).
+    metavision_sdk: MetavisionSdk | None = None
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -124,4 +128,4 @@ def list_usb_devices() -> tuple[list[UsbDeviceInfo], str]:
 
 def discover() -> Discovery:
     usb_devices, usb_error = list_usb_devices()
-    return Discovery(list_serial_ports(), usb_devices, usb_error)
+    return Discovery(list_serial_ports(), usb_devices, usb_error, metavision_sdk())

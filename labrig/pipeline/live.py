@@ -1,7 +1,7 @@
 """The pipeline on a live event stream: device-time windows over camera chunks, kept in real time.
 
 Sources are anything with ``read(timeout_s) -> EventChunk | None`` and ``ended`` (a
-:class:`~labrig.devices.evk4.Camera`, or a :class:`ChunkTap` fed by
+:class:`~labrig.devices.camera.Camera`, or a :class:`ChunkTap` fed by
 :meth:`labrig.protocol.session.RigSession.add_chunk_listener`).
 
 Windows (:class:`EventWindower`) are in the camera's **device time** (us), as the events carry
@@ -45,7 +45,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.clock import HostClock, MonotonicClock
-from labrig.devices.evk4 import DEFAULT_QUEUE_CHUNKS, CameraStats, EventChunk
+from labrig.devices.camera import DEFAULT_QUEUE_CHUNKS, CameraStats, EventChunk
 from labrig.eventtypes import EVENT_DTYPE
 from labrig.pipeline.runtime import DEFAULT_WINDOW_US, Pipeline, WindowResult
 

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from labrig.devices.evk4 import Camera, CameraError, open_camera
+from labrig.devices.camera import Camera, CameraError, open_camera
 from labrig.errors import LabrigError
 from labrig.pipeline.live import MAX_LAG_MS, ChunkTap, LiveRunner
 from labrig.pipeline.runtime import DEFAULT_WINDOW_US, Pipeline, WindowResult
@@ -53,6 +53,9 @@ def check_camera(devices: DeviceConfig) -> None:
     if devices.camera == "sim" and not Path(devices.camera_path).exists():
         raise CameraError(f"[devices] camera_path {devices.camera_path}: no such socket; start `labrig sim serve "
                           "--links DIR` and set camera_path to DIR/evk4")
+    if devices.camera_is_file and not Path(devices.camera_path).is_file():
+        raise CameraError(f"[devices] camera = \"metavision\" opens camera_path {devices.camera_path} through the SDK's "
+                          "file device, but it is not a file: name a .raw recording, or a camera serial")
     if devices.camera == "raw" and not Path(devices.camera_path or "").is_file():
         raise CameraError(f"[devices] camera = \"raw\" replays camera_path, but {devices.camera_path or '(empty)'} "
                           "is not a file: name a .raw recording")
@@ -62,13 +65,11 @@ def open_live_camera(devices: DeviceConfig, *, connect_timeout_s: float = 2.0) -
     """The ``[devices]`` camera, open and streaming. Not for the embedded virtual rig (no camera
     exists before its rig starts: use :class:`ProbeStream`). ``raw`` replays in real time."""
     check_camera(devices)
-    options: dict[str, Any]
+    options = devices.camera_options()
     if devices.camera == "sim":
-        options = {"path": devices.camera_path, "connect_timeout_s": connect_timeout_s}
+        options["connect_timeout_s"] = connect_timeout_s
     elif devices.camera == "raw":
-        options = {"path": devices.camera_path, "speed": 1.0}
-    else:
-        options = {"serial": devices.camera_path}
+        options["speed"] = 1.0
     camera = open_camera(devices.camera, **options)
     try:
         camera.open()

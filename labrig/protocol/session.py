@@ -31,7 +31,7 @@ import numpy as np
 from labrig.clock import HostClock, MonotonicClock
 from labrig.config import RigConfig
 from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
-from labrig.devices.evk4 import Camera, EventChunk, open_camera
+from labrig.devices.camera import Camera, CameraError, EventChunk, open_camera
 from labrig.devices.grbl import Grbl, StatusSample
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
@@ -57,6 +57,18 @@ class DeviceConfig:
     @property
     def virtual(self) -> bool:
         return not self.grbl_port and not self.bota_port and self.camera == "sim" and not self.camera_path
+
+    @property
+    def camera_is_file(self) -> bool:
+        """``camera = "metavision"`` with a RAW file as ``camera_path``: the SDK's file device."""
+        return self.camera == "metavision" and self.camera_path.lower().endswith(".raw")
+
+    def camera_options(self, where: str | None = None) -> dict[str, Any]:
+        """``open_camera`` options for this camera; ``where``: its socket or file if not ``camera_path``."""
+        path = self.camera_path if where is None else where
+        if self.camera != "metavision":
+            return {"path": path}
+        return {"path": path} if self.camera_is_file else {"serial": path}
 
     def check(self) -> None:
         if self.virtual:
@@ -124,10 +136,8 @@ class RigSession:
             self.ft.connect(boot_timeout_s=10)
             self.ft.configure(BotaSettings())
             self.ft.start()
-            options: dict[str, Any] = {"clock": self.clock}
-            if self.devices.camera in ("sim", "raw"):
-                options["path"] = paths["evk4"]
-            self.camera = open_camera(self.devices.camera, **options).open()
+            options = self.devices.camera_options(paths["evk4"])
+            self.camera = open_camera(self.devices.camera, clock=self.clock, **options).open()
             self.camera.start()
             self._pump = threading.Thread(target=self._pump_camera, name="labrig-camera-pump", daemon=True)
             self._pump.start()
@@ -215,6 +225,8 @@ class RigSession:
         start = time.monotonic()
         last_progress, seen = start, (self.last_camera_device_us, self._world_progress())
         while time.monotonic() - start < limit_s:
+            if self.camera is not None and self.camera.error is not None:
+                break  # a broken stream delivers nothing more
             world_done = self.world is None or self._world_t_us() + self.world.origin_us >= end_host_ns // NS_PER_US
             if world_done and self._camera_reached_ns() >= end_host_ns:
                 break
@@ -292,7 +304,10 @@ class RigSession:
     def _pump_camera(self) -> None:
         assert self.camera is not None
         while not self._stop.is_set():
-            chunk = self.camera.read(timeout_s=0.05)
+            try:
+                chunk = self.camera.read(timeout_s=0.05)
+            except CameraError:
+                return  # camera.error holds it: the runner aborts the recording with it
             if chunk is None:
                 if self.camera.ended:
                     return

@@ -1,7 +1,7 @@
 """A byte-level EVK4 twin: a Unix-socket server that streams EVT 3.0 like the camera's USB link.
 
 The world process feeds it event chunks in camera time (``feed(events, triggers)``, from the
-rig thread); a client (``labrig.devices.evk4`` ``sim`` backend) connects to the socket and
+rig thread); a client (``labrig.devices.camera`` ``sim`` backend) connects to the socket and
 reads a RAW header (``% ...`` lines ending with ``% end``) followed by one continuous EVT3
 word stream: chunks are encoded with labrig's EVT3 encoder and joined so that a decoder sees
 one stream (every TIME_HIGH step between chunks, 24-bit wraps as 4095 -> 0, trigger words).

@@ -101,7 +101,7 @@ def file_decode(events: np.ndarray, repeat: int, progress: bool) -> dict[str, An
 
 
 def socket_throughput(n_events: int, chunk_events: int, progress: bool) -> dict[str, Any]:
-    from labrig.devices.evk4 import SimCamera
+    from labrig.devices.camera import SimCamera
     from labrig.sim.evk4_twin import Evk4Twin
 
     if progress:

@@ -38,7 +38,7 @@ from _common import bench_main, emit
 from labrig.clock import CounterUnwrapper
 from labrig.config import RigConfig, load_rig
 from labrig.devices.bota import BotaSensor, BotaSettings, FtSample, recording_sink
-from labrig.devices.evk4 import open_camera, record_camera
+from labrig.devices.camera import open_camera, record_camera
 from labrig.devices.grbl import Grbl
 from labrig.indenters import Indenter, load_indenter
 from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
