@@ -423,3 +423,27 @@ def test_no_depth_network_says_what_to_do(monkeypatch: pytest.MonkeyPatch) -> No
     monkeypatch.setattr(runtime, "default_model_path", nothing)
     with pytest.raises(LabrigError, match=r"pass --model X\.onnx, or train one with `labrig train DATA/`"):
         _default_model()
+
+
+def test_a_camera_whose_stream_breaks_stops_the_live_run_with_its_reason(setup: runtime.PipelineSetup,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """`labrig run --live` on an EVK4 that is unplugged mid-run: the run raises the camera's error."""
+    import sys
+
+    from labrig.devices.camera import CameraError, open_camera
+    from labrig.devices.raw import encode_evt3
+    from labrig.testing.fake_metavision import FakeCamera, fake_metavision_hal
+
+    camera = FakeCamera()
+    monkeypatch.setitem(sys.modules, "metavision_hal", fake_metavision_hal([camera]))
+    camera.push(encode_evt3(_marker_events(setup, 1_000_000, 5), np.zeros(0, TRIGGER_DTYPE)))
+    with open_camera("metavision") as cam:
+        cam.start()
+        runner = LiveRunner(runtime.Pipeline(setup, _FlatDepth()), cam, window_us=10_000, max_lag_ms=None)
+        results = []
+        with pytest.raises(CameraError, match="stopped streaming"):
+            for result in runner.run(seconds=10):
+                results.append(result)
+                if len(results) == 2:
+                    camera.unplug()
+    assert len(results) >= 2
