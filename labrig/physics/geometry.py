@@ -19,11 +19,11 @@ from labrig.config import RigConfig
 from labrig.frames import Pose, yaw_tilt_matrix
 
 
-def gel_pose(origin_machine_mm: npt.ArrayLike, yaw_deg: float, tilt_deg: tuple[float, float] = (0.0, 0.0)) -> Pose:
+def gel_frame(origin_machine_mm: npt.ArrayLike, yaw_deg: float, tilt_deg: tuple[float, float] = (0.0, 0.0)) -> Pose:
     """The gel frame in machine coordinates from its origin (machine mm), yaw about z and tilts about x, y (deg)."""
     return Pose(yaw_tilt_matrix(yaw_deg, tilt_deg), np.asarray(origin_machine_mm, float))
 
 
 def nominal_gel_in_machine(rig: RigConfig) -> Pose:
     """The gel frame in machine coordinates as designed: ``[rig] gel_origin_machine_mm`` and ``gel_yaw_deg``."""
-    return gel_pose(rig.rig.gel_origin_machine_mm, rig.rig.gel_yaw_deg)
+    return gel_frame(rig.rig.gel_origin_machine_mm, rig.rig.gel_yaw_deg)

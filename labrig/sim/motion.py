@@ -15,7 +15,7 @@ import numpy.typing as npt
 from labrig.config import RigConfig
 from labrig.frames import Pose
 from labrig.indenters import Indenter
-from labrig.physics.geometry import gel_pose, nominal_gel_in_machine
+from labrig.physics.geometry import gel_frame, nominal_gel_in_machine
 
 
 def true_gel_in_machine(rig: RigConfig) -> Pose:
@@ -24,7 +24,7 @@ def true_gel_in_machine(rig: RigConfig) -> Pose:
     The nominal pose a real runner starts from is :func:`labrig.physics.geometry.nominal_gel_in_machine`.
     """
     p = rig.sim.rig_pose
-    return gel_pose(p.gel_origin_machine_mm, p.gel_yaw_deg, p.gel_tilt_deg)
+    return gel_frame(p.gel_origin_machine_mm, p.gel_yaw_deg, p.gel_tilt_deg)
 
 
 @dataclass(frozen=True)
