@@ -63,7 +63,7 @@ def intrinsics_command(
     """Camera matrix and distortion from a recording of a blinking dot-grid target at many poses."""
     from labrig.calibration.files import write_intrinsics
     from labrig.calibration.intrinsics import calibrate_intrinsics
-    from labrig.sim.target import DotGridTarget
+    from labrig.physics.target import DotGridTarget
 
     if recording is None:
         from labrig.calibration.scenes import record_target_scene

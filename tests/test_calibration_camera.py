@@ -22,7 +22,7 @@ from labrig.calibration.intrinsics import CalibrationError, IntrinsicsResult, ca
 from labrig.calibration.scenes import record_led_blink, record_target_scene
 from labrig.config import RigConfig, load_rig
 from labrig.frames import rotvec_to_matrix
-from labrig.sim.camera import CameraModel, distort_normalized
+from labrig.physics.camera import CameraModel, distort_normalized
 
 N_VIEWS = 10
 

@@ -15,9 +15,9 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
+from labrig.physics.camera import CameraModel
 from labrig.pipeline import displacement, forces, ifem, runtime
 from labrig.recording import Recording
-from labrig.sim.camera import CameraModel
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
 

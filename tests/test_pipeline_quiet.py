@@ -10,9 +10,10 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.models import bundled_model_path
+from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import forces, runtime
 from labrig.pipeline.quiet import NoiseFloor, QuietHold, QuietParams, TileActivity, active_cells_per_tile
-from labrig.pipeline.sae import GRID_SHAPE, sae_grid
+from labrig.pipeline.sae import sae_grid
 from labrig.recording import EVENT_DTYPE
 
 NOISE, MOTION = 470, 2500  # events per 10 ms window over the ROI: the virtual rig at rest and in a press

@@ -22,7 +22,7 @@ from labrig.calibration.intrinsics import CalibrationError, calibrate_intrinsics
 from labrig.calibration.scenes import record_led_blink, record_target_scene
 from labrig.config import load_rig
 from labrig.frames import rotvec_to_matrix
-from labrig.sim.camera import CameraModel, distort_normalized
+from labrig.physics.camera import CameraModel, distort_normalized
 
 
 def figures(scale: float, views: int, seed: int, root: Path) -> dict[str, float]:

@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from labrig import __version__
 from labrig.errors import LabrigError
-from labrig.sim.camera import CameraModel
+from labrig.physics.camera import CameraModel
 
 if TYPE_CHECKING:
     from labrig.calibration.extrinsics import ExtrinsicsResult

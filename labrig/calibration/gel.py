@@ -1,7 +1,7 @@
 """Gel modulus: fit Young's modulus E to force-depth curves of normal indentations.
 
 Model. The normal force of a rigid indenter pressed ``delta`` into the gel is
-the tabulated bonded-layer contact (:class:`~labrig.sim.mechanics.ContactTable`,
+the tabulated bonded-layer contact (:class:`~labrig.physics.mechanics.ContactTable`,
 Polonsky-Keer with the layer kernel: the model the ground truth uses), built
 once at a reference modulus E_ref and the rig's Poisson ratio. At fixed nu a
 linear-elastic solution scales with E, so
@@ -39,6 +39,7 @@ import numpy.typing as npt
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
+from labrig.physics.mechanics import ContactTable
 
 F64 = npt.NDArray[np.float64]
 
@@ -83,7 +84,7 @@ class GelFit:
     date: str = field(default_factory=lambda: _dt.datetime.now().astimezone().isoformat(timespec="seconds"))
     sources: list[dict[str, str]] = field(default_factory=list)
 
-    def model_force_n(self, curve_index: int, depth_mm: npt.ArrayLike, tables: dict[str, Any]) -> F64:
+    def model_force_n(self, curve_index: int, depth_mm: npt.ArrayLike, tables: dict[str, ContactTable]) -> F64:
         curve = self.curves[curve_index]
         delta = np.asarray(depth_mm, dtype=np.float64) + self.depth_offsets_mm[curve_index]
         return _model(tables[curve.indenter], delta, self.youngs_modulus_mpa / self.reference_modulus_mpa,
@@ -147,17 +148,15 @@ def _q(text: str) -> str:
     return '"' + str(text).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def contact_table(indenter: Indenter, rig: RigConfig, poisson_ratio: float | None = None) -> Any:
+def contact_table(indenter: Indenter, rig: RigConfig, poisson_ratio: float | None = None) -> ContactTable:
     """The normal-contact table the fit uses: the rig's gel (its E as reference, nu as chosen),
     the rig's mechanics mode and grid, no stiffening (cached on disk like the virtual rig's)."""
-    from labrig.sim.mechanics import ContactTable
-
     gel = rig.gel if poisson_ratio is None else replace(rig.gel, poisson_ratio=float(poisson_ratio))
     return ContactTable.build(indenter, gel, mode=rig.sim.mechanics.mode, spacing_mm=rig.sim.mechanics.grid_spacing_mm,
                               stiffening=0.0)
 
 
-def _model(table: Any, delta: F64, scale: float, stiffening: float, thickness_mm: float) -> F64:
+def _model(table: ContactTable, delta: F64, scale: float, stiffening: float, thickness_mm: float) -> F64:
     d = np.clip(delta, 0.0, float(table.depths_mm[-1]))
     base = np.interp(d, table.depths_mm, table.normal_force_n)
     return scale * base * (1.0 + stiffening * d / thickness_mm)
@@ -171,7 +170,7 @@ def fit_modulus(
     stiffening: bool = True,
     max_depth_mm: float | None = None,
     poisson_ratio: float | None = None,
-    tables: dict[str, Any] | None = None,
+    tables: dict[str, ContactTable] | None = None,
     compare_small_depth_mm: float | None = 0.3,
 ) -> GelFit:
     """Fit E (and the stiffening b, unless ``stiffening`` is False) and one depth offset per curve.
@@ -250,7 +249,7 @@ def fit_modulus(
     return fit
 
 
-def plot_fit(fit: GelFit, tables: dict[str, Any], path: str | Path) -> Path:
+def plot_fit(fit: GelFit, tables: dict[str, ContactTable], path: str | Path) -> Path:
     """Force against depth per curve with the fitted model, and the residuals."""
     import matplotlib
 

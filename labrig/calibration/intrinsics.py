@@ -25,8 +25,8 @@ import numpy.typing as npt
 
 from labrig.calibration.eventframes import Blobs, accumulate, detect_blobs, find_blinks
 from labrig.errors import LabrigError
+from labrig.physics.target import DotGridTarget
 from labrig.recording import Recording
-from labrig.sim.target import DotGridTarget
 
 Array = npt.NDArray[np.float64]
 

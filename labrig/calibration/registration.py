@@ -54,6 +54,9 @@ from labrig.calibration.gel import CalibrationError, ForceDepthCurve, contact_ta
 from labrig.config import RigConfig
 from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix, yaw_tilt_matrix
 from labrig.indenters import Indenter
+from labrig.physics.camera import CameraModel
+from labrig.physics.geometry import nominal_gel_in_machine
+from labrig.physics.mechanics import ContactTable
 
 F64 = npt.NDArray[np.float64]
 
@@ -78,12 +81,10 @@ MOVE_MARGIN_S = 5.0
 
 
 def camera_model(rig: RigConfig, extrinsics_path: str | Path | None = None,
-                 intrinsics_path: str | Path | None = None) -> tuple[Any, str]:
+                 intrinsics_path: str | Path | None = None) -> tuple[CameraModel, str]:
     """(camera model, where it came from): the camera calibration (``intrinsics.toml`` and
     ``extrinsics.toml`` next to the rig file, or the paths given) when both exist, else the
     virtual rig's true camera (only meaningful on the virtual rig)."""
-    from labrig.sim.camera import CameraModel
-
     extrinsics = Path(extrinsics_path) if extrinsics_path is not None else rig.path.parent / "extrinsics.toml"
     intrinsics = Path(intrinsics_path) if intrinsics_path is not None else rig.path.parent / "intrinsics.toml"
     if extrinsics.exists() and intrinsics.exists():
@@ -301,7 +302,7 @@ def lift(session: Any, gel_pose: Pose, indenter: Indenter, height_mm: float, spe
 # contact depth offsets
 
 
-def depth_offsets(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, table: Any | None = None,
+def depth_offsets(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, table: ContactTable | None = None,
                   max_depth_mm: float = SURFACE_FIT_DEPTH_MM) -> tuple[F64, float]:
     """Per press, the depth (mm) at which the approach detected contact, from its force-depth steps up to
     ``max_depth_mm``: one force scale shared by the presses (same indenter), one offset each (the
@@ -340,7 +341,7 @@ class PixelMap:
     clear: npt.NDArray[np.bool_]
 
     @classmethod
-    def build(cls, rig: RigConfig, camera: Any, step: int = 1) -> PixelMap:
+    def build(cls, rig: RigConfig, camera: CameraModel, step: int = 1) -> PixelMap:
         roi = rig.roi
         ys, xs = np.mgrid[roi.y0_px:roi.y1_px:step, roi.x0_px:roi.x1_px:step]
         gel = camera.backproject_to_plane(np.c_[xs.ravel(), ys.ravel()].astype(np.float64))[:, :2]
@@ -371,7 +372,7 @@ class Located:
     params: F64
 
 
-def locate_contact(x: F64, y: F64, polarity: F64, pixels: PixelMap, table: Any, depth_mm: float,
+def locate_contact(x: F64, y: F64, polarity: F64, pixels: PixelMap, table: ContactTable, depth_mm: float,
                    guess_mm: npt.ArrayLike) -> Located:
     """The contact centre on the gel plane from the signed event counts of one press (see the module doc)."""
     from scipy.interpolate import RegularGridInterpolator
@@ -585,8 +586,9 @@ class RigRegistration:
         return save_text_atomic(path, self.to_toml())
 
 
-def solve_registration(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, camera: Any,
-                       camera_source: str = "", *, table: Any | None = None, virtual_rig: bool = True) -> RigRegistration:
+def solve_registration(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, camera: CameraModel,
+                       camera_source: str = "", *, table: ContactTable | None = None,
+                       virtual_rig: bool = True) -> RigRegistration:
     """Everything after the touch-offs: surface offsets, contact locations, the pose and the F/T axes."""
     if len(presses) < MIN_POINTS:
         raise CalibrationError(f"{len(presses)} touch-off(s); the registration needs at least {MIN_POINTS} "
@@ -660,13 +662,12 @@ def register_rig(
     :class:`RigSession` from the rig file's devices (the virtual rig when none) unless ``session`` is given."""
     from labrig.protocol.rigfile import device_config, safety_limits
     from labrig.protocol.session import RigSession
-    from labrig.sim.motion import gel_in_machine
 
     if len(locations) < MIN_POINTS:
         raise CalibrationError(f"{len(locations)} touch-off location(s) given; the registration needs at least {MIN_POINTS}")
     indenter = indenters[indenter_name]
     camera, source = camera_model(rig, extrinsics_path)
-    nominal = gel_in_machine(rig, truth=False)
+    nominal = nominal_gel_in_machine(rig)
     data_dir = Path(data_dir)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     presses = []
@@ -719,11 +720,10 @@ def load_registration(path: str | Path) -> dict[str, Any]:
 def gel_pose(rig: RigConfig, registration_path: str | Path | None = None) -> Pose:
     """The gel frame in machine coordinates: the registered pose when the registration file exists
     (``registration_path``, default ``rig-registration.toml`` next to the rig file), else the nominal one."""
-    from labrig.sim.motion import gel_in_machine
 
     path = Path(registration_path) if registration_path is not None else default_registration_path(rig)
     if not path.exists():
-        return gel_in_machine(rig, truth=False)
+        return nominal_gel_in_machine(rig)
     data = load_registration(path)
     try:
         section = data["gel_in_machine"]

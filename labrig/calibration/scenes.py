@@ -25,10 +25,10 @@ import numpy.typing as npt
 from labrig.config import RigConfig
 from labrig.frames import Pose, matrix_to_rotvec
 from labrig.indenters import Indenter, load_indenter
+from labrig.physics.camera import CameraModel
+from labrig.physics.target import DotGridTarget, target_pose
 from labrig.recording import RecordingMetadata, RecordingWriter
-from labrig.sim.camera import CameraModel
 from labrig.sim.events import EventParams
-from labrig.sim.target import DotGridTarget, target_pose
 from labrig.sim.target_scene import TargetScene
 
 #: Event packet length written to the recording, world us.

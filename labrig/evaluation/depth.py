@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from labrig.errors import LabrigError
 from labrig.evaluation.windows import PAPER_WINDOW_EVENTS, window_ends_us
+from labrig.physics.grid import GRID_SHAPE
 
 BATCH = 32
 
@@ -46,7 +47,7 @@ def evaluate_depth(task: DepthTask) -> dict[str, Any]:
     from labrig.config import Roi
     from labrig.groundtruth import load_groundtruth, sidecar_path
     from labrig.pipeline.depthnet import DepthModel
-    from labrig.pipeline.sae import GRID_SHAPE, sae_grid
+    from labrig.pipeline.sae import sae_grid
     from labrig.recording import Recording
 
     model = DepthModel(task.model, threads=1)

@@ -19,7 +19,7 @@ from typing import Any
 from labrig.config import DEFAULT_RIG, ConfigError, GelConfig, RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.frames import Pose
-from labrig.sim.camera import CameraModel
+from labrig.physics.camera import CameraModel
 
 #: Where calibration files are looked for by default (the repository's calibration/ folder).
 DEFAULT_CALIBRATION_DIR = DEFAULT_RIG.parent

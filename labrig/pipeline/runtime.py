@@ -36,10 +36,11 @@ import numpy.typing as npt
 
 from labrig.config import RigConfig, load_rig
 from labrig.errors import LabrigError
+from labrig.physics.camera import CameraModel
+from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import displacement, forces, ifem, sae, tracking
 from labrig.pipeline.quiet import QuietHold, QuietParams
 from labrig.recording import Recording
-from labrig.sim.camera import CameraModel
 
 Array = npt.NDArray[np.float64]
 
@@ -119,7 +120,7 @@ class ModelDepth:
         if quiet == "auto":
             quiet = quiet_params_for(self.model.card)
         assert not isinstance(quiet, str), f"quiet must be QuietParams, None or 'auto', not {quiet!r}"
-        self.hold = QuietHold(sae.GRID_SHAPE, quiet) if quiet is not None else None
+        self.hold = QuietHold(GRID_SHAPE, quiet) if quiet is not None else None
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]:
@@ -243,7 +244,7 @@ class Pipeline:
         self.surface_params = replace(base, youngs_modulus_mpa=setup.youngs_modulus_mpa,
                                       poisson_ratio=setup.poisson_ratio)
         self.operator = ifem.build_surface_operator(rig, self.surface_params, cache_dir=cache_dir)
-        self.surface = forces.SurfaceForces(self.operator, setup.camera, rig.roi, sae.GRID_SHAPE)
+        self.surface = forces.SurfaceForces(self.operator, setup.camera, rig.roi, GRID_SHAPE)
         self.rest_mm = rig.markers.rest_positions_mm()
         self.normal_mode = normal_mode
         self.threshold_mm = threshold_mm
@@ -515,8 +516,8 @@ class ResultWriter:
                                           chunks=(64, *dims), compression="gzip" if dims else None)
             ds.attrs["unit"] = unit
         if depth:
-            ds = self.file.create_dataset("depth_mm", shape=(0, *sae.GRID_SHAPE), maxshape=(None, *sae.GRID_SHAPE),
-                                          dtype="<f4", chunks=(8, *sae.GRID_SHAPE), compression="gzip")
+            ds = self.file.create_dataset("depth_mm", shape=(0, *GRID_SHAPE), maxshape=(None, *GRID_SHAPE),
+                                          dtype="<f4", chunks=(8, *GRID_SHAPE), compression="gzip")
             ds.attrs["unit"] = "mm"
 
     def write(self, r: WindowResult) -> None:

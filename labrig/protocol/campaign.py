@@ -29,6 +29,8 @@ from labrig.config import RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter, load_indenters
+from labrig.physics.mechanics import ContactTable
+from labrig.physics.mechanics.tables import table_direction_deg
 from labrig.protocol.rigfile import device_config, safety_limits
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
@@ -172,9 +174,6 @@ def prepare_virtual_tables(rig: RigConfig, indenter: Indenter, shear_directions_
     for these shear directions, before its live world starts (a build takes seconds)."""
     if indenter.axisymmetric:
         return
-    from labrig.sim.mechanics import ContactTable
-    from labrig.sim.mechanics.tables import table_direction_deg
-
     for direction in sorted({table_direction_deg(d) for d in shear_directions_deg}):
         ContactTable.from_rig(indenter, rig, direction_deg=direction)
 

@@ -113,8 +113,8 @@ def _serve(args: dict[str, Any], conn: Any, truth_queue: Any, progress: Any, sto
     try:
         from labrig.config import load_rig
         from labrig.indenters import DEFAULT_INDENTERS, load_indenters
+        from labrig.physics.grid import network_grid_gel_mm
         from labrig.sim.live import truth_rows
-        from labrig.sim.truth import network_grid_gel_mm
         from labrig.sim.world import LiveWorld
 
         rig = load_rig(args["rig_path"])

@@ -35,7 +35,8 @@ import numpy.typing as npt
 
 from labrig.config import Roi
 from labrig.errors import LabrigError
-from labrig.pipeline.sae import GRID_SHAPE, pad_for_unet, sae_grid
+from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.sae import pad_for_unet, sae_grid
 
 SPLITS = ("train", "val", "test")
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
