@@ -13,9 +13,10 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import SafetyError, SafetyLimits, StopRequest
-from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.recording import Recording
 from labrig.sim.motion import gel_in_machine
