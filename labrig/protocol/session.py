@@ -4,6 +4,9 @@ A :class:`RigSession` owns the three drivers (GRBL, Bota, camera) for as long
 as a ``labrig record`` or a campaign runs. Their callbacks feed whatever
 recording is current (:meth:`RigSession.begin` / :meth:`RigSession.end`) and
 the safety monitor, which sees every F/T sample whether recording or not.
+:meth:`RigSession.for_rig` opens the rig a rig file describes (its [devices]
+and [safety], the virtual rig's contact tables prepared); every procedure that
+moves the rig starts there.
 
 With no hardware configured the session starts the virtual rig in a child
 process (:class:`~labrig.sim.world_process.WorldProcess`: its twins on ptys
