@@ -190,12 +190,10 @@ def _camera_only(o: LiveOptions, devices: Any, pipe: Any, sink: _Sink, window_us
 
 def _with_probe(o: LiveOptions, rig: Any, devices: Any, pipe: Any, sink: _Sink, window_us: int | None,
                 window_events: int | None, calibration_dir: Path) -> dict[str, Any]:
-    from labrig.calibration.registration import gel_pose
     from labrig.indenters import DEFAULT_INDENTERS, load_indenters
     from labrig.pipeline import live_rig
     from labrig.protocol import apply_overrides, load_protocol
     from labrig.protocol.files import DEFAULT_PROTOCOL
-    from labrig.protocol.rigfile import safety_limits
     from labrig.protocol.runner import ProbeRunner
     from labrig.protocol.safety import StopRequest
     from labrig.protocol.session import RigSession
@@ -208,21 +206,18 @@ def _with_probe(o: LiveOptions, rig: Any, devices: Any, pipe: Any, sink: _Sink, 
         spec = apply_overrides(spec, at=o.at, depth=o.depth_mm, indenter=o.indenter, rig=rig, indenters=indenters)
     except ProtocolError as exc:  # the library names record's --depth; here it is --depth-mm
         raise ProtocolError(str(exc).replace("--depth:", "--depth-mm:")) from None
-    mounted = indenters[spec.indenter]
     if devices.virtual:
-        from labrig.protocol.campaign import prepare_virtual_tables
-
         err_console.print(f"no hardware configured: one probing run ({spec.indenter}, {protocol_path.name}) on the "
                           "virtual rig (embedded), the live pipeline reading its camera")
-        prepare_virtual_tables(rig, mounted, [spec.shear_direction_deg])
     stop = StopRequest()
-    session = RigSession(rig, devices, safety_limits(rig), indenter=mounted, indenters_path=DEFAULT_INDENTERS)
+    session = RigSession.for_rig(rig, indenters[spec.indenter], indenters_path=DEFAULT_INDENTERS,
+                                 shear_directions_deg=[spec.shear_direction_deg])
     where = "virtual rig" if devices.virtual else "rig"
     view = LiveView(f"labrig run --live: {spec.indenter} probing run on the {where}", None, None,
                     live_rig.ft_axes_from_registration(calibration_dir)[0])
     sink.view = view
     progress: Callable[[Any], None] = view.on_progress
-    runner = ProbeRunner(session, rig, mounted, gel_in_machine=gel_pose(rig), stop=stop, progress=progress)
+    runner = ProbeRunner.for_session(session, stop=stop, progress=progress)
     runner.check(spec)  # refuse an unsafe plan before the rig starts
     keep = o.save_recording
     with tempfile.TemporaryDirectory(prefix="labrig-live-") as folder:

@@ -13,23 +13,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labrig.calibration.gel import CalibrationError, ForceDepthCurve, fit_modulus, load_gel
-from labrig.calibration.registration import (
-    DEFAULT_LOCATIONS,
-    Press,
-    RigRegistration,
-    gel_pose,
-    press,
-    solve_registration,
-    yaw_tilt_of,
-)
+from labrig.calibration.fits import yaw_tilt_of
+from labrig.calibration.gel import ForceDepthCurve, fit_modulus, load_gel
+from labrig.calibration.registration import Press, solve_registration
+from labrig.calibration.registration_file import RigRegistration, gel_pose
 from labrig.config import RigConfig, load_rig
+from labrig.errors import CalibrationError
 from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix
 from labrig.indenters import Indenter, load_indenters
 from labrig.physics.camera import CameraModel
 from labrig.physics.geometry import nominal_gel_in_machine
+from labrig.protocol.calibration_runs import DEFAULT_LOCATIONS
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.safety import SafetyLimits
-from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.session import RigSession
+from labrig.protocol.touchoff import press
 from labrig.sim.motion import true_gel_in_machine
 
 DEPTHS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)

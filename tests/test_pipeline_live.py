@@ -261,8 +261,9 @@ def test_the_runner_stops_on_request_and_keeps_the_partial_window(setup: runtime
 
 
 def test_session_listeners_get_every_chunk_and_a_failing_one_is_removed(rig: RigConfig, sphere: Indenter) -> None:
+    from labrig.protocol.rigfile import DeviceConfig
     from labrig.protocol.safety import SafetyLimits
-    from labrig.protocol.session import DeviceConfig, RigSession
+    from labrig.protocol.session import RigSession
 
     chunks = _chunks(np.arange(300), [100, 200])
 

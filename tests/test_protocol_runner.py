@@ -14,9 +14,10 @@ import pytest
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
 from labrig.physics.geometry import nominal_gel_in_machine
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import SafetyError, SafetyLimits, StopRequest
-from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.recording import Recording
 from labrig.sim.world import LiveWorld

@@ -66,7 +66,7 @@ def ft_axes_in_gel(recording: Recording, calibration_dir: str | Path | None = "c
     """
     import json
 
-    from labrig.calibration.registration import load_registration
+    from labrig.calibration.registration_file import load_registration
     from labrig.frames import rotvec_to_matrix
 
     named = recording.attrs.get("extra_calibration", "")

@@ -30,8 +30,9 @@ from labrig.devices.camera import Camera, CameraError, open_camera
 from labrig.errors import LabrigError
 from labrig.pipeline.live import MAX_LAG_MS, ChunkTap, LiveRunner
 from labrig.pipeline.runtime import DEFAULT_WINDOW_US, Pipeline, WindowResult
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.runner import ProbeRunner, RunResult
-from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ProbeSpec
 
 F64 = npt.NDArray[np.float64]
@@ -156,7 +157,7 @@ class ProbeStream:
 def ft_axes_from_registration(calibration_dir: str | Path | None) -> tuple[F64, str]:
     """Rotation (3, 3) from the F/T sensor's axes to the gel frame (``rig-registration.toml``
     [ft_axes] in ``calibration_dir``), else identity (the nominal mounting); and its source."""
-    from labrig.calibration.registration import REGISTRATION_FILE, load_registration
+    from labrig.calibration.registration_file import REGISTRATION_FILE, load_registration
     from labrig.frames import rotvec_to_matrix
 
     path = Path(calibration_dir) / REGISTRATION_FILE if calibration_dir is not None else None
