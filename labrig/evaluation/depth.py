@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.errors import LabrigError
-from labrig.evaluation.windows import PAPER_WINDOW_EVENTS, window_ends_us
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 
 BATCH = 32
 
