@@ -312,17 +312,12 @@ class EnvelopePairs:
         self.bin_us = int(bin_us)
         self._done_x: list[npt.NDArray[np.int64]] = []
         self._done_y: list[npt.NDArray[np.int64]] = []
-        self._n_done = 0
         self._open: tuple[int, int] | None = None  # the last bin's pair, which later pairs may still replace
         self._max_x: int | None = None
 
     @property
     def n_pairs(self) -> int:
         return self.hull.n_points
-
-    @property
-    def n_bins(self) -> int:
-        return self._n_done + (self._open is not None)
 
     def add(self, device_us: npt.ArrayLike, host_us: npt.ArrayLike) -> None:
         d = np.asarray(device_us, dtype=np.int64).ravel()
@@ -356,7 +351,15 @@ class EnvelopePairs:
         if xs.size:
             self._done_x.append(xs.astype(np.int64))
             self._done_y.append(ys.astype(np.int64))
-            self._n_done += xs.size
+
+    def snapshot(self) -> EnvelopePairs:
+        """A copy that later :meth:`add` calls leave alone, to fit outside a lock (cheap: the
+        closed bins' arrays are shared, and never written again)."""
+        copy = EnvelopePairs(self.bin_us)
+        copy.hull = LowerHull(list(self.hull.xs), list(self.hull.ys), self.hull.n_points, self.hull.n_out_of_order)
+        copy._done_x, copy._done_y = list(self._done_x), list(self._done_y)
+        copy._open, copy._max_x = self._open, self._max_x
+        return copy
 
     def bins(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
         """(device_us, host_us) of each bin's earliest-received pair, in device order."""
@@ -757,9 +760,10 @@ class OnlineClockFit:
     as :func:`fit_lower_envelope` fits them: its drift bounded by DRIFT_BOUND_PPM
     and qualified by its uncertainty from the first pairs on (infinite while
     they span less than two bins; drift 0 while they cannot tell it within the
-    bound). Reading :attr:`model` refits after new pairs
-    at most once per ten times the last fit's duration, so a thread polling it
-    costs at most about a tenth of a core; :meth:`refit` fits at once.
+    bound). Reading :attr:`model` refits after new pairs at most once per ten
+    times the last fit's duration, so a thread polling it costs at most about a
+    tenth of a core; :meth:`refit` fits at once. Fits run outside the lock, so
+    :meth:`add` (the recorder's writer thread) never waits for one.
     Thread-safe: one writer thread adds, any thread reads.
     """
 
@@ -778,23 +782,28 @@ class OnlineClockFit:
     @property
     def model(self) -> ClockModel | None:
         with self._lock:
-            if self._stale and (self._model is None or time.perf_counter() >= self._next_fit_s):
-                self._fit()
-            return self._model
+            if not self._stale or (self._model is not None and time.perf_counter() < self._next_fit_s):
+                return self._model
+            pairs, self._stale = self._pairs.snapshot(), False
+        return self._fit(pairs)
 
     def refit(self) -> ClockModel | None:
         """The model of every pair added so far, fitted now."""
         with self._lock:
-            if self._stale:
-                self._fit()
-            return self._model
+            if not self._stale:
+                return self._model
+            pairs, self._stale = self._pairs.snapshot(), False
+        return self._fit(pairs)
 
-    def _fit(self) -> None:
+    def _fit(self, pairs: EnvelopePairs) -> ClockModel | None:
         started = time.perf_counter()
-        self._model = _envelope_model(self._pairs)
-        self._stale = False
+        model = _envelope_model(pairs)
         now = time.perf_counter()
-        self._next_fit_s = now + 10 * (now - started)
+        with self._lock:
+            if model is not None and (self._model is None or model.n_pairs >= self._model.n_pairs):
+                self._model = model  # a slower fit of fewer pairs, finishing later, does not overwrite
+            self._next_fit_s = now + 10 * (now - started)
+            return self._model
 
     @property
     def n_out_of_order(self) -> int:

@@ -16,8 +16,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.errors import LabrigError
-from labrig.evaluation.windows import PAPER_WINDOW_EVENTS, window_ends_us
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 
 BATCH = 32
 

@@ -94,8 +94,8 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> dict[str, Any]:
     off); ``t1_us`` (W,) window ends and ``window_error_p95_px`` (W,); ``truth_end_offset_max_px``
     (how far the true markers end from where they started: the proxy's premise).
     """
-    from labrig.pipeline.runtime import windows
     from labrig.pipeline.tracking import marker_diameter_px
+    from labrig.pipeline.windows import recording_windows
     from labrig.recording import Recording
 
     task = task if isinstance(task, TrackingTask) else TrackingTask(**task)
@@ -104,7 +104,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> dict[str, Any]:
         diameter = marker_diameter_px(rig)
         tracker = tracker_for(task, rest_px, diameter)
         ends, positions, seconds = [], [], []
-        for _, t1, events in windows(rec, window_us=task.window_us, window_events=task.window_events):
+        for _, t1, events in recording_windows(rec, window_us=task.window_us, window_events=task.window_events):
             tic = time.perf_counter()
             p, _ = tracker.update(events)
             seconds.append(time.perf_counter() - tic)
@@ -134,7 +134,7 @@ track_recording.cache_version = "3"  # type: ignore[attr-defined]
 def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str]:
     """(rig, rest pixels (M, 2), where they came from) for an open recording; see :class:`TrackingTask`."""
     from labrig.config import load_rig
-    from labrig.pipeline.runtime import rig_from_recording, setup_for_recording
+    from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
     from labrig.pipeline.tracking import rest_positions_px
 
     if rest == "calibration":
