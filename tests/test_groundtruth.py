@@ -172,7 +172,7 @@ def test_sidecar_round_trip(probe: Path, tmp_path: Path) -> None:
     assert loaded.attrs["youngs_modulus_mpa"] == pytest.approx(gt.attrs["youngs_modulus_mpa"])
     assert loaded.attrs["youngs_modulus_mpa"] == pytest.approx(0.4, rel=0.05)  # the rig's, or the fitted gel.toml's
     assert loaded.scale_mm == pytest.approx(2.5)
-    from labrig.groundtruth.generate import sha256_of
+    from labrig.cache import sha256_of
 
     assert loaded.attrs["source_sha256"] == sha256_of(probe)
     assert json.loads(loaded.attrs["model_json"])["method"] == "hertz"

@@ -14,12 +14,12 @@ the commands that rebuild it from nothing (campaign, ground truth, training).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import sys
 from pathlib import Path
 
+from labrig.cache import sha256_of
 from labrig.models import BUNDLED, FOLDER
 from labrig.pipeline.depthnet import read_card, write_card
 
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
         "source": str(onnx),
         "reason": args.reason,
         "sweep": sweep,
-        "campaign_manifest_sha256": hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.exists() else None,
+        "campaign_manifest_sha256": sha256_of(manifest) if manifest.exists() else None,
         "rebuild": [args.campaign_command, args.groundtruth_command or f"labrig groundtruth {data}",
                     card.get("command", ""), f"python tools/bundle_model.py {onnx} ..."],
     }

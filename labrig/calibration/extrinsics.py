@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from labrig.cache import sha256_of
 from labrig.calibration.eventframes import (
     Blobs,
     accumulate_polarities,
@@ -51,7 +52,7 @@ from labrig.calibration.eventframes import (
     harmonic_frame,
 )
 from labrig.calibration.files import Intrinsics
-from labrig.calibration.intrinsics import CalibrationError, sensor_size, sha256_of
+from labrig.calibration.intrinsics import CalibrationError, sensor_size
 from labrig.config import MarkerConfig
 from labrig.frames import rotvec_to_matrix
 from labrig.recording import Recording

@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from labrig.cache import sha256_of
 from labrig.calibration.eventframes import Blobs, accumulate, detect_blobs, find_blinks
 from labrig.errors import LabrigError
 from labrig.recording import Recording
@@ -77,14 +77,6 @@ class IntrinsicsResult:
         image_points = self.views[view].image_points
         assert image_points is not None
         return image_points, projected.reshape(-1, 2)
-
-
-def sha256_of(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def target_from_recording(rec: Recording) -> DotGridTarget | None:

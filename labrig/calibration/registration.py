@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import hashlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -50,6 +49,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.cache import sha256_of
 from labrig.calibration.gel import CalibrationError, ForceDepthCurve, contact_table
 from labrig.config import RigConfig
 from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix, yaw_tilt_matrix
@@ -465,14 +465,6 @@ def axis_map(axes_in_gel: F64) -> tuple[F64, list[str]]:
 
 # ---------------------------------------------------------------------------------------------
 # the registration
-
-
-def sha256_of(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 @dataclass

@@ -44,6 +44,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from labrig.cache import cache_folder, cache_key
 from labrig.errors import LabrigError
 
 Task = Mapping[str, Any] | Any  # a dict, or a frozen dataclass instance
@@ -109,12 +110,6 @@ class TasksFailed(LabrigError):
         super().__init__("\n".join(lines))
 
 
-def default_cache_dir() -> Path:
-    """``$LABRIG_CACHE/eval``, else ``~/.cache/labrig/eval``."""
-    root = os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
-    return Path(root) / "eval"
-
-
 def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: int | None = None,
               scheduler: str | _HasExecutor | None = None, cache_dir: str | Path | None = None,
               use_cache: bool = True, progress: Progress | None = None, raise_on_error: bool = True) -> TaskResults:
@@ -130,7 +125,7 @@ def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: in
         raise LabrigError(f"workers must be at least 1 (1 runs in this process), not {workers}")
     started = time.perf_counter()
     inputs = [task_inputs(task) for task in tasks]
-    store = ResultCache(cache_dir or default_cache_dir(), fn) if use_cache else None
+    store = ResultCache(cache_dir or cache_folder("eval"), fn) if use_cache else None
     fingerprints: dict[tuple[str, int, int], str] = {}
     keys = [store.key(item, fingerprints) if store else "" for item in inputs]
     results: list[Result | None] = [None] * len(tasks)
@@ -331,8 +326,7 @@ class ResultCache:
                 files[text] = file_fingerprint(text, memo)
             elif os.path.isdir(text):
                 files[text] = _directory_fingerprint(text)
-        blob = json.dumps([CACHE_FORMAT, self.name, self.version, inputs, files], sort_keys=True)
-        return hashlib.sha256(blob.encode()).hexdigest()
+        return cache_key([CACHE_FORMAT, self.name, self.version, inputs, files], digits=64)
 
     def path(self, key: str) -> Path:
         return self.folder / f"{key}.npz"

@@ -15,7 +15,6 @@ parallel, each in its own processes; hardware campaigns are sequential.
 from __future__ import annotations
 
 import csv
-import hashlib
 import multiprocessing as mp
 import os
 import queue
@@ -25,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from labrig.cache import sha256_of
 from labrig.config import RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.frames import Pose
@@ -51,14 +51,6 @@ class Outcome:
     file: str
     sha256: str
     duration_s: float
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 class Manifest:

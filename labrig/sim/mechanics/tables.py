@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.cache import cache_folder, cache_key
 from labrig.config import GelConfig, RigConfig
 from labrig.indenters import Indenter
 from labrig.sim.mechanics.convolution import SurfaceConvolver
@@ -163,7 +164,7 @@ class ContactTable:
             "shear_depth_stride": int(shear_depth_stride),
             "shear_steps": int(shear_steps),
         }
-        key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:20]
+        key = cache_key(spec)
         path = table_cache_dir(cache_dir) / f"{indenter.name}-{mode}-{key}.npz"
         if use_cache and path.exists():
             try:
@@ -404,9 +405,8 @@ def table_direction_deg(shear_direction_deg: float) -> float:
 
 
 def table_cache_dir(cache_dir: str | Path | None = None) -> Path:
-    """Where tables are cached: ``cache_dir``, else $LABRIG_CACHE, else ~/.cache/labrig; plus /contact_tables."""
-    root = cache_dir or os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
-    return Path(root) / "contact_tables"
+    """Where tables are cached: ``cache_dir``, else the cache root (:mod:`labrig.cache`); plus /contact_tables."""
+    return cache_folder("contact_tables", cache_dir)
 
 
 def _indenter_spec(indenter: Indenter) -> dict[str, Any]:
