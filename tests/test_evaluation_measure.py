@@ -21,7 +21,8 @@ from labrig.training import depth_errors_mm
 @pytest.fixture(scope="module")
 def probe(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
     """A short simulated sphere probe (1 mm, 0.5 mm shear) with its ground-truth sidecar."""
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.dataset import sidecar_path
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path
 

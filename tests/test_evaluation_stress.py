@@ -167,7 +167,8 @@ def test_stress_curves_hold_numbers(suite: StressResult) -> None:
 @pytest.fixture(scope="module")
 def short_probe(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
     """DATA for `labrig evaluate`: one short shallow press with its sidecar."""
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.dataset import sidecar_path
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path
 

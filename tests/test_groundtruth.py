@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from labrig.config import RigConfig
+from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
 from labrig.groundtruth import (
     DepthTable,
@@ -19,7 +20,6 @@ from labrig.groundtruth import (
     choose_model,
     generate,
     load_groundtruth,
-    sidecar_path,
     write_sidecar,
 )
 from labrig.indenters import Indenter, load_indenter

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from labrig.cache import sha256_of
+from labrig.dataset import Dataset
 from labrig.models import BUNDLED, FOLDER
 from labrig.pipeline.depthnet import read_card, write_card
 
@@ -42,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{onnx} is {onnx.stat().st_size / 1e6:.1f} MB; the bundled model must stay under 10 MB")
     card = read_card(onnx.with_suffix(".json"))
     data = Path(card["training_data"]["campaign"])
-    manifest = data / "manifest.csv"
+    manifest = Dataset(data).manifest_path
     sweep_json = onnx.parent / "sweep.json"
     sweep = json.loads(sweep_json.read_text()) if sweep_json.exists() else None
     card["bundled"] = {

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from labrig.errors import LabrigError
+from labrig.dataset import sidecar_path
 from labrig.evaluation.windows import PAPER_WINDOW_EVENTS, window_ends_us
 
 BATCH = 32
@@ -44,16 +44,13 @@ def evaluate_depth(task: DepthTask) -> dict[str, Any]:
     import time
 
     from labrig.config import Roi
-    from labrig.groundtruth import load_groundtruth, sidecar_path
+    from labrig.groundtruth import load_groundtruth
     from labrig.pipeline.depthnet import DepthModel
     from labrig.pipeline.sae import GRID_SHAPE, sae_grid
     from labrig.recording import Recording
 
     model = DepthModel(task.model, threads=1)
-    side = Path(task.sidecar) if task.sidecar else sidecar_path(task.recording)
-    if not side.exists():
-        raise LabrigError(f"{task.recording}: no ground-truth sidecar {side.name}; run `labrig groundtruth DATA/` first")
-    gt = load_groundtruth(side)
+    gt = load_groundtruth(Path(task.sidecar) if task.sidecar else sidecar_path(task.recording))
     roi = Roi(*(int(v) for v in gt.attrs["roi_px"]))
     scale = np.float32(gt.scale_mm)
     window_us = model.window_ms * 1000.0

@@ -9,7 +9,6 @@ pools the results into tables (:mod:`labrig.evaluation.tables`) and writes the r
 
 from __future__ import annotations
 
-import csv
 import platform
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from labrig.dataset import ALL_SPLITS, DatasetRecording, open_data, require_groundtruth, require_present, sidecar_path
+from labrig.dataset import SPLITS as DATASET_SPLITS
 from labrig.errors import LabrigError
 from labrig.evaluation import charts, tables
 from labrig.evaluation.depth import DepthTask, evaluate_depth
@@ -29,7 +30,7 @@ from labrig.evaluation.tracking import TABLE_PATCH_SCALES, table_lost_tracks, ta
 from labrig.evaluation.windows import PAPER_WINDOW_EVENTS
 from labrig.models import BUNDLED, bundled_model_path, model_path
 
-SPLITS = ("train", "val", "test", "all")
+SPLITS = (*DATASET_SPLITS, ALL_SPLITS)
 PAPER = {"force_x_mae_n": 0.14, "force_y_mae_n": 0.10, "force_z_mae_n": 0.93, "force_total_mae_n": 0.94,
          "position_total_mae_px": 2.47, "depth_total_mm": 0.091, "depth_contact_mm": 0.265, "lost_tracks": 2.8}
 Progress = Callable[[str, int, int], None]
@@ -100,26 +101,17 @@ class Evaluation:
     camera_short_s: dict[str, float] = field(default_factory=dict)  # recording -> events missing at the end (s)
 
 
-def campaign_recordings(data: Path, split: str) -> list[Path]:
-    """The complete recordings of ``split`` ("all": every split) in a campaign folder, or one recording."""
-    data = Path(data)
-    if not data.exists():
-        raise LabrigError(f"{data}: no such folder; give a campaign folder (with manifest.csv) or a recording")
-    if data.is_file():
-        return [data]
-    manifest = data / "manifest.csv"
-    if not manifest.exists():
-        raise LabrigError(f"{data} has no manifest.csv: give a campaign output folder (`labrig campaign ... --out`)")
-    with manifest.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    chosen = [data / r["file"] for r in rows if r.get("status") == "complete" and r.get("file")
-              and (split == "all" or r.get("split") == split)]
-    if not chosen:
-        raise LabrigError(f"{manifest} lists no complete recording in the {split!r} split; try --split all")
-    missing = [p.name for p in chosen if not p.exists()]
-    if missing:
-        raise LabrigError(f"{data}: recordings listed in the manifest are missing: {', '.join(missing[:3])}")
-    return chosen
+def campaign_recordings(data: Path, split: str) -> list[DatasetRecording]:
+    """The complete recordings of ``split`` ("all": every split) in a campaign folder, or one recording,
+    each with its ground truth."""
+    source = open_data(data)
+    if isinstance(source, DatasetRecording):
+        recordings = [source]
+    else:
+        recordings = source.require(split)
+        require_present(recordings, data)
+    require_groundtruth(recordings, data)
+    return recordings
 
 
 def default_model() -> Path:
@@ -146,15 +138,11 @@ def table2_models(models_dir: Path | None, width: int | None) -> dict[tuple[str,
 
 def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = None) -> Evaluation:
     """Run every task of the evaluation (parallel, cached) and pool the results."""
-    from labrig.groundtruth import sidecar_path
     from labrig.pipeline.depthnet import read_card
 
     settings.check()
-    recordings = campaign_recordings(settings.data, settings.split)
-    no_truth = [p.name for p in recordings if not sidecar_path(p).exists()]
-    if no_truth:
-        raise LabrigError(f"no ground truth for {', '.join(no_truth[:3])}"
-                          f"{' and more' if len(no_truth) > 3 else ''}; run `labrig groundtruth {settings.data}` first")
+    chosen = campaign_recordings(settings.data, settings.split)
+    recordings = [r.path for r in chosen]
     model = model_path(settings.model) if settings.model is not None else default_model()
     width = read_card(model.with_suffix(".json")).get("architecture", {}).get("width")
     ev = Evaluation(settings, recordings, model, table2_models=table2_models(settings.models_dir, width))

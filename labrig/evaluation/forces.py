@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.dataset import sidecar_path
 from labrig.evaluation.windows import (
     PAPER_WINDOW_EVENTS,
     contact_centre_px,
@@ -60,7 +61,7 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
     """
     from dataclasses import replace
 
-    from labrig.groundtruth import load_groundtruth, sidecar_path
+    from labrig.groundtruth import load_groundtruth
     from labrig.pipeline import ifem, runtime, tracking
 
     path = Path(task.recording)

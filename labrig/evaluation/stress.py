@@ -34,6 +34,7 @@ import numpy as np
 from matplotlib.lines import Line2D
 
 from labrig.config import DEFAULT_RIG
+from labrig.dataset import sidecar_path
 from labrig.evaluation import charts
 from labrig.evaluation.report import Report
 from labrig.evaluation.stress_axes import AXES, StressAxis
@@ -68,7 +69,6 @@ def measure_scene(task: StressTask | dict[str, Any]) -> dict[str, Any]:
     """
     from labrig.evaluation.forces import ForceTask, evaluate_forces
     from labrig.evaluation.tracking import TrackingTask, track_recording
-    from labrig.groundtruth import sidecar_path
 
     task = task if isinstance(task, StressTask) else StressTask(**task)
     scene = StressScene(**task.scene)

@@ -30,6 +30,7 @@ import numpy as np
 
 from labrig.clock import ClockModel
 from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
+from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
 
 US_PER_MIN = 60_000_000
@@ -117,7 +118,7 @@ def record_scene(scene: StressScene, out: str | Path) -> dict[str, Any]:
     depth: 1 is gross slip),
     ``clock_skew_max_ms`` (the unsynced clock's largest event time error, 0 when synced).
     """
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.indenters import load_indenter
     from labrig.recording import Recording
     from labrig.sim.live import record_live

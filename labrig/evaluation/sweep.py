@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from labrig.dataset import sidecar_path
 from labrig.evaluation import charts, tables
 from labrig.evaluation.depth import DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceTask, evaluate_forces
@@ -82,7 +83,6 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
               window_us: int | None = None, mesh_refinements: tuple[int, ...] = MESH_REFINEMENTS,
               patch_scales: tuple[float, ...] = PATCH_SCALES) -> SweepResult:
     """Every knob setting on ``recordings``; ``run(kind, fn, tasks) -> results`` runs tasks (parallel, cached)."""
-    from labrig.groundtruth import sidecar_path
     from labrig.pipeline.depthnet import benchmark_ms, read_card
 
     points: list[SweepPoint] = []

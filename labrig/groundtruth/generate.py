@@ -54,13 +54,6 @@ CONTACT_SAMPLES = 16
 CONTACT_FORCE_FLOOR_N = 0.02
 
 
-def sidecar_path(recording: str | Path) -> Path:
-    """``NAME.gt.h5`` beside ``NAME.h5``."""
-    p = Path(recording)
-    stem = p.name[:-3] if p.name.endswith(".h5") else p.name
-    return p.with_name(f"{stem}.gt.h5")
-
-
 # ------------------------------------------------------------------------------------ tool pose
 
 
