@@ -133,7 +133,7 @@ class Dataset:
         chosen = self.complete(split)
         if not chosen:
             where = "" if split == ALL_SPLITS else f" in the {split!r} split"
-            counts = {}
+            counts: dict[str, int] = {}
             for recording in self.complete():
                 counts[recording.split] = counts.get(recording.split, 0) + 1
             found = ", ".join(f"{name or 'no split'} {n}" for name, n in counts.items())

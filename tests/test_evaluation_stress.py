@@ -66,7 +66,7 @@ def test_forces_beyond_the_linear_range_break_the_linear_inverse_fem(suite: Stre
     assert 1.0 < breaks(suite, "force_range", "forces-linear") <= 2.25  # mm, beyond the gel calibration's 1.0 mm
     calibrated = curve(suite, "force_range", "forces-truth")  # the fitted stiffening extrapolates
     assert calibrated.error[-1] < forces.error[-1] / 2 and breaks(suite, "force_range", "forces-truth") is None
-    peak = [facts["peak_normal_n"] for facts in suite.scenes["force_range"]]
+    peak = [facts.peak_normal_n for facts in suite.scenes["force_range"]]
     assert peak[0] < 2 < 10 < peak[-1]  # N: the deepest press is far beyond the calibration's 6 N
 
 
@@ -88,7 +88,7 @@ def test_event_noise_breaks_the_circle_fit_but_not_the_gated_tracker(suite: Stre
     assert breaks(suite, "event_noise", "paper") is None and max(paper.lost) == 0
     assert max(paper.error) < 1.6 * paper.error[0]
     scenes = suite.scenes["event_noise"]
-    assert scenes[-1]["events"] > 10 * scenes[0]["events"]  # the noise is really there
+    assert scenes[-1].events > 10 * scenes[0].events  # the noise is really there
     assert scenes[0] == suite.scenes["force_range"][1]  # the default probe, simulated once for both axes
 
 

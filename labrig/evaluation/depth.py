@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -19,6 +18,7 @@ from labrig.dataset import sidecar_path
 from labrig.evaluation.windows import PAPER_WINDOW_EVENTS, window_ends_us
 
 BATCH = 32
+F64 = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -33,14 +33,27 @@ class DepthTask:
     sidecar: str = ""  # the ground truth (default NAME.gt.h5 beside the recording); named so caches see it change
 
 
-def evaluate_depth(task: DepthTask) -> dict[str, Any]:
-    """Per-window depth errors (mm) of ``task.model`` on ``task.recording``.
+@dataclass(frozen=True)
+class DepthResult:
+    """Depth errors of one network on one recording, per evaluation window (W windows), against its sidecar.
 
-    Keys: ``t_us`` (W,) evaluation times, ``total_mm``, ``contact_mm`` (nan without contact),
-    ``noncontact_mm``, ``true_max_mm`` (the map's deepest cell), ``contact_cells``,
-    ``gt_offset_us`` (map time - last event), ``window_ms`` (the model's), ``infer_ms``
-    (median per window, batched).
+    Errors are mean absolute errors over the map's cells, depth clipped to [0, scale], mm.
     """
+
+    t_us: npt.NDArray[np.int64]  # (W,) evaluation times (window ends), host us
+    total_mm: F64  # (W,) over all cells
+    contact_mm: F64  # (W,) over the contact cells, nan without contact
+    noncontact_mm: F64  # (W,) over the other cells, nan when all touch
+    true_max_mm: npt.NDArray[np.floating]  # (W,) the ground-truth map's deepest cell
+    contact_cells: npt.NDArray[np.int64]  # (W,) cells in contact
+    gt_offset_us: npt.NDArray[np.int64]  # (W,) the map's time - the window's last event, us
+    window_ms: float  # the network's trained window
+    model: str  # the network's name
+    infer_ms: float  # median inference time per window (batched), ms
+
+
+def evaluate_depth(task: DepthTask) -> DepthResult:
+    """Per-window depth errors (mm) of ``task.model`` on ``task.recording``."""
     import time
 
     from labrig.config import Roi
@@ -74,10 +87,11 @@ def evaluate_depth(task: DepthTask) -> dict[str, Any]:
     true = np.clip(gt.depth_mm[index], 0.0, scale)
     contact = gt.contact_mask[index] > 0
     errors = per_map_errors_mm(pred, true, contact)
-    return {"t_us": t1, **errors, "true_max_mm": true.reshape(len(true), -1).max(1) if len(true) else np.zeros(0),
-            "contact_cells": contact.reshape(len(contact), -1).sum(1), "gt_offset_us": gt.t_us[index] - t_last,
-            "window_ms": model.window_ms, "model": model.name,
-            "infer_ms": float(np.median(seconds) * 1e3) if seconds else float("nan")}
+    return DepthResult(
+        t_us=t1, total_mm=errors["total_mm"], contact_mm=errors["contact_mm"], noncontact_mm=errors["noncontact_mm"],
+        true_max_mm=true.reshape(len(true), -1).max(1) if len(true) else np.zeros(0),
+        contact_cells=contact.reshape(len(contact), -1).sum(1), gt_offset_us=gt.t_us[index] - t_last,
+        window_ms=model.window_ms, model=model.name, infer_ms=float(np.median(seconds) * 1e3) if seconds else float("nan"))
 
 
 evaluate_depth.cache_version = "1"  # type: ignore[attr-defined]
