@@ -377,7 +377,7 @@ def sim_tables(
     """Build (or load from cache) the contact tables of every indenter."""
     import time
 
-    from labrig.sim.mechanics import ContactTable, table_cache_dir
+    from labrig.physics.mechanics import ContactTable, table_cache_dir
 
     rig, indenters = _load_rig_and_indenters(rig_path, indenters_path)
     rows = []

@@ -63,11 +63,11 @@ def intrinsics_command(
     """Camera matrix and distortion from a recording of a blinking dot-grid target at many poses."""
     from labrig.calibration.files import write_intrinsics
     from labrig.calibration.intrinsics import calibrate_intrinsics
-    from labrig.sim.target import DotGridTarget
+    from labrig.physics.target import DotGridTarget
 
     if recording is None:
-        from labrig.calibration.scenes import record_target_scene
         from labrig.config import DEFAULT_RIG, load_rig
+        from labrig.sim.calibration_scenes import record_target_scene
 
         recording = _scratch("target-scene.h5")
         err_console.print(f"no recording given: recording a {views}-view dot-grid target scene on the virtual rig ({recording})")
@@ -122,7 +122,7 @@ def extrinsics_command(
     rig = load_rig(rig_path or DEFAULT_RIG)
     intr = load_intrinsics(intrinsics or DEFAULT_INTRINSICS)
     if recording is None:
-        from labrig.calibration.scenes import record_led_blink
+        from labrig.sim.calibration_scenes import record_led_blink
 
         recording = _scratch("led-blink.h5")
         err_console.print(f"no recording given: recording the LED ring blinking on the virtual rig ({recording})")

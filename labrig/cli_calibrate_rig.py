@@ -60,7 +60,9 @@ def rig_command(
     as_json: JsonOption = False,
 ) -> None:
     """Where the gel is for the CNC (origin, yaw, tilt, surface height) and the F/T sensor's axes in the gel frame."""
-    from labrig.calibration.registration import DEFAULT_LOCATIONS, default_registration_path, plot_registration, register_rig
+    from labrig.calibration.plots import plot_registration
+    from labrig.calibration.registration_file import default_registration_path
+    from labrig.protocol.calibration_runs import DEFAULT_LOCATIONS, register_rig
 
     rig, indenters, ind_path = _load(rig_path, indenters_path)
     _say_where(rig, as_json)
@@ -114,7 +116,9 @@ def gel_command(
     as_json: JsonOption = False,
 ) -> None:
     """Young's modulus from stepped normal indentations with a sphere and a cylinder (nu: the rig's, a modelling choice)."""
-    from labrig.calibration.gel import DEFAULT_PLAN, contact_table, fit_modulus, measure_curves, plot_fit
+    from labrig.calibration.gel import contact_table, fit_modulus
+    from labrig.calibration.plots import plot_fit
+    from labrig.protocol.calibration_runs import DEFAULT_PLAN, measure_curves
 
     rig, indenters, ind_path = _load(rig_path, indenters_path)
     _say_where(rig, as_json)

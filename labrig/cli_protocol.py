@@ -72,10 +72,9 @@ def record(
     as_json: JsonOption = False,
 ) -> None:
     """Record one probing run: approach, Normal Down, Wait, Shear, Wait, Shear Opposite, Wait, Normal Up."""
-    from labrig.calibration.registration import gel_pose
     from labrig.protocol import apply_overrides, load_protocol
     from labrig.protocol.files import DEFAULT_PROTOCOL
-    from labrig.protocol.rigfile import device_config, safety_limits
+    from labrig.protocol.rigfile import device_config
     from labrig.protocol.runner import ProbeRunner, RunProgress
     from labrig.protocol.safety import StopRequest
     from labrig.protocol.session import RigSession
@@ -84,13 +83,10 @@ def record(
     protocol_path = protocol or DEFAULT_PROTOCOL
     spec = load_protocol(protocol_path, rig, indenters)
     spec = apply_overrides(spec, at=at, depth=depth, force=force, indenter=indenter, rig=rig, indenters=indenters)
-    mounted = indenters[spec.indenter]
-    devices, limits = device_config(rig), safety_limits(rig)
-    if devices.virtual:
-        from labrig.protocol.campaign import prepare_virtual_tables
-
+    if device_config(rig).virtual:
         err_console.print("no hardware configured: recording on the virtual rig (embedded)")
-        prepare_virtual_tables(rig, mounted, [spec.shear_direction_deg])
+    session = RigSession.for_rig(rig, indenters[spec.indenter], seed=seed, indenters_path=ind_path,
+                                 shear_directions_deg=[spec.shear_direction_deg])
     out.mkdir(parents=True, exist_ok=True)
     path = out / (name or f"{spec.indenter}-{time.strftime('%Y%m%d-%H%M%S')}.h5")
     if path.suffix != ".h5":
@@ -109,9 +105,8 @@ def record(
                        description=f"{p.phase:<15} depth {p.depth_mm:4.2f} mm  Fz {p.force_n[2]:6.2f} N  "
                                    f"Fxy {abs(complex(*p.force_n[:2])):5.2f} N  {p.event_rate_hz / 1e6:5.2f} Mev/s")
 
-        with RigSession(rig, devices, limits, seed=seed, indenter=mounted, indenters_path=ind_path) as session, _ctrl_c(stop):
-            runner = ProbeRunner(session, rig, mounted, gel_in_machine=gel_pose(rig), stop=stop,
-                                 progress=show)
+        with session, _ctrl_c(stop):
+            runner = ProbeRunner.for_session(session, stop=stop, progress=show)
             started = time.monotonic()
             result = runner.run(spec, path, protocol_toml=protocol_path.read_text())
     if plot is not None:
@@ -122,7 +117,7 @@ def record(
             plot_overview(rec, plot)
     summary = {
         "path": str(result.path), "exit_status": result.exit_status, "reason": result.reason,
-        "indenter": spec.indenter, "virtual_rig": devices.virtual, "phases": result.phases,
+        "indenter": spec.indenter, "virtual_rig": session.virtual, "phases": result.phases,
         "contact_machine_mm": result.contact_mm, "peak_force_n": result.peak_force_n, "wall_s": round(result.wall_s, 3),
         "plot": None if plot is None else str(plot),
     }

@@ -2,7 +2,7 @@
 inference pipeline and write the force fields.
 
 Mount on the main app with :func:`add_run_commands` (``cli.py``). The live path is in
-:mod:`labrig.cli_run_live` (its work in :mod:`labrig.pipeline.live`). User errors are
+:mod:`labrig.cli_run_live` (its work in :mod:`labrig.live`). User errors are
 :class:`LabrigError` s, printed as one line by ``labrig``.
 """
 
@@ -65,7 +65,8 @@ def run(
     """Stream RECORDING (or the live camera) through SAE, tracker, depth, iFEM; per-window forces into
     --out, an animation into --view."""
     from labrig.config import load_rig
-    from labrig.pipeline import runtime
+    from labrig.pipeline import depth_sources, results, run_setup, runtime
+    from labrig.pipeline.windows import WindowSpec
     from labrig.recording import Recording
 
     if live:
@@ -86,27 +87,24 @@ def run(
     if given := [flag for flag, value in live_only.items() if value is not None]:
         raise LabrigError(f"{', '.join(given)} only apply to --live; drop them to run a recording")
     depth = depth or "truth"
-    if window_ms is not None and window_events is not None:
-        raise LabrigError("give --window-ms or --window-events, not both")
-    if (window_ms is not None and window_ms <= 0) or (window_events is not None and window_events <= 0):
-        raise LabrigError("--window-ms and --window-events must be positive")
+    windows = WindowSpec.from_options(window_ms, window_events)
     if view is not None and view.suffix.lower() != ".gif":
         raise LabrigError("--view writes a GIF: give a path ending in .gif")
     if not recording.exists():
         raise LabrigError(f"{recording}: no such recording")
-    window_us = None if window_events is not None else round((window_ms or 10.0) * 1000)
+    window_us = windows.window_us
     frames: list[runtime.WindowResult] = []
     with Recording(recording) as rec:
-        setup = runtime.setup_for_recording(
+        setup = run_setup.setup_for_recording(
             rec, rig=load_rig(rig_path) if rig_path else None,
             calibration_dir=calibration if calibration is not None else Path("calibration"),
             youngs_modulus_mpa=youngs_modulus_mpa)
-        source = runtime.depth_source(depth, rec, model)
+        source = depth_sources.depth_source(depth, rec, model)
         pipe = runtime.Pipeline(setup, source, keep_sae=view is not None)
         attrs = {"recording": str(recording), "depth_source": source.name, "window_us": window_us or 0,
                  "window_events": window_events or 0, "youngs_modulus_mpa": setup.youngs_modulus_mpa,
                  "poisson_ratio": setup.poisson_ratio, "sources": json.dumps(setup.sources)}
-        writer = runtime.ResultWriter(out, len(setup.rest_px), attrs) if out is not None else None
+        writer = results.ResultWriter(out, len(setup.rest_px), attrs) if out is not None else None
         start = time.perf_counter()
         log = WindowLog()
         try:

@@ -4,7 +4,7 @@ Camera only (hardware, a ``labrig sim serve`` socket, a ``.raw`` replay): until 
 or Ctrl-C. With a probing run (``--indenter``, ``--protocol``, ``--at``, ``--depth-mm``; always
 on the embedded virtual rig, where nothing else presses the gel): as long as the run lasts,
 Ctrl-C stopping the run as in ``labrig record``; the live forces are then compared with the
-F/T sensor's. The work is in :mod:`labrig.pipeline.live` and :mod:`labrig.pipeline.live_rig`;
+F/T sensor's. The work is in :mod:`labrig.live.runner` and :mod:`labrig.live.rig`;
 this module checks options, shows the live table and prints the summary.
 """
 
@@ -31,6 +31,7 @@ from rich.table import Table
 
 from labrig.cli_run import WindowLog, console, err_console, stage_table, window_summary, write_view
 from labrig.errors import LabrigError
+from labrig.pipeline.windows import WindowSpec
 
 #: Windows kept for --view (the last ones; every --view-every-th).
 MAX_VIEW_FRAMES = 300
@@ -67,7 +68,8 @@ class LiveOptions:
 def run_live(o: LiveOptions) -> None:
     """Check the options, build the pipeline, stream, print the summary."""
     from labrig.config import DEFAULT_RIG, load_rig
-    from labrig.pipeline import live_rig, runtime
+    from labrig.live import rig as live_rig
+    from labrig.pipeline import depth_sources, run_setup, runtime
     from labrig.protocol.rigfile import device_config
 
     _check(o)
@@ -80,10 +82,10 @@ def run_live(o: LiveOptions) -> None:
         raise LabrigError(f"--seconds: {where}, which lasts its protocol (shorten it there), or Ctrl-C to stop it")
     if not probing:
         live_rig.check_camera(devices)
-    depth = runtime.ModelDepth(o.model or _default_model())
+    depth = depth_sources.ModelDepth(o.model or _default_model())
     window_us, window_events = _windows(o, depth.model.window_ms)
     calibration_dir = o.calibration if o.calibration is not None else rig.path.parent
-    setup = runtime.setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=o.youngs_modulus_mpa)
+    setup = run_setup.setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=o.youngs_modulus_mpa)
     pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None)
     source = "virtual rig (embedded)" if devices.virtual else f"camera {live_rig.describe_camera(devices)}"
     sink = _Sink(o, len(setup.rest_px), {
@@ -126,10 +128,7 @@ def _check(o: LiveOptions) -> None:
         raise LabrigError(f"--max-lag-ms must be positive, not {o.max_lag_ms:g}")
     if o.seconds is not None and o.seconds <= 0:
         raise LabrigError(f"--seconds must be positive, not {o.seconds:g}")
-    if o.window_ms is not None and o.window_events is not None:
-        raise LabrigError("give --window-ms or --window-events, not both")
-    if (o.window_ms is not None and o.window_ms <= 0) or (o.window_events is not None and o.window_events <= 0):
-        raise LabrigError("--window-ms and --window-events must be positive")
+    WindowSpec.from_options(o.window_ms, o.window_events)  # refused before the network loads
     if o.view is not None and o.view.suffix.lower() != ".gif":
         raise LabrigError("--view writes a GIF: give a path ending in .gif")
     if o.save_recording is not None and o.save_recording.exists():
@@ -137,10 +136,10 @@ def _check(o: LiveOptions) -> None:
 
 
 def _default_model() -> Path:
-    from labrig.pipeline import runtime
+    from labrig.pipeline.depth_sources import default_model_path
 
     try:
-        return runtime.default_model_path()
+        return default_model_path()
     except LabrigError:
         raise LabrigError("no depth network (NAME.onnx + NAME.json) in models/, and the live pipeline needs one: "
                           "pass --model X.onnx, or train one with `labrig train DATA/` (it writes models/)") from None
@@ -148,16 +147,15 @@ def _default_model() -> Path:
 
 def _windows(o: LiveOptions, trained_ms: float) -> tuple[int | None, int | None]:
     """(window_us, window_events): the network's trained window unless told otherwise."""
-    if o.window_events is not None:
-        return None, o.window_events
-    if o.window_ms is not None and abs(o.window_ms - trained_ms) > 1e-9:
+    windows = WindowSpec.from_options(o.window_ms, o.window_events, default_ms=trained_ms)
+    if windows.window_us is not None and o.window_ms is not None and abs(o.window_ms - trained_ms) > 1e-9:
         err_console.print(f"[yellow]warning:[/] the network was trained on {trained_ms:g} ms windows; "
                           f"--window-ms {o.window_ms:g} gives it SAEs of another span")
-    return round((o.window_ms or trained_ms) * 1000), None
+    return windows.window_us, windows.window_events
 
 
 def _max_lag(o: LiveOptions) -> float:
-    from labrig.pipeline.live import MAX_LAG_MS
+    from labrig.live.runner import MAX_LAG_MS
 
     return o.max_lag_ms if o.max_lag_ms is not None else MAX_LAG_MS
 
@@ -167,7 +165,7 @@ def _max_lag(o: LiveOptions) -> float:
 
 def _camera_only(o: LiveOptions, devices: Any, pipe: Any, sink: _Sink, window_us: int | None,
                  window_events: int | None) -> dict[str, Any]:
-    from labrig.pipeline import live_rig
+    from labrig.live import rig as live_rig
 
     stop = threading.Event()
 
@@ -190,12 +188,11 @@ def _camera_only(o: LiveOptions, devices: Any, pipe: Any, sink: _Sink, window_us
 
 def _with_probe(o: LiveOptions, rig: Any, devices: Any, pipe: Any, sink: _Sink, window_us: int | None,
                 window_events: int | None, calibration_dir: Path) -> dict[str, Any]:
-    from labrig.calibration.registration import gel_pose
+    from labrig.evaluation.measured import ft_axes_in_gel
     from labrig.indenters import DEFAULT_INDENTERS, load_indenters
-    from labrig.pipeline import live_rig
+    from labrig.live import rig as live_rig
     from labrig.protocol import apply_overrides, load_protocol
     from labrig.protocol.files import DEFAULT_PROTOCOL
-    from labrig.protocol.rigfile import safety_limits
     from labrig.protocol.runner import ProbeRunner
     from labrig.protocol.safety import StopRequest
     from labrig.protocol.session import RigSession
@@ -208,21 +205,18 @@ def _with_probe(o: LiveOptions, rig: Any, devices: Any, pipe: Any, sink: _Sink, 
         spec = apply_overrides(spec, at=o.at, depth=o.depth_mm, indenter=o.indenter, rig=rig, indenters=indenters)
     except ProtocolError as exc:  # the library names record's --depth; here it is --depth-mm
         raise ProtocolError(str(exc).replace("--depth:", "--depth-mm:")) from None
-    mounted = indenters[spec.indenter]
     if devices.virtual:
-        from labrig.protocol.campaign import prepare_virtual_tables
-
         err_console.print(f"no hardware configured: one probing run ({spec.indenter}, {protocol_path.name}) on the "
                           "virtual rig (embedded), the live pipeline reading its camera")
-        prepare_virtual_tables(rig, mounted, [spec.shear_direction_deg])
     stop = StopRequest()
-    session = RigSession(rig, devices, safety_limits(rig), indenter=mounted, indenters_path=DEFAULT_INDENTERS)
+    session = RigSession.for_rig(rig, indenters[spec.indenter], indenters_path=DEFAULT_INDENTERS,
+                                 shear_directions_deg=[spec.shear_direction_deg])
     where = "virtual rig" if devices.virtual else "rig"
     view = LiveView(f"labrig run --live: {spec.indenter} probing run on the {where}", None, None,
-                    live_rig.ft_axes_from_registration(calibration_dir)[0])
+                    ft_axes_in_gel(None, calibration_dir)[0])
     sink.view = view
     progress: Callable[[Any], None] = view.on_progress
-    runner = ProbeRunner(session, rig, mounted, gel_in_machine=gel_pose(rig), stop=stop, progress=progress)
+    runner = ProbeRunner.for_session(session, stop=stop, progress=progress)
     runner.check(spec)  # refuse an unsafe plan before the rig starts
     keep = o.save_recording
     with tempfile.TemporaryDirectory(prefix="labrig-live-") as folder:
@@ -272,7 +266,7 @@ class _Sink:
         self.view: LiveView | None = None
 
     def take(self, r: Any) -> None:
-        from labrig.pipeline.runtime import ResultWriter
+        from labrig.pipeline.results import ResultWriter
 
         if self.out is not None:
             if self.writer is None:
@@ -333,7 +327,7 @@ class LiveView:
                f"{np.median(self.load):.2f}" if self.load else "-",
                f"{np.median(latency):.1f}" if latency else "-", f"{self._event_rate_hz() / 1e6:.2f}", _xyz(self.net_n)]
         if self.ft_to_gel is not None:
-            from labrig.pipeline.live_rig import ft_on_gel_n
+            from labrig.evaluation.measured import ft_on_gel_n
 
             table.add_column("phase", no_wrap=True)
             table.add_column("F/T on gel N", justify="right", no_wrap=True)

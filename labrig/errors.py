@@ -19,3 +19,7 @@ class RecordingError(LabrigError):
 
 class RecordingFault(LabrigError):
     """Recording stopped early (disk full, write failure); recorded data was kept."""
+
+
+class CalibrationError(LabrigError):
+    """Calibration cannot proceed from this input; the message says what was found and what to change."""

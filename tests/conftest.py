@@ -14,7 +14,7 @@ import pytest
 
 from labrig.config import RigConfig, load_rig
 from labrig.indenters import Indenter, load_indenter
-from labrig.sim.mechanics import ContactTable
+from labrig.physics.mechanics import ContactTable
 from labrig.testing.synthetic import SyntheticRun, record_synthetic
 
 #: A short synthetic run used by many tests (about 1.5 M events).

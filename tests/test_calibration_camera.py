@@ -18,11 +18,12 @@ from labrig.calibration.files import (
     write_extrinsics,
     write_intrinsics,
 )
-from labrig.calibration.intrinsics import CalibrationError, IntrinsicsResult, calibrate_intrinsics
-from labrig.calibration.scenes import record_led_blink, record_target_scene
+from labrig.calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from labrig.config import RigConfig, load_rig
+from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix
-from labrig.sim.camera import CameraModel, distort_normalized
+from labrig.physics.camera import CameraModel, distort_normalized
+from labrig.sim.calibration_scenes import record_led_blink, record_target_scene
 
 N_VIEWS = 10
 

@@ -13,23 +13,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labrig.calibration.gel import CalibrationError, ForceDepthCurve, fit_modulus, load_gel
-from labrig.calibration.registration import (
-    DEFAULT_LOCATIONS,
-    Press,
-    RigRegistration,
-    gel_pose,
-    press,
-    solve_registration,
-    yaw_tilt_of,
-)
+from labrig.calibration.fits import yaw_tilt_of
+from labrig.calibration.gel import ForceDepthCurve, fit_modulus, load_gel
+from labrig.calibration.registration import Press, solve_registration
+from labrig.calibration.registration_file import RigRegistration, gel_pose
 from labrig.config import RigConfig, load_rig
+from labrig.errors import CalibrationError
 from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix
 from labrig.indenters import Indenter, load_indenters
+from labrig.physics.camera import CameraModel
+from labrig.physics.geometry import nominal_gel_in_machine
+from labrig.protocol.calibration_runs import DEFAULT_LOCATIONS
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.safety import SafetyLimits
-from labrig.protocol.session import DeviceConfig, RigSession
-from labrig.sim.camera import CameraModel
-from labrig.sim.motion import gel_in_machine
+from labrig.protocol.session import RigSession
+from labrig.protocol.touchoff import press
+from labrig.sim.motion import true_gel_in_machine
 
 DEPTHS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 LOCATIONS = DEFAULT_LOCATIONS[:3]
@@ -55,7 +54,7 @@ def sphere_session(rig: RigConfig, indenters: dict[str, Indenter]) -> Iterator[R
 def presses(rig: RigConfig, indenters: dict[str, Indenter], sphere_session: RigSession,
             tmp_path_factory: pytest.TempPathFactory) -> list[Press]:
     out = tmp_path_factory.mktemp("touchoffs")
-    nominal = gel_in_machine(rig, truth=False)
+    nominal = nominal_gel_in_machine(rig)
     return [press(sphere_session, rig, indenters["sphere"], nominal, loc, DEPTHS, shear_mm=0.3,
                   shear_direction_deg=90.0 * i, record_to=out / f"touch-{i}.h5") for i, loc in enumerate(LOCATIONS)]
 
@@ -66,7 +65,7 @@ def registration(rig: RigConfig, indenters: dict[str, Indenter], presses: list[P
 
 
 def test_registration_recovers_the_rig_truth(rig: RigConfig, registration: RigRegistration, tmp_path: Path) -> None:
-    truth = gel_in_machine(rig, truth=True)
+    truth = true_gel_in_machine(rig)
     position_error = np.abs(registration.gel_in_machine.translation_mm - truth.translation_mm)
     assert position_error.max() < 0.1, position_error
     angle = np.degrees(np.linalg.norm(matrix_to_rotvec(registration.gel_in_machine.rotation.T @ truth.rotation)))
@@ -93,7 +92,7 @@ def test_registration_recovers_the_rig_truth(rig: RigConfig, registration: RigRe
 
 def test_gel_modulus_within_five_percent(rig: RigConfig, indenters: dict[str, Indenter], presses: list[Press],
                                          tmp_path: Path) -> None:
-    nominal = gel_in_machine(rig, truth=False)
+    nominal = nominal_gel_in_machine(rig)
     with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=indenters["cylinder"]) as session:
         cylinder = press(session, rig, indenters["cylinder"], nominal, (0.0, 0.0), (0.05, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8))
     curves = [p.curve() for p in presses] + [cylinder.curve()]
@@ -113,7 +112,7 @@ def test_gel_modulus_within_five_percent(rig: RigConfig, indenters: dict[str, In
 
 def test_no_contact_is_a_clear_error(rig: RigConfig, indenters: dict[str, Indenter], sphere_session: RigSession,
                                      presses: list[Press]) -> None:
-    nominal = gel_in_machine(rig, truth=False)
+    nominal = nominal_gel_in_machine(rig)
     too_high = Pose(nominal.rotation, nominal.translation_mm + np.array([0.0, 0.0, 3.0]))
     with pytest.raises(CalibrationError, match="no contact found"):
         press(sphere_session, rig, indenters["sphere"], too_high, (0.0, 0.0), DEPTHS, max_travel_mm=1.0)

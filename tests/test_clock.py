@@ -138,15 +138,19 @@ def test_align_trigger_edges_pairs_by_interval_pattern_whatever_the_latency() ->
     assert sorted(zip(di.tolist(), hi.tolist(), strict=True)) == [(i, i) for i in range(8)]
 
 
-def test_trigger_fit_keeps_a_plausible_drift_when_edges_are_jittered() -> None:
-    from labrig.clock import MAX_PLAUSIBLE_DRIFT_PPM, fit_triggers
-
+def test_trigger_fit_keeps_the_true_drift_when_most_edges_are_late() -> None:
+    """Replaces the clamp of fitted drifts beyond 200 ppm (method ``triggers-offset``, drift 0):
+    a host stamp is the earliest the edge can have happened, so edges the CNC handled late
+    lie below the line and the prompt ones pin it, whatever the drift."""
     rng = np.random.default_rng(5)
     host = np.sort(rng.uniform(0, 10e6, 9))  # a 10 s recording
-    device = 5e9 + host * (1 + 35e-6)
-    jittered = host + np.linspace(-8000, 8000, 9)  # host latency growing through a short recording
-    model = fit_triggers(device, jittered)
-    assert model.method == "triggers-offset" and abs(model.drift_ppm) <= MAX_PLAUSIBLE_DRIFT_PPM
-    assert np.abs(model.to_host_us(device) - host).max() < 8500  # within the jitter, not 1600 ppm off
-    clean = fit_triggers(device, host)
+    lateness = np.array([3.0, 4000.0, 12.0, 800.0, 25.0, 8000.0, 150.0, 0.0, 2500.0])  # us: four prompt edges
+    for camera_ppm in (35.0, 300.0, -500.0, 1500.0):
+        device = 5e9 + host * (1 + camera_ppm * 1e-6)
+        model = fit_triggers(device, host - lateness)
+        true_drift = (1 / (1 + camera_ppm * 1e-6) - 1) * 1e6
+        assert model.method == "triggers" and model.n_triggers == 4 and model.n_trigger_pairs == 9
+        assert abs(model.drift_ppm - true_drift) <= min(5.0, model.drift_uncertainty_ppm)
+        assert np.abs(model.to_host_us(device) - host).max() <= 50.0
+    clean = fit_triggers(5e9 + host * (1 + 35e-6), host)
     assert clean.method == "triggers" and clean.drift_ppm == pytest.approx(-35.0, abs=0.5)

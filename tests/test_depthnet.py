@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from labrig.errors import LabrigError
+from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.depthnet import (
     DepthModel,
     UNetConfig,
@@ -20,7 +21,7 @@ from labrig.pipeline.depthnet import (
     parameter_count,
     read_card,
 )
-from labrig.pipeline.sae import GRID_SHAPE, UNET_SHAPE
+from labrig.pipeline.sae import UNET_SHAPE
 
 
 @pytest.mark.parametrize(("width", "pools"), [(4, 4), (8, 4), (4, 3), (4, 1)])

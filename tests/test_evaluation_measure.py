@@ -13,8 +13,9 @@ from labrig.config import RigConfig
 from labrig.evaluation import tables
 from labrig.evaluation.depth import DepthTask, evaluate_depth, per_map_errors_mm
 from labrig.evaluation.forces import ForceTask, evaluate_forces
-from labrig.evaluation.windows import ft_axes_in_gel, measured_force_on_gel_n, window_ends_us
+from labrig.evaluation.measured import ft_axes_in_gel, measured_force_on_gel_n
 from labrig.indenters import Indenter
+from labrig.pipeline.windows import window_ends_us
 from labrig.recording import Recording
 from labrig.training import depth_errors_mm
 

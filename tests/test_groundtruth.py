@@ -23,8 +23,8 @@ from labrig.groundtruth import (
     write_sidecar,
 )
 from labrig.indenters import Indenter, load_indenter
+from labrig.physics.mechanics.spectral import contact_modulus_mpa
 from labrig.recording import Recording
-from labrig.sim.mechanics.spectral import contact_modulus_mpa
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +121,7 @@ def test_map_centre_is_where_the_indenter_is_in_the_image(probe: Path, rig: RigC
     rows, cols = np.nonzero(mask)
     centre = np.array([cols.mean(), rows.mean()])
     # the commanded location projected through the camera into the network grid
-    from labrig.sim.camera import CameraModel
+    from labrig.physics.camera import CameraModel
 
     px = CameraModel.from_rig(rig).project(np.array([[2.0, -1.5, 0.0]]))[0]
     roi = rig.roi

@@ -15,9 +15,9 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
-from labrig.pipeline import displacement, forces, ifem, runtime
+from labrig.physics.camera import CameraModel
+from labrig.pipeline import depth_sources, displacement, forces, ifem, run_setup, runtime
 from labrig.recording import Recording
-from labrig.sim.camera import CameraModel
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
 
@@ -131,8 +131,8 @@ def test_full_pipeline_matches_the_sims_net_force_mid_hold(rig: RigConfig, recor
     """Tracker on the events + the true depth map + the dense operator: Fz within 10 % mid-hold."""
     with Recording(recording) as rec:
         tf = rec.stream("truth/marker_forces")
-        setup = runtime.setup_for_recording(rec, calibration_dir=None, youngs_modulus_mpa=rig.gel.youngs_modulus_mpa)
-        pipe = runtime.Pipeline(setup, runtime.TruthDepth(rec))
+        setup = run_setup.setup_for_recording(rec, calibration_dir=None, youngs_modulus_mpa=rig.gel.youngs_modulus_mpa)
+        pipe = runtime.Pipeline(setup, depth_sources.TruthDepth(rec))
         results = list(pipe.run(rec, end_us=SHEAR_HOLD_US + 20_000))
     for t_us in (NORMAL_HOLD_US, SHEAR_HOLD_US):
         r = min(results, key=lambda r: abs(r.t1_us - t_us))

@@ -22,8 +22,10 @@ from labrig.devices.camera import EventChunk
 from labrig.devices.raw import TRIGGER_DTYPE
 from labrig.eventtypes import EVENT_DTYPE
 from labrig.indenters import Indenter
-from labrig.pipeline import runtime
-from labrig.pipeline.live import ChunkTap, EventWindower, LiveRunner, windows_from_chunks
+from labrig.live.runner import LiveRunner
+from labrig.live.sources import ChunkTap
+from labrig.pipeline import depth_sources, results, run_setup, runtime
+from labrig.pipeline.windows import EventWindower, windows_from_chunks
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -178,11 +180,11 @@ class _ListSource:
 
 
 @pytest.fixture(scope="module")
-def setup(rig: RigConfig) -> runtime.PipelineSetup:
-    return runtime.setup_for_rig(rig, calibration_dir=None)
+def setup(rig: RigConfig) -> run_setup.PipelineSetup:
+    return run_setup.setup_for_rig(rig, calibration_dir=None)
 
 
-def _marker_events(setup: runtime.PipelineSetup, t0_us: int, n_windows: int) -> np.ndarray:
+def _marker_events(setup: run_setup.PipelineSetup, t0_us: int, n_windows: int) -> np.ndarray:
     """Events on the first marker's rest pixel, 200 per 10 ms."""
     x, y = np.round(setup.rest_px[0]).astype(int)
     t = np.arange(t0_us, t0_us + n_windows * 10_000, 50)
@@ -191,13 +193,13 @@ def _marker_events(setup: runtime.PipelineSetup, t0_us: int, n_windows: int) -> 
     return ev
 
 
-def _window_chunks(setup: runtime.PipelineSetup, host_ns: list[int]) -> list[EventChunk]:
+def _window_chunks(setup: run_setup.PipelineSetup, host_ns: list[int]) -> list[EventChunk]:
     """One chunk per 10 ms window of marker events, arriving at ``host_ns``."""
     events = _marker_events(setup, 0, len(host_ns))
     return [EventChunk(events[k * 200:(k + 1) * 200], np.zeros(0, TRIGGER_DTYPE), t) for k, t in enumerate(host_ns)]
 
 
-def test_a_window_older_than_the_max_lag_is_tracked_but_skipped(setup: runtime.PipelineSetup) -> None:
+def test_a_window_older_than_the_max_lag_is_tracked_but_skipped(setup: run_setup.PipelineSetup) -> None:
     depth = _FlatDepth()
     pipe = runtime.Pipeline(setup, depth)
     now, minute = time.monotonic_ns(), 60 * 10**9
@@ -214,7 +216,7 @@ def test_a_window_older_than_the_max_lag_is_tracked_but_skipped(setup: runtime.P
     assert all(v > 0 for v in depth.seen)  # each window's own SAE reached the depth source
 
 
-def test_a_stale_backlog_is_skipped_up_to_the_newest_window(setup: runtime.PipelineSetup) -> None:
+def test_a_stale_backlog_is_skipped_up_to_the_newest_window(setup: run_setup.PipelineSetup) -> None:
     pipe = runtime.Pipeline(setup, _FlatDepth())
     now, minute = time.monotonic_ns(), 60 * 10**9
     # windows 0-4 closed by chunks that arrived a minute ago; window 5 by a fresh one, 6 at the end
@@ -225,16 +227,16 @@ def test_a_stale_backlog_is_skipped_up_to_the_newest_window(setup: runtime.Pipel
     assert done in ([5, 6], [6]) and runner.stats.skipped == 7 - len(done)
 
 
-def test_the_front_runs_ahead_without_overwriting_the_sae_the_back_stage_reads(setup: runtime.PipelineSetup) -> None:
+def test_the_front_runs_ahead_without_overwriting_the_sae_the_back_stage_reads(setup: run_setup.PipelineSetup) -> None:
     pipe = runtime.Pipeline(setup, _FlatDepth())
     ev = _marker_events(setup, 0, 2)
     first = pipe.front(0, 10_000, ev[:200])
-    before = first["sae"].copy()
+    before = first.sae.copy()
     pipe.front(10_000, 20_000, ev[:0])  # an empty window next
-    assert np.array_equal(first["sae"], before) and before.sum() > 0
+    assert np.array_equal(first.sae, before) and before.sum() > 0
 
 
-def test_the_runner_stops_on_request_and_keeps_the_partial_window(setup: runtime.PipelineSetup) -> None:
+def test_the_runner_stops_on_request_and_keeps_the_partial_window(setup: run_setup.PipelineSetup) -> None:
     class Endless:
         ended = False
 
@@ -261,8 +263,9 @@ def test_the_runner_stops_on_request_and_keeps_the_partial_window(setup: runtime
 
 
 def test_session_listeners_get_every_chunk_and_a_failing_one_is_removed(rig: RigConfig, sphere: Indenter) -> None:
+    from labrig.protocol.rigfile import DeviceConfig
     from labrig.protocol.safety import SafetyLimits
-    from labrig.protocol.session import DeviceConfig, RigSession
+    from labrig.protocol.session import RigSession
 
     chunks = _chunks(np.arange(300), [100, 200])
 
@@ -309,7 +312,7 @@ def _in_plane_mm(positions_px: np.ndarray, rig: RigConfig) -> np.ndarray:
     """Tracked in-plane marker displacements on the gel surface (depth 0), (W, M, 2) mm: tracking only."""
     from labrig.pipeline import displacement
 
-    setup = runtime.setup_for_rig(rig, calibration_dir=rig.path.parent)
+    setup = run_setup.setup_for_rig(rig, calibration_dir=rig.path.parent)
     rest = rig.markers.rest_positions_mm()
     return np.array([displacement.displacements_mm(p, 0.0, setup.camera, rest, rig.roi)[:, :2] for p in positions_px])
 
@@ -334,7 +337,7 @@ def test_live_run_during_a_probing_run_on_the_virtual_rig(tiny_model: Path, rig:
     assert abs(s["windows_tracked"] * 0.01 - s["stream_s"]) < 0.011
     assert s["windows_processed"] >= 0.3 * s["windows_tracked"] and s["dropped_chunks"] == 0  # a loaded 2-core machine skips some
     assert s["latency_median_ms"] < 100 and s["real_time_factor"] < 1.0
-    data = runtime.load_result(out)
+    data = results.load_result(out)
     assert data["attrs"]["windows"] == s["windows"] == len(data["t0_us"]) and data["attrs"]["live"] == 1
     assert np.all(data["t1_us"] > data["t0_us"]) and np.all(np.diff(data["t0_us"]) > 0)
     # the windows cover the recorded run (device time mapped through its camera clock): from before
@@ -385,7 +388,7 @@ def test_ctrl_c_closes_the_result_file_and_prints_the_summary(tiny_model: Path, 
     s = json.loads(stdout)
     assert s["end_reason"] == "stopped" and "stopping" in stderr and s["source"] == f"camera raw {raw}"
     assert 0.3 < s["stream_s"] < 2.9 and s["windows_processed"] > 0.5 * s["windows_tracked"] and s["dropped_chunks"] == 0
-    data = runtime.load_result(out)
+    data = results.load_result(out)
     assert data["attrs"]["windows"] == s["windows"] == len(data["t0_us"]) > 20
 
 
@@ -420,12 +423,12 @@ def test_no_depth_network_says_what_to_do(monkeypatch: pytest.MonkeyPatch) -> No
     def nothing(folder: str = "models") -> Path:
         raise LabrigError("no depth network in models/")
 
-    monkeypatch.setattr(runtime, "default_model_path", nothing)
+    monkeypatch.setattr(depth_sources, "default_model_path", nothing)
     with pytest.raises(LabrigError, match=r"pass --model X\.onnx, or train one with `labrig train DATA/`"):
         _default_model()
 
 
-def test_a_camera_whose_stream_breaks_stops_the_live_run_with_its_reason(setup: runtime.PipelineSetup,
+def test_a_camera_whose_stream_breaks_stops_the_live_run_with_its_reason(setup: run_setup.PipelineSetup,
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """`labrig run --live` on an EVK4 that is unplugged mid-run: the run raises the camera's error."""
     import sys

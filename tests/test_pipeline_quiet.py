@@ -10,9 +10,10 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.models import bundled_model_path
-from labrig.pipeline import forces, runtime
+from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline import depth_sources, forces, run_setup, runtime
 from labrig.pipeline.quiet import NoiseFloor, QuietHold, QuietParams, TileActivity, active_cells_per_tile
-from labrig.pipeline.sae import GRID_SHAPE, sae_grid
+from labrig.pipeline.sae import sae_grid
 from labrig.recording import EVENT_DTYPE
 
 NOISE, MOTION = 470, 2500  # events per 10 ms window over the ROI: the virtual rig at rest and in a press
@@ -66,12 +67,12 @@ class _Spy:
 
 
 @pytest.fixture(scope="module")
-def setup(rig: RigConfig) -> runtime.PipelineSetup:
-    return runtime.setup_for_rig(rig, calibration_dir=None)
+def setup(rig: RigConfig) -> run_setup.PipelineSetup:
+    return run_setup.setup_for_rig(rig, calibration_dir=None)
 
 
 def test_the_depth_source_sees_its_own_window_ending_at_each_window_end(rig: RigConfig,
-                                                                       setup: runtime.PipelineSetup) -> None:
+                                                                       setup: run_setup.PipelineSetup) -> None:
     spy = _Spy(30_000.0)
     pipe = runtime.Pipeline(setup, spy)
     bounds = [(0, 10_000), (10_000, 12_000), (12_000, 14_000), (14_000, 60_000)]  # count windows: short, then long
@@ -87,9 +88,9 @@ def test_the_depth_source_sees_its_own_window_ending_at_each_window_end(rig: Rig
 
 
 def test_the_network_holds_its_last_active_map_through_quiet_windows(rig: RigConfig,
-                                                                     setup: runtime.PipelineSetup) -> None:
-    network = runtime.ModelDepth(bundled_model_path())
-    unheld = runtime.ModelDepth(bundled_model_path(), quiet=None)
+                                                                     setup: run_setup.PipelineSetup) -> None:
+    network = depth_sources.ModelDepth(bundled_model_path())
+    unheld = depth_sources.ModelDepth(bundled_model_path(), quiet=None)
     held_pipe, raw_pipe = runtime.Pipeline(setup, network), runtime.Pipeline(setup, unheld)
     counts = [NOISE] * 20 + [MOTION] * 3 + [NOISE] * 10
     held, raw = [], []
@@ -107,13 +108,13 @@ def test_the_calibrated_stiffening_scales_the_linear_forces(rig: RigConfig, tmp_
     assert forces.stiffening_factor(np.array([[-1.0]]), 4.0, 0.6) == 1.0
     assert forces.stiffening_factor(np.array([[2.0]]), 4.0, 0.0) == 1.0
     (tmp_path / "gel.toml").write_text("youngs_modulus_mpa = 0.4\npoisson_ratio = 0.48\nstiffening = 0.6\n")
-    fitted = runtime.setup_for_rig(rig, calibration_dir=tmp_path)
+    fitted = run_setup.setup_for_rig(rig, calibration_dir=tmp_path)
     assert fitted.stiffening == 0.6 and fitted.sources["stiffening"].endswith("gel.toml")
-    assert runtime.setup_for_rig(rig, calibration_dir=tmp_path, stiffening=0.0).stiffening == 0.0
-    assert runtime.setup_for_rig(rig, calibration_dir=None).stiffening == 0.0
+    assert run_setup.setup_for_rig(rig, calibration_dir=tmp_path, stiffening=0.0).stiffening == 0.0
+    assert run_setup.setup_for_rig(rig, calibration_dir=None).stiffening == 0.0
     depth = np.zeros((90, 112), np.float32)
     depth[40:50, 50:60] = 2.0
-    linear = runtime.Pipeline(runtime.setup_for_rig(rig, calibration_dir=tmp_path, stiffening=0.0),
+    linear = runtime.Pipeline(run_setup.setup_for_rig(rig, calibration_dir=tmp_path, stiffening=0.0),
                               _Fixed(depth)).process(0, 10_000, _noise(rig, 0, 10_000, 10))
     stiff = runtime.Pipeline(fitted, _Fixed(depth)).process(0, 10_000, _noise(rig, 0, 10_000, 10))
     factor = 1 + 0.6 * 2.0 / rig.gel.thickness_mm
@@ -181,9 +182,9 @@ def test_a_hot_pixel_raises_only_its_own_tile_floor(rig: RigConfig) -> None:
 
 
 def test_the_gate_follows_the_network_card() -> None:
-    assert runtime.ModelDepth("default").hold.tiles is None  # type: ignore[union-attr]
-    robust = runtime.ModelDepth("noise-robust")
+    assert depth_sources.ModelDepth("default").hold.tiles is None  # type: ignore[union-attr]
+    robust = depth_sources.ModelDepth("noise-robust")
     assert robust.hold is not None and robust.hold.tiles is not None
     assert robust.model.card["augmentation"]["background_noise"]["max_hz"] == 2.0
-    assert runtime.quiet_params_for({"augmentation": None}).tiles is None
-    assert runtime.ModelDepth("default", quiet=None).hold is None
+    assert depth_sources.quiet_params_for({"augmentation": None}).tiles is None
+    assert depth_sources.ModelDepth("default", quiet=None).hold is None

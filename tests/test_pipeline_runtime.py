@@ -11,7 +11,8 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
-from labrig.pipeline import runtime
+from labrig.pipeline import depth_sources, results, run_setup, runtime
+from labrig.pipeline.windows import recording_windows
 from labrig.recording import Recording
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
@@ -36,7 +37,7 @@ def _invoke(*args: str):  # type: ignore[no-untyped-def]
 def test_time_windows_tile_the_recording(recording: Path) -> None:
     with Recording(recording) as rec:
         end = rec.end_us()
-        wins = list(runtime.windows(rec, window_us=10_000))
+        wins = list(recording_windows(rec, window_us=10_000))
         total = len(rec.events_between(0, end))
     assert len(wins) == -(-end // 10_000)
     assert all(w[1] == n[0] for w, n in itertools.pairwise(wins))
@@ -46,21 +47,21 @@ def test_time_windows_tile_the_recording(recording: Path) -> None:
 
 def test_count_windows_hold_a_fixed_number_of_events(recording: Path) -> None:
     with Recording(recording) as rec:
-        wins = list(runtime.windows(rec, window_us=None, window_events=5_000))
+        wins = list(recording_windows(rec, window_us=None, window_events=5_000))
         total = len(rec.events_between(0, rec.end_us()))
     assert len(wins) == total // 5_000
     assert all(len(w[2]) == 5_000 for w in wins)
     assert all(w[0] <= w[1] <= n[0] for w, n in itertools.pairwise(wins))
     with pytest.raises(ValueError), Recording(recording) as rec:
-        next(runtime.windows(rec, window_us=10_000, window_events=5_000))
+        next(recording_windows(rec, window_us=10_000, window_events=5_000))
 
 
 def test_threads_and_serial_give_the_same_forces(rig: RigConfig, recording: Path) -> None:
     with Recording(recording) as rec:
-        setup = runtime.setup_for_recording(rec, calibration_dir=None)
+        setup = run_setup.setup_for_recording(rec, calibration_dir=None)
         out = []
         for concurrent in (False, True):
-            pipe = runtime.Pipeline(setup, runtime.TruthDepth(rec))
+            pipe = runtime.Pipeline(setup, depth_sources.TruthDepth(rec))
             out.append(list(pipe.run(rec, window_events=20_000, concurrent=concurrent)))
     serial, threaded = out
     assert len(serial) == len(threaded) > 5
@@ -74,13 +75,13 @@ def test_threads_and_serial_give_the_same_forces(rig: RigConfig, recording: Path
 def test_setup_reads_the_fitted_modulus_and_calibrated_camera(rig: RigConfig, recording: Path, tmp_path: Path) -> None:
     (tmp_path / "gel.toml").write_text("youngs_modulus_mpa = 0.35\npoisson_ratio = 0.48\n")
     with Recording(recording) as rec:
-        setup = runtime.setup_for_recording(rec, calibration_dir=tmp_path)
+        setup = run_setup.setup_for_recording(rec, calibration_dir=tmp_path)
         assert setup.youngs_modulus_mpa == 0.35 and setup.sources["modulus"].endswith("gel.toml")
         assert setup.sources["camera"] == "rig"
-        plain = runtime.setup_for_recording(rec, calibration_dir=None)
+        plain = run_setup.setup_for_recording(rec, calibration_dir=None)
         assert plain.youngs_modulus_mpa == rig.gel.youngs_modulus_mpa
         assert np.allclose(plain.rest_px, setup.rest_px)
-        assert runtime.setup_for_recording(rec, calibration_dir=tmp_path, youngs_modulus_mpa=0.5).youngs_modulus_mpa == 0.5
+        assert run_setup.setup_for_recording(rec, calibration_dir=tmp_path, youngs_modulus_mpa=0.5).youngs_modulus_mpa == 0.5
 
 
 def test_labrig_run_writes_results_and_an_animation(recording: Path, tmp_path: Path) -> None:
@@ -90,7 +91,7 @@ def test_labrig_run_writes_results_and_an_animation(recording: Path, tmp_path: P
     assert result.exit_code == 0, result.output
     summary = json.loads(result.output)
     assert summary["windows"] > 50 and summary["real_time_factor"] > 0 and summary["peak_normal_force_n"] > 1.0
-    data = runtime.load_result(out)
+    data = results.load_result(out)
     m = 156
     assert data["forces_n"].shape == (summary["windows"], m, 3) and data["positions_px"].shape[1:] == (m, 2)
     assert np.allclose(data["net_force_n"], data["forces_n"].sum(axis=1), atol=1e-4)

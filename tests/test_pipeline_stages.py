@@ -7,11 +7,11 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.eventtypes import EVENT_DTYPE
+from labrig.physics.camera import CameraModel
+from labrig.physics.grid import network_grid_pixels
 from labrig.pipeline import sae
 from labrig.pipeline.displacement import displacements_mm, marker_positions_mm, sample_grid
 from labrig.pipeline.forces import contact_location, forces_from_displacements, net_force_n
-from labrig.sim.camera import CameraModel
-from labrig.sim.truth import network_grid_pixels
 
 
 def _events(rows: list[tuple[int, int, int, int]]) -> np.ndarray:

@@ -13,12 +13,13 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
+from labrig.physics.geometry import nominal_gel_in_machine
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import SafetyError, SafetyLimits, StopRequest
-from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.recording import Recording
-from labrig.sim.motion import gel_in_machine
 from labrig.sim.world import LiveWorld
 
 QUICK = ProbeSpec(
@@ -29,7 +30,7 @@ QUICK = ProbeSpec(
 
 
 def _runner(session: RigSession, rig: RigConfig, sphere: Indenter, stop: StopRequest | None = None) -> ProbeRunner:
-    return ProbeRunner(session, rig, sphere, gel_in_machine=gel_in_machine(rig, truth=False), stop=stop)
+    return ProbeRunner(session, rig, sphere, gel_in_machine=nominal_gel_in_machine(rig), stop=stop)
 
 
 def test_a_full_run_on_the_virtual_rig_records_everything(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:

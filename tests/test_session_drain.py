@@ -9,8 +9,9 @@ from types import SimpleNamespace
 
 from labrig.clock import ClockModel
 from labrig.config import RigConfig
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.safety import SafetyLimits
-from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.session import RigSession
 
 NS_PER_US = 1000
 

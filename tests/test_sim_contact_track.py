@@ -9,9 +9,9 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.indenters import Indenter, load_indenter
+from labrig.physics.mechanics import ContactTable, ShearHistory
 from labrig.sim.contact_track import ContactKinematics, ContactTrack
-from labrig.sim.mechanics import ContactTable, ShearHistory
-from labrig.sim.motion import gel_in_machine
+from labrig.sim.motion import true_gel_in_machine
 
 
 def test_cheap_force_matches_the_fields_along_a_shear_loop(table: ContactTable) -> None:
@@ -34,12 +34,12 @@ def test_pressure_centre_is_the_tip_for_a_sphere(table: ContactTable) -> None:
 
 def _tool_at(rig: RigConfig, sphere: Indenter, x_mm: float, y_mm: float, depth_mm: float) -> np.ndarray:
     """Machine position of the tool reference that puts the tip at gel (x, y, -depth)."""
-    pose = gel_in_machine(rig, truth=True)
+    pose = true_gel_in_machine(rig)
     return pose.apply(np.array([x_mm, y_mm, -depth_mm])) - np.asarray(sphere.tool_offset_mm)
 
 
 def test_kinematics_anchor_shear_and_lift_off(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
-    kin = ContactKinematics(table, sphere.tool_offset_mm, gel_in_machine(rig, truth=True).inverse())
+    kin = ContactKinematics(table, sphere.tool_offset_mm, true_gel_in_machine(rig).inverse())
     above = kin.step(0, _tool_at(rig, sphere, 1.0, 2.0, -0.5))
     assert not above.in_contact and above.depth_mm == 0.0
     pressed = kin.step(1000, _tool_at(rig, sphere, 1.0, 2.0, 1.0))
@@ -57,7 +57,7 @@ def test_kinematics_anchor_shear_and_lift_off(rig: RigConfig, sphere: Indenter, 
 
 
 def test_gross_slip_drags_the_anchor(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
-    kin = ContactKinematics(table, sphere.tool_offset_mm, gel_in_machine(rig, truth=True).inverse())
+    kin = ContactKinematics(table, sphere.tool_offset_mm, true_gel_in_machine(rig).inverse())
     kin.step(0, _tool_at(rig, sphere, 0.0, 0.0, 1.0))
     state = kin.step(1000, _tool_at(rig, sphere, 3.0, 0.0, 1.0))
     assert state.anchor_mm is not None
@@ -80,7 +80,7 @@ def _track(rig: RigConfig, sphere: Indenter, table: ContactTable) -> tuple[Conta
         w = np.clip(t / 1e6, 0, 1)[:, None]
         return start + w * (bottom - start)
 
-    kin = ContactKinematics(table, sphere.tool_offset_mm, gel_in_machine(rig, truth=True).inverse())
+    kin = ContactKinematics(table, sphere.tool_offset_mm, true_gel_in_machine(rig).inverse())
     return ContactTrack(kin, path), asked
 
 
@@ -135,7 +135,7 @@ def test_a_ridge_shears_in_any_direction_through_a_table_per_direction(rig: RigC
         built.append(direction_deg)
         return ContactTable.from_rig(ridge, rig, direction_deg=direction_deg)
 
-    pose = gel_in_machine(rig, truth=True)
+    pose = true_gel_in_machine(rig)
     for angle_deg, expect in ((0.6, []), (90.6, [90.0])):
         built.clear()
         kin = ContactKinematics(base, ridge.tool_offset_mm, pose.inverse(), table_for_direction=table_for)

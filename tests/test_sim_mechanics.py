@@ -1,4 +1,4 @@
-"""Validation of labrig.sim.mechanics against closed forms and the FE numbers of physics.md 2.3-2.9.
+"""Validation of labrig.physics.mechanics against closed forms and the FE numbers of physics.md 2.3-2.9.
 
 Sign convention: depth_mm (uz) is positive INTO the gel; physics.md 2.9 quotes
 z out of the gel, so its bulge of +1.5 um is a depth of -1.5 um here.
@@ -14,7 +14,7 @@ from scipy.optimize import brentq
 
 from labrig.config import GelConfig, load_rig
 from labrig.indenters import Indenter, load_indenters
-from labrig.sim.mechanics import (
+from labrig.physics.mechanics import (
     Box,
     ContactTable,
     Grid,
@@ -32,7 +32,7 @@ from labrig.sim.mechanics import (
     solve_tangential,
     stiffening_factor,
 )
-from labrig.sim.mechanics.spectral import layer_plane_strain
+from labrig.physics.mechanics.spectral import layer_plane_strain
 
 GEL = GelConfig(thickness_mm=4.0, size_x_mm=30.0, size_y_mm=28.0, youngs_modulus_mpa=0.4, poisson_ratio=0.48, friction=1.0)
 R_MM = 6.0

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from labrig.config import RigConfig
-from labrig.sim.camera import CameraModel, matrix_to_rotvec, rotvec_to_matrix
+from labrig.frames import matrix_to_rotvec, rotvec_to_matrix
+from labrig.physics.camera import CameraModel
+from labrig.physics.target import DotGridTarget, target_pose
 from labrig.sim.optics import Renderer
 from labrig.sim.shading import DepthField
 from labrig.sim.stepping import image_velocity_px_s, step_us
-from labrig.sim.target import DotGridTarget, render_target, target_pose
+from labrig.sim.target import render_target
 
 
 @pytest.fixture(scope="module")

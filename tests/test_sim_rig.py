@@ -11,7 +11,7 @@ import pytest
 from labrig.config import RigConfig
 from labrig.frames import wrench_about
 from labrig.indenters import Indenter
-from labrig.sim.mechanics import ContactTable
+from labrig.physics.mechanics import ContactTable
 from labrig.sim.motion import PiecewiseLinearPath, probing_path
 from labrig.sim.optics import RenderUpdate
 from labrig.sim.rig import TRUTH_MARKER_INTERVAL_US, RigOutput, Solve, VirtualRig

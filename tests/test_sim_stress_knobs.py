@@ -11,10 +11,10 @@ import pytest
 from labrig.clock import ClockModel
 from labrig.config import ConfigError, RigConfig, Roi, rig_with
 from labrig.indenters import Indenter
+from labrig.physics.mechanics import ContactTable
 from labrig.recording import Recording
 from labrig.recording.finalize import store_clock_model
 from labrig.sim.events import EventParams, EventSensor
-from labrig.sim.mechanics import ContactTable
 from labrig.sim.rig import VirtualRig
 
 

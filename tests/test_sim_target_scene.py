@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from labrig.config import load_rig
-from labrig.sim.target import target_pose
+from labrig.physics.target import target_pose
 from labrig.sim.target_scene import TargetScene
 
 

@@ -17,7 +17,7 @@ from labrig.devices.bota import BotaSensor, BotaSettings
 from labrig.devices.camera import open_camera
 from labrig.devices.grbl import Grbl
 from labrig.indenters import load_indenter
-from labrig.sim.motion import gel_in_machine
+from labrig.physics.geometry import nominal_gel_in_machine
 from labrig.sim.world import LiveWorld
 
 
@@ -43,7 +43,7 @@ def world() -> Iterator[tuple[LiveWorld, Camera]]:
 def _surface_tool_mm(w: LiveWorld) -> np.ndarray:
     """Work position of the tool that touches the gel centre (nominal pose, unhomed machine)."""
     rig = w.rig.rig
-    surface = gel_in_machine(rig, truth=False).apply(np.zeros(3)) - np.asarray(w.rig.indenter.tool_offset_mm)
+    surface = nominal_gel_in_machine(rig).apply(np.zeros(3)) - np.asarray(w.rig.indenter.tool_offset_mm)
     return surface - np.asarray(w.grbl.physical_offset_mm)
 
 

@@ -18,11 +18,12 @@ import numpy as np
 
 from labrig.calibration.extrinsics import calibrate_extrinsics
 from labrig.calibration.files import intrinsics_from_result
-from labrig.calibration.intrinsics import CalibrationError, calibrate_intrinsics
-from labrig.calibration.scenes import record_led_blink, record_target_scene
+from labrig.calibration.intrinsics import calibrate_intrinsics
 from labrig.config import load_rig
+from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix
-from labrig.sim.camera import CameraModel, distort_normalized
+from labrig.physics.camera import CameraModel, distort_normalized
+from labrig.sim.calibration_scenes import record_led_blink, record_target_scene
 
 
 def figures(scale: float, views: int, seed: int, root: Path) -> dict[str, float]:

@@ -52,8 +52,9 @@ from labrig.calibration.eventframes import (
     harmonic_frame,
 )
 from labrig.calibration.files import Intrinsics
-from labrig.calibration.intrinsics import CalibrationError, sensor_size
+from labrig.calibration.intrinsics import sensor_size
 from labrig.config import MarkerConfig
+from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix
 from labrig.recording import Recording
 

@@ -3,7 +3,9 @@
 Every key carries its unit in its name (px, mm, rad). The files are written
 by hand (TOML is simple enough) and read with :mod:`tomllib`; a missing key
 or a wrong shape is a one-line :class:`CalibrationFileError` naming the file
-and the key. See docs/calibration.md for the keys.
+and the key. See docs/calibration.md for the keys. :func:`camera_model` picks
+the camera a rig's calibration works with: the calibrated one, else the
+virtual rig's true one.
 """
 
 from __future__ import annotations
@@ -19,8 +21,9 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig import __version__
-from labrig.errors import LabrigError
-from labrig.sim.camera import CameraModel
+from labrig.config import RigConfig
+from labrig.errors import CalibrationError, LabrigError
+from labrig.physics.camera import CameraModel
 
 if TYPE_CHECKING:
     from labrig.calibration.extrinsics import ExtrinsicsResult
@@ -88,6 +91,21 @@ def load_camera(intrinsics_path: str | Path, extrinsics_path: str | Path | None 
     """The calibrated camera from its files."""
     extrinsics = load_extrinsics(extrinsics_path) if extrinsics_path is not None else None
     return camera_from_calibration(load_intrinsics(intrinsics_path), extrinsics)
+
+
+def camera_model(rig: RigConfig, extrinsics_path: str | Path | None = None,
+                 intrinsics_path: str | Path | None = None) -> tuple[CameraModel, str]:
+    """(camera model, where it came from): the camera calibration (``intrinsics.toml`` and
+    ``extrinsics.toml`` next to the rig file, or the paths given) when both exist, else the
+    virtual rig's true camera (only meaningful on the virtual rig)."""
+    extrinsics = Path(extrinsics_path) if extrinsics_path is not None else rig.path.parent / "extrinsics.toml"
+    intrinsics = Path(intrinsics_path) if intrinsics_path is not None else rig.path.parent / "intrinsics.toml"
+    if extrinsics.exists() and intrinsics.exists():
+        return load_camera(intrinsics, extrinsics), f"{intrinsics} + {extrinsics}"
+    if extrinsics_path is not None or intrinsics_path is not None:
+        raise CalibrationError(f"the camera calibration needs both {intrinsics} and {extrinsics}; "
+                               "run `labrig calibrate intrinsics` and `labrig calibrate extrinsics`")
+    return CameraModel.from_rig(rig), "sim truth (rig.toml [sim.camera]; no intrinsics/extrinsics calibration yet)"
 
 
 # -- writing ----------------------------------------------------------------------------------------

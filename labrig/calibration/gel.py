@@ -1,7 +1,7 @@
 """Gel modulus: fit Young's modulus E to force-depth curves of normal indentations.
 
 Model. The normal force of a rigid indenter pressed ``delta`` into the gel is
-the tabulated bonded-layer contact (:class:`~labrig.sim.mechanics.ContactTable`,
+the tabulated bonded-layer contact (:class:`~labrig.physics.mechanics.ContactTable`,
 Polonsky-Keer with the layer kernel: the model the ground truth uses), built
 once at a reference modulus E_ref and the rig's Poisson ratio. At fixed nu a
 linear-elastic solution scales with E, so
@@ -22,33 +22,35 @@ stated in the output): E and nu are not separately identifiable from a few
 normal indentations.
 
 Inputs: :class:`ForceDepthCurve` s from quasi-static stepped indentations
-(:func:`labrig.calibration.registration.press`), at least two indenter kinds.
-Output: ``calibration/gel.toml`` (:meth:`GelFit.to_toml`).
+(:func:`labrig.protocol.touchoff.press`, run by
+:func:`labrig.protocol.calibration_runs.measure_curves`), at least two indenter
+kinds. Output: ``calibration/gel.toml`` (:meth:`GelFit.to_toml`, read back by
+:func:`load_gel`); :func:`labrig.calibration.plots.plot_fit` draws it.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from scipy.optimize import OptimizeResult, least_squares
 
+from labrig.calibration.files import save_text_atomic
 from labrig.config import RigConfig
-from labrig.errors import LabrigError
+from labrig.errors import CalibrationError
 from labrig.indenters import Indenter
+from labrig.physics.mechanics import ContactTable
 
 F64 = npt.NDArray[np.float64]
 
 #: Fewest points per curve, and curves, a fit accepts.
 MIN_POINTS = 5
 MIN_INDENTER_KINDS = 2
-
-
-class CalibrationError(LabrigError):
-    """Calibration could not be done from the data given; the message says what to change."""
 
 
 @dataclass(frozen=True)
@@ -83,7 +85,8 @@ class GelFit:
     date: str = field(default_factory=lambda: _dt.datetime.now().astimezone().isoformat(timespec="seconds"))
     sources: list[dict[str, str]] = field(default_factory=list)
 
-    def model_force_n(self, curve_index: int, depth_mm: npt.ArrayLike, tables: dict[str, Any]) -> F64:
+    def model_force_n(self, curve_index: int, depth_mm: npt.ArrayLike, tables: dict[str, ContactTable]) -> F64:
+        """The fitted model's normal force (N) of curve ``curve_index`` at depths below its detected contact (mm)."""
         curve = self.curves[curve_index]
         delta = np.asarray(depth_mm, dtype=np.float64) + self.depth_offsets_mm[curve_index]
         return _model(tables[curve.indenter], delta, self.youngs_modulus_mpa / self.reference_modulus_mpa,
@@ -138,8 +141,6 @@ class GelFit:
         return "\n".join(lines) + "\n"
 
     def save(self, path: str | Path) -> Path:
-        from labrig.calibration.files import save_text_atomic
-
         return save_text_atomic(path, self.to_toml())
 
 
@@ -147,17 +148,15 @@ def _q(text: str) -> str:
     return '"' + str(text).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def contact_table(indenter: Indenter, rig: RigConfig, poisson_ratio: float | None = None) -> Any:
+def contact_table(indenter: Indenter, rig: RigConfig, poisson_ratio: float | None = None) -> ContactTable:
     """The normal-contact table the fit uses: the rig's gel (its E as reference, nu as chosen),
     the rig's mechanics mode and grid, no stiffening (cached on disk like the virtual rig's)."""
-    from labrig.sim.mechanics import ContactTable
-
     gel = rig.gel if poisson_ratio is None else replace(rig.gel, poisson_ratio=float(poisson_ratio))
     return ContactTable.build(indenter, gel, mode=rig.sim.mechanics.mode, spacing_mm=rig.sim.mechanics.grid_spacing_mm,
                               stiffening=0.0)
 
 
-def _model(table: Any, delta: F64, scale: float, stiffening: float, thickness_mm: float) -> F64:
+def _model(table: ContactTable, delta: F64, scale: float, stiffening: float, thickness_mm: float) -> F64:
     d = np.clip(delta, 0.0, float(table.depths_mm[-1]))
     base = np.interp(d, table.depths_mm, table.normal_force_n)
     return scale * base * (1.0 + stiffening * d / thickness_mm)
@@ -171,7 +170,7 @@ def fit_modulus(
     stiffening: bool = True,
     max_depth_mm: float | None = None,
     poisson_ratio: float | None = None,
-    tables: dict[str, Any] | None = None,
+    tables: dict[str, ContactTable] | None = None,
     compare_small_depth_mm: float | None = 0.3,
 ) -> GelFit:
     """Fit E (and the stiffening b, unless ``stiffening`` is False) and one depth offset per curve.
@@ -180,8 +179,6 @@ def fit_modulus(
     :class:`CalibrationError` with fewer than MIN_POINTS points in a curve or
     fewer than MIN_INDENTER_KINDS indenter shapes.
     """
-    from scipy.optimize import least_squares
-
     if not curves:
         raise CalibrationError("no force-depth curves: press at least one sphere and one cylinder (flat punch)")
     use = []
@@ -212,7 +209,7 @@ def fit_modulus(
     e_ref = rig.gel.youngs_modulus_mpa
     n = len(curves)
 
-    def solve(fit_b: bool, data: list[tuple[F64, F64]]) -> tuple[F64, Any]:
+    def solve(fit_b: bool, data: list[tuple[F64, F64]]) -> tuple[F64, OptimizeResult]:
         def residuals(p: F64) -> F64:
             scale, b = p[0], (p[1] if fit_b else 0.0)
             offsets = p[2:] if fit_b else p[1:]
@@ -250,84 +247,9 @@ def fit_modulus(
     return fit
 
 
-def plot_fit(fit: GelFit, tables: dict[str, Any], path: str | Path) -> Path:
-    """Force against depth per curve with the fitted model, and the residuals."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 7), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
-    for i, curve in enumerate(fit.curves):
-        d0 = fit.depth_offsets_mm[i]
-        line = top.plot(curve.depth_mm + d0, curve.force_n, "o", ms=3, label=f"{curve.indenter} {curve.location_mm}")[0]
-        grid = np.linspace(0.0, float(curve.depth_mm.max()) + d0, 200)
-        top.plot(grid, fit.model_force_n(i, grid - d0, tables), "-", color=line.get_color(), lw=1)
-        bottom.plot(curve.depth_mm + d0, fit.residuals_n[i], "o", ms=3, color=line.get_color())
-    top.set_ylabel("normal force (N)")
-    top.set_title(f"E = {fit.youngs_modulus_mpa:.4f} MPa (nu = {fit.poisson_ratio} chosen), stiffening b = "
-                  f"{fit.stiffening:.3f}, rms {fit.residual_rms_n * 1e3:.1f} mN")
-    top.legend(fontsize=8)
-    bottom.axhline(0, color="k", lw=0.5)
-    bottom.set_xlabel("depth below the fitted surface (mm)")
-    bottom.set_ylabel("residual (N)")
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
 def load_gel(path: str | Path) -> dict[str, Any]:
     """The fitted values of a gel.toml (youngs_modulus_mpa, poisson_ratio, stiffening, ...)."""
-    import tomllib
-
     try:
         return tomllib.loads(Path(path).read_text())
     except FileNotFoundError:
         raise CalibrationError(f"{path}: no gel calibration; run `labrig calibrate gel`") from None
-
-
-#: Default indentations for the modulus: indenter -> (locations in gel mm, depths below contact in mm).
-DEFAULT_PLAN: dict[str, tuple[tuple[tuple[float, float], ...], tuple[float, ...]]] = {
-    "sphere": (((0.0, 0.0),), (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)),
-    "cylinder": (((0.0, 0.0),), (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8)),
-}
-
-
-def measure_curves(
-    rig: RigConfig,
-    indenters: dict[str, Indenter],
-    plan: dict[str, tuple[tuple[tuple[float, float], ...], tuple[float, ...]]] | None = None,
-    *,
-    seed: int = 0,
-    indenters_path: Path | None = None,
-    registration_path: str | Path | None = None,
-    progress: Any = None,
-    **press_options: Any,
-) -> list[ForceDepthCurve]:
-    """Stepped normal indentations per indenter (one rig session each; on hardware the operator
-    mounts each indenter when asked), at the registered gel pose (or the nominal one)."""
-    from labrig.calibration.registration import gel_pose, lift, press, rig_clearance
-    from labrig.protocol.rigfile import device_config, safety_limits
-    from labrig.protocol.session import RigSession
-
-    plan = plan if plan is not None else DEFAULT_PLAN
-    pose = gel_pose(rig, registration_path)
-    curves = []
-    for name, (locations, depths) in plan.items():
-        if name not in indenters:
-            raise CalibrationError(f"unknown indenter {name!r}; known: {', '.join(sorted(indenters))}")
-        indenter = indenters[name]
-        if progress:
-            progress(f"{name}: opening the rig")
-        with RigSession(rig, device_config(rig), safety_limits(rig), seed=seed, indenter=indenter,
-                        indenters_path=indenters_path) as session:
-            for loc in locations:
-                if progress:
-                    progress(f"{name}: pressing at {loc} mm")
-                result = press(session, rig, indenter, pose, loc, depths, **press_options)
-                curves.append(ForceDepthCurve(name, result.depth_mm, result.force_n[:, 2], f"{name}@{loc[0]:g},{loc[1]:g}",
-                                              (float(loc[0]), float(loc[1]))))
-            lift(session, pose, indenter, rig_clearance(rig))
-    return curves

@@ -24,15 +24,11 @@ import numpy.typing as npt
 
 from labrig.cache import sha256_of
 from labrig.calibration.eventframes import Blobs, accumulate, detect_blobs, find_blinks
-from labrig.errors import LabrigError
+from labrig.errors import CalibrationError
+from labrig.physics.target import DotGridTarget
 from labrig.recording import Recording
-from labrig.sim.target import DotGridTarget
 
 Array = npt.NDArray[np.float64]
-
-
-class CalibrationError(LabrigError):
-    """Calibration cannot proceed from this input; the message says what was found and what to change."""
 
 
 @dataclass

@@ -15,7 +15,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.dataset import sidecar_path
-from labrig.evaluation.windows import PAPER_WINDOW_EVENTS, window_ends_us
+from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 
 BATCH = 32
 F64 = npt.NDArray[np.float64]
@@ -59,7 +60,7 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
     from labrig.config import Roi
     from labrig.groundtruth import load_groundtruth
     from labrig.pipeline.depthnet import DepthModel
-    from labrig.pipeline.sae import GRID_SHAPE, sae_grid
+    from labrig.pipeline.sae import sae_grid
     from labrig.recording import Recording
 
     model = DepthModel(task.model, threads=1)

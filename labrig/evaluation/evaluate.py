@@ -35,8 +35,8 @@ from labrig.evaluation.groundtruth_error import GroundTruthErrorResult, GroundTr
 from labrig.evaluation.stress import StressResult
 from labrig.evaluation.sweep import SweepResult, run_sweep
 from labrig.evaluation.tracking import TABLE_PATCH_SCALES, TrackingResult, table_lost_tracks, table_tasks, track_recording
-from labrig.evaluation.windows import PAPER_WINDOW_EVENTS
 from labrig.models import BUNDLED, bundled_model_path, model_path
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
 
 SPLIT_CHOICES = (*SPLITS, ALL_SPLITS)  # --split
 PAPER = {"force_x_mae_n": 0.14, "force_y_mae_n": 0.10, "force_z_mae_n": 0.93, "force_total_mae_n": 0.94,
@@ -71,11 +71,7 @@ class EvaluationSettings:
     def check(self) -> None:
         if self.split not in SPLIT_CHOICES:
             raise LabrigError(f"--split must be one of {', '.join(SPLIT_CHOICES)}, not {self.split!r}")
-        if (self.window_events is None) == (self.window_ms is None):
-            raise LabrigError("give --window-events or --window-ms, not both")
-        if (self.window_events is not None and self.window_events <= 0) or (self.window_ms is not None
-                                                                           and self.window_ms <= 0):
-            raise LabrigError("--window-events and --window-ms must be positive")
+        WindowSpec.from_options(self.window_ms, self.window_events, default_ms=None)
         if self.models_dir is not None and not Path(self.models_dir).is_dir():
             raise LabrigError(f"--models {self.models_dir}: not a folder (give the folder tools/depth_sweep.py wrote)")
         if self.stress_grid not in ("full", "reduced"):
@@ -207,7 +203,7 @@ def _runner(settings: EvaluationSettings, ev: Evaluation, progress: Progress | N
 def _scan_recordings(paths: list[str], tolerance_s: float = 0.1) -> tuple[list[str], dict[str, float]]:
     """One look at each recording: those with the sim's truth (virtual rig), and those whose camera
     stream stops more than ``tolerance_s`` before the protocol ends (name -> seconds missing)."""
-    from labrig.evaluation.windows import camera_shortfall_s
+    from labrig.evaluation.measured import camera_shortfall_s
     from labrig.recording import Recording
 
     simulated, short = [], {}

@@ -19,13 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.dataset import sidecar_path
-from labrig.evaluation.windows import (
-    PAPER_WINDOW_EVENTS,
-    contact_centre_px,
-    ft_axes_in_gel,
-    measured_force_on_gel_n,
-    window_ends_us,
-)
+from labrig.evaluation.measured import contact_centre_px, ft_axes_in_gel, measured_force_on_gel_n
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 from labrig.recording import Recording
 
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
@@ -78,13 +73,13 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
     from dataclasses import replace
 
     from labrig.groundtruth import load_groundtruth
-    from labrig.pipeline import ifem, runtime, tracking
+    from labrig.pipeline import depth_sources, ifem, run_setup, runtime, tracking
 
     path = Path(task.recording)
     with Recording(path) as rec:
-        setup = runtime.setup_for_recording(rec, calibration_dir=task.calibration_dir,
-                                            youngs_modulus_mpa=task.youngs_modulus_mpa, stiffening=task.stiffening)
-        source: Any = runtime.TruthDepth(rec) if task.depth == "truth" else runtime.ModelDepth(task.depth)
+        setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir,
+                                              youngs_modulus_mpa=task.youngs_modulus_mpa, stiffening=task.stiffening)
+        source: Any = depth_sources.TruthDepth(rec) if task.depth == "truth" else depth_sources.ModelDepth(task.depth)
         params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,

@@ -62,9 +62,9 @@ def evaluate_groundtruth(task: GroundTruthErrorTask) -> GroundTruthErrorResult:
         indenter = str(rec.attrs.get("indenter", ""))
     lab = None
     if task.pose == "true":
-        from labrig.sim.motion import gel_in_machine
+        from labrig.sim.motion import true_gel_in_machine
 
-        lab = lab_inputs(rig, task.calibration_dir, gel_pose=gel_in_machine(rig, truth=True))
+        lab = lab_inputs(rig, task.calibration_dir, gel_pose=true_gel_in_machine(rig))
     elif task.pose != "lab":
         raise LabrigError(f"pose must be 'lab' or 'true', not {task.pose!r}")
     gt = generate(task.recording, elastic=task.elastic, lab=lab, calibration_dir=task.calibration_dir)

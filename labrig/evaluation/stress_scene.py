@@ -31,6 +31,7 @@ from labrig.clock import ClockModel
 from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
 from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
+from labrig.physics.camera import CameraModel
 
 US_PER_MIN = 60_000_000
 
@@ -84,8 +85,6 @@ def stressed_rig(scene: StressScene) -> RigConfig:
 
 def dead_region_px(rig: RigConfig, side_mm: float, centre_mm: tuple[float, float] = (0.0, 0.0)) -> Roi | None:
     """Sensor pixels (the sim's true camera) covering a square ``side_mm`` wide on the gel around ``centre_mm``."""
-    from labrig.sim.camera import CameraModel
-
     if side_mm <= 0:
         return None
     half = side_mm / 2

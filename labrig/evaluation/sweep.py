@@ -31,6 +31,7 @@ from labrig.evaluation.executor import Run
 from labrig.evaluation.forces import ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.tracking import TrackingTask, track_recording
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS
 
 TOLERANCE = 0.05
 PATCH_SCALES = (1.0, 2.0, 3.0, 4.0, 5.0)
@@ -84,7 +85,7 @@ def sweep_models(models_dir: Path | None, main_model: Path) -> tuple[list[str], 
 
 
 def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, run: Run,
-              calibration_dir: str | None = "calibration", window_events: int | None = 20_000,
+              calibration_dir: str | None = "calibration", window_events: int | None = PAPER_WINDOW_EVENTS,
               window_us: int | None = None, mesh_refinements: tuple[int, ...] = MESH_REFINEMENTS,
               patch_scales: tuple[float, ...] = PATCH_SCALES) -> SweepResult:
     """Every knob setting on ``recordings``; ``run(kind, fn, tasks) -> results`` runs tasks (parallel, cached)."""

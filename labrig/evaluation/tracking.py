@@ -133,8 +133,8 @@ def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float) -> Any:
 
 def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
     """Track ``task.recording`` window by window; lost tracks, drift and (virtual rig) true errors."""
-    from labrig.pipeline.runtime import windows
     from labrig.pipeline.tracking import marker_diameter_px
+    from labrig.pipeline.windows import recording_windows
     from labrig.recording import Recording
 
     task = task if isinstance(task, TrackingTask) else TrackingTask(**task)
@@ -143,7 +143,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         diameter = marker_diameter_px(rig)
         tracker = tracker_for(task, rest_px, diameter)
         ends, positions, seconds = [], [], []
-        for _, t1, events in windows(rec, window_us=task.window_us, window_events=task.window_events):
+        for _, t1, events in recording_windows(rec, window_us=task.window_us, window_events=task.window_events):
             tic = time.perf_counter()
             p, _ = tracker.update(events)
             seconds.append(time.perf_counter() - tic)
@@ -171,7 +171,7 @@ track_recording.cache_version = "3"  # type: ignore[attr-defined]
 def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str]:
     """(rig, rest pixels (M, 2), where they came from) for an open recording; see :class:`TrackingTask`."""
     from labrig.config import load_rig
-    from labrig.pipeline.runtime import rig_from_recording, setup_for_recording
+    from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
     from labrig.pipeline.tracking import rest_positions_px
 
     if rest == "calibration":

@@ -22,7 +22,7 @@ Closed forms (elastic half-space only; physics.md 2.3-2.6, Johnson 1985):
 
 Numerical (``numerical``, half-space or bonded layer, any indenter): the
 virtual rig's influence coefficients and Polonsky-Keer solver
-(:mod:`labrig.sim.mechanics`) on a local grid around the tip, solved over the
+(:mod:`labrig.physics.mechanics`) on a local grid around the tip, solved over the
 indentation depth once per (indenter, gel, mode, grid) and cached on disk like
 the sim's contact tables (:class:`DepthTable`). Lookups interpolate linearly
 in depth and bilinearly in space. Outside the tabulated square the layer's
@@ -51,8 +51,8 @@ from scipy import ndimage
 from labrig.cache import cache_folder, cache_key
 from labrig.config import GelConfig
 from labrig.indenters import Indenter
-from labrig.sim.mechanics import Box, Grid, SurfaceKernels, indenter_height_mm, solve_normal
-from labrig.sim.mechanics.spectral import contact_modulus_mpa, shear_modulus_mpa
+from labrig.physics.mechanics import Box, Grid, SurfaceKernels, indenter_height_mm, solve_normal
+from labrig.physics.mechanics.spectral import contact_modulus_mpa, shear_modulus_mpa
 
 F64 = npt.NDArray[np.float64]
 

@@ -41,8 +41,8 @@ from labrig.cache import sha256_of
 from labrig.groundtruth.contact import ContactModel, choose_model
 from labrig.groundtruth.inputs import GroundTruthError, LabInputs, lab_inputs, recording_rig
 from labrig.indenters import DEFAULT_INDENTERS, Indenter, load_indenters
+from labrig.physics.grid import GRID_SHAPE, network_grid_gel_mm, network_grid_pixels
 from labrig.recording import Phase, Recording
-from labrig.sim.truth import GRID_SHAPE, network_grid_gel_mm, network_grid_pixels
 
 F64 = npt.NDArray[np.float64]
 

@@ -19,7 +19,7 @@ from typing import Any
 from labrig.config import DEFAULT_RIG, ConfigError, GelConfig, RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.frames import Pose
-from labrig.sim.camera import CameraModel
+from labrig.physics.camera import CameraModel
 
 #: Where calibration files are looked for by default (the repository's calibration/ folder).
 DEFAULT_CALIBRATION_DIR = DEFAULT_RIG.parent
@@ -108,7 +108,7 @@ def lab_camera(rig: RigConfig, calibration_dir: Path) -> tuple[CameraModel, str]
 
 def lab_gel_pose(rig: RigConfig, calibration_dir: Path) -> tuple[Pose, str]:
     """(gel frame in machine coordinates, source): the rig registration when present, else the nominal pose."""
-    from labrig.calibration.registration import REGISTRATION_FILE, gel_pose
+    from labrig.calibration.registration_file import REGISTRATION_FILE, gel_pose
 
     path = calibration_dir / REGISTRATION_FILE
     pose = gel_pose(rig, path)

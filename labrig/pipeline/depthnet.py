@@ -29,7 +29,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.errors import LabrigError
-from labrig.pipeline.sae import GRID_SHAPE, UNET_SHAPE, crop_from_unet, pad_for_unet
+from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet, pad_for_unet
 
 CARD_FORMAT = "labrig.depthnet"
 CARD_VERSION = 1

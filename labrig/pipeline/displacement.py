@@ -15,7 +15,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from labrig.config import Roi
-from labrig.sim.camera import CameraModel
+from labrig.physics.camera import CameraModel
 
 Array = npt.NDArray[np.float64]
 

@@ -23,9 +23,9 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import Roi
+from labrig.physics.camera import CameraModel
 from labrig.pipeline.displacement import grid_sampling_matrix
 from labrig.pipeline.ifem import SurfaceOperator
-from labrig.sim.camera import CameraModel
 
 Array = npt.NDArray[np.float64]
 

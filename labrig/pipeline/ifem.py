@@ -30,7 +30,8 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from labrig.cache import cache_folder, cache_key
-from labrig.config import RigConfig
+from labrig.config import GelConfig, RigConfig
+from labrig.physics.mechanics.spectral import layer_normal_compliance
 
 Array = npt.NDArray[np.float64]
 
@@ -289,12 +290,10 @@ def sine_load_stiffness_ratio(youngs_modulus_mpa: float, poisson_ratio: float, t
 
     A verification of the element and the mesh (locking shows as a ratio above 1): one
     half-wavelength, symmetry planes at the crests, the exact compliance from
-    :func:`labrig.sim.mechanics.spectral.layer_normal_compliance`.
+    :func:`labrig.physics.mechanics.spectral.layer_normal_compliance`.
     """
     from scipy.sparse.linalg import spsolve
 
-    from labrig.config import GelConfig
-    from labrig.sim.mechanics.spectral import layer_normal_compliance
 
     h, p, half = thickness_mm, 1e-3, wavelength_mm / 2
     k_wave = 2 * np.pi / wavelength_mm

@@ -6,8 +6,9 @@ pixels without an event are 0. Arrays are (2, rows, cols) float32, channel 0 OFF
 (p = 0) and channel 1 ON (p = 1), row = image y.
 
 Three resolutions: the sensor (or any pixel rectangle, e.g. the ROI) for
-tracking and display; the network grid (the ROI resized to 90 x 112, each cell
-holding the latest event among its pixels, the grid of ``/truth/depth``); and
+tracking and display; the network grid (:mod:`labrig.physics.grid`: the ROI
+resized to 90 x 112, each cell holding the latest event among its pixels, the
+grid of ``/truth/depth``); and
 the grid zero-padded to 96 x 112 for the U-Net's down-sampling.
 """
 
@@ -18,8 +19,9 @@ import numpy.typing as npt
 from numba import njit
 
 from labrig.config import Roi
+from labrig.physics.grid import GRID_SHAPE
 
-GRID_SHAPE = (90, 112)
+#: The network grid zero-padded for the U-Net's down-sampling.
 UNET_SHAPE = (96, 112)
 
 Sae = npt.NDArray[np.float32]
@@ -73,7 +75,7 @@ def sae_grid(events: npt.NDArray, t0_us: float, t1_us: float, roi: Roi,
     """SAE on the network grid: the ROI divided into ``grid_shape`` cells, latest event per cell.
 
     Cell (r, c) covers the pixels whose centres map into it under the ROI-to-grid
-    scaling (:func:`labrig.sim.truth.network_grid_pixels` gives the cell centres).
+    scaling (:func:`labrig.physics.grid.network_grid_pixels` gives the cell centres).
     """
     rows, cols = grid_shape
     if out is None:

@@ -30,6 +30,7 @@ import numpy.typing as npt
 from numba import njit
 
 from labrig.config import RigConfig
+from labrig.physics.camera import CameraModel
 
 Array = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -41,15 +42,11 @@ def rest_positions_px(rig: RigConfig, extrinsics_path: str | Path | None = None)
         from labrig.calibration.files import load_extrinsics
 
         return np.asarray(load_extrinsics(extrinsics_path).rest_px, np.float64)
-    from labrig.sim.camera import CameraModel
-
     return CameraModel.from_rig(rig).project(rig.markers.rest_positions_mm())
 
 
 def marker_diameter_px(rig: RigConfig) -> float:
     """The markers' mean image diameter (px) through the rig's camera at rest."""
-    from labrig.sim.camera import CameraModel
-
     jac = CameraModel.from_rig(rig).jacobian_px_per_mm(rig.markers.rest_positions_mm())[:, :, :2]
     scale = np.sqrt(np.abs(np.linalg.det(jac)))  # px per mm, area-equivalent
     return float(rig.markers.diameter_mm * scale.mean())

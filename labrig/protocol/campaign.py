@@ -23,12 +23,10 @@ from pathlib import Path
 from typing import Any
 
 from labrig.cache import sha256_of
-from labrig.config import RigConfig, load_rig
+from labrig.config import load_rig
 from labrig.dataset import COMPLETE, Dataset, read_manifest, write_manifest
 from labrig.errors import LabrigError
-from labrig.frames import Pose
-from labrig.indenters import Indenter, load_indenters
-from labrig.protocol.rigfile import device_config, safety_limits
+from labrig.indenters import load_indenters
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
@@ -127,32 +125,17 @@ def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopReque
     rig = load_rig(job.rig_path)
     indenters = load_indenters(job.indenters_path)
     indenter = indenters[job.indenter]
-    devices = device_config(rig)
-    limits = safety_limits(rig)
     if before_session is not None:
         before_session(job.indenter)
-    if devices.virtual:
-        prepare_virtual_tables(rig, indenter, [plan.spec.shear_direction_deg for plan in job.plans])
+    session = RigSession.for_rig(rig, indenter, seed=job.seed, indenters_path=Path(job.indenters_path),
+                                 shear_directions_deg=[plan.spec.shear_direction_deg for plan in job.plans])
     out_dir = Path(job.out_dir)
-    with RigSession(rig, devices, limits, seed=job.seed, indenter=indenter,
-                    indenters_path=Path(job.indenters_path)) as session:
-        runner = ProbeRunner(session, rig, indenter, gel_in_machine=_gel_pose(rig), stop=stop)
+    with session:
+        runner = ProbeRunner.for_session(session, stop=stop)
         for plan in job.plans:
             if stop is not None and stop.level >= 1:
                 return
             report(_record_one(runner, plan, out_dir, job.protocol_toml))
-
-
-def prepare_virtual_tables(rig: RigConfig, indenter: Indenter, shear_directions_deg: list[float]) -> None:
-    """Build (or find cached) the virtual rig's contact tables a non-axisymmetric indenter needs
-    for these shear directions, before its live world starts (a build takes seconds)."""
-    if indenter.axisymmetric:
-        return
-    from labrig.sim.mechanics import ContactTable
-    from labrig.sim.mechanics.tables import table_direction_deg
-
-    for direction in sorted({table_direction_deg(d) for d in shear_directions_deg}):
-        ContactTable.from_rig(indenter, rig, direction_deg=direction)
 
 
 def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protocol_toml: str) -> Outcome:
@@ -169,13 +152,6 @@ def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protoco
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
     return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
-
-
-def _gel_pose(rig: RigConfig) -> Pose:
-    """The gel pose the runner uses: the rig registration once calibrated, else the nominal pose."""
-    from labrig.calibration.registration import gel_pose
-
-    return gel_pose(rig)
 
 
 def _worker(job: CampaignJob, outcomes: Any) -> None:

@@ -1,7 +1,9 @@
 """The rig file's [devices] and [safety] sections (optional; defaults: the embedded virtual rig).
 
-Read from the rig TOML that :func:`labrig.config.load_rig` loaded, checked key
-by key, each problem naming the file, the section and the key.
+[devices] is a :class:`DeviceConfig` (where the GRBL, the Bota and the camera
+are), [safety] a :class:`~labrig.protocol.safety.SafetyLimits`. Read from the
+rig TOML that :func:`labrig.config.load_rig` loaded, checked key by key, each
+problem naming the file, the section and the key.
 """
 
 from __future__ import annotations
@@ -9,13 +11,54 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import tomllib
+from dataclasses import dataclass
 from typing import Any
 
 from labrig.config import ConfigError, RigConfig
+from labrig.errors import LabrigError
 from labrig.protocol.safety import SafetyLimits
-from labrig.protocol.session import DeviceConfig
 
 CAMERA_BACKENDS = ("metavision", "raw", "sim")
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """Where the devices are. Empty ports with the ``sim`` camera and no socket: the virtual rig."""
+
+    grbl_port: str = ""
+    grbl_baud: int = 115200
+    bota_port: str = ""
+    bota_baud: int = 460800
+    camera: str = "sim"
+    camera_path: str = ""
+    output_on: str = "M8"
+    output_off: str = "M9"
+
+    @property
+    def virtual(self) -> bool:
+        return not self.grbl_port and not self.bota_port and self.camera == "sim" and not self.camera_path
+
+    @property
+    def camera_is_file(self) -> bool:
+        """``camera = "metavision"`` with a RAW file as ``camera_path``: the SDK's file device."""
+        return self.camera == "metavision" and self.camera_path.lower().endswith(".raw")
+
+    def camera_options(self, where: str | None = None) -> dict[str, Any]:
+        """``open_camera`` options for this camera; ``where``: its socket or file if not ``camera_path``."""
+        path = self.camera_path if where is None else where
+        if self.camera != "metavision":
+            return {"path": path}
+        return {"path": path} if self.camera_is_file else {"serial": path}
+
+    def check(self) -> None:
+        if self.virtual:
+            return
+        missing = [name for name, value in (("grbl_port", self.grbl_port), ("bota_port", self.bota_port)) if not value]
+        if self.camera == "sim" and not self.camera_path:
+            missing.append("camera_path (the socket `labrig sim serve` prints)")
+        if missing:
+            raise LabrigError(f"[devices] names some devices but not {', '.join(missing)}: configure all of them, "
+                              "or none for the embedded virtual rig")
 
 
 def device_config(rig: RigConfig) -> DeviceConfig:

@@ -28,8 +28,10 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.cache import sha256_of
+from labrig.calibration.registration_file import gel_pose
 from labrig.config import RigConfig
 from labrig.devices.grbl import Grbl, GrblAlarm, GrblError, GrblTimeout
+from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter
 from labrig.protocol.plan import ProbePlan
@@ -111,6 +113,16 @@ class ProbeRunner:
         self._plan: ProbePlan | None = None
         self._contact: F64 | None = None
         self._last_report = (0.0, 0)
+
+    @classmethod
+    def for_session(cls, session: RigSession, *, stop: StopRequest | None = None,
+                    progress: Callable[[RunProgress], None] | None = None) -> ProbeRunner:
+        """A runner for the session's mounted indenter at the rig's gel pose: the registration
+        (``rig-registration.toml`` next to the rig file) once calibrated, else the nominal pose."""
+        if session.indenter is None:
+            raise LabrigError("the rig session names no mounted indenter")
+        return cls(session, session.rig, session.indenter, gel_in_machine=gel_pose(session.rig), stop=stop,
+                   progress=progress)
 
     @property
     def grbl(self) -> Grbl:

@@ -4,6 +4,9 @@ A :class:`RigSession` owns the three drivers (GRBL, Bota, camera) for as long
 as a ``labrig record`` or a campaign runs. Their callbacks feed whatever
 recording is current (:meth:`RigSession.begin` / :meth:`RigSession.end`) and
 the safety monitor, which sees every F/T sample whether recording or not.
+:meth:`RigSession.for_rig` opens the rig a rig file describes (its [devices]
+and [safety], the virtual rig's contact tables prepared); every procedure that
+moves the rig starts there.
 
 With no hardware configured the session starts the virtual rig in a child
 process (:class:`~labrig.sim.world_process.WorldProcess`: its twins on ptys
@@ -21,8 +24,7 @@ import contextlib
 import tempfile
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -35,50 +37,13 @@ from labrig.devices.camera import Camera, CameraError, EventChunk, open_camera
 from labrig.devices.grbl import Grbl, StatusSample
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
+from labrig.protocol.rigfile import DeviceConfig, device_config, safety_limits
 from labrig.protocol.safety import ForceMonitor, SafetyLimits
 from labrig.recording import RecordingWriter
+from labrig.sim.live import put_truth_rows
+from labrig.sim.world_process import WorldProcess, prepare_contact_tables
 
 NS_PER_US = 1000
-
-
-@dataclass(frozen=True)
-class DeviceConfig:
-    """Where the devices are. Empty ports with the ``sim`` camera and no socket: the virtual rig."""
-
-    grbl_port: str = ""
-    grbl_baud: int = 115200
-    bota_port: str = ""
-    bota_baud: int = 460800
-    camera: str = "sim"
-    camera_path: str = ""
-    output_on: str = "M8"
-    output_off: str = "M9"
-
-    @property
-    def virtual(self) -> bool:
-        return not self.grbl_port and not self.bota_port and self.camera == "sim" and not self.camera_path
-
-    @property
-    def camera_is_file(self) -> bool:
-        """``camera = "metavision"`` with a RAW file as ``camera_path``: the SDK's file device."""
-        return self.camera == "metavision" and self.camera_path.lower().endswith(".raw")
-
-    def camera_options(self, where: str | None = None) -> dict[str, Any]:
-        """``open_camera`` options for this camera; ``where``: its socket or file if not ``camera_path``."""
-        path = self.camera_path if where is None else where
-        if self.camera != "metavision":
-            return {"path": path}
-        return {"path": path} if self.camera_is_file else {"serial": path}
-
-    def check(self) -> None:
-        if self.virtual:
-            return
-        missing = [name for name, value in (("grbl_port", self.grbl_port), ("bota_port", self.bota_port)) if not value]
-        if self.camera == "sim" and not self.camera_path:
-            missing.append("camera_path (the socket `labrig sim serve` prints)")
-        if missing:
-            raise LabrigError(f"[devices] names some devices but not {', '.join(missing)}: configure all of them, "
-                              "or none for the embedded virtual rig")
 
 
 class RigSession:
@@ -117,6 +82,18 @@ class RigSession:
         self._listeners: tuple[Callable[[EventChunk], None], ...] = ()
         #: The first exception a chunk listener raised (that listener was removed; recording went on).
         self.listener_error: BaseException | None = None
+
+    @classmethod
+    def for_rig(cls, rig: RigConfig, indenter: Indenter, *, seed: int = 0, indenters_path: Path | None = None,
+                shear_directions_deg: Iterable[float] = (0.0,)) -> RigSession:
+        """The session for ``rig``'s devices ([devices]; none: the embedded virtual rig) and limits
+        ([safety]) with ``indenter`` mounted, not yet opened. On the virtual rig it first builds (or
+        finds cached) the contact tables the indenter needs for the runs' shear directions (deg, gel
+        frame); ``seed``: the virtual rig's noise."""
+        devices, limits = device_config(rig), safety_limits(rig)
+        if devices.virtual:
+            prepare_contact_tables(rig, indenter, shear_directions_deg)
+        return cls(rig, devices, limits, seed=seed, indenter=indenter, indenters_path=indenters_path)
 
     @property
     def virtual(self) -> bool:
@@ -171,8 +148,6 @@ class RigSession:
     def _device_paths(self) -> dict[str, str]:
         if not self.virtual:
             return {"grbl": self.devices.grbl_port, "bota": self.devices.bota_port, "evk4": self.devices.camera_path}
-        from labrig.sim.world_process import WorldProcess
-
         if self._injected is not None:
             self.world = self._injected
             return dict(self.world.paths)
@@ -293,8 +268,6 @@ class RigSession:
             writer.put("gcode", t_host_us=t_host_us - writer.t0_host_ns // NS_PER_US, direction=direction, line=line[:128])
 
     def _pump_truth(self) -> None:
-        from labrig.sim.live import put_truth_rows
-
         while not self._stop.is_set() and self.world is not None:
             rows = self.world.truth(timeout_s=0.05)
             writer = self._writer

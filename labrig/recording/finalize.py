@@ -72,10 +72,15 @@ def _fit_camera_triggers(column, envelope: ClockModel | None) -> ClockModel | No
         spacing = np.diff(np.sort(host)).min() / 2 if host.size > 1 else TRIGGER_MATCH_TOLERANCE_US
         tolerance = min(spacing, TRIGGER_MATCH_TOLERANCE_US)
         di, hi = match_trigger_edges(dev, host, envelope, tolerance)
-        if di.size < min(dev.size, host.size):  # late delivery can fool the envelope: align the interval pattern
-            ai, ah = align_trigger_edges(dev, host, tolerance)
-            if ai.size > di.size:
-                di, hi = ai, ah
+        if di.size < min(dev.size, host.size):
+            # The envelope's offset includes the camera's minimum latency, which can exceed the
+            # tolerance: align the edges' interval pattern instead, on device times mapped with
+            # the envelope's drift (hundreds of ppm stretch the pattern past the tolerance over
+            # a minute) or, where the envelope is far off under load, as they are.
+            for mapped in (envelope.to_host_us(dev), dev):
+                ai, ah = align_trigger_edges(mapped, host, tolerance)
+                if ai.size > di.size:
+                    di, hi = ai, ah
         pairs_dev.append(dev[di])
         pairs_host.append(host[hi])
     dev, host = np.concatenate(pairs_dev), np.concatenate(pairs_host)
@@ -116,6 +121,7 @@ def finalize_file(
             online = (online_models or {}).get(device)
             if online is not None:
                 group.attrs["online_drift_ppm"] = online.drift_ppm
+                group.attrs["online_drift_uncertainty_ppm"] = online.drift_uncertainty_ppm
         f.attrs["exit_status"] = exit_status
         f.attrs["exit_reason"] = reason
         f.attrs["finalized"] = True

@@ -343,7 +343,9 @@ class RecordingWriter:
         return self._online[device].model
 
     def online_models(self) -> dict[str, ClockModel]:
-        return {d: fit.model for d, fit in self._online.items() if fit.model is not None}
+        """The live models fitted on every pair received so far."""
+        models = {d: fit.refit() for d, fit in self._online.items()}
+        return {d: m for d, m in models.items() if m is not None}
 
     @property
     def fault(self) -> str:

@@ -33,9 +33,9 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.frames import Pose
-from labrig.sim.mechanics import ContactTable, ShearHistory
-from labrig.sim.mechanics.history import Term
-from labrig.sim.mechanics.tables import table_direction_deg
+from labrig.physics.mechanics import ContactTable, ShearHistory
+from labrig.physics.mechanics.history import Term
+from labrig.physics.mechanics.tables import table_direction_deg
 
 F64 = npt.NDArray[np.float64]
 ToolPath = Callable[[npt.ArrayLike], F64]
@@ -73,7 +73,7 @@ class ContactKinematics:
     def __init__(self, table: ContactTable, tool_offset_mm: npt.ArrayLike, machine_to_gel: Pose,
                  table_for_direction: Callable[[float], ContactTable] | None = None) -> None:
         """``table_for_direction(deg)``: the table of a non-axisymmetric indenter for another shear
-        direction (see :func:`~labrig.sim.mechanics.tables.table_direction_deg`), loaded on first use."""
+        direction (see :func:`~labrig.physics.mechanics.tables.table_direction_deg`), loaded on first use."""
         self.table = table
         self.tool_offset_mm = np.asarray(tool_offset_mm, dtype=np.float64).reshape(3)
         self.machine_to_gel = machine_to_gel

@@ -23,11 +23,12 @@ import numpy.typing as npt
 from labrig.clock import ClockModel, HostClock, MonotonicClock
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
+from labrig.physics.grid import network_grid_gel_mm
 from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
 from labrig.recording.finalize import store_clock_model
 from labrig.sim.motion import PiecewiseLinearPath
 from labrig.sim.rig import RigOutput, Solve, VirtualRig
-from labrig.sim.truth import network_grid_gel_mm, truth_streams
+from labrig.sim.truth import truth_streams
 
 FT_RATE_HZ = 800.0
 CNC_RATE_HZ = 10.0

@@ -13,16 +13,18 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
-from labrig.frames import Pose, yaw_tilt_matrix
+from labrig.frames import Pose
 from labrig.indenters import Indenter
+from labrig.physics.geometry import gel_frame, nominal_gel_in_machine
 
 
-def gel_in_machine(rig: RigConfig, truth: bool = True) -> Pose:
-    """The gel frame in machine coordinates: the sim's truth, or the nominal pose."""
-    if truth:
-        p = rig.sim.rig_pose
-        return Pose(yaw_tilt_matrix(p.gel_yaw_deg, p.gel_tilt_deg), np.asarray(p.gel_origin_machine_mm, float))
-    return Pose(yaw_tilt_matrix(rig.rig.gel_yaw_deg), np.asarray(rig.rig.gel_origin_machine_mm, float))
+def true_gel_in_machine(rig: RigConfig) -> Pose:
+    """The gel frame in machine coordinates as the virtual rig builds it: ``[sim.rig_pose]``, tilt included.
+
+    The nominal pose a real runner starts from is :func:`labrig.physics.geometry.nominal_gel_in_machine`.
+    """
+    p = rig.sim.rig_pose
+    return gel_frame(p.gel_origin_machine_mm, p.gel_yaw_deg, p.gel_tilt_deg)
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,7 @@ def probing_path(
         phases.append((name, times[-1], times[-1] + duration_s * 1e6))
         times.append(times[-1] + duration_s * 1e6)
         tips.append(target)
-    gel = gel_in_machine(rig, truth=not nominal)
+    gel = nominal_gel_in_machine(rig) if nominal else true_gel_in_machine(rig)
     tip_machine = gel.apply(np.array(tips))
     tool_machine = tip_machine - np.asarray(indenter.tool_offset_mm)
     return PiecewiseLinearPath(np.array(times), tool_machine, tuple(phases))

@@ -41,8 +41,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
+from labrig.physics.camera import CameraModel
 from labrig.sim import _render_kernels as _k
-from labrig.sim.camera import CameraModel
 from labrig.sim.discs import ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
 from labrig.sim.pixels import PixelBlock, unique_indices
 from labrig.sim.shading import DepthField, GridLookup

@@ -11,7 +11,7 @@ Time stepping
 * Mechanics are quasi-static and solved as often as the motion needs: the next
   solve comes when the tool has moved ``solve_step_mm`` (0.02 mm), within 2 to
   50 ms. Contact fields come from the precomputed
-  :class:`~labrig.sim.mechanics.ContactTable` (one lookup per solve).
+  :class:`~labrig.physics.mechanics.ContactTable` (one lookup per solve).
 * Marker 3D positions are interpolated linearly between the two solves that
   bracket a render time.
 * Renders (and event sensor steps) are adaptive: a step is as long as keeps
@@ -46,11 +46,11 @@ import numpy.typing as npt
 from labrig.config import RigConfig, Roi
 from labrig.frames import Pose, rotvec_to_matrix, wrench_about
 from labrig.indenters import Indenter
-from labrig.sim.camera import CameraModel
+from labrig.physics.camera import CameraModel
+from labrig.physics.mechanics import ContactFields, ContactTable
 from labrig.sim.contact_track import ContactKinematics, ContactState, ContactTrack
 from labrig.sim.events import EVENT_DTYPE, EventSensor
-from labrig.sim.mechanics import ContactFields, ContactTable
-from labrig.sim.motion import gel_in_machine
+from labrig.sim.motion import true_gel_in_machine
 from labrig.sim.optics import Renderer
 from labrig.sim.shading import DepthField
 
@@ -113,7 +113,7 @@ class VirtualRig:
         self.indenter = indenter
         self.camera = CameraModel.from_rig(rig)
         self.table = table if table is not None else ContactTable.from_rig(indenter, rig)
-        self.gel_in_machine: Pose = gel_in_machine(rig, truth=True)
+        self.gel_in_machine: Pose = true_gel_in_machine(rig)
         self.machine_to_gel = self.gel_in_machine.inverse()
         pose = rig.sim.rig_pose
         #: F/T sensor axes in the gel frame; its origin rides with the tool.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from labrig.sim.camera import CameraModel
+from labrig.physics.camera import CameraModel
 
 
 def image_velocity_px_s(camera: CameraModel, xyz_mm: npt.ArrayLike, velocity_mm_s: npt.ArrayLike) -> npt.NDArray[np.float64]:

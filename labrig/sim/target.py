@@ -1,10 +1,8 @@
 """The intrinsic-calibration scene: a planar dot-grid target seen by the camera on the whole sensor.
 
-Target frame: origin at the grid's centre, x along the dot columns, y along
-the rows, z normal to the plate; mm. A pose ``target_to_camera`` (a
-:class:`labrig.frames.Pose`, ``p_cam = R p_target + t``) places it in front
-of the camera. Each dot is drawn like a marker (:mod:`labrig.sim.discs`):
-an anti-aliased ellipse centred on the projection of the dot's centre through
+The target and its frame are :mod:`labrig.physics.target`; a pose
+``target_to_camera`` places it in front of the camera. Each dot is drawn like
+a marker (:mod:`labrig.sim.discs`): an anti-aliased ellipse centred on the projection of the dot's centre through
 the same camera model (with distortion), so the dot's intensity centroid is
 the projected point. (A real dot's image centroid is off the projected centre
 by a small perspective bias; the sim leaves it out so that calibration has an
@@ -13,40 +11,15 @@ exact truth.) Intensity is linear in [0, 1], on the full sensor.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import numpy.typing as npt
 
-from labrig.frames import Pose, rotvec_to_matrix
-from labrig.sim.camera import CameraModel
+from labrig.frames import Pose
+from labrig.physics.camera import CameraModel
+from labrig.physics.target import DotGridTarget
 from labrig.sim.discs import ellipse_coverage, patch_half_px, patch_origins
 
 Array = npt.NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class DotGridTarget:
-    """A rows x cols grid of bright dots (pitch, diameter in mm) on a dark plate."""
-
-    rows: int = 9
-    cols: int = 15
-    pitch_mm: float = 2.0
-    dot_diameter_mm: float = 0.8
-    plate_level: float = 0.05
-    dot_level: float = 0.9
-
-    def points_mm(self) -> Array:
-        """(rows*cols, 3) dot centres in the target frame (z = 0), row-major from -y, -x."""
-        cols, rows = np.meshgrid(np.arange(self.cols), np.arange(self.rows))
-        x = (cols.ravel() - (self.cols - 1) / 2) * self.pitch_mm
-        y = (rows.ravel() - (self.rows - 1) / 2) * self.pitch_mm
-        return np.stack([x, y, np.zeros_like(x)], axis=1)
-
-
-def target_pose(rotvec_rad: npt.ArrayLike, translation_mm: npt.ArrayLike) -> Pose:
-    """The target frame in the camera frame from a Rodrigues vector (rad) and a translation (mm)."""
-    return Pose(rotvec_to_matrix(rotvec_rad), np.asarray(translation_mm, dtype=np.float64))
 
 
 def render_target(camera: CameraModel, target: DotGridTarget, target_to_camera: Pose, *, edge_px: float = 1.0) -> Array:

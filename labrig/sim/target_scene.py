@@ -21,9 +21,10 @@ import numpy.typing as npt
 from labrig.config import RigConfig
 from labrig.eventtypes import EVENT_DTYPE
 from labrig.frames import Pose
-from labrig.sim.camera import CameraModel
+from labrig.physics.camera import CameraModel
+from labrig.physics.target import DotGridTarget
 from labrig.sim.events import EventParams, EventSensor
-from labrig.sim.target import DotGridTarget, render_target
+from labrig.sim.target import render_target
 
 
 @dataclass(frozen=True)

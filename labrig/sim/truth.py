@@ -8,21 +8,15 @@
 * ``truth/depth``: the true normal displacement (mm, into the gel) and the
   contact mask on the network grid (the ROI resized to 90 x 112), at every solve.
 
-The network grid maps cell centres to sensor pixels linearly over the ROI and
-from there to the gel surface at rest through the true camera
-(:func:`network_grid_gel_mm`); the mapping is stored with the stream.
+The network grid (:mod:`labrig.physics.grid`) maps cell centres to sensor
+pixels linearly over the ROI and from there to the gel surface at rest through
+the true camera; the mapping is stored with the stream.
 """
 
 from __future__ import annotations
 
-import numpy as np
-import numpy.typing as npt
-
-from labrig.config import RigConfig
+from labrig.physics.grid import GRID_SHAPE
 from labrig.recording.schema import Column, StreamSpec
-from labrig.sim.camera import CameraModel
-
-GRID_SHAPE = (90, 112)
 
 
 def truth_streams(n_markers: int, grid_shape: tuple[int, int] = GRID_SHAPE) -> tuple[StreamSpec, ...]:
@@ -70,19 +64,3 @@ def truth_streams(n_markers: int, grid_shape: tuple[int, int] = GRID_SHAPE) -> t
             description="true normal-displacement field on the network grid (ROI resized)",
         ),
     )
-
-
-def network_grid_pixels(rig: RigConfig, grid_shape: tuple[int, int] = GRID_SHAPE) -> npt.NDArray[np.float64]:
-    """Sensor-pixel coordinates (rows, cols, 2) of the network grid's cell centres over the ROI."""
-    roi = rig.roi
-    rows, cols = grid_shape
-    x = roi.x0_px - 0.5 + (np.arange(cols) + 0.5) * roi.width_px / cols
-    y = roi.y0_px - 0.5 + (np.arange(rows) + 0.5) * roi.height_px / rows
-    xx, yy = np.meshgrid(x, y)
-    return np.stack([xx, yy], axis=-1)
-
-
-def network_grid_gel_mm(rig: RigConfig, camera: CameraModel, grid_shape: tuple[int, int] = GRID_SHAPE) -> npt.NDArray[np.float64]:
-    """Gel-surface points (rows, cols, 2) at rest seen by each network-grid cell."""
-    px = network_grid_pixels(rig, grid_shape).reshape(-1, 2)
-    return camera.backproject_to_plane(px, 0.0)[:, :2].reshape(*grid_shape, 2)

@@ -40,7 +40,7 @@ from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.contact_track import ContactTrack
 from labrig.sim.evk4_twin import Evk4Twin
 from labrig.sim.grbl_twin import GrblTwin
-from labrig.sim.motion import gel_in_machine
+from labrig.sim.motion import true_gel_in_machine
 from labrig.sim.rig import RigOutput, VirtualRig
 from labrig.sim.serial_pty import SerialTwin, TwinServer
 
@@ -224,7 +224,7 @@ class LiveWorld:
 
 def power_on_tool_mm(rig: RigConfig, indenter: Indenter) -> tuple[float, float, float]:
     """Tool reference above the gel centre with POWER_ON_CLEARANCE_MM, in the homed frame."""
-    surface = gel_in_machine(rig, truth=True).apply(np.zeros(3))
+    surface = true_gel_in_machine(rig).apply(np.zeros(3))
     tool = surface - np.asarray(indenter.tool_offset_mm) + np.array([0.0, 0.0, POWER_ON_CLEARANCE_MM])
     return (float(tool[0]), float(tool[1]), float(tool[2]))
 

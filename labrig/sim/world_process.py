@@ -14,14 +14,29 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import queue
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from labrig.config import RigConfig
 from labrig.errors import LabrigError
+from labrig.indenters import Indenter
+from labrig.physics.mechanics import ContactTable
+from labrig.physics.mechanics.tables import table_direction_deg
 from labrig.sim.live import TruthRows
 
 #: Truth chunks waiting in the pipe at most (about 10 s of rendering); more are dropped and counted.
 TRUTH_QUEUE_CHUNKS = 1000
+
+
+def prepare_contact_tables(rig: RigConfig, indenter: Indenter, shear_directions_deg: Iterable[float]) -> None:
+    """Build (or find cached) the contact tables a non-axisymmetric indenter needs for these shear
+    directions (deg, gel frame), before its world starts: a build takes seconds, which the world's
+    renderer would otherwise spend mid-run."""
+    if indenter.axisymmetric:
+        return
+    for direction in sorted({table_direction_deg(d) for d in shear_directions_deg}):
+        ContactTable.from_rig(indenter, rig, direction_deg=direction)
 
 
 class WorldProcess:
@@ -113,8 +128,8 @@ def _serve(args: dict[str, Any], conn: Any, truth_queue: Any, progress: Any, sto
     try:
         from labrig.config import load_rig
         from labrig.indenters import DEFAULT_INDENTERS, load_indenters
+        from labrig.physics.grid import network_grid_gel_mm
         from labrig.sim.live import truth_rows
-        from labrig.sim.truth import network_grid_gel_mm
         from labrig.sim.world import LiveWorld
 
         rig = load_rig(args["rig_path"])

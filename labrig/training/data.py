@@ -36,7 +36,8 @@ import numpy.typing as npt
 from labrig.config import Roi
 from labrig.dataset import SPLITS, Dataset, require_groundtruth
 from labrig.errors import LabrigError
-from labrig.pipeline.sae import GRID_SHAPE, pad_for_unet, sae_grid
+from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.sae import pad_for_unet, sae_grid
 
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
 #: Margin around the probing phases (s): windows of the gel at rest, no contact, few events.

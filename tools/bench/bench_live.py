@@ -41,11 +41,12 @@ from labrig.devices.bota import BotaSensor, BotaSettings, FtSample, recording_si
 from labrig.devices.camera import open_camera, record_camera
 from labrig.devices.grbl import Grbl
 from labrig.indenters import Indenter, load_indenter
+from labrig.physics.grid import network_grid_gel_mm
 from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
 from labrig.sim.live import publish_truth
 from labrig.sim.motion import PiecewiseLinearPath, probing_path
 from labrig.sim.rig import RigOutput
-from labrig.sim.truth import network_grid_gel_mm, truth_streams
+from labrig.sim.truth import truth_streams
 from labrig.sim.world import LiveWorld
 
 FT_PERIOD_US = 1250.0

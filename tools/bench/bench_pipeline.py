@@ -29,7 +29,7 @@ from _common import bench_main, emit
 
 from labrig.config import load_rig
 from labrig.indenters import load_indenter
-from labrig.pipeline import ifem, runtime
+from labrig.pipeline import depth_sources, ifem, run_setup, runtime
 from labrig.recording import Recording
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
@@ -51,7 +51,7 @@ def _peak_rss_mb() -> float:
 
 def _networks(folder: Path, widths: list[int]) -> list[tuple[str, Path]]:
     try:
-        return [("model:" + runtime.default_model_path().stem, runtime.default_model_path())]
+        return [("model:" + depth_sources.default_model_path().stem, depth_sources.default_model_path())]
     except Exception:
         pass
     try:
@@ -67,7 +67,7 @@ def _networks(folder: Path, widths: list[int]) -> list[tuple[str, Path]]:
     return out
 
 
-def _measure(setup: runtime.PipelineSetup, rec: Recording, depth: runtime.DepthSource, concurrent: bool,
+def _measure(setup: run_setup.PipelineSetup, rec: Recording, depth: depth_sources.DepthSource, concurrent: bool,
              repeat: int, window_events: int | None = None) -> dict[str, Any]:
     best: dict[str, Any] | None = None
     for _ in range(repeat):
@@ -117,10 +117,10 @@ def run(widths: str = "16,32", repeat: int = 2, progress: bool = True) -> dict[s
         figures["rss_before_mb"] = _peak_rss_mb()
         networks = _networks(folder, [int(w) for w in widths.split(",") if w.strip()])
         with Recording(path) as rec:
-            setup = runtime.setup_for_recording(rec, calibration_dir=None)
+            setup = run_setup.setup_for_recording(rec, calibration_dir=None)
             figures["events"] = rec.n_events
-            sources: list[tuple[str, Any]] = [("truth", runtime.TruthDepth(rec))]
-            sources += [(name, runtime.ModelDepth(p, threads=1)) for name, p in networks]
+            sources: list[tuple[str, Any]] = [("truth", depth_sources.TruthDepth(rec))]
+            sources += [(name, depth_sources.ModelDepth(p, threads=1)) for name, p in networks]
             for name, source in sources:
                 for concurrent in (False, True):
                     key = f"{name} / {'threads' if concurrent else 'serial'}"

@@ -45,7 +45,7 @@ from _common import bench_main, emit
 
 from labrig.config import load_rig
 from labrig.indenters import load_indenter
-from labrig.sim.mechanics import ContactTable
+from labrig.physics.mechanics import ContactTable
 from labrig.sim.motion import probing_path
 from labrig.sim.rig import VirtualRig
 

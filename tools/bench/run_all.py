@@ -5,7 +5,8 @@ recording writer (real-time factor per codec) and reader (slice time / window),
 RAW codec (decode rate / the evt3 package's), Metavision HDF5 (ECF decode /
 EVT3 decode of the same events), GRBL streaming (character counting /
 send-response), Bota reader (frames lost, jitter; decode / real
-time), virtual rig (wall time / simulated time). Full runs take several
+time), virtual rig (wall time / simulated time), camera clock under load (drift
+error / 10 ppm, residual / 50 us). Full runs take several
 minutes on 2 cores; --quick shortens them.
 """
 
@@ -21,6 +22,7 @@ from _common import print_json
 BENCHES = (
     "bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live",
     "bench_campaign", "bench_groundtruth", "bench_training", "bench_tracker", "bench_ifem", "bench_pipeline",
+    "bench_clock",
 )
 QUICK: dict[str, dict[str, Any]] = {
     "bench_writer": {"duration_s": 3.0, "repeat": 1, "codecs": "bitshuffle-lz4,lz4,gzip"},
@@ -28,6 +30,7 @@ QUICK: dict[str, dict[str, Any]] = {
     "bench_ecf": {"events": 1e6, "repeat": 1, "socket_events": 1e6},
     "bench_grbl": {"lines": 300, "repeat": 1},
     "bench_bota": {"seconds": 3.0},
+    "bench_clock": {"drifts": "-500,500", "seeds": 3},
 }
 
 

@@ -17,10 +17,10 @@ import numpy.typing as npt
 
 from labrig.config import GelConfig
 from labrig.indenters import Indenter
-from labrig.sim.mechanics.grid import Grid
-from labrig.sim.mechanics.kernels import Box, SurfaceKernels
-from labrig.sim.mechanics.normal import NormalSolution, indenter_height_mm, solve_normal
-from labrig.sim.mechanics.tangential import solve_traction_in_box
+from labrig.physics.mechanics.grid import Grid
+from labrig.physics.mechanics.kernels import Box, SurfaceKernels
+from labrig.physics.mechanics.normal import NormalSolution, indenter_height_mm, solve_normal
+from labrig.physics.mechanics.tangential import solve_traction_in_box
 
 #: Tolerance of the tangential solves in a table (rms stick-zone displacement error / shift).
 SHEAR_TOL = 1e-5

@@ -32,16 +32,12 @@ contact sizes); forces match direct solves to < 1 %.
 The grid is local: centred on the indenter tip, aligned with the gel axes
 (no indenter yaw), ``size_mm`` wide; the gel is treated as laterally infinite
 (its edges are not modelled). Fields are float32; forces are from float64
-sums. Tables are cached as ``.npz`` files under ``$LABRIG_CACHE`` (default
-``~/.cache/labrig``)/contact_tables, keyed by a hash of every input and
-:data:`TABLE_VERSION`.
+sums. Tables are cached on disk, keyed by a hash of every input
+(:mod:`table_cache`).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,26 +46,30 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from labrig.cache import cache_folder, cache_key
 from labrig.config import GelConfig, RigConfig
 from labrig.indenters import Indenter
-from labrig.sim.mechanics.convolution import SurfaceConvolver
-from labrig.sim.mechanics.grid import Grid
-from labrig.sim.mechanics.history import ShearHistory, Term
-from labrig.sim.mechanics.influence import check_mode
-from labrig.sim.mechanics.kernels import Box
-from labrig.sim.mechanics.rotation import rotate_vector_field
-from labrig.sim.mechanics.stiffening import stiffening_factor
-from labrig.sim.mechanics.table_build import compute_table, to_mindlin
-from labrig.sim.mechanics.tangential import STICK_MARGIN
+from labrig.physics.mechanics.convolution import SurfaceConvolver
+from labrig.physics.mechanics.grid import Grid
+from labrig.physics.mechanics.history import ShearHistory, Term
+from labrig.physics.mechanics.influence import check_mode
+from labrig.physics.mechanics.kernels import Box
+from labrig.physics.mechanics.rotation import clip_to_friction_disc, rotate_contact_traction
+from labrig.physics.mechanics.stiffening import stiffening_factor
+from labrig.physics.mechanics.table_build import compute_table, to_mindlin
+from labrig.physics.mechanics.table_cache import (
+    TABLE_ARRAYS,
+    read_table_file,
+    table_key,
+    table_path,
+    table_spec,
+    write_table_file,
+)
+from labrig.physics.mechanics.tangential import STICK_MARGIN
 
 #: A non-axisymmetric indenter's table serves shifts within this angle of its direction (their
 #: component along it); tables are built every DIRECTION_STEP_DEG (see :func:`table_direction_deg`).
 DIRECTION_STEP_DEG = 15.0
 DIRECTION_TOLERANCE_DEG = DIRECTION_STEP_DEG / 2 + 0.5
-
-#: Bump when the numerics or the file layout change: old cache files are then ignored.
-TABLE_VERSION = 1
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -151,21 +151,11 @@ class ContactTable:
         """
         check_mode(mode)
         max_depth = indenter.max_depth_mm if max_depth_mm is None else float(max_depth_mm)
-        spec = {
-            "version": TABLE_VERSION,
-            "indenter": _indenter_spec(indenter),
-            "gel": {k: getattr(gel, k) for k in ("thickness_mm", "youngs_modulus_mpa", "poisson_ratio", "friction")},
-            "mode": mode,
-            "spacing_mm": float(spacing_mm),
-            "grid_shape": list(Grid.centred(size_mm, spacing_mm).shape),
-            "direction_deg": 0.0 if indenter.axisymmetric else float(direction_deg) % 360.0,
-            "depth_step_mm": float(depth_step_mm),
-            "max_depth_mm": max_depth,
-            "shear_depth_stride": int(shear_depth_stride),
-            "shear_steps": int(shear_steps),
-        }
-        key = cache_key(spec)
-        path = table_cache_dir(cache_dir) / f"{indenter.name}-{mode}-{key}.npz"
+        spec = table_spec(indenter, gel, mode=mode, spacing_mm=spacing_mm, size_mm=size_mm, direction_deg=direction_deg,
+                          depth_step_mm=depth_step_mm, max_depth_mm=max_depth, shear_depth_stride=shear_depth_stride,
+                          shear_steps=shear_steps)
+        key = table_key(spec)
+        path = table_path(indenter, mode, key, cache_dir)
         if use_cache and path.exists():
             try:
                 return cls.load(path, stiffening=stiffening)
@@ -190,27 +180,17 @@ class ContactTable:
 
     def save(self, path: str | Path) -> Path:
         """Write the table as an uncompressed ``.npz`` (atomically)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        arrays = {name: getattr(self, name) for name in _ARRAYS}
-        with open(tmp, "wb") as f:
-            np.savez(f, meta=np.array(json.dumps(self.meta)), **arrays)
-        os.replace(tmp, path)
-        return path
+        return write_table_file(path, self.meta, {name: getattr(self, name) for name in TABLE_ARRAYS})
 
     @classmethod
     def load(cls, path: str | Path, stiffening: float = 0.0) -> ContactTable:
-        with np.load(path) as data:
-            meta = json.loads(str(data["meta"]))
-            if meta.get("spec", {}).get("version") != TABLE_VERSION:
-                raise ValueError(f"{path}: table version {meta.get('spec', {}).get('version')} != {TABLE_VERSION}")
-            arrays = {name: data[name] for name in _ARRAYS}
+        """A table from its file; ValueError when the file is of another :data:`TABLE_VERSION`."""
+        meta, arrays = read_table_file(path)
         return cls(meta, arrays, stiffening)
 
     @property
     def nbytes(self) -> int:
-        return sum(getattr(self, name).nbytes for name in _ARRAYS)
+        return sum(getattr(self, name).nbytes for name in TABLE_ARRAYS)
 
     # ------------------------------------------------------------------ lookups
 
@@ -298,11 +278,11 @@ class ContactTable:
             for w, s in terms:
                 if s != 0 and w != 0:
                     traction += np.float32(w) * self._monotonic_traction(depth, s)
-            traction = _clip(traction, bound)
+            traction = clip_to_friction_disc(traction, bound)
         area = self.grid.cell_area_mm2
         shear_force = traction.sum(axis=(1, 2), dtype=np.float64) * area
         if angle:
-            traction, shear_force = _rotate(traction, bound, angle, shear_force, area)
+            traction, shear_force = rotate_contact_traction(traction, bound, angle, shear_force, area)
         u = self._tangential_convolver()(traction)
         factor = stiffening_factor(depth, self.meta["spec"]["gel"]["thickness_mm"], self.stiffening)
         magnitude = np.hypot(traction[0], traction[1])
@@ -390,49 +370,11 @@ class ContactTable:
         return out
 
 
-#: The arrays a table file holds (attribute names of ContactTable).
-_ARRAYS = (
-    "depths_mm", "depth_fields", "pressure", "normal_force_n", "shear_rows",
-    "slip_shift_mm", "fractions", "traction", "shear_force_n", "window",
-)
-
-
 def table_direction_deg(shear_direction_deg: float) -> float:
     """The table direction (deg, in [0, 180)) serving a shear direction for a non-axisymmetric indenter.
 
     Forces are odd in the shift, so a direction and its opposite share a table."""
     return float(round((shear_direction_deg % 180.0) / DIRECTION_STEP_DEG) * DIRECTION_STEP_DEG % 180.0)
-
-
-def table_cache_dir(cache_dir: str | Path | None = None) -> Path:
-    """Where tables are cached: ``cache_dir``, else the cache root (:mod:`labrig.cache`); plus /contact_tables."""
-    return cache_folder("contact_tables", cache_dir)
-
-
-def _indenter_spec(indenter: Indenter) -> dict[str, Any]:
-    spec: dict[str, Any] = {"kind": indenter.kind, "axisymmetric": indenter.axisymmetric}
-    spec.update({k: v for k, v in indenter.geometry.items() if k != "file"})
-    if indenter._heightmap is not None:
-        spec["heightmap_sha256"] = hashlib.sha256(np.ascontiguousarray(indenter._heightmap).tobytes()).hexdigest()
-    return spec
-
-
-def _rotate(traction: F32, bound: F32, angle: float, force_n: F64, area: float) -> tuple[F32, F64]:
-    """Rotate an axisymmetric contact's traction by ``angle``: (field, force).
-
-    The force rotates exactly. The field is resampled as the utilisation
-    q / (mu p) (bounded by 1, constant in slip zones) over the contact, times
-    mu p, then scaled to the exact force magnitude and clipped to mu p again
-    (the field's sum then misses the force by the clipped part, < 0.1 %).
-    """
-    in_contact = bound > 0
-    utilisation = traction / np.where(in_contact, bound, 1)
-    rotated = rotate_vector_field(utilisation, angle, valid=in_contact) * bound
-    size = float(np.hypot(*rotated.sum(axis=(1, 2), dtype=np.float64))) * area
-    if size > 0:
-        rotated = _clip(rotated * np.float32(np.hypot(*force_n) / size), bound)
-    c, s = np.cos(angle), np.sin(angle)
-    return rotated, np.array([c * force_n[0] - s * force_n[1], s * force_n[0] + c * force_n[1]])
 
 
 def _pressure_centres(pressure: F32, grid: Grid, box: Box) -> F64:
@@ -461,13 +403,3 @@ def _lerp(stack: np.ndarray, i: int, w: float) -> np.ndarray:
         return stack[i].copy()
     a = stack.dtype.type
     return stack[i] * a(1 - w) + stack[i + 1] * a(w)
-
-
-def _clip(traction: F32, bound: F32) -> F32:
-    """Scale each traction vector into its Coulomb disc |q| <= bound."""
-    magnitude = np.hypot(traction[0], traction[1])
-    over = magnitude > bound
-    if not over.any():
-        return traction
-    scale = np.where(over, bound / np.where(over, magnitude, 1), 1).astype(traction.dtype)
-    return traction * scale

@@ -20,9 +20,9 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
-from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix
+from labrig.frames import Pose, rotvec_to_matrix
 
-__all__ = ["CameraModel", "distort_normalized", "matrix_to_rotvec", "rotvec_to_matrix", "undistort_normalized"]
+__all__ = ["CameraModel", "distort_normalized", "undistort_normalized"]
 
 Array = npt.NDArray[np.float64]
 

@@ -18,9 +18,9 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import GelConfig
-from labrig.sim.mechanics.convolution import SurfaceConvolver, coefficient_window, convolver
-from labrig.sim.mechanics.grid import Grid
-from labrig.sim.mechanics.influence import check_mode, normal_coefficients, tangential_coefficients
+from labrig.physics.mechanics.convolution import SurfaceConvolver, coefficient_window, convolver
+from labrig.physics.mechanics.grid import Grid
+from labrig.physics.mechanics.influence import check_mode, normal_coefficients, tangential_coefficients
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.indenters import Indenter
-from labrig.sim.mechanics.grid import Grid
-from labrig.sim.mechanics.kernels import Box, SurfaceKernels
+from labrig.physics.mechanics.grid import Grid
+from labrig.physics.mechanics.kernels import Box, SurfaceKernels
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -1,79 +1,43 @@
-"""Evaluation windows and what a lab measures at them: the F/T sensor in the gel frame, the contact's position.
+"""What a lab measures at evaluation windows: the F/T sensor's force on the gel in the gel frame,
+the contact's position, and whether the camera stream covers the protocol.
 
-The paper evaluates on sequential windows of 20,000 events per test recording; each
-window's end is an evaluation time. The depth network always sees the window it was
-trained on (its model card's ``window_ms``) ending there, whatever the evaluation step.
+The windows themselves are :func:`labrig.pipeline.windows.window_ends_us` (the paper's: sequential
+windows of 20,000 events per test recording; each window's end is an evaluation time).
 """
 
 from __future__ import annotations
 
+import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from labrig.calibration.registration_file import REGISTRATION_FILE, load_registration
 from labrig.errors import LabrigError
+from labrig.frames import rotvec_to_matrix
 from labrig.recording import Recording
 
 F64 = npt.NDArray[np.float64]
-
-PAPER_WINDOW_EVENTS = 20_000
-
-
-def window_ends_us(recording: Recording, *, window_events: int | None = PAPER_WINDOW_EVENTS,
-                   window_us: int | None = None) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """(t0_us, t1_us) host times of sequential windows: ``window_events`` events each, or ``window_us`` long.
-
-    Count windows are found from the event time column in one pass (no event payload is
-    read); the final partial window is dropped, as in :func:`labrig.pipeline.runtime.windows`.
-    """
-    if (window_events is None) == (window_us is None):
-        raise ValueError("give exactly one of window_events and window_us")
-    end = recording.end_us()
-    if window_us is not None:
-        if window_us <= 0:
-            raise ValueError("window_us must be positive")
-        t0 = np.arange(0, end - window_us + 1, window_us, dtype=np.int64)
-        return t0, t0 + window_us
-    assert window_events is not None
-    if window_events <= 0:
-        raise ValueError("window_events must be positive")
-    t = _event_times_us(recording)
-    starts = np.arange(0, t.size - window_events, window_events)
-    return t[starts].astype(np.int64), t[starts + window_events].astype(np.int64)
-
-
-def _event_times_us(recording: Recording, chunk: int = 4_000_000) -> npt.NDArray[np.int64]:
-    """Every event's host time (us), in order, read in chunks of the time column only."""
-    model = recording.clock_model("camera")
-    n = recording.n_events
-    parts = []
-    for start in range(0, n, chunk):
-        t_dev = recording.column("events", "t_device_us", start, min(start + chunk, n))
-        parts.append(model.to_host_us_int(t_dev))
-    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
 # -- the F/T sensor in the gel frame ------------------------------------------------------------
 
 
-def ft_axes_in_gel(recording: Recording, calibration_dir: str | Path | None = "calibration") -> tuple[F64, str]:
+def ft_axes_in_gel(recording: Recording | None, calibration_dir: str | Path | None = "calibration") -> tuple[F64, str]:
     """Rotation (3, 3) from the F/T sensor's axes to the gel frame, and where it came from.
 
-    The rig registration the recording names (``extra_calibration``), else
-    ``calibration_dir/rig-registration.toml``, else identity (the nominal mounting).
+    The rig registration the recording names (``extra_calibration``; None: no recording yet, as
+    in a live run), else ``calibration_dir/rig-registration.toml``, else identity (the nominal
+    mounting).
     """
-    import json
-
-    from labrig.calibration.registration import load_registration
-    from labrig.frames import rotvec_to_matrix
-
-    named = recording.attrs.get("extra_calibration", "")
+    named = recording.attrs.get("extra_calibration", "") if recording is not None else ""
     candidates = [Path(p) for p in (json.loads(named) if isinstance(named, str) and named else {})
-                  if Path(p).name == "rig-registration.toml"]
+                  if Path(p).name == REGISTRATION_FILE]
     if calibration_dir is not None:
-        candidates.append(Path(calibration_dir) / "rig-registration.toml")
+        candidates.append(Path(calibration_dir) / REGISTRATION_FILE)
     for path in candidates:
         if path.exists():
             section = load_registration(path).get("ft_axes", {})
@@ -82,11 +46,18 @@ def ft_axes_in_gel(recording: Recording, calibration_dir: str | Path | None = "c
     return np.eye(3), "nominal (no rig registration)"
 
 
-def measured_force_on_gel_n(recording: Recording, t0_us: npt.ArrayLike, t1_us: npt.ArrayLike,
-                            ft_to_gel: F64) -> F64:
-    """Mean tared F/T force over each ``[t0, t1)`` as the force on the gel, gel frame, N: (W, 3).
+def ft_on_gel_n(force_sensor_n: Sequence[float] | F64, ft_to_gel: F64) -> F64:
+    """Tared F/T forces (on the indenter, sensor axes, N; (3,) or (n, 3)) as the forces on the gel in the gel frame.
 
     The sensor carries the indenter and reads the force on it; the gel feels the opposite.
+    """
+    return -(np.asarray(force_sensor_n, np.float64) @ ft_to_gel.T)
+
+
+def measured_force_on_gel_n(recording: Recording, t0_us: npt.ArrayLike, t1_us: npt.ArrayLike,
+                            ft_to_gel: F64) -> F64:
+    """Mean tared F/T force over each ``[t0, t1)`` (host time, us) as the force on the gel, gel frame, N: (W, 3).
+
     A window without a sample takes the nearest sample.
     """
     if "ft" not in recording.streams or recording.rows("ft") == 0:
@@ -94,14 +65,14 @@ def measured_force_on_gel_n(recording: Recording, t0_us: npt.ArrayLike, t1_us: n
     ft = recording.ft()
     t = np.asarray(ft["t_us"], np.int64)
     order = np.argsort(t, kind="stable")
-    t, force = t[order], np.asarray(ft["force_n"], np.float64)[order] @ ft_to_gel.T
+    t, force = t[order], ft_on_gel_n(np.asarray(ft["force_n"], np.float64)[order], ft_to_gel)
     cumulative = np.vstack([np.zeros(3), np.cumsum(force, axis=0)])
     a = np.searchsorted(t, np.asarray(t0_us), "left")
     b = np.searchsorted(t, np.asarray(t1_us), "left")
     count = (b - a)[:, None]
     mean = (cumulative[b] - cumulative[a]) / np.maximum(count, 1)
     nearest = force[np.clip(b, 0, t.size - 1)]
-    return -np.where(count > 0, mean, nearest)
+    return np.where(count > 0, mean, nearest)
 
 
 # -- where the indenter is --------------------------------------------------------------------

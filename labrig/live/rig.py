@@ -2,10 +2,10 @@
 
 * :func:`camera_stream`: the camera of the rig file's ``[devices]`` (``metavision`` hardware,
   a ``sim`` socket of ``labrig sim serve``, or a ``raw`` file replayed in real time), read
-  directly by a :class:`~labrig.pipeline.live.LiveRunner`.
+  directly by a :class:`~labrig.live.runner.LiveRunner`.
 * :class:`ProbeStream`: one probing run (:class:`~labrig.protocol.runner.ProbeRunner`) on an
   open :class:`~labrig.protocol.session.RigSession` in a background thread, while the live
-  pipeline reads the same camera chunks through a :class:`~labrig.pipeline.live.ChunkTap`
+  pipeline reads the same camera chunks through a :class:`~labrig.live.sources.ChunkTap`
   registered as the session's chunk listener. The run records as ``labrig record`` does (the
   recording path is untouched); that recording's F/T samples are then the reference for
   :func:`compare_with_ft`.
@@ -18,7 +18,7 @@ registration) and negated before any comparison.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -28,11 +28,16 @@ import numpy.typing as npt
 
 from labrig.devices.camera import Camera, CameraError, open_camera
 from labrig.errors import LabrigError
-from labrig.pipeline.live import MAX_LAG_MS, ChunkTap, LiveRunner
-from labrig.pipeline.runtime import DEFAULT_WINDOW_US, Pipeline, WindowResult
+from labrig.evaluation.measured import ft_axes_in_gel, measured_force_on_gel_n
+from labrig.live.runner import MAX_LAG_MS, LiveRunner
+from labrig.live.sources import ChunkTap
+from labrig.pipeline.runtime import Pipeline, WindowResult
+from labrig.pipeline.windows import DEFAULT_WINDOW_US
+from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.runner import ProbeRunner, RunResult
-from labrig.protocol.session import DeviceConfig, RigSession
+from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ProbeSpec
+from labrig.recording import Recording
 
 F64 = npt.NDArray[np.float64]
 
@@ -153,25 +158,6 @@ class ProbeStream:
 # -- against the F/T sensor ---------------------------------------------------------------------------
 
 
-def ft_axes_from_registration(calibration_dir: str | Path | None) -> tuple[F64, str]:
-    """Rotation (3, 3) from the F/T sensor's axes to the gel frame (``rig-registration.toml``
-    [ft_axes] in ``calibration_dir``), else identity (the nominal mounting); and its source."""
-    from labrig.calibration.registration import REGISTRATION_FILE, load_registration
-    from labrig.frames import rotvec_to_matrix
-
-    path = Path(calibration_dir) / REGISTRATION_FILE if calibration_dir is not None else None
-    if path is not None and path.exists():
-        section = load_registration(path).get("ft_axes", {})
-        if "rotvec_rad" in section:
-            return rotvec_to_matrix(np.asarray(section["rotvec_rad"], np.float64)), str(path)
-    return np.eye(3), "nominal (no rig registration)"
-
-
-def ft_on_gel_n(force_sensor_n: Sequence[float] | F64, ft_to_gel: F64) -> F64:
-    """A tared F/T force (on the indenter, sensor axes, N) as the force on the gel in the gel frame."""
-    return -(np.asarray(force_sensor_n, np.float64) @ ft_to_gel.T)
-
-
 def compare_with_ft(recording: str | Path, t0_device_us: npt.ArrayLike, t1_device_us: npt.ArrayLike,
                     net_force_n: npt.ArrayLike, calibration_dir: str | Path | None) -> dict[str, Any]:
     """The live net forces (W, 3) of device-time windows against the recording's F/T sensor.
@@ -181,9 +167,6 @@ def compare_with_ft(recording: str | Path, t0_device_us: npt.ArrayLike, t1_devic
     its mean tared sample, rotated into the gel frame and negated (on the gel). Peaks are
     normal forces (-Fz, N) of window means.
     """
-    from labrig.evaluation.windows import ft_axes_in_gel, measured_force_on_gel_n
-    from labrig.recording import Recording
-
     net = np.asarray(net_force_n, np.float64).reshape(-1, 3)
     with Recording(recording) as rec:
         rotation, axes_source = ft_axes_in_gel(rec, calibration_dir)

@@ -27,8 +27,8 @@ import numpy.typing as npt
 from scipy.special import j0, jv
 
 from labrig.config import GelConfig
-from labrig.sim.mechanics.grid import Grid
-from labrig.sim.mechanics.spectral import (
+from labrig.physics.mechanics.grid import Grid
+from labrig.physics.mechanics.spectral import (
     LAYER_KT_MAX,
     contact_modulus_mpa,
     layer_longitudinal_compliance,

@@ -16,7 +16,7 @@ that passes the reversal point it started from rejoins the older branch
 The superposition is exact for the half-space Cattaneo-Mindlin problem when
 the tangential kernel is proportional to the normal one; here it is an
 approximation (the disc-constrained traction can then exceed mu p slightly,
-so :class:`~labrig.sim.mechanics.tables.ContactTable` clips it). It assumes a constant depth while shearing: if the depth
+so :class:`~labrig.physics.mechanics.tables.ContactTable` clips it). It assumes a constant depth while shearing: if the depth
 changes, the terms are evaluated at the current depth.
 """
 

@@ -1,4 +1,7 @@
-"""Contact mechanics of the virtual rig: a rigid indenter on the gel.
+"""Contact mechanics of a rigid indenter on the gel.
+
+Shared by the virtual rig (forward solves and tables), ground truth (solves at the
+measured tip), calibration (the modulus fit) and the inverse FEM (the layer compliance).
 
 The gel is a layer (``GelConfig.thickness_mm``, E, nu) bonded to a rigid
 window, or optionally an elastic half-space; Coulomb friction ``gel.friction``
@@ -17,14 +20,15 @@ Pieces: :mod:`spectral` (Fourier compliances), :mod:`influence` (real-space
 influence coefficients), :mod:`convolution` (DC-FFT), :mod:`kernels` (the
 bundle per gel/grid/mode), :mod:`normal` (Polonsky-Keer), :mod:`tangential`
 (Coulomb partial slip), :mod:`history` (Masing), :mod:`stiffening`,
-:mod:`tables` (precomputed, cached, real-time lookups; built by :mod:`table_build`), :mod:`rotation`.
+:mod:`tables` (precomputed real-time lookups; built by :mod:`table_build`, cached by
+:mod:`table_cache`), :mod:`rotation`.
 """
 
-from labrig.sim.mechanics.grid import Grid
-from labrig.sim.mechanics.history import ShearHistory
-from labrig.sim.mechanics.kernels import Box, SurfaceKernels
-from labrig.sim.mechanics.normal import NormalSolution, indenter_height_mm, solve_normal
-from labrig.sim.mechanics.spectral import (
+from labrig.physics.mechanics.grid import Grid
+from labrig.physics.mechanics.history import ShearHistory
+from labrig.physics.mechanics.kernels import Box, SurfaceKernels
+from labrig.physics.mechanics.normal import NormalSolution, indenter_height_mm, solve_normal
+from labrig.physics.mechanics.spectral import (
     confined_modulus_mpa,
     contact_modulus_mpa,
     halfspace_compliances,
@@ -33,9 +37,10 @@ from labrig.sim.mechanics.spectral import (
     layer_transverse_compliance,
     shear_modulus_mpa,
 )
-from labrig.sim.mechanics.stiffening import stiffening_factor
-from labrig.sim.mechanics.tables import TABLE_VERSION, ContactFields, ContactTable, table_cache_dir
-from labrig.sim.mechanics.tangential import TangentialSolution, full_slip_traction_mpa, solve_tangential
+from labrig.physics.mechanics.stiffening import stiffening_factor
+from labrig.physics.mechanics.table_cache import TABLE_VERSION, table_cache_dir
+from labrig.physics.mechanics.tables import ContactFields, ContactTable
+from labrig.physics.mechanics.tangential import TangentialSolution, full_slip_traction_mpa, solve_tangential
 
 __all__ = [
     "TABLE_VERSION",

@@ -1,5 +1,9 @@
 """Calibration scenes recorded on the virtual rig: a blinking dot-grid target, and the LED ring blinking.
 
+``labrig calibrate intrinsics`` and ``labrig calibrate extrinsics`` record them
+when no recording is given; :mod:`labrig.calibration` analyses them like any
+recording.
+
 Both are written as ordinary labrig recordings (docs/recording-format.md):
 events with the simulated camera clock (offset and drift, as the virtual rig
 stamps them), event packets every ``PACKET_US`` of world time received at the
@@ -23,12 +27,13 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
-from labrig.frames import Pose, matrix_to_rotvec
+from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix
 from labrig.indenters import Indenter, load_indenter
+from labrig.physics.camera import CameraModel
+from labrig.physics.target import DotGridTarget, target_pose
 from labrig.recording import RecordingMetadata, RecordingWriter
-from labrig.sim.camera import CameraModel
 from labrig.sim.events import EventParams
-from labrig.sim.target import DotGridTarget, target_pose
+from labrig.sim.rig import VirtualRig
 from labrig.sim.target_scene import TargetScene
 
 #: Event packet length written to the recording, world us.
@@ -122,8 +127,6 @@ def _aimed_pose(camera: CameraModel, points: npt.NDArray[np.float64], rot: npt.A
 
 def _rotvec_compose(first: list[float], second: list[float]) -> npt.NDArray[np.float64]:
     """Rotation vector of R(first) @ R(second)."""
-    from labrig.frames import rotvec_to_matrix
-
     return matrix_to_rotvec(rotvec_to_matrix(first) @ rotvec_to_matrix(second))
 
 
@@ -187,8 +190,6 @@ def record_led_blink(
     half a period later. The true gel-to-camera pose goes into
     ``extra_truth_gel_to_camera_json``.
     """
-    from labrig.sim.rig import VirtualRig
-
     path = Path(path)
     if overwrite and path.exists():
         path.unlink()

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from labrig.sim.mechanics.kernels import Box, SurfaceKernels
-from labrig.sim.mechanics.normal import NormalSolution
+from labrig.physics.mechanics.kernels import Box, SurfaceKernels
+from labrig.physics.mechanics.normal import NormalSolution
 
 FloatArray = npt.NDArray[np.float64]
 

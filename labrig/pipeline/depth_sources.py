@@ -1,0 +1,125 @@
+"""Depth sources: the normal-displacement map (90 x 112 network grid, mm into the gel) of each window.
+
+* :class:`TruthDepth`: the recording's ``/truth/depth`` nearest in time (virtual-rig recordings only);
+* :class:`ModelDepth`: the ONNX depth network (:mod:`labrig.pipeline.depthnet`) on the SAE of the
+  span it was trained on, ending at the window's end, with the quiet-window hold of
+  :mod:`labrig.pipeline.quiet`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig import models
+from labrig.errors import LabrigError
+from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.depthnet import DepthModel
+from labrig.pipeline.quiet import QuietHold, QuietParams
+from labrig.recording import Recording
+
+DEFAULT_QUIET = QuietParams()
+#: Tiles (rows x columns over the SAE grid) watched for motion with a noise-trained network.
+NOISE_TILES = (6, 7)
+
+
+class DepthSource(Protocol):
+    """Gives the normal-displacement map (90 x 112, mm into the gel) for a window.
+
+    ``window_us``: the span the source's SAE covers, ending at the pipeline window's end
+    (None: the pipeline window itself). ``depth_mm`` gets that span's SAE (None unless
+    ``needs_sae``), its bounds and how many events fell in it.
+    """
+
+    name: str
+    needs_sae: bool
+    window_us: float | None
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int) -> npt.NDArray[np.float32]: ...
+
+
+class TruthDepth:
+    """The recording's ``/truth/depth`` map nearest in time to the window's end (virtual rig only)."""
+
+    name = "truth"
+    needs_sae = False
+    window_us: float | None = None
+
+    def __init__(self, recording: Recording) -> None:
+        if "truth/depth" not in recording.streams or recording.rows("truth/depth") == 0:
+            raise LabrigError(f"{recording.path}: no /truth/depth (only virtual-rig recordings have it); use --depth model")
+        self.t_us = recording.column("truth/depth", "t_host_us")
+        self.maps = np.asarray(recording.column("truth/depth", "depth_mm"), np.float32)  # ~40 kB per solve, loaded once
+
+    def index(self, t_us: int) -> int:
+        k = int(np.searchsorted(self.t_us, t_us))
+        if k == 0:
+            return 0
+        if k >= len(self.t_us):
+            return len(self.t_us) - 1
+        return k if self.t_us[k] - t_us < t_us - self.t_us[k - 1] else k - 1
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int = 0) -> npt.NDArray[np.float32]:
+        return self.maps[self.index(t1_us)]
+
+
+class ModelDepth:
+    """The depth network (:class:`labrig.pipeline.depthnet.DepthModel`, ONNX) on the SAE of the
+    window it was trained on (model card ``window_ms``) ending at each pipeline window's end.
+
+    ``path``: an ``.onnx`` with its card, or a bundled network's name (``default``,
+    ``noise-robust``). ``quiet``: windows at the noise floor keep the last active map
+    (:mod:`labrig.pipeline.quiet`); ``"auto"`` also watches each SAE tile for motion when the
+    network was trained with background-noise augmentation (:func:`quiet_params_for`); None
+    feeds every window to the network.
+    """
+
+    needs_sae = True
+
+    def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | str | None = "auto") -> None:
+        self.model = DepthModel(models.model_path(path), threads=threads)
+        self.name = f"model:{self.model.name}"
+        self.window_us: float | None = self.model.window_ms * 1000.0
+        if quiet == "auto":
+            quiet = quiet_params_for(self.model.card)
+        assert not isinstance(quiet, str), f"quiet must be QuietParams, None or 'auto', not {quiet!r}"
+        self.hold = QuietHold(GRID_SHAPE, quiet) if quiet is not None else None
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int) -> npt.NDArray[np.float32]:
+        assert sae_grid is not None
+        if self.hold is None:
+            return self.model.depth_mm(sae_grid)
+        if self.hold(n_events, t1_us - t0_us, sae_grid):
+            return self.hold.held_mm
+        return self.hold.update(self.model.depth_mm(sae_grid))
+
+
+def quiet_params_for(card: dict[str, Any]) -> QuietParams:
+    """The quiet-window gate for a network: the rate gate, plus per-tile activity when it was
+    trained on noisy windows. A network trained clean draws dimples from a noisy SAE, so
+    the more sensitive tile test would hand it more of them (measured in docs/evaluation.md)."""
+    noise_trained = bool((card.get("augmentation") or {}).get("background_noise"))
+    return replace(DEFAULT_QUIET, tiles=NOISE_TILES) if noise_trained else DEFAULT_QUIET
+
+
+def default_model_path(folder: str | Path = "models") -> Path:
+    """The newest ``*.onnx`` with a model card in ``folder`` (your own trained networks), else the bundled one."""
+    candidates = sorted(Path(folder).glob("*.onnx"), key=lambda p: p.stat().st_mtime)
+    candidates = [p for p in candidates if p.with_suffix(".json").exists()]
+    return candidates[-1] if candidates else models.bundled_model_path()
+
+
+def depth_source(kind: str, recording: Recording, model_path: str | Path | None = None, threads: int = 1) -> DepthSource:
+    """"truth" (the recording's /truth/depth) or "model" (the ONNX network, newest in models/ by default)."""
+    if kind == "truth":
+        return TruthDepth(recording)
+    if kind == "model":
+        return ModelDepth(model_path or default_model_path(), threads=threads)
+    raise LabrigError(f"depth source must be 'truth' or 'model', not {kind!r}")

@@ -1,0 +1,117 @@
+"""What is fixed for a run: the rig, the camera, the markers' rest pixels and the gel law, and where each came from.
+
+The gel modulus is the fitted one (``calibration/gel.toml``) when present, else the rig's;
+the camera is the calibrated one (``calibration/intrinsics.toml`` + ``extrinsics.toml``)
+when present, else the rig's. :func:`setup_for_recording` resolves both for a recording,
+:func:`setup_for_rig` for a live stream.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.calibration.files import camera_from_calibration, load_extrinsics, load_intrinsics
+from labrig.calibration.gel import load_gel
+from labrig.config import RigConfig, load_rig
+from labrig.physics.camera import CameraModel
+from labrig.recording import Recording
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PipelineSetup:
+    """Everything fixed for a run: rig, camera, rest pixels, gel modulus and where they came from."""
+
+    rig: RigConfig
+    camera: CameraModel
+    rest_px: Array
+    youngs_modulus_mpa: float
+    poisson_ratio: float
+    sources: dict[str, str]
+    stiffening: float = 0.0  # E_eff = E (1 + stiffening * depth / thickness); 0: linear (the paper's)
+
+
+def rig_from_recording(recording: Recording) -> RigConfig | None:
+    """The rig TOML the recording carries (root attribute ``rig``), or None."""
+    text = recording.attrs.get("rig", "")
+    if not isinstance(text, str) or not text.strip():
+        return None
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "rig.toml"
+        path.write_text(text)
+        return load_rig(path)
+
+
+def _named_calibration(recording: Recording) -> dict[str, Path]:
+    """Calibration files the recording names (``extra_calibration``: JSON {path: sha256}) that still exist."""
+    raw = recording.attrs.get("extra_calibration", "")
+    try:
+        named = json.loads(raw) if isinstance(raw, str) and raw else {}
+    except json.JSONDecodeError:
+        named = {}
+    return {Path(p).name: Path(p) for p in named if Path(p).exists()}
+
+
+def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
+                        calibration_dir: str | Path | None = "calibration",
+                        youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None,
+                        stiffening: float | None = None) -> PipelineSetup:
+    """Rig, camera, rest pixels and gel modulus for ``recording``.
+
+    Rig: ``rig``, else the one the recording carries, else calibration/rig.toml. Files: those
+    the recording names, else ``calibration_dir`` (None: none); then as :func:`setup_for_rig`.
+    """
+    rig = rig or rig_from_recording(recording) or load_rig()
+    return setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=youngs_modulus_mpa,
+                         poisson_ratio=poisson_ratio, stiffening=stiffening, named=_named_calibration(recording))
+
+
+def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calibration",
+                  youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None,
+                  stiffening: float | None = None, named: dict[str, Path] | None = None) -> PipelineSetup:
+    """Camera, rest pixels and gel law for ``rig`` (a live stream, or a recording's rig).
+
+    Files: ``named`` ({file name: path}) first, else ``calibration_dir`` (None: none). Modulus
+    and stiffening: the arguments, else gel.toml, else the rig's [gel] modulus and a linear gel
+    (stiffening 0). Camera: intrinsics.toml + extrinsics.toml, else the rig's.
+    """
+    sources: dict[str, str] = {"rig": str(rig.path)}
+    files = dict(named or {})
+    if calibration_dir is not None:
+        for name in ("gel.toml", "intrinsics.toml", "extrinsics.toml"):
+            candidate = Path(calibration_dir) / name
+            if name not in files and candidate.exists():
+                files[name] = candidate
+    e, nu, b = rig.gel.youngs_modulus_mpa, rig.gel.poisson_ratio, 0.0
+    sources["modulus"], sources["stiffening"] = "rig [gel]", "linear gel"
+    if "gel.toml" in files and (youngs_modulus_mpa is None or stiffening is None):
+        fitted = load_gel(files["gel.toml"])
+        if youngs_modulus_mpa is None:
+            e = float(fitted.get("youngs_modulus_mpa", e))
+            nu = float(fitted.get("poisson_ratio", nu))
+            sources["modulus"] = str(files["gel.toml"])
+        if stiffening is None and "stiffening" in fitted:
+            b, sources["stiffening"] = float(fitted["stiffening"]), str(files["gel.toml"])
+    if youngs_modulus_mpa is not None:
+        e, sources["modulus"] = float(youngs_modulus_mpa), "argument"
+    if poisson_ratio is not None:
+        nu = float(poisson_ratio)
+    if stiffening is not None:
+        b, sources["stiffening"] = float(stiffening), "argument"
+    camera, rest_px = CameraModel.from_rig(rig), None
+    sources["camera"] = "rig"
+    if "intrinsics.toml" in files and "extrinsics.toml" in files:
+        extrinsics = load_extrinsics(files["extrinsics.toml"])
+        camera = camera_from_calibration(load_intrinsics(files["intrinsics.toml"]), extrinsics)
+        rest_px = np.asarray(extrinsics.rest_px, np.float64)
+        sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
+    if rest_px is None:
+        rest_px = camera.project(rig.markers.rest_positions_mm())
+    return PipelineSetup(rig, camera, rest_px, e, nu, sources, stiffening=b)
