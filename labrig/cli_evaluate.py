@@ -52,8 +52,9 @@ def evaluate_command(
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
 ) -> None:
     """Evaluate the pipeline on DATA: Tables I-III, errors per range, runtime, dense and label errors; a report."""
-    from labrig.evaluation.evaluate import EvaluationSettings, build_report, evaluate_campaign
+    from labrig.evaluation.evaluate import EvaluationSettings, evaluate_campaign
     from labrig.evaluation.report import check_report, print_summary
+    from labrig.evaluation.report_sections import build_report
 
     settings = EvaluationSettings(
         data=data, split=split, model=model, models_dir=models,

@@ -40,8 +40,9 @@ def groundtruth(
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
 ) -> None:
     """Ground-truth normal-deformation maps and contact masks for recordings, as NAME.gt.h5 beside each."""
-    from labrig.groundtruth import ELASTIC_MODELS, generate, sidecar_path, write_sidecar
-    from labrig.groundtruth.batch import find_recordings, is_current, plot_groundtruth
+    from labrig.dataset import DatasetRecording, open_data
+    from labrig.groundtruth import ELASTIC_MODELS, generate, write_sidecar
+    from labrig.groundtruth.batch import is_current, plot_groundtruth
 
     if model not in ELASTIC_MODELS:
         raise LabrigError(f"--model must be one of {', '.join(ELASTIC_MODELS)}, not {model!r}")
@@ -51,7 +52,9 @@ def groundtruth(
         raise LabrigError("--rate-hz and --scale-mm must be positive")
     if calibration is not None and not calibration.is_dir():
         raise LabrigError(f"--calibration {calibration}: not a folder")
-    jobs, not_complete = find_recordings(data)
+    source = open_data(data)
+    jobs, not_complete = (([source], 0) if isinstance(source, DatasetRecording)
+                          else (source.complete(), source.count_not_complete()))
     settings: dict[str, Any] = {"elastic_model": model, "rate_hz": float(rate_hz), "scale_mm": float(scale_mm)}
     if method != "auto":
         settings["contact_model"] = method
@@ -62,18 +65,18 @@ def groundtruth(
         overall = bar.add_task("recordings", total=len(jobs))
         maps = bar.add_task("maps", total=None)
         for job in jobs:
-            entry: dict[str, Any] = {"recording": str(job.recording), "split": job.split}
+            entry: dict[str, Any] = {"recording": str(job.path), "split": job.split}
             if not overwrite and is_current(job, settings):
-                entry.update(status="current", sidecar=str(sidecar_path(job.recording)))
+                entry.update(status="current", sidecar=str(job.sidecar))
                 results.append(entry)
                 bar.advance(overall)
                 continue
-            bar.update(maps, description=f"maps {job.recording.name}", completed=0, total=None)
+            bar.update(maps, description=f"maps {job.path.name}", completed=0, total=None)
             try:
-                gt = generate(job.recording, elastic=model, method=method, rate_hz=rate_hz, scale_mm=scale_mm,
+                gt = generate(job.path, elastic=model, method=method, rate_hz=rate_hz, scale_mm=scale_mm,
                               calibration_dir=calibration, rig_path=rig_path,
                               progress=lambda done, total: bar.update(maps, completed=done, total=total))
-                side = write_sidecar(gt, sidecar_path(job.recording))
+                side = write_sidecar(gt, job.sidecar)
             except LabrigError as exc:
                 if len(jobs) == 1:
                     raise

@@ -20,6 +20,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from labrig.dataset import SPLITS
 from labrig.errors import LabrigError
 
 console = Console()
@@ -208,7 +209,7 @@ def campaign(
         "pending": sum(1 for r in manifest.rows.values() if r["status"] not in ("complete",)),
         "workers": workers, "wall_s": round(wall, 2),
         "recordings_per_min": round(60 * done / wall, 3) if done and wall > 0 else 0.0,
-        "splits": {s: sum(1 for r in manifest.rows.values() if r["split"] == s) for s in ("train", "val", "test")},
+        "splits": {s: sum(1 for r in manifest.rows.values() if r["split"] == s) for s in SPLITS},
         "recorded_wall_s_total": round(recorded_s, 2),
     }
     if as_json:

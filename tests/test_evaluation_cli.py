@@ -22,7 +22,8 @@ runner = CliRunner()
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig) -> Path:
     """Two short simulated probes (sphere, cylinder) in the test split, with sidecars and a manifest."""
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.dataset import sidecar_path
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path
 

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from labrig.errors import LabrigError
-from labrig.evaluation.executor import ResultCache, TasksFailed, file_fingerprint, run_tasks, task_inputs
+from labrig.evaluation.executor import TasksFailed, run_tasks, task_inputs
+from labrig.evaluation.result_cache import ResultCache, file_fingerprint
 
 
 def summarise_file(task: dict[str, Any]) -> dict[str, Any]:
@@ -40,6 +41,29 @@ class FileTask:
 
 def summarise_file_task(task: FileTask) -> dict[str, Any]:
     return summarise_file({"path": task.path, "scale": task.scale})
+
+
+@dataclass(frozen=True)
+class Part:
+    name: str
+    values: np.ndarray
+
+
+@dataclass(frozen=True)
+class FileSummary:
+    n_bytes: int
+    histogram: np.ndarray
+    shape: tuple[int, int]
+    parts: list[Part]
+    by_name: dict[str, Part]
+    note: str | None = None
+
+
+def summary_of_file(task: FileTask) -> FileSummary:
+    """A task whose result is a frozen dataclass holding arrays, a tuple, and lists and dicts of dataclasses."""
+    data = np.frombuffer(Path(task.path).read_bytes(), np.uint8)
+    half = Part("half", data[: data.size // 2].astype(np.float32))
+    return FileSummary(int(data.size), np.bincount(data, minlength=256), (2, 3), [half], {"half": half})
 
 
 def assert_same(a: Any, b: Any) -> None:
@@ -106,6 +130,18 @@ def test_cache_version_and_dataclass_tasks(tmp_path: Path, files: list[Path], mo
     assert run_tasks(summarise_file_task, tasks, workers=1, cache_dir=tmp_path).hits == 2
     monkeypatch.setattr(summarise_file_task, "cache_version", "2", raising=False)
     assert run_tasks(summarise_file_task, tasks, workers=1, cache_dir=tmp_path).misses == 2
+
+
+def test_dataclass_results_come_back_from_the_cache_and_the_pool(tmp_path: Path, files: list[Path]) -> None:
+    tasks = [FileTask(str(p)) for p in files[:2]]
+    computed = run_tasks(summary_of_file, tasks, workers=2, cache_dir=tmp_path)
+    cached = run_tasks(summary_of_file, tasks, workers=1, cache_dir=tmp_path)
+    assert (computed.misses, cached.hits) == (2, 2)
+    for a, b in zip(computed, cached):
+        assert isinstance(b, FileSummary) and isinstance(b.parts[0], Part) and isinstance(b.by_name["half"], Part)
+        assert b.shape == (2, 3) and b.n_bytes == a.n_bytes and b.note is None
+        assert_same(a.histogram, b.histogram)
+        assert_same(a.parts[0].values, b.parts[0].values)
 
 
 def test_corrupt_or_partial_entries_are_misses(tmp_path: Path, files: list[Path]) -> None:

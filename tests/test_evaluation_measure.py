@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -22,7 +23,8 @@ from labrig.training import depth_errors_mm
 @pytest.fixture(scope="module")
 def probe(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
     """A short simulated sphere probe (1 mm, 0.5 mm shear) with its ground-truth sidecar."""
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.dataset import sidecar_path
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path
 
@@ -69,27 +71,27 @@ def test_ft_sensor_in_the_gel_frame_matches_the_sims_force_on_the_gel(probe: Pat
 
 def test_forces_with_the_true_depth_follow_the_ft_sensor(probe: Path) -> None:
     r = evaluate_forces(ForceTask(str(probe), "truth", window_events=None, window_us=20_000, calibration_dir=None))
-    p = r["probing"]
-    assert p.sum() > 20 and r["depth_source"] == "truth"
-    peak = int(np.argmin(r["measured_n"][:, 2]))
-    assert r["measured_n"][peak, 2] < -2.0
-    assert abs(r["predicted_n"][peak, 2] / r["measured_n"][peak, 2] - 1) < 0.25
-    assert np.nanmean(r["marker_mae_n"][p], axis=0).max() < 0.05  # N per marker against the sim's field
-    err = r["contact_error_px"][p]
+    p = r.probing
+    assert p.sum() > 20 and r.depth_source == "truth"
+    peak = int(np.argmin(r.measured_n[:, 2]))
+    assert r.measured_n[peak, 2] < -2.0
+    assert abs(r.predicted_n[peak, 2] / r.measured_n[peak, 2] - 1) < 0.25
+    assert np.nanmean(r.marker_mae_n[p], axis=0).max() < 0.05  # N per marker against the sim's field
+    err = r.contact_error_px[p]
     err = err[np.isfinite(err).all(1)]
     assert len(err) > 10 and np.median(np.linalg.norm(err, axis=1)) < 10.0  # px; the sphere is 6 mm, 1 mm deep
     rows = {row["axis"]: row for row in tables.table3([r])}
     assert rows["total"]["force_mae_n"] >= rows["z"]["force_mae_n"] > 0
-    assert set(r["stage_ms"]) >= {"track", "depth", "forces"} and r["total_ms"] > 0
+    assert set(r.stage_ms) >= {"track", "depth", "forces"} and r.total_ms > 0
 
 
 def test_depth_errors_of_a_network_per_window(probe: Path, tiny_model: Path) -> None:
     r = evaluate_depth(DepthTask(str(probe), str(tiny_model), window_events=None, window_us=50_000))
-    w = len(r["t_us"])
-    assert w > 10 and r["window_ms"] == 10.0
+    w = len(r.t_us)
+    assert w > 10 and r.window_ms == 10.0
     for key in ("total_mm", "noncontact_mm", "true_max_mm", "gt_offset_us"):
-        assert r[key].shape == (w,)
-    assert np.isfinite(r["contact_mm"]).sum() > 3 and np.nanmax(np.abs(r["gt_offset_us"])) <= 10_000
+        assert getattr(r, key).shape == (w,)
+    assert np.isfinite(r.contact_mm).sum() > 3 and np.nanmax(np.abs(r.gt_offset_us)) <= 10_000
     row = tables.depth_row([r])
     assert row["windows"] == w and row["total_mm"] > 0
 
@@ -107,10 +109,10 @@ def test_per_map_errors_agree_with_the_training_metric() -> None:
 
 
 def test_table3_on_hand_made_results() -> None:
-    result = {"predicted_n": np.array([[1.0, 0.0, -5.0], [0.0, 2.0, -10.0], [9.0, 9.0, 9.0]]),
-              "measured_n": np.array([[0.5, 0.0, -4.0], [0.0, 1.0, -12.0], [0.0, 0.0, 0.0]]),
-              "contact_error_px": np.array([[3.0, 4.0], [np.nan, np.nan], [100.0, 100.0]]),
-              "probing": np.array([True, True, False])}
+    result = SimpleNamespace(predicted_n=np.array([[1.0, 0.0, -5.0], [0.0, 2.0, -10.0], [9.0, 9.0, 9.0]]),
+                             measured_n=np.array([[0.5, 0.0, -4.0], [0.0, 1.0, -12.0], [0.0, 0.0, 0.0]]),
+                             contact_error_px=np.array([[3.0, 4.0], [np.nan, np.nan], [100.0, 100.0]]),
+                             probing=np.array([True, True, False]))
     rows = {row["axis"]: row for row in tables.table3([result])}
     assert rows["x"]["force_mae_n"] == pytest.approx(0.25)
     assert rows["y"]["force_mae_n"] == pytest.approx(0.5)
@@ -127,7 +129,7 @@ def test_layer_labels_beat_the_half_space_out_of_contact(probe: Path) -> None:
 
     layer = evaluate_groundtruth(GroundTruthErrorTask(str(probe), "layer"))
     halfspace = evaluate_groundtruth(GroundTruthErrorTask(str(probe), "halfspace"))
-    assert layer["frames"] > 20 and layer["method"] and halfspace["elastic"] == "halfspace"
-    assert layer["mae_noncontact_mm"] < 0.03 < 0.05 < halfspace["mae_noncontact_mm"]  # docs/groundtruth.md
-    assert halfspace["mae_noncontact_mm"] > 5 * layer["mae_noncontact_mm"]
-    assert layer["mae_contact_mm"] < 0.15 and layer["mask_iou"] > 0.5
+    assert layer.frames > 20 and layer.method and halfspace.elastic == "halfspace"
+    assert layer.mae_noncontact_mm < 0.03 < 0.05 < halfspace.mae_noncontact_mm  # docs/groundtruth.md
+    assert halfspace.mae_noncontact_mm > 5 * layer.mae_noncontact_mm
+    assert layer.mae_contact_mm < 0.15 and layer.mask_iou > 0.5

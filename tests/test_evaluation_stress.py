@@ -66,7 +66,7 @@ def test_forces_beyond_the_linear_range_break_the_linear_inverse_fem(suite: Stre
     assert 1.0 < breaks(suite, "force_range", "forces-linear") <= 2.25  # mm, beyond the gel calibration's 1.0 mm
     calibrated = curve(suite, "force_range", "forces-truth")  # the fitted stiffening extrapolates
     assert calibrated.error[-1] < forces.error[-1] / 2 and breaks(suite, "force_range", "forces-truth") is None
-    peak = [facts["peak_normal_n"] for facts in suite.scenes["force_range"]]
+    peak = [facts.peak_normal_n for facts in suite.scenes["force_range"]]
     assert peak[0] < 2 < 10 < peak[-1]  # N: the deepest press is far beyond the calibration's 6 N
 
 
@@ -88,7 +88,7 @@ def test_event_noise_breaks_the_circle_fit_but_not_the_gated_tracker(suite: Stre
     assert breaks(suite, "event_noise", "paper") is None and max(paper.lost) == 0
     assert max(paper.error) < 1.6 * paper.error[0]
     scenes = suite.scenes["event_noise"]
-    assert scenes[-1]["events"] > 10 * scenes[0]["events"]  # the noise is really there
+    assert scenes[-1].events > 10 * scenes[0].events  # the noise is really there
     assert scenes[0] == suite.scenes["force_range"][1]  # the default probe, simulated once for both axes
 
 
@@ -167,7 +167,8 @@ def test_stress_curves_hold_numbers(suite: StressResult) -> None:
 @pytest.fixture(scope="module")
 def short_probe(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
     """DATA for `labrig evaluate`: one short shallow press with its sidecar."""
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.dataset import sidecar_path
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path
 

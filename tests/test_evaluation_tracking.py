@@ -6,7 +6,9 @@ tracked in 10 ms windows. Also: the same results from in-process, process-pool a
 
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -17,6 +19,7 @@ from labrig.errors import LabrigError
 from labrig.evaluation.executor import run_tasks
 from labrig.evaluation.tracking import (
     LOST_PX,
+    TrackingResult,
     TrackingTask,
     table_lost_tracks,
     table_tasks,
@@ -50,21 +53,21 @@ def presses(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: In
 
 
 @pytest.fixture(scope="session")
-def table_results(presses: list[str], tmp_path_factory: pytest.TempPathFactory) -> list[dict[str, Any]]:
+def table_results(presses: list[str], tmp_path_factory: pytest.TempPathFactory) -> list[TrackingResult]:
     """1x and 3x patches, with and without refinement, for the bundled and the published tracker."""
     tasks = [t for kind in ("paper", "paper-published") for t in table_tasks(presses, patch_scales=(1.0, 3.0), tracker=kind)]
     results = run_tasks(track_recording, tasks, workers=1, cache_dir=tmp_path_factory.mktemp("cache"))
     return list(results)
 
 
-def pick(results: list[dict[str, Any]], **settings: Any) -> list[dict[str, Any]]:
-    chosen = [r for r in results if all(r[k] == v for k, v in settings.items())]
+def pick(results: list[TrackingResult], **settings: Any) -> list[TrackingResult]:
+    chosen = [r for r in results if all(getattr(r, k) == v for k, v in settings.items())]
     assert chosen, settings
     return chosen
 
 
-def without_timing(result: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in result.items() if k not in TIMING_KEYS}
+def without_timing(result: TrackingResult) -> dict[str, Any]:
+    return {f.name: getattr(result, f.name) for f in fields(result) if f.name not in TIMING_KEYS}
 
 
 def assert_same(a: dict[str, Any], b: dict[str, Any]) -> None:
@@ -76,50 +79,50 @@ def assert_same(a: dict[str, Any], b: dict[str, Any]) -> None:
             assert a[k] == b[k], k
 
 
-def test_default_tracker_loses_nothing_and_errs_little(table_results: list[dict[str, Any]]) -> None:
+def test_default_tracker_loses_nothing_and_errs_little(table_results: list[TrackingResult]) -> None:
     for r in pick(table_results, tracker="paper", patch_scale=3.0, refine=True):
-        print(f"{Path(r['recording']).name}: lost {r['lost_tracks']}, by truth {r['lost_by_truth']}, error median "
-              f"{r['error_median_px']:.2f} p95 {r['error_p95_px']:.2f} max {r['error_max_px']:.1f} px, "
-              f"drift max {r['drift_max_px']:.1f} px, {r['track_ms_median']:.2f} ms/window, {r['n_windows']} windows")
-        assert r["has_truth"] and r["n_markers"] == 156 and r["drift_px"].shape == (156,)
-        assert r["lost_tracks"] == 0 and r["lost_by_truth"] == 0
-        assert r["error_median_px"] < 1.0 and r["error_p95_px"] < 3.5 and r["error_max_px"] < LOST_PX
-        assert r["truth_end_offset_max_px"] < 0.5  # the sequences end at rest: the start-end proxy's premise
-        assert r["t1_us"].shape == r["window_error_p95_px"].shape == (r["n_windows"],)
-        assert 80 <= r["n_windows"] <= 130 and 0 < r["track_ms_median"] < 5.0
-        assert r["rest_source"].endswith("extrinsics.toml")
+        print(f"{Path(r.recording).name}: lost {r.lost_tracks}, by truth {r.lost_by_truth}, error median "
+              f"{r.error_median_px:.2f} p95 {r.error_p95_px:.2f} max {r.error_max_px:.1f} px, "
+              f"drift max {r.drift_max_px:.1f} px, {r.track_ms_median:.2f} ms/window, {r.n_windows} windows")
+        assert r.has_truth and r.n_markers == 156 and r.drift_px.shape == (156,)
+        assert r.lost_tracks == 0 and r.lost_by_truth == 0
+        assert r.error_median_px < 1.0 and r.error_p95_px < 3.5 and r.error_max_px < LOST_PX
+        assert r.truth_end_offset_max_px < 0.5  # the sequences end at rest: the start-end proxy's premise
+        assert r.t1_us.shape == r.window_error_p95_px.shape == (r.n_windows,)
+        assert 80 <= r.n_windows <= 130 and 0 < r.track_ms_median < 5.0
+        assert r.rest_source.endswith("extrinsics.toml")
 
 
-def test_published_tracker_loses_tracks_in_plausible_numbers(table_results: list[dict[str, Any]]) -> None:
-    lost = [r["lost_tracks"] for r in pick(table_results, tracker="paper-published", refine=False)]
-    by_truth = [r["lost_by_truth"] for r in pick(table_results, tracker="paper-published", refine=False)]
+def test_published_tracker_loses_tracks_in_plausible_numbers(table_results: list[TrackingResult]) -> None:
+    lost = [r.lost_tracks for r in pick(table_results, tracker="paper-published", refine=False)]
+    by_truth = [r.lost_by_truth for r in pick(table_results, tracker="paper-published", refine=False)]
     assert 0 < max(lost) < 60 and max(by_truth) < 100  # of 156 markers
     # A track that ends off its rest position was off the (resting) truth too: the truth sees every start-end
     # loss (1 px of slack for the calibrated rest positions), and also those that were lost and came back.
     for r in pick(table_results, tracker="paper-published"):
-        assert np.all(r["error_max_per_marker_px"][r["drift_px"] > LOST_PX + 1.0] > LOST_PX)
-    assert sum(r["lost_by_truth"] for r in table_results) > sum(r["lost_tracks"] for r in table_results)
+        assert np.all(r.error_max_per_marker_px[r.drift_px > LOST_PX + 1.0] > LOST_PX)
+    assert sum(r.lost_by_truth for r in table_results) > sum(r.lost_tracks for r in table_results)
 
 
 @pytest.mark.parametrize("tracker", ["paper", "paper-published"])
-def test_refinement_is_never_worse_at_1x(table_results: list[dict[str, Any]], tracker: str) -> None:
+def test_refinement_is_never_worse_at_1x(table_results: list[TrackingResult], tracker: str) -> None:
     refined = pick(table_results, tracker=tracker, patch_scale=1.0, refine=True)
     plain = pick(table_results, tracker=tracker, patch_scale=1.0, refine=False)
     for a, b in zip(refined, plain):
-        assert a["recording"] == b["recording"]
-        assert a["lost_tracks"] <= b["lost_tracks"] and a["lost_by_truth"] <= b["lost_by_truth"]
-    assert np.mean([a["error_p95_px"] for a in refined]) <= np.mean([b["error_p95_px"] for b in plain])
+        assert a.recording == b.recording
+        assert a.lost_tracks <= b.lost_tracks and a.lost_by_truth <= b.lost_by_truth
+    assert np.mean([a.error_p95_px for a in refined]) <= np.mean([b.error_p95_px for b in plain])
 
 
-def test_a_1x_patch_errs_more_than_3x(table_results: list[dict[str, Any]]) -> None:
+def test_a_1x_patch_errs_more_than_3x(table_results: list[TrackingResult]) -> None:
     for refine in (True, False):
         small = pick(table_results, tracker="paper", patch_scale=1.0, refine=refine)
         usual = pick(table_results, tracker="paper", patch_scale=3.0, refine=refine)
         for a, b in zip(small, usual):
-            assert a["lost_tracks"] > b["lost_tracks"] or a["error_p95_px"] > 1.3 * b["error_p95_px"]
+            assert a.lost_tracks > b.lost_tracks or a.error_p95_px > 1.3 * b.error_p95_px
 
 
-def test_table_rows(table_results: list[dict[str, Any]]) -> None:
+def test_table_rows(table_results: list[TrackingResult]) -> None:
     rows = table_lost_tracks([*table_results, None])  # a failed task is skipped
     assert len(rows) == 8
     for row in rows:
@@ -129,16 +132,16 @@ def test_table_rows(table_results: list[dict[str, Any]]) -> None:
     first = rows[0]
     assert (first["tracker"], first["refine"], first["patch_scale"], first["recordings"]) == ("paper", True, 1.0, 3)
     assert [r["refine"] for r in rows[:4]] == [True, True, False, False]
-    lost = [r["lost_tracks"] for r in pick(table_results, tracker="paper-published", patch_scale=3.0, refine=False)]
+    lost = [r.lost_tracks for r in pick(table_results, tracker="paper-published", patch_scale=3.0, refine=False)]
     published = next(r for r in rows if (r["tracker"], r["refine"], r["patch_scale"]) == ("paper-published", False, 3.0))
     assert published["lost_mean"] == pytest.approx(np.mean(lost)) and published["lost_std"] == pytest.approx(np.std(lost))
 
 
 def test_table_of_hand_made_results() -> None:
-    def result(lost: int, by_truth: int | None, scale: float = 2.0) -> dict[str, Any]:
-        return {"tracker": "paper", "window_us": 10_000, "window_events": None, "refine": False, "patch_scale": scale,
-                "lost_tracks": lost, "has_truth": by_truth is not None, "lost_by_truth": by_truth,
-                "error_p95_px": 2.0 if by_truth is not None else None, "track_ms_median": 0.1}
+    def result(lost: int, by_truth: int | None, scale: float = 2.0) -> SimpleNamespace:
+        return SimpleNamespace(tracker="paper", window_us=10_000, window_events=None, refine=False, patch_scale=scale,
+                               lost_tracks=lost, has_truth=by_truth is not None, lost_by_truth=by_truth,
+                               error_p95_px=2.0 if by_truth is not None else None, track_ms_median=0.1)
 
     rows = table_lost_tracks([result(2, 4), result(4, None), result(0, 0, scale=1.0)])
     assert [r["patch_scale"] for r in rows] == [1.0, 2.0]
@@ -153,9 +156,9 @@ def test_truth_helpers() -> None:
                                [[0, 0], [5, 0], [10, 10], [10, 20]])
     track = np.zeros((2, 1, 2))
     errors = truth_errors(track, np.array([500.0, 2000.0]), (t, truth), LOST_PX)
-    assert errors["error_max_px"] == pytest.approx(np.hypot(10, 20)) and errors["lost_by_truth"] == 1
+    assert errors.error_max_px == pytest.approx(np.hypot(10, 20)) and errors.lost_by_truth == 1
     missing = truth_errors(track, np.array([500.0, 2000.0]), None, LOST_PX)
-    assert missing["has_truth"] is False and missing["error_p95_px"] is None and missing["lost_by_truth"] is None
+    assert missing.has_truth is False and missing.error_p95_px is None and missing.lost_by_truth is None
 
 
 def test_settings_are_checked(presses: list[str]) -> None:
@@ -170,9 +173,9 @@ def test_settings_are_checked(presses: list[str]) -> None:
 def test_other_settings_run(presses: list[str]) -> None:
     evetac = track_recording(TrackingTask(presses[0], tracker="evetac", patch_scale=2.0))
     counted = track_recording({"recording": presses[0], "window_us": None, "window_events": 20_000, "rest": "rig"})
-    assert evetac["lost_tracks"] == 0 and evetac["error_p95_px"] < 5.0
-    assert counted["window_events"] == 20_000 and 5 <= counted["n_windows"] <= 40 and counted["lost_tracks"] == 0
-    assert counted["rest_source"] == "rig camera (the recording's rig)"
+    assert evetac.lost_tracks == 0 and evetac.error_p95_px < 5.0
+    assert counted.window_events == 20_000 and 5 <= counted.n_windows <= 40 and counted.lost_tracks == 0
+    assert counted.rest_source == "rig camera (the recording's rig)"
 
 
 def test_pool_and_dask_agree_with_in_process(presses: list[str], tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from labrig.config import RigConfig
+from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
 from labrig.groundtruth import (
     DepthTable,
@@ -19,7 +20,6 @@ from labrig.groundtruth import (
     choose_model,
     generate,
     load_groundtruth,
-    sidecar_path,
     write_sidecar,
 )
 from labrig.indenters import Indenter, load_indenter
@@ -172,7 +172,7 @@ def test_sidecar_round_trip(probe: Path, tmp_path: Path) -> None:
     assert loaded.attrs["youngs_modulus_mpa"] == pytest.approx(gt.attrs["youngs_modulus_mpa"])
     assert loaded.attrs["youngs_modulus_mpa"] == pytest.approx(0.4, rel=0.05)  # the rig's, or the fitted gel.toml's
     assert loaded.scale_mm == pytest.approx(2.5)
-    from labrig.groundtruth.generate import sha256_of
+    from labrig.cache import sha256_of
 
     assert loaded.attrs["source_sha256"] == sha256_of(probe)
     assert json.loads(loaded.attrs["model_json"])["method"] == "hertz"

@@ -20,7 +20,8 @@ from labrig.training.data import PHASE_MARGIN_S, WindowSampler, open_campaign, t
 @pytest.fixture(scope="session")
 def campaign(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
     """A tiny campaign folder: one short simulated probe (~1 s) as a train and a val recording, with sidecars."""
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.dataset import sidecar_path
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path
 

@@ -14,12 +14,13 @@ the commands that rebuild it from nothing (campaign, ground truth, training).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import sys
 from pathlib import Path
 
+from labrig.cache import sha256_of
+from labrig.dataset import Dataset
 from labrig.models import BUNDLED, FOLDER
 from labrig.pipeline.depthnet import read_card, write_card
 
@@ -42,14 +43,14 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{onnx} is {onnx.stat().st_size / 1e6:.1f} MB; the bundled model must stay under 10 MB")
     card = read_card(onnx.with_suffix(".json"))
     data = Path(card["training_data"]["campaign"])
-    manifest = data / "manifest.csv"
+    manifest = Dataset(data).manifest_path
     sweep_json = onnx.parent / "sweep.json"
     sweep = json.loads(sweep_json.read_text()) if sweep_json.exists() else None
     card["bundled"] = {
         "source": str(onnx),
         "reason": args.reason,
         "sweep": sweep,
-        "campaign_manifest_sha256": hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.exists() else None,
+        "campaign_manifest_sha256": sha256_of(manifest) if manifest.exists() else None,
         "rebuild": [args.campaign_command, args.groundtruth_command or f"labrig groundtruth {data}",
                     card.get("command", ""), f"python tools/bundle_model.py {onnx} ..."],
     }

@@ -20,6 +20,7 @@ import json
 import os
 import sys
 import tempfile
+from dataclasses import asdict
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -48,7 +49,7 @@ def make_recordings(folder: Path) -> list[Path]:
 
 def validate(path: Path, elastic: str, pose: str) -> dict[str, float | str]:
     result = evaluate_groundtruth(GroundTruthErrorTask(str(path), elastic, pose))
-    return {"recording": path.name, **result, "indentation_err_max_mm": result["indentation_error_max_mm"]}
+    return {"recording": path.name, **asdict(result), "indentation_err_max_mm": result.indentation_error_max_mm}
 
 
 def main() -> int:

@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from labrig.cache import sha256_of
 from labrig.calibration.eventframes import (
     Blobs,
     accumulate_polarities,
@@ -50,7 +51,7 @@ from labrig.calibration.eventframes import (
     fit_discs,
     harmonic_frame,
 )
-from labrig.calibration.files import Intrinsics, sha256_of
+from labrig.calibration.files import Intrinsics
 from labrig.calibration.intrinsics import sensor_size
 from labrig.config import MarkerConfig
 from labrig.errors import CalibrationError

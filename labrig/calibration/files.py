@@ -11,7 +11,6 @@ virtual rig's true one.
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import math
 import tomllib
 from dataclasses import dataclass
@@ -110,15 +109,6 @@ def camera_model(rig: RigConfig, extrinsics_path: str | Path | None = None,
 
 
 # -- writing ----------------------------------------------------------------------------------------
-
-
-def sha256_of(path: str | Path) -> str:
-    """SHA-256 (hex) of a file's bytes: the provenance of a calibration's input recordings."""
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def save_text_atomic(path: str | Path, text: str) -> Path:

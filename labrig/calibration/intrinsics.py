@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from labrig.cache import sha256_of
 from labrig.calibration.eventframes import Blobs, accumulate, detect_blobs, find_blinks
-from labrig.calibration.files import sha256_of
 from labrig.errors import CalibrationError
 from labrig.physics.target import DotGridTarget
 from labrig.recording import Recording

@@ -39,8 +39,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import least_squares
 
+from labrig.cache import sha256_of
 from labrig.calibration.contact_location import PixelMap, locate_contact
-from labrig.calibration.files import sha256_of
 from labrig.calibration.fits import axis_map, fit_ft_axes, kabsch
 from labrig.calibration.gel import ForceDepthCurve, contact_table
 from labrig.calibration.registration_file import PointResult, RigRegistration

@@ -10,16 +10,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from labrig.errors import LabrigError
+from labrig.dataset import sidecar_path
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 
 BATCH = 32
+F64 = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -34,27 +34,37 @@ class DepthTask:
     sidecar: str = ""  # the ground truth (default NAME.gt.h5 beside the recording); named so caches see it change
 
 
-def evaluate_depth(task: DepthTask) -> dict[str, Any]:
-    """Per-window depth errors (mm) of ``task.model`` on ``task.recording``.
+@dataclass(frozen=True)
+class DepthResult:
+    """Depth errors of one network on one recording, per evaluation window (W windows), against its sidecar.
 
-    Keys: ``t_us`` (W,) evaluation times, ``total_mm``, ``contact_mm`` (nan without contact),
-    ``noncontact_mm``, ``true_max_mm`` (the map's deepest cell), ``contact_cells``,
-    ``gt_offset_us`` (map time - last event), ``window_ms`` (the model's), ``infer_ms``
-    (median per window, batched).
+    Errors are mean absolute errors over the map's cells, depth clipped to [0, scale], mm.
     """
+
+    t_us: npt.NDArray[np.int64]  # (W,) evaluation times (window ends), host us
+    total_mm: F64  # (W,) over all cells
+    contact_mm: F64  # (W,) over the contact cells, nan without contact
+    noncontact_mm: F64  # (W,) over the other cells, nan when all touch
+    true_max_mm: npt.NDArray[np.floating]  # (W,) the ground-truth map's deepest cell
+    contact_cells: npt.NDArray[np.int64]  # (W,) cells in contact
+    gt_offset_us: npt.NDArray[np.int64]  # (W,) the map's time - the window's last event, us
+    window_ms: float  # the network's trained window
+    model: str  # the network's name
+    infer_ms: float  # median inference time per window (batched), ms
+
+
+def evaluate_depth(task: DepthTask) -> DepthResult:
+    """Per-window depth errors (mm) of ``task.model`` on ``task.recording``."""
     import time
 
     from labrig.config import Roi
-    from labrig.groundtruth import load_groundtruth, sidecar_path
+    from labrig.groundtruth import load_groundtruth
     from labrig.pipeline.depthnet import DepthModel
     from labrig.pipeline.sae import sae_grid
     from labrig.recording import Recording
 
     model = DepthModel(task.model, threads=1)
-    side = Path(task.sidecar) if task.sidecar else sidecar_path(task.recording)
-    if not side.exists():
-        raise LabrigError(f"{task.recording}: no ground-truth sidecar {side.name}; run `labrig groundtruth DATA/` first")
-    gt = load_groundtruth(side)
+    gt = load_groundtruth(Path(task.sidecar) if task.sidecar else sidecar_path(task.recording))
     roi = Roi(*(int(v) for v in gt.attrs["roi_px"]))
     scale = np.float32(gt.scale_mm)
     window_us = model.window_ms * 1000.0
@@ -78,10 +88,11 @@ def evaluate_depth(task: DepthTask) -> dict[str, Any]:
     true = np.clip(gt.depth_mm[index], 0.0, scale)
     contact = gt.contact_mask[index] > 0
     errors = per_map_errors_mm(pred, true, contact)
-    return {"t_us": t1, **errors, "true_max_mm": true.reshape(len(true), -1).max(1) if len(true) else np.zeros(0),
-            "contact_cells": contact.reshape(len(contact), -1).sum(1), "gt_offset_us": gt.t_us[index] - t_last,
-            "window_ms": model.window_ms, "model": model.name,
-            "infer_ms": float(np.median(seconds) * 1e3) if seconds else float("nan")}
+    return DepthResult(
+        t_us=t1, total_mm=errors["total_mm"], contact_mm=errors["contact_mm"], noncontact_mm=errors["noncontact_mm"],
+        true_max_mm=true.reshape(len(true), -1).max(1) if len(true) else np.zeros(0),
+        contact_cells=contact.reshape(len(contact), -1).sum(1), gt_offset_us=gt.t_us[index] - t_last,
+        window_ms=model.window_ms, model=model.name, infer_ms=float(np.median(seconds) * 1e3) if seconds else float("nan"))
 
 
 evaluate_depth.cache_version = "1"  # type: ignore[attr-defined]

@@ -7,52 +7,41 @@ come back in task order.
 
 Contract for ``fn`` and tasks: ``fn`` is a module-level function (picklable by name); a task
 is a dict or a frozen dataclass of plain values (str, int, float, bool, None, lists and
-nested dicts of them). Results are dicts of numbers, strings, None, numpy arrays, lists and
-nested dicts (tuples come back as lists).
+nested dicts of them). A result is a frozen dataclass defined at module level (picklable, so
+it travels back from worker processes and Dask) of numbers, strings, None, numpy arrays,
+lists, and dicts and dataclasses of them; a dict of those works too.
 
-Cache: one ``.npz`` per result under ``cache_dir/<fn>/<key>.npz``, ``key`` = SHA-256 of
-
-* the function's qualified name and its ``cache_version`` attribute (bump it when the
-  function's results change; code changes are not detected otherwise);
-* the task's inputs as canonical JSON (``1`` and ``1.0`` are different inputs);
-* for every string input naming an existing file: its size, modification time (ns) and a
-  sampled BLAKE2 hash (the first and last 64 KiB and 16 evenly spaced 64 KiB blocks, so at
-  most 1.1 MiB read even for a recording of hundreds of MB); for an existing directory: the
-  name, size and mtime of each file directly in it.
-
-So a rewritten or touched file misses, while an unchanged one costs a stat and about a
-megabyte of reading. An entry is written to a temporary file and renamed into place, so an
-interrupted run never leaves a corrupt entry; an unreadable one counts as a miss.
+Every result is cached on disk (:class:`labrig.evaluation.result_cache.ResultCache`, default
+folder ``$LABRIG_CACHE/eval``), keyed by the function, its ``cache_version`` attribute, the
+task's inputs and the files they name: a rewritten or touched file misses, while an
+unchanged one costs a stat and about a megabyte of reading.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 import pickle
 import time
 import traceback
-import uuid
-import warnings
-import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
 
+from labrig.cache import cache_folder
 from labrig.errors import LabrigError
+from labrig.evaluation.result_cache import ResultCache
 
 Task = Mapping[str, Any] | Any  # a dict, or a frozen dataclass instance
-Result = dict[str, Any]
+ResultT = TypeVar("ResultT")  # what the task function returns: a frozen dataclass (or a dict)
 Progress = Callable[[int, int], None]
+#: ``run(kind, fn, tasks) -> results``: how the evaluation's planners hand a batch of tasks to :func:`run_tasks`.
+Run = Callable[[str, Callable[[Any], Any], list[Any]], list[Any]]
 
-SAMPLE_BLOCK_BYTES = 64 * 1024
-SAMPLE_BLOCKS = 16
-CACHE_FORMAT = 1
 MAX_LISTED_FAILURES = 10  # failures named one by one in a TasksFailed message
 
 
@@ -77,10 +66,10 @@ class TaskFailure:
         return f"task {self.index} {json.dumps(self.task, default=str)}: {self.error}: {self.message}{where}"
 
 
-class TaskResults(list[Result | None]):
+class TaskResults(list[ResultT | None], Generic[ResultT]):
     """Results in task order (None where a task failed), with what the cache did and what failed."""
 
-    def __init__(self, results: Sequence[Result | None], *, hits: int, misses: int,
+    def __init__(self, results: Sequence[ResultT | None], *, hits: int, misses: int,
                  failures: Sequence[TaskFailure], seconds: float) -> None:
         super().__init__(results)
         self.hits = hits  # tasks answered from the cache
@@ -96,7 +85,7 @@ class TaskResults(list[Result | None]):
 class TasksFailed(LabrigError):
     """Some tasks raised; ``results`` holds every result (None for the failed ones), ``failures`` the details."""
 
-    def __init__(self, results: TaskResults) -> None:
+    def __init__(self, results: TaskResults[Any]) -> None:
         self.results = results
         self.failures = results.failures
         lines = [f"{len(self.failures)} of {len(results)} tasks failed; the others' results are kept (and cached), "
@@ -109,15 +98,10 @@ class TasksFailed(LabrigError):
         super().__init__("\n".join(lines))
 
 
-def default_cache_dir() -> Path:
-    """``$LABRIG_CACHE/eval``, else ``~/.cache/labrig/eval``."""
-    root = os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
-    return Path(root) / "eval"
-
-
-def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: int | None = None,
+def run_tasks(fn: Callable[[Any], ResultT], tasks: Sequence[Task], *, workers: int | None = None,
               scheduler: str | _HasExecutor | None = None, cache_dir: str | Path | None = None,
-              use_cache: bool = True, progress: Progress | None = None, raise_on_error: bool = True) -> TaskResults:
+              use_cache: bool = True, progress: Progress | None = None,
+              raise_on_error: bool = True) -> TaskResults[ResultT]:
     """``[fn(task) for task in tasks]``, in parallel and cached; see the module docstring.
 
     ``workers``: local processes (default: one per core); 1 runs in this process, no pool.
@@ -130,10 +114,10 @@ def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: in
         raise LabrigError(f"workers must be at least 1 (1 runs in this process), not {workers}")
     started = time.perf_counter()
     inputs = [task_inputs(task) for task in tasks]
-    store = ResultCache(cache_dir or default_cache_dir(), fn) if use_cache else None
+    store = ResultCache(cache_dir or cache_folder("eval"), fn) if use_cache else None
     fingerprints: dict[tuple[str, int, int], str] = {}
     keys = [store.key(item, fingerprints) if store else "" for item in inputs]
-    results: list[Result | None] = [None] * len(tasks)
+    results: list[ResultT | None] = [None] * len(tasks)
     todo = []
     for i, key in enumerate(keys):
         cached = store.load(key) if store else None
@@ -146,7 +130,7 @@ def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: in
         progress(done, total)
     failures: list[TaskFailure] = []
 
-    def finish(i: int, outcome: Result | BaseException) -> None:
+    def finish(i: int, outcome: ResultT | BaseException) -> None:
         nonlocal done
         if isinstance(outcome, BaseException):
             failures.append(_failure(i, inputs[i], outcome))
@@ -172,15 +156,15 @@ def run_tasks(fn: Callable[[Any], Result], tasks: Sequence[Task], *, workers: in
     return out
 
 
-def _call(fn: Callable[[Any], Result], task: Task) -> Result | BaseException:
+def _call(fn: Callable[[Any], ResultT], task: Task) -> ResultT | BaseException:
     try:
         return fn(task)
     except Exception as exc:
         return exc
 
 
-def _run_on_executor(fn: Callable[[Any], Result], tasks: Sequence[Task], todo: list[int],
-                     finish: Callable[[int, Result | BaseException], None], workers: int | None,
+def _run_on_executor(fn: Callable[[Any], ResultT], tasks: Sequence[Task], todo: list[int],
+                     finish: Callable[[int, ResultT | BaseException], None], workers: int | None,
                      scheduler: str | _HasExecutor | None) -> None:
     """Submit the tasks ``todo`` to local processes or a Dask cluster and ``finish`` each as it completes."""
     try:
@@ -199,7 +183,7 @@ def _run_on_executor(fn: Callable[[Any], Result], tasks: Sequence[Task], todo: l
     else:
         executor = scheduler.get_executor(pure=False)
     try:
-        futures: dict[Future[Result], int] = {executor.submit(fn, tasks[i]): i for i in todo}
+        futures: dict[Future[ResultT], int] = {executor.submit(fn, tasks[i]): i for i in todo}
         for future in as_completed(futures):
             error = future.exception()
             finish(futures[future], error if error is not None else future.result())
@@ -267,138 +251,3 @@ def _plain_input(value: Any, name: str) -> Any:
         return {str(k): _plain_input(v, name) for k, v in value.items()}
     raise TypeError(f"task input {name!r} is a {type(value).__name__}; tasks hold only paths, numbers, "
                     "strings, bools, None, lists and dicts of them")
-
-
-def _strings(value: Any) -> list[str]:
-    if isinstance(value, str):
-        return [value]
-    if isinstance(value, list):
-        return [s for v in value for s in _strings(v)]
-    if isinstance(value, dict):
-        return [s for v in value.values() for s in _strings(v)]
-    return []
-
-
-def file_fingerprint(path: str | Path, memo: dict[tuple[str, int, int], str] | None = None) -> str:
-    """Size, mtime (ns) and a sampled BLAKE2 hash of a file (see the module docstring)."""
-    stat = os.stat(path)
-    memo_key = (os.path.abspath(path), stat.st_size, stat.st_mtime_ns)
-    if memo is not None and memo_key in memo:
-        return memo[memo_key]
-    digest = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as f:
-        if stat.st_size <= SAMPLE_BLOCK_BYTES * (SAMPLE_BLOCKS + 2):
-            digest.update(f.read())
-        else:
-            last = stat.st_size - SAMPLE_BLOCK_BYTES
-            for offset in np.linspace(0, last, SAMPLE_BLOCKS + 2).astype(np.int64):
-                f.seek(int(offset))
-                digest.update(f.read(SAMPLE_BLOCK_BYTES))
-    text = f"{stat.st_size}:{stat.st_mtime_ns}:{digest.hexdigest()}"
-    if memo is not None:
-        memo[memo_key] = text
-    return text
-
-
-def _directory_fingerprint(path: str) -> list[list[Any]]:
-    entries = []
-    with os.scandir(path) as scan:
-        for entry in scan:
-            if entry.is_file():
-                stat = entry.stat()
-                entries.append([entry.name, stat.st_size, stat.st_mtime_ns])
-    return sorted(entries)
-
-
-# -- the result cache -----------------------------------------------------------------------------
-
-
-class ResultCache:
-    """Results of one function on disk, one ``KEY.npz`` each: arrays as members, the rest as JSON."""
-
-    def __init__(self, root: str | Path, fn: Callable[..., Any]) -> None:
-        self.name = f"{fn.__module__}.{fn.__qualname__}"
-        self.version = str(getattr(fn, "cache_version", ""))
-        self.folder = Path(root) / self.name
-
-    def key(self, inputs: dict[str, Any], memo: dict[tuple[str, int, int], str] | None = None) -> str:
-        """SHA-256 (hex) of the function, its version, the inputs and the inputs' files."""
-        files: dict[str, Any] = {}
-        for text in _strings(inputs):
-            if "\n" in text or len(text) > 4096 or not text:
-                continue
-            if os.path.isfile(text):
-                files[text] = file_fingerprint(text, memo)
-            elif os.path.isdir(text):
-                files[text] = _directory_fingerprint(text)
-        blob = json.dumps([CACHE_FORMAT, self.name, self.version, inputs, files], sort_keys=True)
-        return hashlib.sha256(blob.encode()).hexdigest()
-
-    def path(self, key: str) -> Path:
-        return self.folder / f"{key}.npz"
-
-    def load(self, key: str) -> Result | None:
-        """The stored result, or None (absent or unreadable: an unreadable entry is removed)."""
-        path = self.path(key)
-        if not path.exists():
-            return None
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {name: data[name] for name in data.files if name != "__json__"}
-                document = json.loads(str(data["__json__"]))
-            return _decode(document["result"], arrays)
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # JSONDecodeError is a ValueError
-            path.unlink(missing_ok=True)
-            return None
-
-    def save(self, key: str, result: Result, inputs: dict[str, Any]) -> None:
-        """Store atomically (temporary file, then rename); a result that is not plain data is not cached."""
-        arrays: dict[str, np.ndarray] = {}
-        try:
-            encoded = _encode(result, arrays)
-        except TypeError as exc:
-            warnings.warn(f"{self.name}: result not cached ({exc})", stacklevel=3)
-            return
-        document = {"function": self.name, "version": self.version, "inputs": inputs, "result": encoded,
-                    "saved_unix_s": time.time()}
-        self.folder.mkdir(parents=True, exist_ok=True)
-        temporary = self.folder / f".{key}.{uuid.uuid4().hex}.tmp"
-        try:
-            with open(temporary, "wb") as f:
-                np.savez(f, __json__=np.array(json.dumps(document)), **arrays)
-            os.replace(temporary, self.path(key))
-        finally:
-            temporary.unlink(missing_ok=True)
-
-
-def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
-    """JSON-able form of a result; arrays go to ``arrays`` and are referenced as {"__array__": name}."""
-    if isinstance(value, np.ndarray):
-        if value.dtype.hasobject:
-            raise TypeError("object arrays cannot be cached")
-        name = f"a{len(arrays)}"
-        arrays[name] = value
-        return {"__array__": name}
-    if isinstance(value, np.generic):
-        return value.item()
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    if isinstance(value, list | tuple):
-        return [_encode(v, arrays) for v in value]
-    if isinstance(value, Mapping):
-        if not all(isinstance(k, str) for k in value):
-            raise TypeError("result dict keys must be strings")
-        if "__array__" in value:
-            raise TypeError("'__array__' is reserved in cached results")
-        return {k: _encode(v, arrays) for k, v in value.items()}
-    raise TypeError(f"a {type(value).__name__} is not plain result data")
-
-
-def _decode(value: Any, arrays: Mapping[str, np.ndarray]) -> Any:
-    if isinstance(value, dict):
-        if set(value) == {"__array__"}:
-            return arrays[value["__array__"]]
-        return {k: _decode(v, arrays) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_decode(v, arrays) for v in value]
-    return value

@@ -18,11 +18,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.dataset import sidecar_path
 from labrig.evaluation.measured import contact_centre_px, ft_axes_in_gel, measured_force_on_gel_n
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 from labrig.recording import Recording
 
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
+F64 = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -43,19 +45,34 @@ class ForceTask:
     sidecar: str = ""  # the ground truth for the indenter's position (default NAME.gt.h5 beside the recording)
 
 
-def evaluate_forces(task: ForceTask) -> dict[str, Any]:
-    """Per-window forces and errors of the pipeline on ``task.recording``.
+@dataclass(frozen=True)
+class ForceResult:
+    """The pipeline's forces on one recording and their errors, per evaluation window (W windows, M markers).
 
-    Keys (W windows, M markers): ``t0_us``, ``t1_us``; ``predicted_n``, ``measured_n`` (F/T),
-    ``truth_n`` (sim, nan on hardware) (W, 3), all the force on the gel in the gel frame, N;
-    ``contact_error_px`` (W, 2) predicted - true contact position (nan where either is
-    missing); ``marker_mae_n`` (W, 3) per-marker MAE against the sim's field (nan on
-    hardware); ``probing`` (W,) window inside the probing phases; ``stage_ms`` {stage:
-    median}; ``drift_px`` (M,) start-end marker drift; ``ft_axes``, ``depth_source``.
+    Forces are the force on the gel in the gel frame, N.
     """
+
+    t0_us: npt.NDArray[np.int64]  # (W,) window starts, host us
+    t1_us: npt.NDArray[np.int64]  # (W,) window ends, host us
+    predicted_n: F64  # (W, 3) summed per-marker forces
+    measured_n: F64  # (W, 3) the F/T sensor over the depth window
+    truth_n: F64  # (W, 3) the sim's net force; nan on hardware
+    contact_error_px: F64  # (W, 2) predicted - true contact position; nan where either is missing
+    marker_mae_n: F64  # (W, 3) per-marker MAE against the sim's field; nan on hardware
+    probing: npt.NDArray[np.bool_]  # (W,) window ends inside the probing phases
+    stage_ms: dict[str, float]  # stage -> median time per window, ms
+    total_ms: float  # median time of all stages per window, ms
+    drift_px: F64  # (M,) start-end drift of each marker, px
+    ft_axes: str  # where the F/T axes in the gel frame came from
+    depth_source: str  # "truth" or the network's name
+    youngs_modulus_mpa: float  # the gel modulus the inverse FEM used
+
+
+def evaluate_forces(task: ForceTask) -> ForceResult:
+    """Per-window forces and errors of the pipeline on ``task.recording``."""
     from dataclasses import replace
 
-    from labrig.groundtruth import load_groundtruth, sidecar_path
+    from labrig.groundtruth import load_groundtruth
     from labrig.pipeline import depth_sources, ifem, run_setup, runtime, tracking
 
     path = Path(task.recording)
@@ -87,11 +104,12 @@ def evaluate_forces(task: ForceTask) -> dict[str, Any]:
     stage_ms = {stage: float(np.median([r.seconds.get(stage, 0.0) for r in rows]) * 1e3) if rows else float("nan")
                 for stage in runtime.STAGES}
     final = rows[-1].positions_px if rows else setup.rest_px
-    return {"t0_us": t0, "t1_us": t1, "predicted_n": predicted, "measured_n": measured, "truth_n": truth_n,
-            "contact_error_px": contact_px - true_px, "marker_mae_n": marker_mae, "probing": probing,
-            "stage_ms": stage_ms, "total_ms": float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
-            "drift_px": np.linalg.norm(final - setup.rest_px, axis=1), "ft_axes": ft_source,
-            "depth_source": source.name, "youngs_modulus_mpa": setup.youngs_modulus_mpa}
+    return ForceResult(
+        t0_us=t0, t1_us=t1, predicted_n=predicted, measured_n=measured, truth_n=truth_n,
+        contact_error_px=contact_px - true_px, marker_mae_n=marker_mae, probing=probing, stage_ms=stage_ms,
+        total_ms=float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
+        drift_px=np.linalg.norm(final - setup.rest_px, axis=1), ft_axes=ft_source, depth_source=source.name,
+        youngs_modulus_mpa=setup.youngs_modulus_mpa)
 
 
 evaluate_forces.cache_version = "7"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction

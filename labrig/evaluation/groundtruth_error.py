@@ -9,7 +9,6 @@ the indenter touches the gel. The truth is read here only; the generator never r
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -29,7 +28,25 @@ class GroundTruthErrorTask:
     calibration_dir: str | None = "calibration"
 
 
-def evaluate_groundtruth(task: GroundTruthErrorTask) -> dict[str, Any]:
+@dataclass(frozen=True)
+class GroundTruthErrorResult:
+    """One elastic model's labels against the sim's truth on one recording, over the frames in contact (mm)."""
+
+    indenter: str
+    elastic: str  # "layer" or "halfspace"
+    method: str  # the contact solution the generator chose
+    pose: str  # "lab" or "true"
+    frames: int  # frames in contact
+    mae_contact_mm: float  # inside the true contact
+    mae_noncontact_mm: float  # outside it
+    p95_noncontact_mm: float
+    mae_total_mm: float
+    mask_iou: float  # the labels' contact mask against the true one
+    indentation_error_max_mm: float
+    maps_per_s: float  # the generator's rate
+
+
+def evaluate_groundtruth(task: GroundTruthErrorTask) -> GroundTruthErrorResult:
     """MAE (mm) in and out of the true contact, p95 out of contact, total, the masks' IoU, the
     indentation error and the generation rate (maps per second), over frames in contact."""
     from labrig.groundtruth import generate, lab_inputs
@@ -61,13 +78,13 @@ def evaluate_groundtruth(task: GroundTruthErrorTask) -> dict[str, Any]:
     err = np.abs(gt.depth_mm[frames] - true_depth[frames])
     inside, outside = true_mask[frames], ~true_mask[frames]
     ours = gt.contact_mask[frames].astype(bool)
-    return {"indenter": indenter, "elastic": task.elastic, "method": gt.attrs["contact_model"], "pose": task.pose,
-            "frames": int(frames.sum()), "mae_contact_mm": float(err[inside].mean()),
-            "mae_noncontact_mm": float(err[outside].mean()), "p95_noncontact_mm": float(np.percentile(err[outside], 95)),
-            "mae_total_mm": float(err.mean()),
-            "mask_iou": float((ours & inside).sum() / max(int((ours | inside).sum()), 1)),
-            "indentation_error_max_mm": float(np.abs(gt.indentation_mm[frames] - true_indentation[frames]).max()),
-            "maps_per_s": float(gt.t_us.size / gt.seconds)}
+    return GroundTruthErrorResult(
+        indenter=indenter, elastic=task.elastic, method=str(gt.attrs["contact_model"]), pose=task.pose,
+        frames=int(frames.sum()), mae_contact_mm=float(err[inside].mean()), mae_noncontact_mm=float(err[outside].mean()),
+        p95_noncontact_mm=float(np.percentile(err[outside], 95)), mae_total_mm=float(err.mean()),
+        mask_iou=float((ours & inside).sum() / max(int((ours | inside).sum()), 1)),
+        indentation_error_max_mm=float(np.abs(gt.indentation_mm[frames] - true_indentation[frames]).max()),
+        maps_per_s=float(gt.t_us.size / gt.seconds))
 
 
 evaluate_groundtruth.cache_version = "1"  # type: ignore[attr-defined]

@@ -25,7 +25,7 @@ simulated once and measured with every window and method asked of it.
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,16 +34,19 @@ import numpy as np
 from matplotlib.lines import Line2D
 
 from labrig.config import DEFAULT_RIG
+from labrig.dataset import sidecar_path
 from labrig.evaluation import charts
+from labrig.evaluation.executor import Run
+from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.stress_axes import AXES, StressAxis
-from labrig.evaluation.stress_scene import StressScene, record_scene, stressed_rig
+from labrig.evaluation.stress_scene import SceneFacts, StressScene, record_scene, stressed_rig
+from labrig.evaluation.tracking import TrackingTask, track_recording
 
 #: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
 TRACKERS = {"paper": 3.0, "paper-published": 1.0, "evetac": 1.0}
 FORCES_TRUTH, FORCES_LINEAR, FORCES_MODEL = "forces-truth", "forces-linear", "forces-model"
 FACTOR = 2.0
-Run = Callable[[str, Callable[[Any], dict[str, Any]], list[Any]], list[Any]]
 
 
 @dataclass(frozen=True)
@@ -58,42 +61,65 @@ class StressTask:
     calibration_dir: str | None = "calibration"
 
 
-def measure_scene(task: StressTask | dict[str, Any]) -> dict[str, Any]:
-    """Record the task's scene in a temporary folder and measure every window and method on it.
+@dataclass(frozen=True)
+class TrackerStress:
+    """One tracker on a stressed scene at one window length (see :class:`labrig.evaluation.tracking.TrackingResult`)."""
 
-    Keys: ``scene`` (facts of the run, :func:`record_scene`), ``tracking`` {window key:
-    {tracker: {error_p95_px, error_median_px, lost_by_truth, lost_tracks}}}, ``forces``
-    {window key: {method: {error_pct, error_n, error_z_n, measured_mean_n, windows}}};
-    window keys are :func:`window_key` of the window in ms.
-    """
-    from labrig.evaluation.forces import ForceTask, evaluate_forces
-    from labrig.evaluation.tracking import TrackingTask, track_recording
-    from labrig.groundtruth import sidecar_path
+    error_p95_px: float | None
+    error_median_px: float | None
+    lost_by_truth: int | None
+    lost_tracks: int
 
+
+@dataclass(frozen=True)
+class ForceStress:
+    """One force method on a stressed scene at one window length, over its probing windows (:func:`force_errors`)."""
+
+    error_pct: float  # mean |error| (norm) as a percentage of the mean |measured force|
+    error_n: float  # mean |error| (norm), N
+    error_z_n: float  # mean |error| along z, N
+    measured_mean_n: float  # mean |measured force|, N
+    windows: int
+
+
+@dataclass(frozen=True)
+class SceneMeasurement:
+    """What :func:`measure_scene` found: the scene's facts and each method's errors, by window key
+    (:func:`window_key` of the window in ms) and then by tracker or force method."""
+
+    scene: SceneFacts
+    tracking: dict[str, dict[str, TrackerStress]]
+    forces: dict[str, dict[str, ForceStress]]
+
+
+def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
+    """Record the task's scene in a temporary folder and measure every window and method on it."""
     task = task if isinstance(task, StressTask) else StressTask(**task)
     scene = StressScene(**task.scene)
-    out: dict[str, Any] = {"tracking": {}, "forces": {}}
+    by_tracker: dict[str, dict[str, TrackerStress]] = {}
+    by_method: dict[str, dict[str, ForceStress]] = {}
     with tempfile.TemporaryDirectory(prefix="labrig-stress-") as folder:
         recording = str(Path(folder) / "stress.h5")
-        out["scene"] = record_scene(scene, recording)
+        facts = record_scene(scene, recording)
         for window_ms in task.windows_ms:
             window_us = round(window_ms * 1000)
             tracking = {}
             for tracker in task.trackers:
-                r = track_recording(TrackingTask(recording, tracker=tracker, patch_scale=TRACKERS[tracker], refine=True,
-                                                 window_us=window_us, calibration_dir=task.calibration_dir))
-                tracking[tracker] = {k: r[k] for k in ("error_p95_px", "error_median_px", "lost_by_truth", "lost_tracks")}
-            out["tracking"][window_key(window_ms)] = tracking
+                tracked = track_recording(TrackingTask(recording, tracker=tracker, patch_scale=TRACKERS[tracker],
+                                                       refine=True, window_us=window_us, calibration_dir=task.calibration_dir))
+                tracking[tracker] = TrackerStress(tracked.error_p95_px, tracked.error_median_px, tracked.lost_by_truth,
+                                                  tracked.lost_tracks)
+            by_tracker[window_key(window_ms)] = tracking
             depths = ([("truth", FORCES_TRUTH, None), ("truth", FORCES_LINEAR, 0.0)] if task.forces else []) + (
                 [(task.model, FORCES_MODEL, None)] if task.forces and task.model else [])
             forces = {}
             for depth, method, stiffening in depths:
-                r = evaluate_forces(ForceTask(recording, depth, window_events=None, window_us=window_us,
-                                              calibration_dir=task.calibration_dir, stiffening=stiffening,
-                                              sidecar=str(sidecar_path(recording))))
-                forces[method] = force_errors(r)
-            out["forces"][window_key(window_ms)] = forces
-    return out
+                pipeline = evaluate_forces(ForceTask(recording, depth, window_events=None, window_us=window_us,
+                                                     calibration_dir=task.calibration_dir, stiffening=stiffening,
+                                                     sidecar=str(sidecar_path(recording))))
+                forces[method] = force_errors(pipeline)
+            by_method[window_key(window_ms)] = forces
+    return SceneMeasurement(facts, by_tracker, by_method)
 
 
 measure_scene.cache_version = "7"  # type: ignore[attr-defined]
@@ -103,25 +129,24 @@ def window_key(window_ms: float) -> str:
     return f"{float(window_ms):g}ms"
 
 
-def force_errors(result: dict[str, Any]) -> dict[str, float]:
+def force_errors(result: ForceResult) -> ForceStress:
     """Error of an :func:`evaluate_forces` result over its probing windows: mean |error| (N, norm and z) and
     the same as a percentage of the mean |measured force|."""
-    probing = np.asarray(result["probing"], bool)
-    error = (result["predicted_n"] - result["measured_n"])[probing]
-    measured = np.linalg.norm(result["measured_n"][probing], axis=1)
+    probing = np.asarray(result.probing, bool)
+    error = (result.predicted_n - result.measured_n)[probing]
+    measured = np.linalg.norm(result.measured_n[probing], axis=1)
     if not len(error):
-        return {"error_pct": float("nan"), "error_n": float("nan"), "error_z_n": float("nan"),
-                "measured_mean_n": float("nan"), "windows": 0}
+        return ForceStress(float("nan"), float("nan"), float("nan"), float("nan"), 0)
     norm = np.linalg.norm(error, axis=1)
-    return {"error_pct": float(100 * norm.mean() / max(measured.mean(), 1e-9)), "error_n": float(norm.mean()),
-            "error_z_n": float(np.abs(error[:, 2]).mean()), "measured_mean_n": float(measured.mean()),
-            "windows": len(error)}
+    return ForceStress(error_pct=float(100 * norm.mean() / max(measured.mean(), 1e-9)), error_n=float(norm.mean()),
+                       error_z_n=float(np.abs(error[:, 2]).mean()), measured_mean_n=float(measured.mean()),
+                       windows=len(error))
 
 
 # -- the suite ------------------------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(frozen=True)
 class Breakdown:
     """Where one method broke on one axis: ``value`` (axis unit; None: not within the grid) and why."""
 
@@ -134,7 +159,7 @@ class Breakdown:
     tracks_lost_at: float | None
 
 
-@dataclass
+@dataclass(frozen=True)
 class StressCurve:
     """One method's error along one axis: ``error`` per value (px for tracking, % for forces), ``lost`` (trackers)."""
 
@@ -147,13 +172,15 @@ class StressCurve:
     error_n: list[float] | None = None
 
 
-@dataclass
+@dataclass(frozen=True)
 class StressResult:
+    """The stress suite: each method's curve and breakdown per axis, and each axis' scenes (None: the scene failed)."""
+
     grid: str
     axes: list[StressAxis]
     curves: list[StressCurve]
     breakdowns: list[Breakdown]
-    scenes: dict[str, list[dict[str, Any]]] = field(default_factory=dict)  # axis -> facts per value
+    scenes: dict[str, list[SceneFacts | None]] = field(default_factory=dict)  # axis -> facts per value
 
 
 def plan(axes: Sequence[StressAxis], grid: str, base: StressScene) -> list[tuple[StressScene, list[float],
@@ -189,14 +216,14 @@ def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | Non
         tasks.append(StressTask(asdict(scene), tuple(windows), trackers=tuple(TRACKERS) if "tracking" in metrics else (),
                                 forces="forces" in metrics, model=model, calibration_dir=calibration_dir))
     results = run("stress", measure_scene, tasks)
-    measured: dict[tuple[str, float], tuple[dict[str, Any] | None, str]] = {}
+    measured: dict[tuple[str, float], tuple[SceneMeasurement | None, str]] = {}
     for (_, _, points), result in zip(scenes, results):
         for axis, value in points:
             measured[(axis.key, value)] = (result, window_key(axis.window_ms(value)))
     curves, breakdowns, facts = [], [], {}
     for axis in axes:
         values = list(axis.values(grid))
-        facts[axis.key] = [dict((measured[(axis.key, v)][0] or {}).get("scene", {})) for v in values]
+        facts[axis.key] = [_scene_facts(measured[(axis.key, v)][0]) for v in values]
         for metric in axis.metrics:
             for method in _methods(metric, model):
                 curve = _curve(axis, metric, method, values, measured)
@@ -217,18 +244,25 @@ def _methods(metric: str, model: str | None) -> list[str]:
     return [FORCES_TRUTH, FORCES_LINEAR] + ([FORCES_MODEL] if model else [])
 
 
+def _scene_facts(measurement: SceneMeasurement | None) -> SceneFacts | None:
+    return measurement.scene if measurement is not None else None
+
+
 def _curve(axis: StressAxis, metric: str, method: str, values: list[float],
-           measured: dict[tuple[str, float], tuple[dict[str, Any] | None, str]]) -> StressCurve:
-    error, lost, newtons = [], [], []
+           measured: dict[tuple[str, float], tuple[SceneMeasurement | None, str]]) -> StressCurve:
+    error: list[float] = []
+    lost: list[int] = []
+    newtons: list[float] = []
     for value in values:
         result, window = measured[(axis.key, value)]
-        entry = (result or {}).get(metric, {}).get(window, {}).get(method) if result else None
         if metric == "tracking":
-            error.append(float(entry["error_p95_px"]) if entry else float("nan"))
-            lost.append(int(entry["lost_by_truth"]) if entry else -1)
+            tracker = result.tracking.get(window, {}).get(method) if result is not None else None
+            error.append(float(tracker.error_p95_px) if tracker and tracker.error_p95_px is not None else float("nan"))
+            lost.append(int(tracker.lost_by_truth) if tracker and tracker.lost_by_truth is not None else -1)
         else:
-            error.append(float(entry["error_pct"]) if entry else float("nan"))
-            newtons.append(float(entry["error_n"]) if entry else float("nan"))
+            forces = result.forces.get(window, {}).get(method) if result is not None else None
+            error.append(forces.error_pct if forces else float("nan"))
+            newtons.append(forces.error_n if forces else float("nan"))
     return StressCurve(axis.key, metric, method, values, error, lost if metric == "tracking" else None,
                        newtons if metric == "forces" else None)
 
@@ -289,8 +323,9 @@ def add_stress_to_report(report: Report, result: StressResult) -> None:
     rows = []
     for axis in result.axes:
         for value, facts in zip(axis.values(result.grid), result.scenes.get(axis.key, [])):
-            rows.append([axis.title, value, axis.unit, facts.get("duration_s"), facts.get("events"),
-                         facts.get("peak_force_n"), facts.get("slip_ratio_max"), facts.get("clock_skew_max_ms")])
+            known = [facts.duration_s, facts.events, facts.peak_force_n, facts.slip_ratio_max, facts.clock_skew_max_ms] \
+                if facts is not None else [None] * 5
+            rows.append([axis.title, value, axis.unit, *known])
     report.add_table("stress_scenes", "Stressed scenes", ["axis", "value", "unit", "duration", "events", "peak force",
                                                            "slip ratio", "clock skew"], rows,
                      units={"duration": "s", "peak force": "N", "clock skew": "ms"},

@@ -24,12 +24,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from labrig.clock import ClockModel
 from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
+from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
 from labrig.physics.camera import CameraModel
 
@@ -107,16 +107,21 @@ def unsynced_camera_clock(rig: RigConfig, sync_age_min: float) -> ClockModel:
     return ClockModel(device_ref_us=device_at_sync, host_ref_us=t_sync_us, drift_ppm=0.0, method="unsynced")
 
 
-def record_scene(scene: StressScene, out: str | Path) -> dict[str, Any]:
-    """Simulate ``scene`` into the recording ``out`` (not real time) and write its sidecar ``NAME.gt.h5``.
+@dataclass(frozen=True)
+class SceneFacts:
+    """Facts of a simulated scene, from the sim's truth."""
 
-    Returns facts of the run from the sim's truth: ``duration_s``, ``events``,
-    ``peak_force_n`` (largest |force on the gel|), ``peak_normal_n``, ``slip_ratio_max``
-    (largest |tangential| / (friction x normal) from the shear to the unloading, at full
-    depth: 1 is gross slip),
-    ``clock_skew_max_ms`` (the unsynced clock's largest event time error, 0 when synced).
-    """
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    duration_s: float  # simulated time
+    events: int
+    peak_force_n: float  # largest |force on the gel|
+    peak_normal_n: float
+    slip_ratio_max: float  # largest |tangential| / (friction x normal) from the shear to the unloading: 1 is gross slip
+    clock_skew_max_ms: float  # the unsynced clock's largest event time error; 0 when synced
+
+
+def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
+    """Simulate ``scene`` into the recording ``out`` (not real time) and write its sidecar ``NAME.gt.h5``."""
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.indenters import load_indenter
     from labrig.recording import Recording
     from labrig.sim.live import record_live
@@ -145,6 +150,6 @@ def record_scene(scene: StressScene, out: str | Path) -> dict[str, Any]:
     drift = rig.sim.camera_clock.drift_ppm * 1e-6
     skew_ms = 0.0 if scene.sync_age_min is None else abs(drift) * (scene.sync_age_min * US_PER_MIN
                                                                    + path.duration_us) / 1e3
-    return {"duration_s": result.sim_duration_s, "events": int(result.events),
-            "peak_force_n": float(np.linalg.norm(force, axis=1).max()), "peak_normal_n": float(normal.max()),
-            "slip_ratio_max": float(slip.max()), "clock_skew_max_ms": float(skew_ms)}
+    return SceneFacts(duration_s=float(result.sim_duration_s), events=int(result.events),
+                      peak_force_n=float(np.linalg.norm(force, axis=1).max()), peak_normal_n=float(normal.max()),
+                      slip_ratio_max=float(slip.max()), clock_skew_max_ms=float(skew_ms))

@@ -24,8 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from labrig.dataset import sidecar_path
 from labrig.evaluation import charts, tables
 from labrig.evaluation.depth import DepthTask, evaluate_depth
+from labrig.evaluation.executor import Run
 from labrig.evaluation.forces import ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.tracking import TrackingTask, track_recording
@@ -42,8 +44,10 @@ METRICS = {"tracking": ("p95 tracking error", "px"), "depth": ("depth error in c
            "forces": ("force error", "N")}
 
 
-@dataclass
+@dataclass(frozen=True)
 class SweepPoint:
+    """One knob setting pooled over the recordings: latency per window (ms) and error (the metric's unit)."""
+
     metric: str  # a key of METRICS
     knob: str
     label: str
@@ -52,8 +56,10 @@ class SweepPoint:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-@dataclass
+@dataclass(frozen=True)
 class SweepResult:
+    """Every setting's point, and per metric the recommended setting and the Pareto front's knee."""
+
     points: list[SweepPoint]
     recommendations: dict[str, SweepPoint]
     knees: dict[str, SweepPoint | None]
@@ -78,34 +84,33 @@ def sweep_models(models_dir: Path | None, main_model: Path) -> tuple[list[str], 
     return [widths[w] for w in sorted(widths, key=lambda w: w or 0)], [windows[w] for w in sorted(windows)]
 
 
-def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, run: Any,
+def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, run: Run,
               calibration_dir: str | None = "calibration", window_events: int | None = PAPER_WINDOW_EVENTS,
               window_us: int | None = None, mesh_refinements: tuple[int, ...] = MESH_REFINEMENTS,
               patch_scales: tuple[float, ...] = PATCH_SCALES) -> SweepResult:
     """Every knob setting on ``recordings``; ``run(kind, fn, tasks) -> results`` runs tasks (parallel, cached)."""
-    from labrig.groundtruth import sidecar_path
     from labrig.pipeline.depthnet import benchmark_ms, read_card
 
     points: list[SweepPoint] = []
     # tracking: patch size x refinement x tracker
     settings = [(tracker, refine, scale) for tracker in ("paper", "paper-published") for refine in (True, False)
                 for scale in patch_scales]
-    tasks = [TrackingTask(p, tracker=t, patch_scale=s, refine=r, calibration_dir=calibration_dir)
-             for t, r, s in settings for p in recordings]
-    results = run("sweep tracking", track_recording, tasks)
+    tracking_tasks = [TrackingTask(p, tracker=t, patch_scale=s, refine=r, calibration_dir=calibration_dir)
+                      for t, r, s in settings for p in recordings]
+    results = run("sweep tracking", track_recording, tracking_tasks)
     for i, (tracker, refine, scale) in enumerate(settings):
         group = [r for r in results[i * len(recordings):(i + 1) * len(recordings)] if r is not None]
-        errors = [r["error_p95_px"] for r in group if r.get("error_p95_px") is not None]
+        errors = [r.error_p95_px for r in group if r.error_p95_px is not None]
         if errors:
             label = f"{'gated' if tracker == 'paper' else 'published'} {scale:g}x{' +ref' if refine else ''}"
-            points.append(SweepPoint("tracking", "tracker", label, float(np.median([r["track_ms_median"] for r in group])),
-                                     float(np.mean(errors)), {"lost_tracks": float(np.mean([r["lost_tracks"] for r in group]))}))
+            points.append(SweepPoint("tracking", "tracker", label, float(np.median([r.track_ms_median for r in group])),
+                                     float(np.mean(errors)), {"lost_tracks": float(np.mean([r.lost_tracks for r in group]))}))
     # depth: widths and windows
     width_models, window_models = sweep_models(models_dir, main_model)
     models = sorted(set(width_models) | set(window_models))
     windows = {"window_events": window_events, "window_us": window_us}
-    tasks = [DepthTask(p, m, sidecar=str(sidecar_path(p)), **windows) for m in models for p in recordings]
-    results = run("sweep depth", evaluate_depth, tasks)
+    depth_tasks = [DepthTask(p, m, sidecar=str(sidecar_path(p)), **windows) for m in models for p in recordings]
+    results = run("sweep depth", evaluate_depth, depth_tasks)
     for k, model in enumerate(models):
         group = results[k * len(recordings):(k + 1) * len(recordings)]
         card = read_card(Path(model).with_suffix(".json"))
@@ -123,29 +128,30 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
     # forces: mesh refinement, window kind
     force_settings = [(f"mesh {m}", {"surface_refinement": m, **windows}) for m in mesh_refinements]
     force_settings += [(name, {"surface_refinement": 2, **w}) for name, w in FORCE_WINDOWS]
-    tasks = [ForceTask(p, str(main_model), calibration_dir=calibration_dir, sidecar=str(sidecar_path(p)), **options)
-             for _, options in force_settings for p in recordings]
-    results = run("sweep forces", evaluate_forces, tasks)
+    force_tasks = [ForceTask(p, str(main_model), calibration_dir=calibration_dir, sidecar=str(sidecar_path(p)), **options)
+                   for _, options in force_settings for p in recordings]
+    results = run("sweep forces", evaluate_forces, force_tasks)
     for k, (name, _) in enumerate(force_settings):
         group = results[k * len(recordings):(k + 1) * len(recordings)]
         total = next(r for r in tables.table3(group) if r["axis"] == "total")["force_mae_n"]
         if total is None:
             continue
-        duration_ms = float(np.median(np.concatenate([(r["t1_us"] - r["t0_us"]) / 1e3 for r in group])))
-        pipeline_ms = float(np.median([r["total_ms"] for r in group]))
+        duration_ms = float(np.median(np.concatenate([(r.t1_us - r.t0_us) / 1e3 for r in group])))
+        pipeline_ms = float(np.median([r.total_ms for r in group]))
         knob = "mesh" if name.startswith("mesh") else "windows"
         points.append(SweepPoint("forces", knob, name, duration_ms + pipeline_ms, total,
                                  {"window_ms": duration_ms, "pipeline_ms": pipeline_ms,
-                                  "forces_ms": float(np.median([r["stage_ms"]["forces"] for r in group]))}))
-    recommendations, knees = {}, {}
+                                  "forces_ms": float(np.median([r.stage_ms["forces"] for r in group]))}))
+    recommendations: dict[str, SweepPoint] = {}
+    knees: dict[str, SweepPoint | None] = {}
     for metric in METRICS:
         mine = [p for p in points if p.metric == metric]
         if not mine:
             continue
         best = charts.recommend([charts.Candidate(p.label, p.latency_ms, p.error) for p in mine], TOLERANCE)
         recommendations[metric] = next(p for p in mine if p.label == best.label)
-        k = charts.knee_index([p.latency_ms for p in mine], [p.error for p in mine])
-        knees[metric] = mine[k] if k is not None else None
+        knee = charts.knee_index([p.latency_ms for p in mine], [p.error for p in mine])
+        knees[metric] = mine[knee] if knee is not None else None
     return SweepResult(points, recommendations, knees)
 
 

@@ -1,17 +1,22 @@
 """The paper's tables from per-recording results: plain rows of numbers (mean, std), no formatting.
 
-Each function takes the result dicts of :mod:`labrig.evaluation.depth` or
-:mod:`labrig.evaluation.forces` (one per recording) and pools the windows, as the paper
-pools test samples. Units are in the keys.
+Each function takes the results of :mod:`labrig.evaluation.depth` or
+:mod:`labrig.evaluation.forces` (:class:`DepthResult`, :class:`ForceResult`, one per
+recording) and pools the windows, as the paper pools test samples. Rows are dicts whose keys
+name the report's columns, units in the keys.
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from labrig.evaluation.depth import DepthResult
+from labrig.evaluation.forces import ForceResult
 
 F64 = npt.NDArray[np.float64]
 
@@ -31,33 +36,42 @@ def mean_std(values: npt.ArrayLike) -> tuple[float | None, float | None]:
     return (float(v.mean()), float(v.std())) if v.size else (None, None)
 
 
-def pooled(results: list[dict[str, Any]], key: str, mask_key: str | None = None) -> F64:
-    """``key`` concatenated over recordings (rows where ``mask_key`` is true, when given)."""
-    parts = [np.asarray(r[key])[np.asarray(r[mask_key], bool)] if mask_key else np.asarray(r[key]) for r in results]
-    return np.concatenate(parts) if parts else np.zeros(0)
+def pooled(per_recording: Iterable[npt.ArrayLike], masks: Iterable[npt.ArrayLike] | None = None) -> F64:
+    """Per-recording arrays of windows concatenated (only the windows where ``masks`` are true, when given)."""
+    arrays = [np.asarray(a) for a in per_recording]
+    if masks is not None:
+        arrays = [a[np.asarray(m, bool)] for a, m in zip(arrays, masks)]
+    return np.concatenate(arrays) if arrays else np.zeros(0)
 
 
 # -- depth -------------------------------------------------------------------------------------
 
 
-def depth_row(results: list[dict[str, Any]]) -> dict[str, Any]:
+def _depth_parts(results: Sequence[DepthResult]) -> dict[str, F64]:
+    """Pooled per-window depth errors (mm) by part of the map: total, contact, noncontact."""
+    return {"total": pooled(r.total_mm for r in results), "contact": pooled(r.contact_mm for r in results),
+            "noncontact": pooled(r.noncontact_mm for r in results)}
+
+
+def depth_row(results: Sequence[DepthResult]) -> dict[str, Any]:
     """Depth error (mm) total / contact / non-contact, mean and std over windows, for one model."""
-    row: dict[str, Any] = {"windows": int(sum(len(r["total_mm"]) for r in results))}
-    for part in ("total", "contact", "noncontact"):
-        row[f"{part}_mm"], row[f"{part}_std_mm"] = mean_std(pooled(results, f"{part}_mm"))
-    row["infer_ms"] = float(np.median([r["infer_ms"] for r in results])) if results else None
+    row: dict[str, Any] = {"windows": int(sum(len(r.total_mm) for r in results))}
+    for part, errors in _depth_parts(results).items():
+        row[f"{part}_mm"], row[f"{part}_std_mm"] = mean_std(errors)
+    row["infer_ms"] = float(np.median([r.infer_ms for r in results])) if results else None
     return row
 
 
-def depth_by_range(results: list[dict[str, Any]], edges_mm: tuple[float, ...] = DEPTH_RANGES_MM) -> list[dict[str, Any]]:
+def depth_by_range(results: Sequence[DepthResult], edges_mm: tuple[float, ...] = DEPTH_RANGES_MM) -> list[dict[str, Any]]:
     """Depth error per ground-truth depth range (the map's deepest cell), the paper's per-range analysis."""
-    true = pooled(results, "true_max_mm")
+    true = pooled(r.true_max_mm for r in results)
+    parts = _depth_parts(results)
     rows = []
     for lo, hi in itertools.pairwise(edges_mm):
         inside = (true >= lo) & (true < hi)
         row: dict[str, Any] = {"range_mm": f"{lo:g}-{hi:g}", "windows": int(inside.sum())}
-        for part in ("total", "contact", "noncontact"):
-            row[f"{part}_mm"], row[f"{part}_std_mm"] = mean_std(pooled(results, f"{part}_mm")[inside])
+        for part, errors in parts.items():
+            row[f"{part}_mm"], row[f"{part}_std_mm"] = mean_std(errors[inside])
         rows.append(row)
     return rows
 
@@ -65,16 +79,21 @@ def depth_by_range(results: list[dict[str, Any]], edges_mm: tuple[float, ...] = 
 # -- forces ------------------------------------------------------------------------------------
 
 
-def force_errors(results: list[dict[str, Any]], probing_only: bool = True) -> tuple[F64, F64, F64]:
+def _windows(results: Sequence[ForceResult], probing_only: bool) -> list[npt.NDArray[np.bool_]] | None:
+    """The windows to pool per recording: those in the probing phases, or all (None)."""
+    return [r.probing for r in results] if probing_only else None
+
+
+def force_errors(results: Sequence[ForceResult], probing_only: bool = True) -> tuple[F64, F64, F64]:
     """(predicted - measured (W, 3) N, measured (W, 3) N, contact position error (W, 2) px) pooled."""
-    mask = "probing" if probing_only else None
-    predicted = pooled(results, "predicted_n", mask).reshape(-1, 3)
-    measured = pooled(results, "measured_n", mask).reshape(-1, 3)
-    position = pooled(results, "contact_error_px", mask).reshape(-1, 2)
+    mask = _windows(results, probing_only)
+    predicted = pooled((r.predicted_n for r in results), mask).reshape(-1, 3)
+    measured = pooled((r.measured_n for r in results), mask).reshape(-1, 3)
+    position = pooled((r.contact_error_px for r in results), mask).reshape(-1, 2)
     return predicted - measured, measured, position
 
 
-def table3(results: list[dict[str, Any]], probing_only: bool = True) -> list[dict[str, Any]]:
+def table3(results: Sequence[ForceResult], probing_only: bool = True) -> list[dict[str, Any]]:
     """Force MAE (N) per axis and total (norm of the error vector), contact position error (px)."""
     error, _, position = force_errors(results, probing_only)
     position = position[np.isfinite(position).all(1)] if len(position) else position.reshape(0, 2)
@@ -91,7 +110,7 @@ def table3(results: list[dict[str, Any]], probing_only: bool = True) -> list[dic
     return rows
 
 
-def force_by_range(results: list[dict[str, Any]], ranges_n: dict[str, tuple[float, ...]] = FORCE_RANGES_N,
+def force_by_range(results: Sequence[ForceResult], ranges_n: dict[str, tuple[float, ...]] = FORCE_RANGES_N,
                    probing_only: bool = True) -> list[dict[str, Any]]:
     """Absolute force error per axis and per measured-force range (|F| on that axis), the paper's Fig. 3."""
     error, measured, _ = force_errors(results, probing_only)
@@ -108,14 +127,14 @@ def force_by_range(results: list[dict[str, Any]], ranges_n: dict[str, tuple[floa
     return rows
 
 
-def dense_errors(results: list[dict[str, Any]], probing_only: bool = True) -> dict[str, Any]:
+def dense_errors(results: Sequence[ForceResult], probing_only: bool = True) -> dict[str, Any]:
     """Beyond the paper (virtual rig): per-marker force MAE against the sim's field, and the sim's net force
     against the F/T sensor (how much of the error is the measurement's)."""
-    mask = "probing" if probing_only else None
-    marker = pooled(results, "marker_mae_n", mask).reshape(-1, 3)
-    truth = pooled(results, "truth_n", mask).reshape(-1, 3)
-    predicted = pooled(results, "predicted_n", mask).reshape(-1, 3)
-    measured = pooled(results, "measured_n", mask).reshape(-1, 3)
+    mask = _windows(results, probing_only)
+    marker = pooled((r.marker_mae_n for r in results), mask).reshape(-1, 3)
+    truth = pooled((r.truth_n for r in results), mask).reshape(-1, 3)
+    predicted = pooled((r.predicted_n for r in results), mask).reshape(-1, 3)
+    measured = pooled((r.measured_n for r in results), mask).reshape(-1, 3)
     out: dict[str, Any] = {}
     for i, axis in enumerate("xyz"):
         out[f"marker_{axis}_mae_n"], out[f"marker_{axis}_std_n"] = mean_std(marker[:, i])
@@ -124,10 +143,10 @@ def dense_errors(results: list[dict[str, Any]], probing_only: bool = True) -> di
     return out
 
 
-def runtime_row(results: list[dict[str, Any]], stages: tuple[str, ...]) -> dict[str, Any]:
+def runtime_row(results: Sequence[ForceResult], stages: tuple[str, ...]) -> dict[str, Any]:
     """Median per-stage time (ms) over recordings, the per-window total and the achieved rate (Hz)."""
-    row: dict[str, Any] = {f"{s}_ms": float(np.median([r["stage_ms"][s] for r in results])) for s in stages}
-    total = float(np.median([r["total_ms"] for r in results]))
+    row: dict[str, Any] = {f"{s}_ms": float(np.median([r.stage_ms[s] for r in results])) for s in stages}
+    total = float(np.median([r.total_ms for r in results]))
     row["total_ms"] = total
     row["rate_hz"] = 1000.0 / total if total > 0 else None
     return row

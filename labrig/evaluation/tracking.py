@@ -62,6 +62,56 @@ class TrackingTask:
     lost_px: float = LOST_PX
 
 
+@dataclass(frozen=True)
+class TruthErrors:
+    """A track (W windows, M markers) against the sim's marker truth at the window ends; None without truth."""
+
+    has_truth: bool
+    error_median_px: float | None  # over every marker and window
+    error_p95_px: float | None
+    error_max_px: float | None
+    error_max_per_marker_px: Array | None  # (M,)
+    lost_by_truth: int | None  # markers ever more than ``lost_px`` off
+    t1_us: npt.NDArray[np.int64] | None  # (W,) window ends, host us
+    window_error_p95_px: Array | None  # (W,)
+    truth_end_offset_max_px: float | None  # how far the true markers end from where they started
+
+    @classmethod
+    def absent(cls) -> TruthErrors:
+        return cls(False, None, None, None, None, None, None, None, None)
+
+
+@dataclass(frozen=True)
+class TrackingResult:
+    """One tracker setting on one recording (W windows, M markers): lost tracks, drift, timing and,
+    on the virtual rig, the true error (the :class:`TruthErrors` fields, None on hardware)."""
+
+    recording: str
+    tracker: str
+    patch_scale: float
+    refine: bool
+    window_us: int | None
+    window_events: int | None
+    rest_source: str  # where the markers' rest pixels came from
+    marker_diameter_px: float
+    n_windows: int
+    n_markers: int
+    drift_px: Array  # (M,) |end - start| of each track, px
+    lost_tracks: int  # tracks with drift above ``lost_px``
+    drift_max_px: float
+    track_ms_median: float  # the tracker's update per window, ms
+    track_ms_p95: float
+    has_truth: bool
+    error_median_px: float | None
+    error_p95_px: float | None
+    error_max_px: float | None
+    error_max_per_marker_px: Array | None
+    lost_by_truth: int | None
+    t1_us: npt.NDArray[np.int64] | None
+    window_error_p95_px: Array | None
+    truth_end_offset_max_px: float | None
+
+
 def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float) -> Any:
     """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide."""
     from labrig.pipeline.tracking import EvetacParams, EvetacTracker, Tracker, TrackerParams
@@ -81,19 +131,8 @@ def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float) -> Any:
     raise LabrigError(f"tracker must be one of {', '.join(TRACKERS)}, not {task.tracker!r}")
 
 
-def track_recording(task: TrackingTask | Mapping[str, Any]) -> dict[str, Any]:
-    """Track ``task.recording`` window by window; lost tracks, drift and (virtual rig) true errors.
-
-    Keys (M markers, W windows): ``recording``, ``tracker``, ``patch_scale``, ``refine``,
-    ``window_us``, ``window_events`` (the settings); ``rest_source`` (str), ``marker_diameter_px``;
-    ``n_windows``, ``n_markers``; ``drift_px`` (M,) |end - start| of each track, px;
-    ``lost_tracks`` (count with drift > ``lost_px``), ``drift_max_px``; ``track_ms_median``,
-    ``track_ms_p95`` (the tracker's update per window, ms); ``has_truth``. With truth (else
-    None): ``error_median_px``, ``error_p95_px``, ``error_max_px`` over every marker and window;
-    ``error_max_per_marker_px`` (M,); ``lost_by_truth`` (markers ever more than ``lost_px``
-    off); ``t1_us`` (W,) window ends and ``window_error_p95_px`` (W,); ``truth_end_offset_max_px``
-    (how far the true markers end from where they started: the proxy's premise).
-    """
+def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
+    """Track ``task.recording`` window by window; lost tracks, drift and (virtual rig) true errors."""
     from labrig.pipeline.tracking import marker_diameter_px
     from labrig.pipeline.windows import recording_windows
     from labrig.recording import Recording
@@ -116,16 +155,14 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> dict[str, Any]:
     track = np.asarray(positions)  # (W, M, 2)
     drift = np.linalg.norm(track[-1] - rest_px, axis=1)
     ms = np.asarray(seconds) * 1e3
-    out: dict[str, Any] = {
-        "recording": str(task.recording), "tracker": task.tracker, "patch_scale": float(task.patch_scale),
-        "refine": bool(task.refine), "window_us": task.window_us, "window_events": task.window_events,
-        "rest_source": rest_source, "marker_diameter_px": diameter,
-        "n_windows": len(track), "n_markers": track.shape[1],
-        "drift_px": drift, "lost_tracks": int((drift > task.lost_px).sum()), "drift_max_px": float(drift.max()),
-        "track_ms_median": float(np.median(ms)), "track_ms_p95": float(np.percentile(ms, 95)),
-    }
-    out.update(truth_errors(track, np.asarray(ends, np.float64), truth, task.lost_px))
-    return out
+    truth_fields = truth_errors(track, np.asarray(ends, np.float64), truth, task.lost_px)
+    return TrackingResult(
+        recording=str(task.recording), tracker=task.tracker, patch_scale=float(task.patch_scale), refine=bool(task.refine),
+        window_us=task.window_us, window_events=task.window_events, rest_source=rest_source,
+        marker_diameter_px=float(diameter), n_windows=len(track), n_markers=track.shape[1], drift_px=drift,
+        lost_tracks=int((drift > task.lost_px).sum()), drift_max_px=float(drift.max()),
+        track_ms_median=float(np.median(ms)), track_ms_p95=float(np.percentile(ms, 95)),
+        **{f.name: getattr(truth_fields, f.name) for f in fields(TruthErrors)})
 
 
 track_recording.cache_version = "3"  # type: ignore[attr-defined]
@@ -164,25 +201,20 @@ def truth_at(t_truth_us: Array, truth_px: Array, t_us: Array) -> Array:
     return truth_px[lower] + w * (truth_px[upper] - truth_px[lower])
 
 
-def truth_errors(track_px: Array, t1_us: Array, truth: tuple[Array, Array] | None, lost_px: float) -> dict[str, Any]:
-    """Error keys of :func:`track_recording` for a track (W, M, 2) at window ends ``t1_us`` (W,); None without truth."""
-    names = ("error_median_px", "error_p95_px", "error_max_px", "error_max_per_marker_px", "lost_by_truth",
-             "t1_us", "window_error_p95_px", "truth_end_offset_max_px")
+def truth_errors(track_px: Array, t1_us: Array, truth: tuple[Array, Array] | None, lost_px: float) -> TruthErrors:
+    """The true errors of a track (W, M, 2) px at window ends ``t1_us`` (W,); :meth:`TruthErrors.absent` without truth."""
     if truth is None:
-        return {"has_truth": False, **dict.fromkeys(names)}
+        return TruthErrors.absent()
     t_truth, truth_px = truth
     if truth_px.shape[1] != track_px.shape[1]:
         raise LabrigError(f"/truth/markers has {truth_px.shape[1]} markers, the tracker {track_px.shape[1]}")
     error = np.linalg.norm(track_px - truth_at(t_truth, truth_px, t1_us), axis=2)  # (W, M)
     per_marker = error.max(axis=0)
-    return {
-        "has_truth": True,
-        "error_median_px": float(np.median(error)), "error_p95_px": float(np.percentile(error, 95)),
-        "error_max_px": float(error.max()), "error_max_per_marker_px": per_marker,
-        "lost_by_truth": int((per_marker > lost_px).sum()),
-        "t1_us": t1_us.astype(np.int64), "window_error_p95_px": np.percentile(error, 95, axis=1),
-        "truth_end_offset_max_px": float(np.linalg.norm(truth_px[-1] - truth_px[0], axis=1).max()),
-    }
+    return TruthErrors(
+        has_truth=True, error_median_px=float(np.median(error)), error_p95_px=float(np.percentile(error, 95)),
+        error_max_px=float(error.max()), error_max_per_marker_px=per_marker, lost_by_truth=int((per_marker > lost_px).sum()),
+        t1_us=t1_us.astype(np.int64), window_error_p95_px=np.percentile(error, 95, axis=1),
+        truth_end_offset_max_px=float(np.linalg.norm(truth_px[-1] - truth_px[0], axis=1).max()))
 
 
 # -- Table I ------------------------------------------------------------------------------------------
@@ -199,7 +231,7 @@ def table_tasks(recordings: Iterable[str], *, patch_scales: Sequence[float] = TA
             for path in recordings for r in refine for scale in patch_scales]
 
 
-def table_lost_tracks(results: Iterable[Mapping[str, Any] | None]) -> list[dict[str, Any]]:
+def table_lost_tracks(results: Iterable[TrackingResult | None]) -> list[dict[str, Any]]:
     """Table I rows: per (tracker, window, refinement, patch scale), lost tracks per sequence over recordings.
 
     Row keys: ``tracker``, ``window_us``, ``window_events``, ``refine``, ``patch_scale``,
@@ -209,24 +241,24 @@ def table_lost_tracks(results: Iterable[Mapping[str, Any] | None]) -> list[dict[
     ``track_ms_median`` (median over recordings of the per-recording median, ms). Failed tasks
     (None) are skipped. Rows are sorted by tracker, window, refinement first, then patch scale.
     """
-    groups: dict[tuple[Any, ...], list[Mapping[str, Any]]] = {}
+    groups: dict[tuple[Any, ...], list[TrackingResult]] = {}
     for r in results:
         if r is not None:
-            key = (r["tracker"], r["window_us"], r["window_events"], bool(r["refine"]), float(r["patch_scale"]))
+            key = (r.tracker, r.window_us, r.window_events, bool(r.refine), float(r.patch_scale))
             groups.setdefault(key, []).append(r)
     rows = []
     for key in sorted(groups, key=lambda k: (k[0], k[1] or 0, k[2] or 0, not k[3], k[4])):
         group = groups[key]
-        lost = np.array([r["lost_tracks"] for r in group], np.float64)
-        with_truth = [r for r in group if r.get("has_truth")]
-        by_truth = np.array([r["lost_by_truth"] for r in with_truth], np.float64)
-        p95 = np.array([r["error_p95_px"] for r in with_truth], np.float64)
+        lost = np.array([r.lost_tracks for r in group], np.float64)
+        with_truth = [r for r in group if r.has_truth]
+        by_truth = np.array([r.lost_by_truth for r in with_truth], np.float64)
+        p95 = np.array([r.error_p95_px for r in with_truth], np.float64)
         rows.append({
             "tracker": key[0], "window_us": key[1], "window_events": key[2], "refine": key[3], "patch_scale": key[4],
             "recordings": len(group), "lost_mean": float(lost.mean()), "lost_std": float(lost.std()),
             "lost_by_truth_mean": float(by_truth.mean()) if with_truth else None,
             "lost_by_truth_std": float(by_truth.std()) if with_truth else None,
             "error_p95_px_mean": float(p95.mean()) if with_truth else None,
-            "track_ms_median": float(np.median([r["track_ms_median"] for r in group])),
+            "track_ms_median": float(np.median([r.track_ms_median for r in group])),
         })
     return rows

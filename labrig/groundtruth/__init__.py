@@ -3,14 +3,14 @@
 Computed from what a real lab has -- the CNC pose stream, the indenter
 geometry, the gel modulus, the rig registration and the camera calibration --
 never from a simulated recording's ``/truth`` streams. Written to a sidecar
-``NAME.gt.h5`` beside each recording. See docs/groundtruth.md.
+``NAME.gt.h5`` beside each recording (:func:`labrig.dataset.sidecar_path`). See docs/groundtruth.md.
 
 * :mod:`contact` -- contact models: Hertz, Sneddon's integrals, the tabulated
   numerical solver (half-space or bonded layer).
 * :mod:`inputs` -- the lab's knowledge (calibration files or nominal values).
 * :mod:`generate` -- pose, indentation, maps on the network grid.
 * :mod:`sidecar` -- the file and its reader (:func:`load_groundtruth`).
-* :mod:`batch` -- a campaign folder or a single recording.
+* :mod:`batch` -- whether a sidecar is current; a plot of a few maps.
 """
 
 from labrig.groundtruth.contact import (
@@ -21,7 +21,7 @@ from labrig.groundtruth.contact import (
     SneddonModel,
     choose_model,
 )
-from labrig.groundtruth.generate import DEFAULT_SCALE_MM, GroundTruth, generate, sidecar_path
+from labrig.groundtruth.generate import DEFAULT_SCALE_MM, GroundTruth, generate
 from labrig.groundtruth.inputs import GroundTruthError, LabInputs, lab_inputs
 from labrig.groundtruth.sidecar import GroundTruthFile, load_groundtruth, write_sidecar
 
@@ -40,6 +40,5 @@ __all__ = [
     "generate",
     "lab_inputs",
     "load_groundtruth",
-    "sidecar_path",
     "write_sidecar",
 ]

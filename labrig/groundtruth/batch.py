@@ -1,66 +1,33 @@
-"""Ground truth for a campaign folder (its manifest.csv) or a single recording; a plot of a few maps."""
+"""Ground truth for the recordings of a campaign folder: whether a sidecar is current; a plot of a few maps."""
 
 from __future__ import annotations
 
-import csv
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
-from labrig.groundtruth.generate import sha256_of, sidecar_path
+from labrig.cache import sha256_of
+from labrig.dataset import DatasetRecording
 from labrig.groundtruth.inputs import GroundTruthError
-
-MANIFEST = "manifest.csv"
-
-
-@dataclass(frozen=True)
-class Job:
-    recording: Path
-    split: str = ""
-    expected_sha256: str = ""
+from labrig.groundtruth.sidecar import FORMAT, load_groundtruth
+from labrig.recording import Recording
 
 
-def find_recordings(data: str | Path) -> tuple[list[Job], int]:
-    """(jobs, rows skipped because not complete): a campaign folder's complete recordings, or one file."""
-    path = Path(data)
-    if not path.exists():
-        raise GroundTruthError(f"{path}: no such file or folder; give a campaign folder (with {MANIFEST}) or a recording")
-    if path.is_file():
-        if path.name.endswith(".gt.h5"):
-            raise GroundTruthError(f"{path} is a ground-truth sidecar; give the recording it belongs to")
-        return [Job(path)], 0
-    manifest = path / MANIFEST
-    if not manifest.exists():
-        raise GroundTruthError(f"{path} has no {MANIFEST}: give a campaign output folder (`labrig campaign ... --out`) "
-                               "or a single recording file")
-    with manifest.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    if rows and not {"status", "file"} <= set(rows[0]):
-        raise GroundTruthError(f"{manifest} lacks the status/file columns of a campaign manifest")
-    jobs = [Job(path / r["file"], r.get("split", ""), r.get("sha256", "")) for r in rows
-            if r.get("status") == "complete" and r.get("file")]
-    return jobs, len(rows) - len(jobs)
-
-
-def is_current(job: Job, settings: dict[str, Any]) -> bool:
+def is_current(recording: DatasetRecording, settings: dict[str, Any]) -> bool:
     """The sidecar exists, belongs to this exact recording and was made with the same settings."""
-    from labrig.groundtruth.sidecar import FORMAT
-
-    side = sidecar_path(job.recording)
+    side = recording.sidecar
     if not side.exists():
         return False
     try:
-        import h5py
-
         with h5py.File(side, "r") as f:
             attrs = dict(f.attrs)
     except OSError:
         return False
     if attrs.get("format") != FORMAT:
         return False
-    sha = job.expected_sha256 or sha256_of(job.recording)
+    sha = recording.sha256 or sha256_of(recording.path)
     if attrs.get("source_sha256") != sha:
         return False
     return all(_same(attrs.get(k), v) for k, v in settings.items())
@@ -78,9 +45,6 @@ def plot_groundtruth(recording: str | Path, gt_path: str | Path, out: str | Path
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from labrig.groundtruth.sidecar import load_groundtruth
-    from labrig.recording import Recording
 
     gt = load_groundtruth(gt_path)
     if not len(gt):

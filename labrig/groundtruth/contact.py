@@ -48,6 +48,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
 
+from labrig.cache import cache_folder, cache_key
 from labrig.config import GelConfig
 from labrig.indenters import Indenter
 from labrig.physics.mechanics import Box, Grid, SurfaceKernels, indenter_height_mm, solve_normal
@@ -242,9 +243,8 @@ class SneddonModel:
 
 
 def depth_table_dir(cache_dir: str | Path | None = None) -> Path:
-    """``cache_dir``, else $LABRIG_CACHE, else ~/.cache/labrig; plus /groundtruth_tables."""
-    root = cache_dir or os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
-    return Path(root) / "groundtruth_tables"
+    """``cache_dir``, else the cache root (:mod:`labrig.cache`); plus /groundtruth_tables."""
+    return cache_folder("groundtruth_tables", cache_dir)
 
 
 class DepthTable:
@@ -288,7 +288,7 @@ class DepthTable:
         }
         if indenter._heightmap is not None:
             spec["indenter"]["heightmap_sha256"] = hashlib.sha256(np.ascontiguousarray(indenter._heightmap).tobytes()).hexdigest()
-        key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:20]
+        key = cache_key(spec)
         path = depth_table_dir(cache_dir) / f"{indenter.name}-{mode}-{key}.npz"
         if use_cache and path.exists():
             try:

@@ -27,7 +27,6 @@ Pipeline (docs/groundtruth.md):
 
 from __future__ import annotations
 
-import hashlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig import __version__
+from labrig.cache import sha256_of
 from labrig.groundtruth.contact import ContactModel, choose_model
 from labrig.groundtruth.inputs import GroundTruthError, LabInputs, lab_inputs, recording_rig
 from labrig.indenters import DEFAULT_INDENTERS, Indenter, load_indenters
@@ -52,21 +52,6 @@ DEFAULT_SCALE_MM = 2.5
 CONTACT_SAMPLES = 16
 #: Below this force at the end of the approach, the approach ended at the surface.
 CONTACT_FORCE_FLOOR_N = 0.02
-
-
-def sha256_of(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def sidecar_path(recording: str | Path) -> Path:
-    """``NAME.gt.h5`` beside ``NAME.h5``."""
-    p = Path(recording)
-    stem = p.name[:-3] if p.name.endswith(".h5") else p.name
-    return p.with_name(f"{stem}.gt.h5")
 
 
 # ------------------------------------------------------------------------------------ tool pose

@@ -19,8 +19,6 @@ keyed by a hash of every input.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -31,6 +29,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
+from labrig.cache import cache_folder, cache_key
 from labrig.config import GelConfig, RigConfig
 from labrig.physics.mechanics.spectral import layer_normal_compliance
 
@@ -206,9 +205,8 @@ def _material(rig: RigConfig, params: IfemParams | SurfaceParams) -> tuple[float
 
 
 def stiffness_cache_dir(cache_dir: str | Path | None = None) -> Path:
-    """``cache_dir``, else $LABRIG_CACHE, else ~/.cache/labrig; plus /ifem."""
-    root = cache_dir or os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
-    return Path(root) / "ifem"
+    """``cache_dir``, else the cache root (:mod:`labrig.cache`); plus /ifem."""
+    return cache_folder("ifem", cache_dir)
 
 
 def stiffness_key(rig: RigConfig, params: IfemParams = IfemParams()) -> str:
@@ -219,7 +217,7 @@ def stiffness_key(rig: RigConfig, params: IfemParams = IfemParams()) -> str:
         "gel": [rig.gel.thickness_mm, rig.gel.size_x_mm, rig.gel.size_y_mm],
         "markers": [rig.markers.rows, rig.markers.cols, rig.markers.pitch_mm],
     }
-    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:20]
+    return cache_key(spec)
 
 
 def build_stiffness(rig: RigConfig, params: IfemParams = IfemParams(), *, cache_dir: str | Path | None = None,
@@ -568,7 +566,7 @@ def surface_key(rig: RigConfig, params: SurfaceParams = SurfaceParams()) -> str:
         "gel": [rig.gel.thickness_mm, rig.gel.size_x_mm, rig.gel.size_y_mm],
         "markers": [rig.markers.rows, rig.markers.cols, rig.markers.pitch_mm],
     }
-    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:20]
+    return cache_key(spec)
 
 
 _SURFACE_ARRAYS = ("node_xy_mm", "k_zz", "k_tt", "cells", "interp")

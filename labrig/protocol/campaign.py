@@ -1,7 +1,7 @@
 """Running a campaign: every recording of a campaign file, a manifest, resumable, in parallel on virtual rigs.
 
-The manifest (``manifest.csv`` in the output directory, rewritten atomically
-after each recording) has one row per recording: id, indenter, location,
+The output directory is a :class:`labrig.dataset.Dataset`. Its manifest (rewritten
+atomically after each recording) has one row per recording: id, indenter, location,
 parameters, split, status (``pending``, ``complete``, ``aborted``), file and
 its SHA-256. A rerun skips recordings whose file is there with its checksum,
 and redoes the rest (a crash leaves ``NAME.h5.partial``: it is moved aside
@@ -14,10 +14,7 @@ parallel, each in its own processes; hardware campaigns are sequential.
 
 from __future__ import annotations
 
-import csv
-import hashlib
 import multiprocessing as mp
-import os
 import queue
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -25,18 +22,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from labrig.cache import sha256_of
 from labrig.config import load_rig
+from labrig.dataset import COMPLETE, Dataset, read_manifest, write_manifest
 from labrig.errors import LabrigError
 from labrig.indenters import load_indenters
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import Campaign, RecordingPlan
-
-MANIFEST = "manifest.csv"
-COLUMNS = ("id", "index", "indenter", "x_mm", "y_mm", "depth_mm", "force_n", "normal_speed_mm_s", "shear_direction_deg",
-           "shear_mm", "shear_speed_mm_s", "wait_s", "repetition", "split", "status", "reason", "file", "sha256",
-           "duration_s")
+from labrig.recording.layout import partial_path
 
 
 @dataclass(frozen=True)
@@ -51,21 +46,13 @@ class Outcome:
     duration_s: float
 
 
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 class Manifest:
     """The campaign's manifest rows by recording id; saved atomically."""
 
     def __init__(self, out_dir: Path, campaign: Campaign) -> None:
-        self.path = out_dir / MANIFEST
+        self.path = Dataset(out_dir).manifest_path
         self.rows: dict[str, dict[str, str]] = {}
-        old = self._read()
+        old = {row["id"]: row for row in read_manifest(self.path)} if self.path.exists() else {}
         for plan in campaign.plans:
             row = _plan_row(plan)
             before = old.get(plan.id)
@@ -73,16 +60,10 @@ class Manifest:
                 row.update({k: before.get(k, "") for k in ("status", "reason", "file", "sha256", "duration_s")})
             self.rows[plan.id] = row
 
-    def _read(self) -> dict[str, dict[str, str]]:
-        if not self.path.exists():
-            return {}
-        with self.path.open(newline="") as f:
-            return {row["id"]: row for row in csv.DictReader(f)}
-
     def done(self, plan: RecordingPlan, out_dir: Path) -> bool:
         """Complete, with its file present and unchanged."""
         row = self.rows[plan.id]
-        if row["status"] != "complete" or not row["file"]:
+        if row["status"] != COMPLETE or not row["file"]:
             return False
         path = out_dir / row["file"]
         return path.exists() and sha256_of(path) == row["sha256"]
@@ -93,12 +74,7 @@ class Manifest:
         self.save()
 
     def save(self) -> None:
-        tmp = self.path.with_suffix(".csv.tmp")
-        with tmp.open("w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=COLUMNS)
-            writer.writeheader()
-            writer.writerows(self.rows.values())
-        os.replace(tmp, self.path)
+        write_manifest(self.path, self.rows.values())
 
 
 def _plan_row(plan: RecordingPlan) -> dict[str, str]:
@@ -163,8 +139,8 @@ def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopReque
 
 
 def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protocol_toml: str) -> Outcome:
-    path = out_dir / f"{plan.id}.h5"
-    partial = path.with_name(path.name + ".partial")
+    path = Dataset(out_dir).recording_path(plan.id)
+    partial = partial_path(path)
     if partial.exists():  # a crash mid-recording: keep it aside, redo the recording
         n = 1
         while partial.with_name(f"{partial.name}.{n}").exists():

@@ -24,8 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from labrig.config import RigConfig
+from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
-from labrig.protocol.spec import SPLITS, ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
+from labrig.protocol.spec import ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
 from labrig.protocol.split import PAPER_SPLIT, assign_splits, split_counts
 
 PROTOCOLS_DIR = Path(__file__).resolve().parent.parent.parent / "protocols"

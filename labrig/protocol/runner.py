@@ -17,6 +17,7 @@ recording is finalized either way (``aborted`` with the reason).
 from __future__ import annotations
 
 import contextlib
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.cache import sha256_of
 from labrig.calibration.registration_file import gel_pose
 from labrig.config import RigConfig
 from labrig.devices.grbl import Grbl, GrblAlarm, GrblError, GrblTimeout
@@ -419,11 +421,8 @@ class ProbeRunner:
 
 def _calibration_files(rig: RigConfig) -> str:
     """JSON {path: SHA-256} of the calibration files next to the rig file (the rig file itself excluded)."""
-    import hashlib
-    import json
-
     files = {}
     for path in sorted(rig.path.parent.glob("*.toml")):
         if path.resolve() != rig.path.resolve():
-            files[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+            files[str(path)] = sha256_of(path)
     return json.dumps(files)

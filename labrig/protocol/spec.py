@@ -15,9 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from labrig.dataset import SPLITS
 from labrig.errors import LabrigError
-
-SPLITS: tuple[str, ...] = ("train", "val", "test")
 
 #: Depth assumed when timing a force-target run that has no depth cap (see ``nominal_duration_s``).
 FORCE_TARGET_DEPTH_GUESS_MM = 1.5

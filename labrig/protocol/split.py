@@ -18,7 +18,7 @@ from collections.abc import Hashable, Mapping, Sequence
 
 import numpy as np
 
-from labrig.protocol.spec import SPLITS
+from labrig.dataset import SPLITS
 
 #: The paper's split: 154/52/13 of 219 recordings.
 PAPER_SPLIT: dict[str, float] = {"train": 154 / 219, "val": 52 / 219, "test": 13 / 219}

@@ -34,11 +34,11 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import Roi
+from labrig.dataset import SPLITS, Dataset, require_groundtruth
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.sae import pad_for_unet, sae_grid
 
-SPLITS = ("train", "val", "test")
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
 #: Margin around the probing phases (s): windows of the gel at rest, no contact, few events.
 PHASE_MARGIN_S = 0.3
@@ -200,31 +200,21 @@ class CampaignData:
 
 
 def open_campaign(folder: str | Path, phases: str = "probing") -> CampaignData:
-    """Read ``manifest.csv`` and pair each complete recording with its ``NAME.gt.h5``.
+    """Pair each complete recording of a campaign folder's manifest with its ``NAME.gt.h5``, by split.
 
-    A missing sidecar is an error that says to run ``labrig groundtruth DATA/`` first.
+    A recording without a split (or an unknown one) trains. A missing sidecar is an error that
+    says to run ``labrig groundtruth DATA/`` first; a recording that cannot be used is skipped.
     """
-    from labrig.groundtruth import sidecar_path
-    from labrig.groundtruth.batch import find_recordings
-
     folder = Path(folder)
-    if folder.is_file():
-        raise LabrigError(f"{folder} is a file; give a campaign output folder (with manifest.csv)")
-    jobs, _ = find_recordings(folder)
-    if not jobs:
-        raise LabrigError(f"{folder}/manifest.csv lists no complete recordings")
-    missing = [j.recording.name for j in jobs if not sidecar_path(j.recording).exists()]
-    if missing:
-        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
-        raise LabrigError(f"{folder}: no ground truth for {', '.join(missing[:3])}{more}; "
-                          f"run `labrig groundtruth {folder}` first")
+    recordings = Dataset.open(folder).require()
+    require_groundtruth(recordings, folder)
     data = CampaignData(folder)
-    for job in jobs:
-        split = job.split if job.split in SPLITS else "train"
+    for recording in recordings:
+        split = recording.split if recording.split in SPLITS else "train"
         try:
-            data.sources.setdefault(split, []).append(Source(job.recording, sidecar_path(job.recording), split, phases))
+            data.sources.setdefault(split, []).append(Source(recording.path, recording.sidecar, split, phases))
         except LabrigError as exc:
-            data.skipped.append(f"{job.recording.name}: {exc}")
+            data.skipped.append(f"{recording.path.name}: {exc}")
     if not data.sources.get("train"):
         raise LabrigError(f"{folder}: no usable recording in the train split")
     data.scale_mm  # noqa: B018  (checks that all scales agree)

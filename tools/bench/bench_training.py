@@ -39,7 +39,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def tiny_campaign(folder: Path) -> Path:
     from labrig.config import load_rig
-    from labrig.groundtruth import generate, sidecar_path, write_sidecar
+    from labrig.dataset import sidecar_path
+    from labrig.groundtruth import generate, write_sidecar
     from labrig.indenters import load_indenter
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path

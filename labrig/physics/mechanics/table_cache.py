@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from labrig.cache import cache_folder, cache_key
 from labrig.config import GelConfig
 from labrig.indenters import Indenter
 from labrig.physics.mechanics.grid import Grid
@@ -62,13 +63,12 @@ def table_spec(
 
 def table_key(spec: dict[str, Any]) -> str:
     """The cache key of a table spec: 20 hex digits of the SHA-256 of its sorted JSON."""
-    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:20]
+    return cache_key(spec)
 
 
 def table_cache_dir(cache_dir: str | Path | None = None) -> Path:
-    """Where tables are cached: ``cache_dir``, else $LABRIG_CACHE, else ~/.cache/labrig; plus /contact_tables."""
-    root = cache_dir or os.environ.get("LABRIG_CACHE") or Path.home() / ".cache" / "labrig"
-    return Path(root) / "contact_tables"
+    """Where tables are cached: ``cache_dir``, else the cache root (:mod:`labrig.cache`); plus /contact_tables."""
+    return cache_folder("contact_tables", cache_dir)
 
 
 def table_path(indenter: Indenter, mode: str, key: str, cache_dir: str | Path | None = None) -> Path:
