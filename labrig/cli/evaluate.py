@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 from rich.markup import escape
-from rich.progress import MofNCompleteColumn, TimeElapsedColumn
+from rich.progress import MofNCompleteColumn, TaskID, TimeElapsedColumn
 
 from labrig.cli.console import JsonOption, console, err_console, print_json, progress_bar
 
@@ -62,7 +62,7 @@ def evaluate_command(
 
         raise LabrigError("--sweep-recordings must be 0 (all) or positive")
     with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), disable=as_json) as bar:
-        ids: dict[str, int] = {}
+        ids: dict[str, TaskID] = {}
 
         def progress(kind: str, done: int, total: int) -> None:
             if kind not in ids:

@@ -142,8 +142,8 @@ def campaign(
     t0 = time.monotonic()
     counts = {"complete": 0, "aborted": 0, "failed": 0}
     stop = StopRequest()
-    with progress_bar(TextColumn("{task.completed:.0f}/{task.fields[n]}"), TimeElapsedColumn(), TimeRemainingColumn(),
-                      disable=as_json) as bar:
+    count = TextColumn("{task.completed:.0f}/{task.fields[n]}")
+    with progress_bar(count, TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
         task = bar.add_task(f"campaign {plan.name}", total=sum(nominal.values()) or 1.0, n=todo)
         done = 0
 
@@ -153,7 +153,7 @@ def campaign(
             counts[outcome.status if outcome.status in counts else "failed"] += 1
             done += 1
             bar.update(task, advance=nominal.get(outcome.plan_id, 0.0), description=f"campaign {plan.name}: {outcome.plan_id}")
-            bar.columns[2].text_format = f"{done}/{todo}"  # type: ignore[attr-defined]
+            count.text_format = f"{done}/{todo}"
             if outcome.status != "complete":
                 err_console.print(f"[yellow]{outcome.plan_id} {outcome.status}[/]: {outcome.reason}")
 

@@ -22,7 +22,7 @@ def _marker_grid(values: np.ndarray, rows: int, cols: int) -> np.ndarray:
     return values.reshape(rows, cols)
 
 
-def write_view(frames: Sequence[WindowResult], setup: PipelineSetup, path: Path, fps: float = 10.0) -> Path:
+def write_view(frames: Sequence[WindowResult], setup: PipelineSetup, path: Path, fps: int = 10) -> Path:
     """A GIF like the paper's figure 1: SAE, marker tracks, depth, then x, y and normal force per marker."""
     import matplotlib
 
@@ -64,12 +64,12 @@ def write_view(frames: Sequence[WindowResult], setup: PipelineSetup, path: Path,
     ax_depth.set_title("depth, mm")
     fig.colorbar(im_depth, ax=ax_depth, shrink=0.8)
     maps = []
-    for ax, comp, title, vmax, cmap in ((ax_fx, 0, "Fx, N", shear_max, "RdBu_r"), (ax_fy, 1, "Fy, N", shear_max, "RdBu_r"),
+    for ax, comp, label, vmax, cmap in ((ax_fx, 0, "Fx, N", shear_max, "RdBu_r"), (ax_fy, 1, "Fy, N", shear_max, "RdBu_r"),
                                         (ax_fz, 2, "normal force -Fz, N", fmax, "magma")):
         values = -first.forces_n[:, 2] if comp == 2 else first.forces_n[:, comp]
         im = ax.imshow(_marker_grid(values, rows, cols), cmap=cmap, vmin=0 if comp == 2 else -vmax, vmax=vmax,
                        origin="upper", interpolation="nearest")
-        ax.set_title(title)
+        ax.set_title(label)
         fig.colorbar(im, ax=ax, shrink=0.8)
         maps.append((im, comp))
     for ax in axes.ravel():
