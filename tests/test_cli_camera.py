@@ -1,4 +1,4 @@
-"""``labrig import`` / ``labrig export``: camera files to recordings and back (labrig.cli_camera)."""
+"""``labrig import`` / ``labrig export``: camera files to recordings and back (labrig.recording.convert)."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from labrig.cli_devices import add_device_commands
+from labrig.cli.devices import add_device_commands
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.grbl_twin import GrblTwin
 from labrig.sim.serial_pty import TwinServer
@@ -25,7 +25,7 @@ add_device_commands(app)
 runner = CliRunner()
 
 # The main app with the two lines its owner adds, run as a user would (user errors: one line, exit 2).
-MOUNTED = "from labrig import cli; from labrig.cli_devices import add_device_commands; add_device_commands(cli.app); cli.main()"
+MOUNTED = "from labrig import cli; from labrig.cli.devices import add_device_commands; add_device_commands(cli.app); cli.main()"
 
 
 def run(*args: str) -> tuple[int, str]:

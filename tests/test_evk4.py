@@ -21,9 +21,9 @@ from labrig.devices.camera import (
     open_camera,
     record_camera,
 )
-from labrig.devices.raw import TRIGGER_DTYPE, Evt3Decoder, write_raw
+from labrig.devices.raw import TRIGGER_DTYPE, Evt3Decoder, Evt3StreamEncoder, write_raw
 from labrig.eventtypes import EVENT_DTYPE
-from labrig.sim.evk4_twin import Evk4Twin, Evt3StreamEncoder
+from labrig.sim.evk4_twin import Evk4Twin
 
 LOOP_US = 1 << 24
 

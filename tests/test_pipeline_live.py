@@ -366,7 +366,7 @@ def test_live_run_during_a_probing_run_on_the_virtual_rig(tiny_model: Path, rig:
 def test_ctrl_c_closes_the_result_file_and_prints_the_summary(tiny_model: Path, small_recording: Path,
                                                              tmp_path: Path) -> None:
     """Camera only: a RAW replay (in real time) as the rig's camera, stopped by SIGINT."""
-    from labrig.cli_camera import export_raw
+    from labrig.recording.convert import export_raw
 
     raw = tmp_path / "camera.raw"
     export_raw(small_recording, raw, progress=False)
@@ -417,7 +417,7 @@ def test_bad_inputs_say_what_to_do_in_one_line(small_recording: Path, tmp_path: 
 
 
 def test_no_depth_network_says_what_to_do(monkeypatch: pytest.MonkeyPatch) -> None:
-    from labrig.cli_run_live import _default_model
+    from labrig.cli.run_live import _default_model
     from labrig.errors import LabrigError
 
     def nothing(folder: str = "models") -> Path:

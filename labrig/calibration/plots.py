@@ -1,4 +1,5 @@
-"""Figures of the rig calibrations: the registration's touch-offs and residuals, the gel modulus fit.
+"""Figures of the calibrations: the camera's intrinsics and extrinsics (detections and reprojection
+residuals), the registration's touch-offs and residuals, the gel modulus fit.
 
 matplotlib (Agg) is imported by each function: only a plot needs it.
 """
@@ -6,12 +7,18 @@ matplotlib (Agg) is imported by each function: only a plot needs it.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from labrig.calibration.gel import GelFit
 from labrig.calibration.registration_file import RigRegistration
 from labrig.physics.mechanics import ContactTable
+
+if TYPE_CHECKING:  # the camera calibrations import OpenCV; their figures need only their results
+    from labrig.calibration.extrinsics import ExtrinsicsResult
+    from labrig.calibration.intrinsics import IntrinsicsResult
 
 
 def plot_registration(reg: RigRegistration, path: str | Path) -> Path:
@@ -70,3 +77,68 @@ def plot_fit(fit: GelFit, tables: dict[str, ContactTable], path: str | Path) -> 
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _residual_axes(frame: npt.NDArray[np.float64], measured: npt.NDArray[np.float64], projected: npt.NDArray[np.float64],
+                   title: str, path: Path) -> Path:
+    """The accumulated frame with detected and reprojected points (px) beside the residual arrows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 4.6))
+    ax0.imshow(frame, cmap="gray", vmax=np.percentile(frame[frame > 0], 99.5) if (frame > 0).any() else 1)
+    ax0.plot(measured[:, 0], measured[:, 1], "+", color="tab:red", ms=6, label="detected")
+    ax0.plot(projected[:, 0], projected[:, 1], "o", mfc="none", color="tab:cyan", ms=5, label="reprojected")
+    ax0.set_title(f"{title}: accumulated frame")
+    ax0.legend(loc="upper right", fontsize=8)
+    residual = measured - projected
+    ok = np.isfinite(residual).all(axis=1)
+    scale = float(np.nanmax(np.linalg.norm(residual[ok], axis=1))) if ok.any() else 1.0
+    ax1.quiver(projected[ok, 0], projected[ok, 1], residual[ok, 0], residual[ok, 1], angles="xy", color="tab:red")
+    ax1.set_xlim(0, frame.shape[1])
+    ax1.set_ylim(frame.shape[0], 0)
+    ax1.set_aspect("equal")
+    ax1.set_title(f"reprojection residuals (arrows autoscaled; longest {scale:.2f} px)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_intrinsics(result: IntrinsicsResult, path: str | Path) -> Path:
+    """The first used view's frame and points with its residuals; beside it (``PATH-residuals.png``) every used view's."""
+    path = Path(path)
+    measured, projected = [], []
+    for view in result.used:
+        m, p = result.residuals(view)
+        measured.append(m)
+        projected.append(p)
+    frame = result.preview if result.preview is not None else np.zeros((result.height_px, result.width_px))
+    first = result.used[0]
+    # Left: the first view's frame with its points; right: residuals of every used view.
+    m0, p0 = result.residuals(first)
+    out = _residual_axes(frame, m0, p0, f"intrinsics view {first}", path)
+    if len(measured) > 1:
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(8, 4.6))
+        allm, allp = np.concatenate(measured), np.concatenate(projected)
+        r = allm - allp
+        ax.quiver(allp[:, 0], allp[:, 1], r[:, 0], r[:, 1], angles="xy", color="tab:red")
+        ax.set_xlim(0, result.width_px)
+        ax.set_ylim(result.height_px, 0)
+        ax.set_aspect("equal")
+        ax.set_title(f"residuals of all {len(result.used)} views (RMS {result.rms_px:.3f} px)")
+        fig.tight_layout()
+        fig.savefig(path.with_name(path.stem + "-residuals" + path.suffix), dpi=110)
+        plt.close(fig)
+    return out
+
+
+def plot_extrinsics(result: ExtrinsicsResult, path: str | Path) -> Path:
+    """The LED-blink frame with detected and reprojected marker centres (px) and the residual arrows."""
+    path = Path(path)
+    return _residual_axes(result.frame, result.measured_px, result.rest_px, "extrinsics", path)

@@ -228,13 +228,30 @@ def read_metavision_hdf5(path: str | os.PathLike[str]) -> MetavisionFile:
     with _open_h5(p) as f:
         parts = list(_iter_cd(f, p))
         events = np.concatenate(parts) if parts else np.zeros(0, EVENT_DTYPE)
-        triggers = np.zeros(0, TRIGGER_DTYPE)
-        if "EXT_TRIGGER" in f and "events" in f["EXT_TRIGGER"]:
-            raw = f["EXT_TRIGGER/events"][:]
-            triggers = np.empty(raw.size, TRIGGER_DTYPE)
-            triggers["p"], triggers["t"], triggers["id"] = raw["p"], raw["t"], raw["id"]
+        triggers = _triggers(f)
         attrs = _attrs(f)
     return MetavisionFile(p, events, triggers, attrs, geometry_from_attrs(attrs), len(parts))
+
+
+def metavision_attrs(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The file's root attributes as text (``serial_number``, ``geometry``, ``date``, ...)."""
+    with _open_h5(path) as f:
+        return _attrs(f)
+
+
+def metavision_triggers(path: str | os.PathLike[str]) -> npt.NDArray[Any]:
+    """``/EXT_TRIGGER/events`` (stored uncompressed) as TRIGGER_DTYPE; empty when the file has none."""
+    with _open_h5(path) as f:
+        return _triggers(f)
+
+
+def _triggers(f: Any) -> npt.NDArray[Any]:
+    if "EXT_TRIGGER" not in f or "events" not in f["EXT_TRIGGER"]:
+        return np.zeros(0, TRIGGER_DTYPE)
+    raw = f["EXT_TRIGGER/events"][:]
+    triggers = np.empty(raw.size, TRIGGER_DTYPE)
+    triggers["p"], triggers["t"], triggers["id"] = raw["p"], raw["t"], raw["id"]
+    return triggers
 
 
 def write_metavision_hdf5(

@@ -10,6 +10,7 @@ cached on disk, numba being imported on the first decode or encode only.
 
 from labrig.devices.raw.evt2 import Evt2Decoder, encode_evt2
 from labrig.devices.raw.evt3 import Evt3Decoder, encode_evt3
+from labrig.devices.raw.evt3_stream import Evt3StreamEncoder
 from labrig.devices.raw.header import RawHeader, make_header, parse_header, read_header
 from labrig.devices.raw.rawfile import RawFile, RawFormatError, iter_raw, open_decoder, read_raw, write_raw
 from labrig.devices.raw.stream import (
@@ -30,6 +31,7 @@ __all__ = [
     "Decoded",
     "Evt2Decoder",
     "Evt3Decoder",
+    "Evt3StreamEncoder",
     "RawFile",
     "RawFormatError",
     "RawHeader",

@@ -1,23 +1,19 @@
 """``labrig evaluate DATA``: the paper's tables and figures for a campaign, in a static report.
 
-Mount on the main app with :func:`add_evaluate_commands` (``cli.py``). User errors (no
+Mount on the main app with :func:`add_evaluate_commands`. User errors (no
 manifest, missing sidecars, bad options) are :class:`LabrigError` s, printed as one line.
 """
 
 from __future__ import annotations
 
-import json
-import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import MofNCompleteColumn, TaskID, TimeElapsedColumn
 
-console = Console()
-err_console = Console(stderr=True)
+from labrig.cli.console import JsonOption, console, err_console, print_json, progress_bar
 
 
 def evaluate_command(
@@ -49,7 +45,7 @@ def evaluate_command(
                                          "until it breaks (force range, speed, slip, noise, contrast, window, clock, "
                                          "dead pixels).")] = False,
     stress_grid: Annotated[str, typer.Option(help="The stress axes' values: full, or reduced (3 per axis).")] = "full",
-    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
+    as_json: JsonOption = False,
 ) -> None:
     """Evaluate the pipeline on DATA: Tables I-III, errors per range, runtime, dense and label errors; a report."""
     from labrig.evaluation.evaluate import EvaluationSettings, evaluate_campaign
@@ -66,9 +62,8 @@ def evaluate_command(
         from labrig.errors import LabrigError
 
         raise LabrigError("--sweep-recordings must be 0 (all) or positive")
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=err_console, disable=as_json) as bar:
-        ids: dict[str, int] = {}
+    with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), disable=as_json) as bar:
+        ids: dict[str, TaskID] = {}
 
         def progress(kind: str, done: int, total: int) -> None:
             if kind not in ids:
@@ -81,7 +76,7 @@ def evaluate_command(
     problems = check_report(out)
     summary = {**evaluation.summary, "report": str(index), "report_problems": problems}
     if as_json:
-        sys.stdout.write(json.dumps(summary, indent=2, default=float) + "\n")
+        print_json(summary, default=float)
         return
     print_summary(report, console)
     for problem in problems:

@@ -1,28 +1,23 @@
 """``labrig groundtruth DATA``: ground-truth depth maps and contact masks as ``NAME.gt.h5`` sidecars.
 
-Mount on the main app with :func:`add_groundtruth_commands` (``cli.py``).
+Mount on the main app with :func:`add_groundtruth_commands`.
 User errors (not a recording, no manifest, bad options) are :class:`LabrigError`
 s, printed as one line by ``labrig``'s main.
 """
 
 from __future__ import annotations
 
-import json
-import sys
 import time
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import MofNCompleteColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from labrig.cli.console import JsonOption, console, print_json, progress_bar
 from labrig.errors import LabrigError
-
-console = Console()
-err_console = Console(stderr=True)
 
 
 def groundtruth(
@@ -37,7 +32,7 @@ def groundtruth(
     rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
     plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")] = False,
+    as_json: JsonOption = False,
 ) -> None:
     """Ground-truth normal-deformation maps and contact masks for recordings, as NAME.gt.h5 beside each."""
     from labrig.dataset import DatasetRecording, open_data
@@ -60,8 +55,7 @@ def groundtruth(
         settings["contact_model"] = method
     results: list[dict[str, Any]] = []
     start = time.perf_counter()
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=err_console, disable=as_json) as bar:
+    with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
         overall = bar.add_task("recordings", total=len(jobs))
         maps = bar.add_task("maps", total=None)
         for job in jobs:
@@ -119,7 +113,7 @@ def groundtruth(
             raise LabrigError("--plot: no sidecar was written or found to plot")
         summary["plot"] = str(plot_groundtruth(first["recording"], first["sidecar"], plot))
     if as_json:
-        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+        print_json(summary)
         return
     _print_summary(summary)
 

@@ -1,45 +1,35 @@
 """``labrig calibrate``: camera intrinsics and gel-to-camera extrinsics from event recordings.
 
-Mount on the main app with :func:`add_calibrate_commands` (``cli.py``). Other
-modules register further subcommands (``rig``, ``gel``) on :data:`calibrate_app`.
+Mount on the main app with :func:`add_calibrate_commands`, which also registers the rig
+calibrations (``rig``, ``gel``: :mod:`labrig.cli.calibrate_rig`) on :data:`calibrate_app`.
 """
 
 from __future__ import annotations
 
-import json
-import sys
 import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
 import typer
-from rich.console import Console
 from rich.table import Table
 
-console = Console()
-err_console = Console(stderr=True)
+from labrig.cli.calibrate_rig import add_rig_calibration_commands
+from labrig.cli.console import JsonOption, RigOption, console, err_console, print_json
 
 calibrate_app = typer.Typer(
     help="Calibration from events: camera intrinsics, gel-to-camera extrinsics (and rig registration, gel modulus).",
     no_args_is_help=True,
 )
 
-JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")]
 PlotOption = Annotated[Path | None, typer.Option("--plot", help="Draw detections and reprojection residuals to this PNG.")]
-RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
 SeedOption = Annotated[int, typer.Option(help="Seed of the virtual rig's scene (when no recording is given).")]
 
 
 def add_calibrate_commands(app: typer.Typer) -> None:
-    from labrig.cli_calibrate_rig import add_rig_calibration_commands  # rig registration and gel modulus
-
+    """Mount the ``calibrate`` group (intrinsics, extrinsics, rig, gel) on the main app."""
     add_rig_calibration_commands(calibrate_app)
     app.add_typer(calibrate_app, name="calibrate")
-
-
-def _print_json(data: dict[str, Any]) -> None:
-    sys.stdout.write(json.dumps(data, indent=2) + "\n")
 
 
 def _scratch(name: str) -> Path:
@@ -63,6 +53,7 @@ def intrinsics_command(
     """Camera matrix and distortion from a recording of a blinking dot-grid target at many poses."""
     from labrig.calibration.files import write_intrinsics
     from labrig.calibration.intrinsics import calibrate_intrinsics
+    from labrig.calibration.plots import plot_intrinsics
     from labrig.physics.target import DotGridTarget
 
     if recording is None:
@@ -87,9 +78,9 @@ def intrinsics_command(
         "per_view_rms_px": result.per_view_rms_px,
     }
     if plot is not None:
-        summary["plot"] = str(_plot_intrinsics(result, plot))
+        summary["plot"] = str(plot_intrinsics(result, plot))
     if as_json:
-        _print_json(summary)
+        print_json(summary)
         return
     table = Table(title=f"intrinsics -> {path}", show_header=False)
     table.add_column(style="dim")
@@ -117,6 +108,7 @@ def extrinsics_command(
     """Gel-to-camera pose and marker rest positions from a recording of the LED ring blinking."""
     from labrig.calibration.extrinsics import calibrate_extrinsics
     from labrig.calibration.files import DEFAULT_INTRINSICS, load_intrinsics, write_extrinsics
+    from labrig.calibration.plots import plot_extrinsics
     from labrig.config import DEFAULT_RIG, load_rig
 
     rig = load_rig(rig_path or DEFAULT_RIG)
@@ -137,9 +129,9 @@ def extrinsics_command(
         "markers": len(result.rest_gel_mm), "blobs_spurious": result.spurious, "blinks": result.blinks,
     }
     if plot is not None:
-        summary["plot"] = str(_plot_extrinsics(result, plot))
+        summary["plot"] = str(plot_extrinsics(result, plot))
     if as_json:
-        _print_json(summary)
+        print_json(summary)
         return
     table = Table(title=f"extrinsics -> {path}", show_header=False)
     table.add_column(style="dim")
@@ -152,65 +144,3 @@ def extrinsics_command(
     table.add_row("markers", f"{int(result.detected.sum())} of {len(result.rest_gel_mm)} detected, "
                   f"{result.spurious} spurious blob(s) ignored, {result.blinks} blink(s)")
     console.print(table)
-
-
-# -- plots ------------------------------------------------------------------------------------------
-
-
-def _residual_axes(frame: Any, measured: Any, projected: Any, title: str, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 4.6))
-    ax0.imshow(frame, cmap="gray", vmax=np.percentile(frame[frame > 0], 99.5) if (frame > 0).any() else 1)
-    ax0.plot(measured[:, 0], measured[:, 1], "+", color="tab:red", ms=6, label="detected")
-    ax0.plot(projected[:, 0], projected[:, 1], "o", mfc="none", color="tab:cyan", ms=5, label="reprojected")
-    ax0.set_title(f"{title}: accumulated frame")
-    ax0.legend(loc="upper right", fontsize=8)
-    residual = measured - projected
-    ok = np.isfinite(residual).all(axis=1)
-    scale = float(np.nanmax(np.linalg.norm(residual[ok], axis=1))) if ok.any() else 1.0
-    ax1.quiver(projected[ok, 0], projected[ok, 1], residual[ok, 0], residual[ok, 1], angles="xy", color="tab:red")
-    ax1.set_xlim(0, frame.shape[1])
-    ax1.set_ylim(frame.shape[0], 0)
-    ax1.set_aspect("equal")
-    ax1.set_title(f"reprojection residuals (arrows autoscaled; longest {scale:.2f} px)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def _plot_intrinsics(result: Any, path: Path) -> Path:
-    measured, projected = [], []
-    for view in result.used:
-        m, p = result.residuals(view)
-        measured.append(m)
-        projected.append(p)
-    frame = result.preview if result.preview is not None else np.zeros((result.height_px, result.width_px))
-    first = result.used[0]
-    # Left: the first view's frame with its points; right: residuals of every used view.
-    m0, p0 = result.residuals(first)
-    out = _residual_axes(frame, m0, p0, f"intrinsics view {first}", path)
-    if len(measured) > 1:
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(8, 4.6))
-        allm, allp = np.concatenate(measured), np.concatenate(projected)
-        r = allm - allp
-        ax.quiver(allp[:, 0], allp[:, 1], r[:, 0], r[:, 1], angles="xy", color="tab:red")
-        ax.set_xlim(0, result.width_px)
-        ax.set_ylim(result.height_px, 0)
-        ax.set_aspect("equal")
-        ax.set_title(f"residuals of all {len(result.used)} views (RMS {result.rms_px:.3f} px)")
-        fig.tight_layout()
-        fig.savefig(path.with_name(path.stem + "-residuals" + path.suffix), dpi=110)
-        plt.close(fig)
-    return out
-
-
-def _plot_extrinsics(result: Any, path: Path) -> Path:
-    return _residual_axes(result.frame, result.measured_px, result.rest_px, "extrinsics", path)

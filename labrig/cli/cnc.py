@@ -1,9 +1,6 @@
-"""Hand tools for the rig's instruments: ``labrig cnc ...`` (GRBL) and ``labrig ft`` (Bota F/T sensor).
+"""``labrig cnc ...``: drive the CNC (GRBL) by hand.
 
-Mount on the main app with :func:`add_device_commands` (``cli.py``)::
-
-    from labrig.cli_devices import add_device_commands
-    add_device_commands(app)
+Mounted on the main app by :func:`labrig.cli.devices.add_device_commands`.
 
 Exit codes: 0 done; 1 the controller answered ``error:N`` to G-code you gave (``send``, ``move``,
 ``jog``, ``stream``; each error is printed with its meaning and line number); 2 a user error
@@ -12,9 +9,7 @@ Exit codes: 0 done; 1 the controller answered ``error:N`` to G-code you gave (``
 
 from __future__ import annotations
 
-import json
 import re
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -23,21 +18,13 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.markup import escape
-from rich.table import Table
+from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 
+from labrig.cli.console import JsonResultOption, console, err_console, print_json, progress_bar
 from labrig.errors import LabrigError
 
-console = Console()
-err_console = Console(stderr=True)
-
-JsonOption = Annotated[bool, typer.Option("--json", help="Print the result as JSON (stable keys, units in names).")]
-_DEVICES_HINT = "run `labrig devices` to list the serial ports"
-
-
-def _print_json(data: Any) -> None:
-    sys.stdout.write(json.dumps(data, indent=2) + "\n")
+DEVICES_HINT = "run `labrig devices` to list the serial ports"
 
 
 def _axes(text: str) -> tuple[float | None, float | None, float | None]:
@@ -94,10 +81,10 @@ def _grbl(ctx: typer.Context, *, read_settings: bool = False) -> Iterator[Any]:
         try:
             grbl.connect(reset=target.reset, read_settings=read_settings)
         except GrblConnectionError as exc:
-            raise LabrigError(f"cannot use the CNC port {target.port}: {exc.__cause__ or exc}; {_DEVICES_HINT}") from None
+            raise LabrigError(f"cannot use the CNC port {target.port}: {exc.__cause__ or exc}; {DEVICES_HINT}") from None
         except GrblTimeout as exc:
             raise LabrigError(f"no answer from a GRBL controller on {target.port} at {target.baud} baud ({exc}); "
-                              f"{_DEVICES_HINT}") from None
+                              f"{DEVICES_HINT}") from None
         yield grbl
     finally:
         grbl.close()
@@ -144,7 +131,7 @@ def _commanded(ctx: typer.Context, as_json: bool, line_hint: str | None, action:
             errors.append(_error_entry(exc.code, None, line))
         result = {**_status_dict(ctx.obj.port, grbl.status()), "errors": errors}
     if as_json:
-        _print_json(result)
+        print_json(result)
     else:
         for e in errors:
             _print_error(e)
@@ -154,18 +141,18 @@ def _commanded(ctx: typer.Context, as_json: bool, line_hint: str | None, action:
 
 
 @cnc_app.command("status")
-def cnc_status(ctx: typer.Context, as_json: JsonOption = False) -> None:
+def cnc_status(ctx: typer.Context, as_json: JsonResultOption = False) -> None:
     """State and machine position."""
     with _grbl(ctx) as grbl:
         result = _status_dict(ctx.obj.port, grbl.status())
     if as_json:
-        _print_json(result)
+        print_json(result)
     else:
         _print_status(result)
 
 
 @cnc_app.command("unlock")
-def cnc_unlock(ctx: typer.Context, as_json: JsonOption = False) -> None:
+def cnc_unlock(ctx: typer.Context, as_json: JsonResultOption = False) -> None:
     """$X: leave Alarm without homing (the position may be wrong: home when you can)."""
     _commanded(ctx, as_json, "$X", lambda grbl: grbl.unlock())
 
@@ -174,7 +161,7 @@ def cnc_unlock(ctx: typer.Context, as_json: JsonOption = False) -> None:
 def cnc_home(
     ctx: typer.Context,
     timeout_s: Annotated[float, typer.Option("--timeout-s", help="Allow the homing cycle this long.")] = 120.0,
-    as_json: JsonOption = False,
+    as_json: JsonResultOption = False,
 ) -> None:
     """$H: run the homing cycle (needs homing enabled, $22=1)."""
     _commanded(ctx, as_json, "$H", lambda grbl: grbl.home(timeout_s=timeout_s))
@@ -190,7 +177,7 @@ def cnc_move(
     feed: FeedOption = None,
     relative: Annotated[bool, typer.Option("--relative", help="Move by X,Y,Z instead of to it.")] = False,
     timeout_s: Annotated[float, typer.Option("--timeout-s", help="Allow the move this long.")] = 600.0,
-    as_json: JsonOption = False,
+    as_json: JsonResultOption = False,
 ) -> None:
     """Move (G1 at --feed, or rapid G0 without it) and wait until the machine is Idle."""
     x, y, z = _axes(target)
@@ -214,7 +201,7 @@ def cnc_jog(
     ctx: typer.Context,
     delta: Annotated[str, typer.Argument(help="X,Y,Z in mm to jog by (empty part: axis kept, e.g. ,,-0.5).")],
     feed: Annotated[float, typer.Option("--feed", help="Feed rate, mm/min.")] = 300.0,
-    as_json: JsonOption = False,
+    as_json: JsonResultOption = False,
 ) -> None:
     """$J=: a relative jog (GRBL refuses it with error:15 if it would leave the travel); waits until Idle."""
     x, y, z = _axes(delta)
@@ -232,7 +219,7 @@ def cnc_jog(
 def cnc_send(
     ctx: typer.Context,
     line: Annotated[str, typer.Argument(help="One line: G-code or a $ command (e.g. '$$', '$G', 'G0 X5').")],
-    as_json: JsonOption = False,
+    as_json: JsonResultOption = False,
 ) -> None:
     """Send one line, wait for its answer, print what the controller said."""
     from labrig.devices.grbl import GrblCommandError
@@ -254,7 +241,7 @@ def cnc_send(
         grbl.on_gcode = None
         result = {**_status_dict(ctx.obj.port, grbl.status()), "line": line, "response": received, "errors": errors}
     if as_json:
-        _print_json(result)
+        print_json(result)
     else:
         for text in received:
             if not (errors and text.startswith("error:")):  # printed below with its meaning
@@ -292,15 +279,13 @@ def cnc_stream(
         "--send-response", help="One line at a time instead of character counting (slower, simplest).")] = False,
     keep_going: Annotated[bool, typer.Option(
         "--keep-going", help="Send the rest of the program after an error (default: stop at the first).")] = False,
-    as_json: JsonOption = False,
+    as_json: JsonResultOption = False,
 ) -> None:
     """Stream a program with character counting and a progress bar; report every error with its line number.
 
     Waits until the machine is Idle at the end. ``duration_s`` and ``lines_per_s`` cover the streaming (until the
     last line was answered). With character counting the lines already in GRBL's buffer still run after an error.
     """
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
     from labrig.devices.grbl import GrblCommandError
 
     program, numbers = _program(file)
@@ -316,8 +301,7 @@ def cnc_stream(
             if match:
                 answers.append(int(match.group(2)) if match.group(2) else None)
 
-    with _grbl(ctx) as grbl, Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                      TimeElapsedColumn(), console=err_console, disable=as_json) as bar:
+    with _grbl(ctx) as grbl, progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), disable=as_json) as bar:
         task = bar.add_task(f"streaming {file.name}", total=len(program))
         grbl.on_gcode = on_gcode
         start = 0
@@ -348,7 +332,7 @@ def cnc_stream(
         "lines_per_s": len(answers) / max(duration_s, 1e-9),
     }
     if as_json:
-        _print_json(result)
+        print_json(result)
     else:
         for e in errors:
             _print_error(e)
@@ -359,116 +343,3 @@ def cnc_stream(
         _print_status(result)
     if errors:
         raise typer.Exit(1)
-
-
-# -- labrig ft ---------------------------------------------------------------------------------
-
-_AXES = (("fx", "Fx", "n", "N"), ("fy", "Fy", "n", "N"), ("fz", "Fz", "n", "N"),
-         ("tx", "Tx", "nm", "N m"), ("ty", "Ty", "nm", "N m"), ("tz", "Tz", "nm", "N m"))
-
-
-def _sinc_length(rate_hz: float) -> int:
-    from labrig.devices.bota_protocol import ADC_BASE_RATE_HZ, SINC_LENGTH_MAX, SINC_LENGTH_MIN
-
-    if rate_hz > 0:
-        sinc = round(ADC_BASE_RATE_HZ / rate_hz)
-        if SINC_LENGTH_MIN <= sinc <= SINC_LENGTH_MAX and abs(ADC_BASE_RATE_HZ / sinc - rate_hz) <= 0.005 * rate_hz:
-            return sinc
-    raise LabrigError(f"--rate-hz must be {ADC_BASE_RATE_HZ} / N for N in {SINC_LENGTH_MIN}..{SINC_LENGTH_MAX} "
-                      f"(e.g. 800, 400, 200, 100, 50, 25), got {rate_hz:g}")
-
-
-def ft(
-    port: Annotated[str, typer.Option("--port", help="Serial port of the Bota F/T sensor (see `labrig devices`).")],
-    baud: Annotated[int, typer.Option("--baud", help="Baud rate.")] = 460800,
-    seconds: Annotated[float, typer.Option("--seconds", help="Read this long, s.")] = 2.0,
-    rate_hz: Annotated[float, typer.Option("--rate-hz", help="Sample rate to configure, Hz (51200 / sinc length).")] = 800.0,
-    tare: Annotated[bool, typer.Option("--tare", help="Tare over 256 samples first (software tare).")] = False,
-    as_json: JsonOption = False,
-) -> None:
-    """Read the force-torque sensor: rate, mean, noise and range per axis, status bits, CRC errors, frames lost."""
-    import numpy as np
-
-    from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
-    from labrig.devices.bota_protocol import STATUS_ADVICE
-
-    if not seconds > 0:
-        raise LabrigError(f"--seconds must be positive, got {seconds:g}")
-    settings = BotaSettings(sinc_length=_sinc_length(rate_hz))
-    samples: list[FtSample] = []
-    collecting = False
-
-    def on_sample(sample: FtSample) -> None:
-        if collecting:
-            samples.append(sample)
-
-    sensor = BotaSensor(port, baudrate=baud, on_sample=on_sample)
-    try:
-        with err_console.status(f"connecting to the F/T sensor on {escape(port)}") as status:
-            try:
-                sensor.connect()
-            except LabrigError as exc:
-                raise LabrigError(f"F/T sensor on {port} at {baud} baud: {exc}; {_DEVICES_HINT}") from None
-            sensor.configure(settings)
-            sensor.start()
-            if tare:
-                status.update("taring")
-                sensor.tare(256)
-            status.update(f"reading for {seconds:g} s")
-            collecting = True
-            time.sleep(seconds)
-            collecting = False
-        stats = sensor.stats()
-    finally:
-        sensor.close()
-
-    data = np.array([(*s.force_n, *s.torque_nm) for s in samples], dtype=np.float64).reshape(-1, 6)
-    t_ns = np.array([s.t_host_ns for s in samples], dtype=np.int64)
-    span_s = (t_ns[-1] - t_ns[0]) / 1e9 if len(t_ns) > 1 else 0.0
-    result: dict[str, Any] = {
-        "port": port,
-        "rate_hz": (len(samples) - 1) / span_s if span_s > 0 else 0.0,
-        "nominal_rate_hz": settings.sample_rate_hz,
-        "samples": len(samples),
-        "duration_s": seconds,
-        "tared": tare,
-    }
-    for i, (key, _, unit, _) in enumerate(_AXES):
-        column = data[:, i]
-        empty = len(column) == 0
-        result[f"{key}_mean_{unit}"] = None if empty else float(column.mean())
-        result[f"{key}_std_{unit}"] = None if empty else float(column.std())
-        result[f"{key}_min_{unit}"] = None if empty else float(column.min())
-        result[f"{key}_max_{unit}"] = None if empty else float(column.max())
-    result["crc_errors"] = stats.crc_errors
-    result["frames_lost"] = stats.frames_lost
-    result["status_counts"] = {str(bit.name).lower(): stats.status_frames.get(str(bit.name).lower(), 0)
-                               for bit in STATUS_ADVICE}
-    if as_json:
-        _print_json(result)
-        return
-    if not samples:
-        raise LabrigError(f"no samples from the F/T sensor on {port} in {seconds:g} s; is it streaming? {_DEVICES_HINT}")
-    console.print(f"{escape(port)}: {len(samples):,} samples at {result['rate_hz']:.1f} Hz "
-                  f"(configured {settings.sample_rate_hz:g} Hz){', tared' if tare else ''}")
-    table = Table(title_justify="left")
-    for col in ("axis", "mean", "noise (std)", "min", "max"):
-        table.add_column(col, justify="right")
-    for key, name, unit, label in _AXES:
-        digits = 3 if unit == "n" else 4
-        values = (result[f"{key}_{what}_{unit}"] for what in ("mean", "std", "min", "max"))
-        table.add_row(f"{name} ({label})", *(f"{v:.{digits}f}" for v in values))
-    console.print(table)
-    bad = stats.crc_errors or stats.frames_lost
-    console.print(f"[{'red' if bad else 'green'}]CRC errors {stats.crc_errors}, frames lost {stats.frames_lost}[/]")
-    flagged = {k: v for k, v in result["status_counts"].items() if v}
-    if flagged:
-        console.print("[yellow]status bits:[/] " + ", ".join(f"{k} {v}" for k, v in flagged.items()))
-    else:
-        console.print("status bits: none set")
-
-
-def add_device_commands(app: typer.Typer) -> None:
-    """Mount ``cnc`` and ``ft`` on the main app."""
-    app.add_typer(cnc_app, name="cnc")
-    app.command("ft")(ft)

@@ -5,35 +5,23 @@ Registered on the ``calibrate`` group by :func:`add_rig_calibration_commands`.
 
 from __future__ import annotations
 
-import json
-import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-console = Console()
-err_console = Console(stderr=True)
+from labrig.cli.console import JsonOption, RigOption, console, err_console, load_rig_and_indenters, print_json
 
-JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")]
-RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
+if TYPE_CHECKING:
+    from labrig.config import RigConfig
+
 IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenters TOML (default: protocols/indenters.toml).")]
 SeedOption = Annotated[int, typer.Option(help="Seed of the virtual rig's noise (virtual rig only).")]
 
 
-def _load(rig_path: Path | None, indenters_path: Path | None) -> tuple[Any, Any, Path | None]:
-    from labrig.config import DEFAULT_RIG, load_rig
-    from labrig.indenters import load_indenters
-
-    rig = load_rig(rig_path or DEFAULT_RIG)
-    indenters = load_indenters(indenters_path) if indenters_path is not None else load_indenters()
-    return rig, indenters, indenters_path
-
-
-def _say_where(rig: Any, as_json: bool) -> bool:
+def _say_where(rig: RigConfig, as_json: bool) -> bool:
     from labrig.protocol.rigfile import device_config
 
     virtual = device_config(rig).virtual
@@ -64,7 +52,7 @@ def rig_command(
     from labrig.calibration.registration_file import default_registration_path
     from labrig.protocol.calibration_runs import DEFAULT_LOCATIONS, register_rig
 
-    rig, indenters, ind_path = _load(rig_path, indenters_path)
+    rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
     _say_where(rig, as_json)
     if not 3 <= points <= len(DEFAULT_LOCATIONS):
         raise typer.BadParameter(f"--points must be 3 or 4, not {points}")
@@ -75,14 +63,14 @@ def rig_command(
             err_console.print(f"[dim]{time.monotonic() - started:6.1f} s[/] {message}")
 
     reg = register_rig(rig, indenters, data_dir=data, locations=DEFAULT_LOCATIONS[:points], shear_mm=shear_mm,
-                       seed=seed, indenters_path=ind_path, progress=progress)
+                       seed=seed, indenters_path=indenters_path, progress=progress)
     path = reg.save(out or default_registration_path(rig))
     if plot is not None:
         plot_registration(reg, plot)
     summary = {"path": str(path), "plot": None if plot is None else str(plot), **reg.summary(),
                "wall_s": round(time.monotonic() - started, 2)}
     if as_json:
-        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+        print_json(summary)
         return
     yaw, tilt = reg.yaw_tilt_deg
     t = reg.gel_in_machine.translation_mm
@@ -120,7 +108,7 @@ def gel_command(
     from labrig.calibration.plots import plot_fit
     from labrig.protocol.calibration_runs import DEFAULT_PLAN, measure_curves
 
-    rig, indenters, ind_path = _load(rig_path, indenters_path)
+    rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
     _say_where(rig, as_json)
     started = time.monotonic()
 
@@ -128,7 +116,7 @@ def gel_command(
         if not as_json:
             err_console.print(f"[dim]{time.monotonic() - started:6.1f} s[/] {message}")
 
-    curves = measure_curves(rig, indenters, DEFAULT_PLAN, seed=seed, indenters_path=ind_path,
+    curves = measure_curves(rig, indenters, DEFAULT_PLAN, seed=seed, indenters_path=indenters_path,
                             registration_path=registration, progress=progress)
     tables = {name: contact_table(indenters[name], rig) for name in DEFAULT_PLAN}
     fit = fit_modulus(curves, rig, indenters, stiffening=stiffening, max_depth_mm=max_depth, tables=tables)
@@ -138,7 +126,7 @@ def gel_command(
     summary = {"path": str(path), "plot": None if plot is None else str(plot), **fit.summary(),
                "wall_s": round(time.monotonic() - started, 2)}
     if as_json:
-        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+        print_json(summary)
         return
     table = Table(title=f"gel modulus -> {path}", show_header=False)
     table.add_column(style="dim")

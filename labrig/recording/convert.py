@@ -1,35 +1,34 @@
-"""Camera file commands: ``labrig import`` (Prophesee .raw / Metavision .hdf5 -> labrig recording)
-and ``labrig export`` (recording -> EVT3 .raw that Prophesee tools read).
-
-Mount on the main app with :func:`add_camera_commands` (``cli.py``).
+"""Camera files to and from labrig recordings: Prophesee RAW (EVT 3.0 / 2.0) or Metavision HDF5 in
+(:func:`import_file`, ``labrig import``), an EVK4-like EVT 3.0 RAW out (:func:`export_raw`, ``labrig export``).
 
 An imported file has no host clock: the recording's host times (``t_host_us`` of the event
 packets) are the device times counted from the first event, so the stored camera clock model
 is the identity plus an offset. The recording's ``extra_source_*`` attributes name the source.
+
+Both report progress through an optional callback ``progress(done, total, unit)`` (``unit``:
+``bytes`` or ``events``), called once with ``done = 0`` before the first chunk.
 """
 
 from __future__ import annotations
 
-import json
 import os
-import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import typer
-from rich.console import Console
 
+from labrig.devices.raw import TRIGGER_DTYPE, Evt3StreamEncoder, RawFormatError, make_header, open_decoder
 from labrig.errors import LabrigError
+from labrig.eventtypes import EVENT_DTYPE
+from labrig.recording.reader import Recording
+from labrig.recording.writer import RecordingMetadata, RecordingWriter
 
-console = Console()
-err_console = Console(stderr=True)
-
-JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")]
-OverwriteOption = Annotated[bool, typer.Option("--overwrite", help="Replace the output file if it exists.")]
+#: ``progress(done, total, unit)``: how far a conversion is.
+ConversionProgress = Callable[[int, int, str], None]
 
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 #: Events put into the recording writer but not yet written, at most (backpressure on import).
@@ -40,29 +39,14 @@ EXPORT_SLICE_EVENTS = 1 << 20
 IMPORT_READ_BYTES = 16 << 20
 
 
-def _print_json(data: dict[str, Any]) -> None:
-    sys.stdout.write(json.dumps(data, indent=2) + "\n")
-
-
-def _progress(disabled: bool) -> Any:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed:,.0f}/{task.total:,.0f} {task.fields[unit]}"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=err_console,
-        transient=True,
-        disable=disabled or not err_console.is_terminal,
-    )
+def _no_progress(done: int, total: int, unit: str) -> None:
+    pass
 
 
 # -- import ------------------------------------------------------------------------------------
 
 
-def _sniff(path: Path) -> str:
+def sniff_camera_file(path: Path) -> str:
     """'hdf5' or 'raw' from the file's first bytes; LabrigError when it is neither."""
     if not path.exists():
         raise LabrigError(f"{path}: no such file")
@@ -85,13 +69,11 @@ class _Source:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.kind = _sniff(path)
+        self.kind = sniff_camera_file(path)
         self.fields: dict[str, str] = {}
         self.geometry: tuple[int, int] | None = None
         self.skipped_words = 0
         if self.kind == "raw":
-            from labrig.devices.raw import RawFormatError, open_decoder
-
             try:
                 header, fmt, geo, _ = open_decoder(path)
             except RawFormatError as exc:
@@ -104,7 +86,7 @@ class _Source:
         else:
             import h5py
 
-            from labrig.devices.ecf import EcfError, _open_h5, geometry_from_attrs
+            from labrig.devices.ecf import EcfError, geometry_from_attrs, metavision_attrs, metavision_event_count
 
             try:
                 with h5py.File(path, "r") as f:
@@ -113,9 +95,8 @@ class _Source:
             except OSError as exc:
                 raise LabrigError(f"{path} is not a readable HDF5 file ({str(exc).splitlines()[0]})") from None
             try:
-                with _open_h5(path) as f:
-                    self.total = int(f["CD/events"].shape[0])
-                    self.fields = {k: (v.decode() if isinstance(v, bytes) else str(v)) for k, v in f.attrs.items()}
+                self.total = metavision_event_count(path)
+                self.fields = metavision_attrs(path)
             except EcfError as exc:
                 raise LabrigError(str(exc)) from None
             self.format = "metavision-hdf5"
@@ -125,8 +106,6 @@ class _Source:
     def chunks(self) -> Iterator[tuple[npt.NDArray[Any], npt.NDArray[Any], int]]:
         """(events, triggers, progress done) per chunk."""
         if self.kind == "raw":
-            from labrig.devices.raw import open_decoder
-
             header, _, _, decoder = open_decoder(self.path)
             done = 0
             with open(self.path, "rb") as f:
@@ -138,9 +117,7 @@ class _Source:
             decoder.finish()
             self.skipped_words = decoder.skipped_words
             return
-        from labrig.devices.ecf import EcfError, iter_metavision_chunks
-        from labrig.devices.raw import TRIGGER_DTYPE
-        from labrig.eventtypes import EVENT_DTYPE
+        from labrig.devices.ecf import EcfError, iter_metavision_chunks, metavision_triggers
 
         done = 0
         try:
@@ -149,35 +126,39 @@ class _Source:
                 yield events, np.zeros(0, TRIGGER_DTYPE), done
         except EcfError as exc:
             raise LabrigError(str(exc)) from None
-        triggers = _metavision_triggers(self.path)
+        triggers = metavision_triggers(self.path)
         if triggers.size:
             yield np.zeros(0, EVENT_DTYPE), triggers, done
 
 
-def _metavision_triggers(path: Path) -> npt.NDArray[Any]:
-    """``/EXT_TRIGGER/events`` (stored uncompressed) as TRIGGER_DTYPE; empty when the file has none."""
-    import h5py
+@dataclass(frozen=True)
+class ImportSummary:
+    """What :func:`import_file` wrote: counts, the events' device-time span (us; -1 without events), sizes."""
 
-    from labrig.devices.raw import TRIGGER_DTYPE
+    source: str
+    source_format: str
+    output: str
+    events: int
+    triggers: int
+    t_first_device_us: int
+    t_last_device_us: int
+    duration_s: float
+    width_px: int
+    height_px: int
+    skipped_words: int
+    output_bytes: int
+    elapsed_s: float
 
-    with h5py.File(path, "r") as f:
-        if "EXT_TRIGGER" not in f or "events" not in f["EXT_TRIGGER"]:
-            return np.zeros(0, TRIGGER_DTYPE)
-        raw = f["EXT_TRIGGER/events"][:]
-    out = np.empty(raw.size, TRIGGER_DTYPE)
-    out["p"], out["t"], out["id"] = raw["p"], raw["t"], raw["id"]
-    return out
 
-
-def import_file(source: Path, output: Path, *, overwrite: bool = False, progress: bool = True) -> dict[str, Any]:
+def import_file(source: Path, output: Path, *, overwrite: bool = False,
+                progress: ConversionProgress | None = None) -> ImportSummary:
     """Convert ``source`` (.raw EVT3/EVT2 or Metavision .hdf5) into the labrig recording ``output``."""
-    from labrig.recording import RecordingMetadata, RecordingWriter
-
     src = _Source(source)
     if output.exists() and not overwrite:
         raise LabrigError(f"{output} exists; choose another name or pass --overwrite")
     if output.resolve() == source.resolve():
         raise LabrigError("the output must not be the source file")
+    report = progress or _no_progress
     width, height = src.geometry or (1280, 720)
     extra: dict[str, str | int | float | bool] = {
         "source_file": str(source),
@@ -195,8 +176,8 @@ def import_file(source: Path, output: Path, *, overwrite: bool = False, progress
     t_first: int | None = None
     t_last = 0
     writer = RecordingWriter(output, RecordingMetadata(extra=extra), overwrite=overwrite)
-    with _progress(not progress) as bar, writer:
-        task = bar.add_task(f"import {source.name}", total=src.total, unit=src.unit)
+    with writer:
+        report(0, src.total, src.unit)
         for events, triggers, done in src.chunks():
             if events.size:
                 if t_first is None:
@@ -220,43 +201,56 @@ def import_file(source: Path, output: Path, *, overwrite: bool = False, progress
                         raise LabrigError(f"writing {output} failed: {writer.fault}")
                     time.sleep(0.01)
                 n_triggers += triggers.size
-            bar.update(task, completed=done)
+            report(done, src.total, src.unit)
     result = writer.result
     elapsed = time.perf_counter() - t_start
     dropped = sum(result.dropped.values()) if result is not None else 0
     if dropped:
         raise LabrigError(f"{dropped} rows could not be written to {output} (see its drops stream)")
-    return {
-        "source": str(source),
-        "source_format": src.format,
-        "output": str(output),
-        "events": n_events,
-        "triggers": n_triggers,
-        "t_first_device_us": t_first if t_first is not None else -1,
-        "t_last_device_us": t_last if t_first is not None else -1,
-        "duration_s": (t_last - t_first) / 1e6 if t_first is not None else 0.0,
-        "width_px": int(width),
-        "height_px": int(height),
-        "skipped_words": src.skipped_words,
-        "output_bytes": output.stat().st_size,
-        "elapsed_s": elapsed,
-    }
+    return ImportSummary(
+        source=str(source),
+        source_format=src.format,
+        output=str(output),
+        events=n_events,
+        triggers=n_triggers,
+        t_first_device_us=t_first if t_first is not None else -1,
+        t_last_device_us=t_last if t_first is not None else -1,
+        duration_s=(t_last - t_first) / 1e6 if t_first is not None else 0.0,
+        width_px=int(width),
+        height_px=int(height),
+        skipped_words=src.skipped_words,
+        output_bytes=output.stat().st_size,
+        elapsed_s=elapsed,
+    )
 
 
 # -- export ------------------------------------------------------------------------------------
 
 
-def export_raw(recording: Path, output: Path, *, overwrite: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Write the events and trigger edges of ``recording`` as an EVK4-like EVT 3.0 RAW file."""
-    from labrig.devices.raw import TRIGGER_DTYPE, make_header
-    from labrig.eventtypes import EVENT_DTYPE
-    from labrig.recording import Recording
-    from labrig.sim.evk4_twin import Evt3StreamEncoder
+@dataclass(frozen=True)
+class ExportSummary:
+    """What :func:`export_raw` wrote: counts, the sensor size it names, bytes."""
 
+    recording: str
+    output: str
+    format: str
+    events: int
+    triggers: int
+    width_px: int
+    height_px: int
+    output_bytes: int
+    bytes_per_event: float
+    elapsed_s: float
+
+
+def export_raw(recording: Path, output: Path, *, overwrite: bool = False,
+               progress: ConversionProgress | None = None) -> ExportSummary:
+    """Write the events and trigger edges of ``recording`` as an EVK4-like EVT 3.0 RAW file."""
     if not recording.exists():
         raise LabrigError(f"{recording}: no such file")
     if output.exists() and not overwrite:
         raise LabrigError(f"{output} exists; choose another name or pass --overwrite")
+    report = progress or _no_progress
     t_start = time.perf_counter()
     with Recording(recording) as rec:
         attrs = rec.attrs
@@ -280,8 +274,8 @@ def export_raw(recording: Path, output: Path, *, overwrite: bool = False, progre
         tmp = Path(os.fspath(output) + ".partial")
         size = 0
         try:
-            with _progress(not progress) as bar, open(tmp, "wb") as f:
-                task = bar.add_task(f"export {recording.name}", total=n, unit="events")
+            with open(tmp, "wb") as f:
+                report(0, n, "events")
                 size += f.write(make_header("EVT3", width, height, fields))
                 k = 0
                 for a in range(0, max(n, 1), EXPORT_SLICE_EVENTS):
@@ -296,69 +290,20 @@ def export_raw(recording: Path, output: Path, *, overwrite: bool = False, progre
                     except ValueError as exc:
                         raise LabrigError(f"{recording}: cannot be written as EVT 3.0: {exc}") from None
                     k = max(k, k_end)
-                    bar.update(task, completed=b)
+                    report(b, n, "events")
             os.replace(tmp, output)
         finally:
             if tmp.exists():
                 tmp.unlink()
-    return {
-        "recording": str(recording),
-        "output": str(output),
-        "format": "EVT3",
-        "events": n,
-        "triggers": int(triggers.size),
-        "width_px": width,
-        "height_px": height,
-        "output_bytes": size,
-        "bytes_per_event": size / n if n else 0.0,
-        "elapsed_s": time.perf_counter() - t_start,
-    }
-
-
-# -- commands -----------------------------------------------------------------------------------
-
-
-def import_command(
-    file: Annotated[Path, typer.Argument(help="Prophesee RAW (.raw, EVT 3.0 / 2.0) or Metavision HDF5 (.hdf5).")],
-    output: Annotated[Path, typer.Argument(help="labrig recording to write (.h5).")],
-    overwrite: OverwriteOption = False,
-    as_json: JsonOption = False,
-) -> None:
-    """Import a camera file into a labrig recording (events, trigger edges, source metadata)."""
-    summary = import_file(file, output, overwrite=overwrite, progress=not as_json)
-    if as_json:
-        _print_json(summary)
-        return
-    rate = summary["events"] / summary["elapsed_s"] / 1e6 if summary["elapsed_s"] > 0 else 0.0
-    console.print(
-        f"[green]imported[/] {summary['events']:,} events and {summary['triggers']} trigger edges "
-        f"({summary['duration_s']:.3f} s of {summary['source_format']}) into {output} "
-        f"in {summary['elapsed_s']:.2f} s ({rate:.1f} Mev/s)",
-        highlight=False,
+    return ExportSummary(
+        recording=str(recording),
+        output=str(output),
+        format="EVT3",
+        events=n,
+        triggers=int(triggers.size),
+        width_px=width,
+        height_px=height,
+        output_bytes=size,
+        bytes_per_event=size / n if n else 0.0,
+        elapsed_s=time.perf_counter() - t_start,
     )
-    if summary["skipped_words"]:
-        console.print(f"[yellow]warning:[/] {summary['skipped_words']} words of the RAW payload were not decoded")
-
-
-def export_command(
-    recording: Annotated[Path, typer.Argument(help="labrig recording (.h5).")],
-    raw: Annotated[Path, typer.Option("--raw", help="Write the events as an EVT 3.0 RAW file here.")],
-    overwrite: OverwriteOption = False,
-    as_json: JsonOption = False,
-) -> None:
-    """Export a recording's camera events and trigger edges as an EVT 3.0 .raw (readable by Prophesee tools)."""
-    summary = export_raw(recording, raw, overwrite=overwrite, progress=not as_json)
-    if as_json:
-        _print_json(summary)
-        return
-    console.print(
-        f"[green]exported[/] {summary['events']:,} events and {summary['triggers']} trigger edges to {raw} "
-        f"({summary['output_bytes'] / 1e6:.1f} MB, {summary['bytes_per_event']:.2f} B/event)",
-        highlight=False,
-    )
-
-
-def add_camera_commands(app: typer.Typer) -> None:
-    """Mount ``import`` and ``export`` on the main app."""
-    app.command("import")(import_command)
-    app.command("export")(export_command)

@@ -1,60 +1,33 @@
 """``labrig record`` (one probing run) and ``labrig campaign`` (a whole dataset), safely.
 
-Mount on the main app with :func:`add_protocol_commands` (``cli.py``). The work is in
+Mount on the main app with :func:`add_protocol_commands`. The work is in
 :mod:`labrig.protocol`; this module parses, shows progress and prints.
 """
 
 from __future__ import annotations
 
-import json
-import signal
-import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from labrig.cli.console import (
+    IndentersOption,
+    JsonOption,
+    RigOption,
+    console,
+    err_console,
+    load_rig_and_indenters,
+    on_ctrl_c,
+    print_json,
+    progress_bar,
+    stop_probing_run,
+)
 from labrig.dataset import SPLITS
 from labrig.errors import LabrigError
-
-console = Console()
-err_console = Console(stderr=True)
-
-RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
-IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]
-JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as JSON (stable keys, units in names).")]
-
-
-def _load(rig_path: Path | None, indenters_path: Path | None) -> tuple[Any, dict[str, Any], Path]:
-    from labrig.config import DEFAULT_RIG, load_rig
-    from labrig.indenters import DEFAULT_INDENTERS, load_indenters
-
-    path = indenters_path or DEFAULT_INDENTERS
-    return load_rig(rig_path or DEFAULT_RIG), load_indenters(path), Path(path)
-
-
-@contextmanager
-def _ctrl_c(stop: Any) -> Iterator[None]:
-    """First Ctrl-C: finish the phase and stop; second: hold and retract now."""
-
-    def handler(signum: int, frame: Any) -> None:
-        level = stop.request()
-        if level == 1:
-            err_console.print("[yellow]stopping after this phase[/] (Ctrl-C again to hold and retract at once)")
-        else:
-            err_console.print("[red]holding and retracting now[/]")
-
-    previous = signal.signal(signal.SIGINT, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def record(
@@ -79,7 +52,7 @@ def record(
     from labrig.protocol.safety import StopRequest
     from labrig.protocol.session import RigSession
 
-    rig, indenters, ind_path = _load(rig_path, indenters_path)
+    rig, indenters, ind_path = load_rig_and_indenters(rig_path, indenters_path)
     protocol_path = protocol or DEFAULT_PROTOCOL
     spec = load_protocol(protocol_path, rig, indenters)
     spec = apply_overrides(spec, at=at, depth=depth, force=force, indenter=indenter, rig=rig, indenters=indenters)
@@ -95,8 +68,7 @@ def record(
         raise LabrigError(f"{path} exists; give another --name or --out")
     stop = StopRequest()
     total = spec.nominal_duration_s() + spec.approach.max_travel_mm / spec.approach.speed_mm_s / 2
-    with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=err_console,
-                  disable=as_json) as bar:
+    with progress_bar(TimeElapsedColumn(), disable=as_json) as bar:
         task = bar.add_task("opening the devices", total=total)
         started = time.monotonic()
 
@@ -105,7 +77,7 @@ def record(
                        description=f"{p.phase:<15} depth {p.depth_mm:4.2f} mm  Fz {p.force_n[2]:6.2f} N  "
                                    f"Fxy {abs(complex(*p.force_n[:2])):5.2f} N  {p.event_rate_hz / 1e6:5.2f} Mev/s")
 
-        with session, _ctrl_c(stop):
+        with session, on_ctrl_c(stop_probing_run(stop)):
             runner = ProbeRunner.for_session(session, stop=stop, progress=show)
             started = time.monotonic()
             result = runner.run(spec, path, protocol_toml=protocol_path.read_text())
@@ -122,7 +94,7 @@ def record(
         "plot": None if plot is None else str(plot),
     }
     if as_json:
-        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+        print_json(summary)
     else:
         style = "green" if result.exit_status == "complete" else "yellow"
         console.print(f"[{style}]{result.exit_status}[/] {result.path}" + (f": {result.reason}" if result.reason else ""))
@@ -150,7 +122,7 @@ def campaign(
 
     if workers < 1:
         raise LabrigError("--workers must be at least 1")
-    rig, indenters, ind_path = _load(rig_path, indenters_path)
+    rig, indenters, ind_path = load_rig_and_indenters(rig_path, indenters_path)
     plan = load_campaign(file, rig, indenters)
     devices = device_config(rig)
     if workers > 1 and not devices.virtual:
@@ -171,8 +143,8 @@ def campaign(
     t0 = time.monotonic()
     counts = {"complete": 0, "aborted": 0, "failed": 0}
     stop = StopRequest()
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.fields[n]}"),
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, disable=as_json) as bar:
+    count = TextColumn("{task.completed:.0f}/{task.fields[n]}")
+    with progress_bar(count, TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
         task = bar.add_task(f"campaign {plan.name}", total=sum(nominal.values()) or 1.0, n=todo)
         done = 0
 
@@ -182,7 +154,7 @@ def campaign(
             counts[outcome.status if outcome.status in counts else "failed"] += 1
             done += 1
             bar.update(task, advance=nominal.get(outcome.plan_id, 0.0), description=f"campaign {plan.name}: {outcome.plan_id}")
-            bar.columns[2].text_format = f"{done}/{todo}"  # type: ignore[attr-defined]
+            count.text_format = f"{done}/{todo}"
             if outcome.status != "complete":
                 err_console.print(f"[yellow]{outcome.plan_id} {outcome.status}[/]: {outcome.reason}")
 
@@ -192,7 +164,7 @@ def campaign(
                 typer.confirm(f"mount the {indenter} indenter, then continue?", abort=True)
                 bar.start()
 
-        with _ctrl_c(stop):
+        with on_ctrl_c(stop_probing_run(stop)):
             if workers == 1:
                 for job in jobs:
                     if stop.level >= 1:
@@ -213,7 +185,7 @@ def campaign(
         "recorded_wall_s_total": round(recorded_s, 2),
     }
     if as_json:
-        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+        print_json(summary)
         return
     table = Table(title=f"campaign {plan.name}", title_justify="left")
     for column in ("recordings", "skipped", "recorded", "aborted", "failed", "pending", "per min"):

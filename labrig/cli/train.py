@@ -1,23 +1,21 @@
 """``labrig train DATA``: train the depth network on a campaign and export it with its model card.
 
-Mount on the main app with :func:`add_train_commands` (``cli.py``). User errors (no
+Mount on the main app with :func:`add_train_commands`. User errors (no
 manifest, missing sidecars, bad options, a checkpoint in the way) are
 :class:`LabrigError` s, printed as one line by ``labrig``'s main.
 """
 
 from __future__ import annotations
 
-import json
 import shlex
 import sys
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-console = Console()
+from labrig.cli.console import console, print_json
 
 
 def train_command(
@@ -61,7 +59,7 @@ def train_command(
     command = "labrig " + shlex.join(sys.argv[1:]) if sys.argv and "train" in sys.argv else ""
     card = train(data, config, out, resume=resume, command=command, show_progress=not as_json)
     if as_json:
-        sys.stdout.write(json.dumps(card, indent=2) + "\n")
+        print_json(card)
         return
     _print_card(card)
 

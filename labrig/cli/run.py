@@ -1,0 +1,129 @@
+"""``labrig run REC`` / ``labrig run --live``: stream a recording, or the rig's camera, through the
+inference pipeline and write the force fields.
+
+Mount on the main app with :func:`add_run_commands`. The live path is in
+:mod:`labrig.cli.run_live` (its work in :mod:`labrig.live`). User errors are
+:class:`LabrigError` s, printed as one line by ``labrig``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from labrig.cli.console import JsonOption, WindowEventsOption, WindowMsOption, print_json
+from labrig.cli.run_report import check_view, print_run
+from labrig.errors import LabrigError
+
+
+def run(
+    recording: Annotated[Path | None, typer.Argument(help="A recording (.h5); or --live.")] = None,
+    live: Annotated[bool, typer.Option("--live", help=(
+        "Stream the camera of the rig file's \\[devices] instead of a recording; with a probing run "
+        "(--indenter/--protocol, always on the embedded virtual rig) for as long as the run lasts."))] = False,
+    seconds: Annotated[float | None, typer.Option(help="--live, camera only: stop after this long (default: Ctrl-C).")] = None,
+    indenter: Annotated[str | None, typer.Option(help="--live: run one probing run with this indenter meanwhile.")] = None,
+    protocol: Annotated[Path | None, typer.Option(
+        help="--live: the probing run's protocol (default protocols/probe.toml).")] = None,
+    at: Annotated[str | None, typer.Option("--at", help="--live: the probing run's contact location X,Y, gel mm.")] = None,
+    depth_mm: Annotated[float | None, typer.Option(help="--live: the probing run's depth below contact, mm.")] = None,
+    save_recording: Annotated[Path | None, typer.Option(
+        help="--live: keep the probing run's recording here (.h5; default: compared with, then deleted).")] = None,
+    max_lag_ms: Annotated[float | None, typer.Option(
+        help="--live: skip depth and forces of windows older than this, ms (default 100; tracking goes on).")] = None,
+    window_ms: WindowMsOption = None,
+    window_events: WindowEventsOption = None,
+    depth: Annotated[str | None, typer.Option(
+        help="Depth source: truth (the recording's /truth/depth; the default for REC) or model (ONNX; live).")] = None,
+    model: Annotated[Path | None, typer.Option(
+        help="Depth network: an .onnx with its card, or a bundled one (default, noise-robust); "
+             "default: newest in models/, else bundled.")] = None,
+    out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
+    view: Annotated[Path | None, typer.Option(help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.")] = None,
+    view_every: Annotated[int, typer.Option(help="Every n-th window in the animation.")] = 3,
+    calibration: Annotated[Path | None, typer.Option(
+        help="Folder with gel.toml, intrinsics.toml, extrinsics.toml (default: calibration/ if present; live: the rig "
+             "file's folder).")] = None,
+    rig_path: Annotated[Path | None, typer.Option("--rig", help=(
+        "Rig TOML (default: the one stored in the recording; live: calibration/rig.toml)."))] = None,
+    youngs_modulus_mpa: Annotated[float | None, typer.Option(
+        help="Gel modulus, MPa (default: gel.toml, else the rig's).")] = None,
+    serial: Annotated[bool, typer.Option(help="Run the stages in turn instead of in two threads.")] = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Stream RECORDING (or the live camera) through SAE, tracker, depth, iFEM; per-window forces into
+    --out, an animation into --view."""
+    from labrig.config import load_rig
+    from labrig.pipeline import depth_sources, results, run_setup, runtime
+    from labrig.pipeline.run_summary import WindowLog, window_summary
+    from labrig.pipeline.view import write_view
+    from labrig.pipeline.windows import WindowSpec
+    from labrig.recording import Recording
+
+    if live:
+        if recording is not None:
+            raise LabrigError(f"give a recording ({recording}) or --live, not both")
+        if serial:
+            raise LabrigError("--serial applies to a recording; the live pipeline always runs its two stages in two threads")
+        from labrig.cli.run_live import LiveOptions, run_live  # the live pipeline's modules load only for --live
+
+        run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every, calibration, rig_path,
+                             youngs_modulus_mpa, seconds, indenter, protocol, at, depth_mm, save_recording, max_lag_ms,
+                             as_json))
+        return
+    if recording is None:
+        raise LabrigError("give a recording (labrig run REC) or --live (the rig's camera)")
+    live_only = {"--seconds": seconds, "--indenter": indenter, "--protocol": protocol, "--at": at, "--depth-mm": depth_mm,
+                 "--save-recording": save_recording, "--max-lag-ms": max_lag_ms}
+    if given := [flag for flag, value in live_only.items() if value is not None]:
+        raise LabrigError(f"{', '.join(given)} only apply to --live; drop them to run a recording")
+    depth = depth or "truth"
+    windows = WindowSpec.from_options(window_ms, window_events)
+    check_view(view)
+    if not recording.exists():
+        raise LabrigError(f"{recording}: no such recording")
+    window_us = windows.window_us
+    frames: list[runtime.WindowResult] = []
+    with Recording(recording) as rec:
+        setup = run_setup.setup_for_recording(
+            rec, rig=load_rig(rig_path) if rig_path else None,
+            calibration_dir=calibration if calibration is not None else Path("calibration"),
+            youngs_modulus_mpa=youngs_modulus_mpa)
+        source = depth_sources.depth_source(depth, rec, model)
+        pipe = runtime.Pipeline(setup, source, keep_sae=view is not None)
+        attrs = {"recording": str(recording), "depth_source": source.name, "window_us": window_us or 0,
+                 "window_events": window_events or 0, "youngs_modulus_mpa": setup.youngs_modulus_mpa,
+                 "poisson_ratio": setup.poisson_ratio, "sources": json.dumps(setup.sources)}
+        writer = results.ResultWriter(out, len(setup.rest_px), attrs) if out is not None else None
+        start = time.perf_counter()
+        log = WindowLog()
+        try:
+            for r in pipe.run(rec, window_us=window_us, window_events=window_events, concurrent=not serial):
+                if writer is not None:
+                    writer.write(r)
+                if view is not None and r.index % max(view_every, 1) == 0:
+                    frames.append(r)
+                r.sae = None if view is None or r.index % max(view_every, 1) else r.sae
+                log.add(r)
+        finally:
+            if writer is not None:
+                writer.close()
+        wall = time.perf_counter() - start
+    if not len(log):
+        raise LabrigError(f"{recording}: no windows (no events?)")
+    summary = window_summary(str(recording), log, wall, source.name, setup, window_us, window_events, out, view)
+    if view is not None:
+        write_view(frames, setup, view)
+    if as_json:
+        print_json(summary)
+    else:
+        print_run(summary)
+
+
+def add_run_commands(app: typer.Typer) -> None:
+    """Mount ``run`` on the main app."""
+    app.command("run")(run)
