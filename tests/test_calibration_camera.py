@@ -8,17 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labrig.calibration.extrinsics import associate_grid, calibrate_extrinsics
-from labrig.calibration.files import (
-    Intrinsics,
-    intrinsics_from_result,
-    load_camera,
-    load_extrinsics,
-    load_intrinsics,
-    write_extrinsics,
-    write_intrinsics,
-)
-from labrig.calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
+from labrig.calibration.extrinsics import associate_grid, calibrate_extrinsics, write_extrinsics
+from labrig.calibration.files import Intrinsics, load_camera, load_extrinsics, load_intrinsics
+from labrig.calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics, intrinsics_from_result, write_intrinsics
 from labrig.config import RigConfig, load_rig
 from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix

@@ -17,8 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from labrig.calibration.extrinsics import calibrate_extrinsics
-from labrig.calibration.files import intrinsics_from_result
-from labrig.calibration.intrinsics import calibrate_intrinsics
+from labrig.calibration.intrinsics import calibrate_intrinsics, intrinsics_from_result
 from labrig.config import load_rig
 from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix

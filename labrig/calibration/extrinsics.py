@@ -51,7 +51,7 @@ from labrig.calibration.eventframes import (
     fit_discs,
     harmonic_frame,
 )
-from labrig.calibration.files import Intrinsics
+from labrig.calibration.files import DEFAULT_EXTRINSICS, Intrinsics, provenance, save_text_atomic, toml_table
 from labrig.calibration.intrinsics import sensor_size
 from labrig.config import MarkerConfig
 from labrig.errors import CalibrationError
@@ -317,3 +317,44 @@ def calibrate_extrinsics(
         rest_px=rest_px, measured_px=measured, errors_px=errors, blobs=candidates, spurious=spurious,
         blinks=len(blinks), frame=frame, markers=markers, recording=recording, recording_sha256=sha256_of(recording),
     )
+
+
+def write_extrinsics(result: ExtrinsicsResult, path: str | Path = DEFAULT_EXTRINSICS,
+                     intrinsics: Intrinsics | None = None) -> Path:
+    """Write ``extrinsics.toml`` (atomically) from a calibration result and the intrinsics it used."""
+    path = Path(path)
+
+    body = {
+        "rotation_rotvec_rad": [float(v) for v in result.rotvec_rad],
+        "rotation_matrix": rotvec_to_matrix(result.rotvec_rad),
+        "translation_mm": [float(v) for v in result.translation_mm],
+        "reprojection_mean_px": result.mean_error_px,
+        "reprojection_std_px": result.std_error_px,
+        "reprojection_max_px": result.max_error_px,
+        "markers_detected": int(result.detected.sum()),
+        "blobs_spurious": result.spurious,
+        "blinks": result.blinks,
+        "intrinsics_file": str(intrinsics.path) if intrinsics and intrinsics.path else "",
+    }
+    m = result.markers
+    markers = {
+        "rows": m.rows, "cols": m.cols, "pitch_mm": m.pitch_mm,
+        "rest_gel_mm": result.rest_gel_mm,
+        "rest_px": result.rest_px,
+        "measured_px": result.measured_px,
+        "detected": [bool(d) for d in result.detected],
+        "error_px": result.errors_px,
+    }
+    text = (
+        "# Gel-to-camera extrinsics (p_cam = R p_gel + t), from `labrig calibrate extrinsics`.\n"
+        "# Markers in node order: row-major from -y, -x of the gel frame; rest_px projects rest_gel_mm through the pose;\n"
+        "# measured_px and error_px are nan where a marker was not detected.\n"
+        + toml_table("extrinsics", body) + "\n" + toml_table("markers", markers)
+        + "\n" + toml_table("source", provenance(result.recording, result.recording_sha256))
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_text_atomic(path, text)
+    return path
+
+
+# -- reading ----------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -24,10 +24,6 @@ from labrig import __version__
 from labrig.config import RigConfig
 from labrig.errors import CalibrationError, LabrigError
 from labrig.physics.camera import CameraModel
-
-if TYPE_CHECKING:
-    from labrig.calibration.extrinsics import ExtrinsicsResult
-    from labrig.calibration.intrinsics import IntrinsicsResult
 
 Array = npt.NDArray[np.float64]
 
@@ -138,7 +134,7 @@ def _value(v: Any) -> str:
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
-def _table(name: str, items: dict[str, Any], comments: dict[str, str] | None = None) -> str:
+def toml_table(name: str, items: dict[str, Any], comments: dict[str, str] | None = None) -> str:
     comments = comments or {}
     lines = [f"[{name}]"]
     for key, v in items.items():
@@ -154,74 +150,9 @@ def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
-def _source(path: Path | None, sha256: str) -> dict[str, Any]:
+def provenance(path: Path | None, sha256: str) -> dict[str, Any]:
+    """A calibration file's [source] table: the recording it came from, its SHA-256, labrig's version, the date."""
     return {"recording": str(path or ""), "recording_sha256": sha256, "labrig_version": __version__, "date": _now()}
-
-
-def write_intrinsics(result: IntrinsicsResult, path: str | Path = DEFAULT_INTRINSICS) -> Path:
-    path = Path(path)
-    k = result.camera_matrix
-    body = {
-        "fx_px": float(k[0, 0]), "fy_px": float(k[1, 1]), "cx_px": float(k[0, 2]), "cy_px": float(k[1, 2]),
-        "camera_matrix_px": np.asarray(k, float),
-        "distortion": [float(d) for d in result.distortion],
-        "k3_fixed": result.fix_k3,
-        "width_px": result.width_px, "height_px": result.height_px,
-        "rms_px": result.rms_px,
-        "n_views": len(result.used),
-        "n_views_rejected": sum(1 for v in result.views if v.rejected),
-        "views_used": list(result.used),
-        "per_view_rms_px": result.per_view_rms_px,
-    }
-    text = (
-        "# Camera intrinsics (OpenCV pinhole, distortion = [k1, k2, p1, p2, k3]), from `labrig calibrate intrinsics`.\n"
-        + _table("intrinsics", body, {"distortion": "k1 k2 p1 p2 k3", "views_used": "view indices in the recording"})
-        + "\n" + _table("source", _source(result.recording, result.recording_sha256))
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save_text_atomic(path, text)
-    return path
-
-
-def write_extrinsics(result: ExtrinsicsResult, path: str | Path = DEFAULT_EXTRINSICS,
-                     intrinsics: Intrinsics | None = None) -> Path:
-    path = Path(path)
-    from labrig.frames import rotvec_to_matrix
-
-    body = {
-        "rotation_rotvec_rad": [float(v) for v in result.rotvec_rad],
-        "rotation_matrix": rotvec_to_matrix(result.rotvec_rad),
-        "translation_mm": [float(v) for v in result.translation_mm],
-        "reprojection_mean_px": result.mean_error_px,
-        "reprojection_std_px": result.std_error_px,
-        "reprojection_max_px": result.max_error_px,
-        "markers_detected": int(result.detected.sum()),
-        "blobs_spurious": result.spurious,
-        "blinks": result.blinks,
-        "intrinsics_file": str(intrinsics.path) if intrinsics and intrinsics.path else "",
-    }
-    m = result.markers
-    markers = {
-        "rows": m.rows, "cols": m.cols, "pitch_mm": m.pitch_mm,
-        "rest_gel_mm": result.rest_gel_mm,
-        "rest_px": result.rest_px,
-        "measured_px": result.measured_px,
-        "detected": [bool(d) for d in result.detected],
-        "error_px": result.errors_px,
-    }
-    text = (
-        "# Gel-to-camera extrinsics (p_cam = R p_gel + t), from `labrig calibrate extrinsics`.\n"
-        "# Markers in node order: row-major from -y, -x of the gel frame; rest_px projects rest_gel_mm through the pose;\n"
-        "# measured_px and error_px are nan where a marker was not detected.\n"
-        + _table("extrinsics", body) + "\n" + _table("markers", markers)
-        + "\n" + _table("source", _source(result.recording, result.recording_sha256))
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save_text_atomic(path, text)
-    return path
-
-
-# -- reading ----------------------------------------------------------------------------------------
 
 
 def _read(path: str | Path) -> tuple[Path, dict[str, Any]]:
@@ -278,10 +209,3 @@ def load_extrinsics(path: str | Path = DEFAULT_EXTRINSICS) -> Extrinsics:
         float(_get(path, data, "extrinsics", "reprojection_std_px")),
         path,
     )
-
-
-def intrinsics_from_result(result: IntrinsicsResult, path: Path | None = None) -> Intrinsics:
-    k = result.camera_matrix
-    return Intrinsics(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
-                      tuple(float(d) for d in result.distortion),  # type: ignore[arg-type]
-                      result.width_px, result.height_px, result.rms_px, len(result.used), path)

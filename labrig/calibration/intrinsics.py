@@ -24,6 +24,7 @@ import numpy.typing as npt
 
 from labrig.cache import sha256_of
 from labrig.calibration.eventframes import Blobs, accumulate, detect_blobs, find_blinks
+from labrig.calibration.files import DEFAULT_INTRINSICS, Intrinsics, provenance, save_text_atomic, toml_table
 from labrig.errors import CalibrationError
 from labrig.physics.target import DotGridTarget
 from labrig.recording import Recording
@@ -226,3 +227,37 @@ def _solve(object_points: npt.NDArray[np.float32], image_points: list[Array | No
     rms, matrix, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (width, height), None, None, flags=flags,
                                                           criteria=criteria)
     return float(rms), matrix, dist, list(rvecs), list(tvecs)
+
+
+def write_intrinsics(result: IntrinsicsResult, path: str | Path = DEFAULT_INTRINSICS) -> Path:
+    """Write ``intrinsics.toml`` (atomically) from a calibration result."""
+    path = Path(path)
+    k = result.camera_matrix
+    body = {
+        "fx_px": float(k[0, 0]), "fy_px": float(k[1, 1]), "cx_px": float(k[0, 2]), "cy_px": float(k[1, 2]),
+        "camera_matrix_px": np.asarray(k, float),
+        "distortion": [float(d) for d in result.distortion],
+        "k3_fixed": result.fix_k3,
+        "width_px": result.width_px, "height_px": result.height_px,
+        "rms_px": result.rms_px,
+        "n_views": len(result.used),
+        "n_views_rejected": sum(1 for v in result.views if v.rejected),
+        "views_used": list(result.used),
+        "per_view_rms_px": result.per_view_rms_px,
+    }
+    text = (
+        "# Camera intrinsics (OpenCV pinhole, distortion = [k1, k2, p1, p2, k3]), from `labrig calibrate intrinsics`.\n"
+        + toml_table("intrinsics", body, {"distortion": "k1 k2 p1 p2 k3", "views_used": "view indices in the recording"})
+        + "\n" + toml_table("source", provenance(result.recording, result.recording_sha256))
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_text_atomic(path, text)
+    return path
+
+
+def intrinsics_from_result(result: IntrinsicsResult, path: Path | None = None) -> Intrinsics:
+    """The camera intrinsics a calibration result gives (as :func:`~labrig.calibration.files.load_intrinsics` reads them back)."""
+    k = result.camera_matrix
+    return Intrinsics(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
+                      tuple(float(d) for d in result.distortion),  # type: ignore[arg-type]
+                      result.width_px, result.height_px, result.rms_px, len(result.used), path)

@@ -51,8 +51,7 @@ def intrinsics_command(
     as_json: JsonOption = False,
 ) -> None:
     """Camera matrix and distortion from a recording of a blinking dot-grid target at many poses."""
-    from labrig.calibration.files import write_intrinsics
-    from labrig.calibration.intrinsics import calibrate_intrinsics
+    from labrig.calibration.intrinsics import calibrate_intrinsics, write_intrinsics
     from labrig.calibration.plots import plot_intrinsics
     from labrig.physics.target import DotGridTarget
 
@@ -106,8 +105,8 @@ def extrinsics_command(
     as_json: JsonOption = False,
 ) -> None:
     """Gel-to-camera pose and marker rest positions from a recording of the LED ring blinking."""
-    from labrig.calibration.extrinsics import calibrate_extrinsics
-    from labrig.calibration.files import DEFAULT_INTRINSICS, load_intrinsics, write_extrinsics
+    from labrig.calibration.extrinsics import calibrate_extrinsics, write_extrinsics
+    from labrig.calibration.files import DEFAULT_INTRINSICS, load_intrinsics
     from labrig.calibration.plots import plot_extrinsics
     from labrig.config import DEFAULT_RIG, load_rig
 
