@@ -22,6 +22,7 @@ demo: $(STAMP)
 	$(BIN)/python tools/demo.py demo-out
 
 test: $(STAMP)
+	$(BIN)/lint-imports --no-cache
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
