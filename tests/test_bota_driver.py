@@ -23,7 +23,6 @@ from labrig.devices.bota import (
     BotaTimeout,
     FtSample,
     SensorState,
-    recording_sink,
 )
 from labrig.devices.bota_protocol import (
     BootInfo,
@@ -398,13 +397,14 @@ def test_callback_error_stops_the_reader() -> None:
     sensor.close()
 
 
-def test_recording_sink_puts_ft_rows(tmp_path: Path) -> None:
+def test_ft_sink_puts_ft_rows(tmp_path: Path) -> None:
+    from labrig.protocol.routing import ft_sink
     from labrig.recording import RecordingWriter
     from labrig.recording.reader import Recording
 
     clock = ManualClock(5_000_000_000)
     writer = RecordingWriter(tmp_path / "ft.h5", clock=clock).open()
-    sink = recording_sink(writer)
+    sink = ft_sink(writer)
     for i in range(3):
         sink(
             FtSample(

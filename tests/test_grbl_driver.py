@@ -19,8 +19,8 @@ from labrig.devices.grbl import (
     GrblTimeout,
     GrblUsageError,
     OutputEdge,
-    StatusSample,
 )
+from labrig.devices.grbl_channel import StatusSample
 from labrig.sim.grbl_twin import BANNER, DEFAULT_SETTINGS
 
 WELCOME = b"\r\n" + BANNER.encode() + b"\r\n"

@@ -2,7 +2,7 @@
 
 Life cycle::
 
-    sensor = BotaSensor("/dev/ttyUSB0", clock=writer.clock, on_sample=recording_sink(writer))
+    sensor = BotaSensor("/dev/ttyUSB0", clock=clock, on_sample=samples.append)
     sensor.connect()                       # reset, wait for "App Init", CONFIG mode
     sensor.configure(BotaSettings(sinc_length=64))   # 800 Hz
     sensor.start()                         # RUN mode: samples reach on_sample
@@ -10,10 +10,10 @@ Life cycle::
     ...
     sensor.close()                         # CONFIG mode, reader stopped, port closed
 
-One reader thread owns the input side from :meth:`BotaSensor.connect` on. It
-stamps every chunk of bytes on the host clock (an injectable
-:class:`labrig.clock.HostClock`, integer ns) the moment the read returns, feeds
-the sans-I/O :class:`~labrig.devices.bota_protocol.BotaReceiver`, and for each
+One reader thread (a :class:`~labrig.devices.serial_link.SerialLink`) owns the
+input side from :meth:`BotaSensor.connect` on. It stamps every chunk of bytes on
+the host clock (an injectable :class:`labrig.clock.HostClock`, integer ns) the
+moment the read returns; the sensor feeds it to the sans-I/O :class:`~labrig.devices.bota_protocol.BotaReceiver`, and for each
 frame in RUN mode calls ``on_sample`` with an :class:`FtSample` (from the reader
 thread: keep it short). Acknowledgements and boot text wake the caller's
 command methods. Every wait has a timeout. When the port fails (unplugged), the
@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import contextlib
 import enum
-import errno
 import logging
 import threading
 import time
@@ -39,9 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import serial
-
-from labrig.clock import NS_PER_US, HostClock, MonotonicClock
+from labrig.clock import HostClock, MonotonicClock
 from labrig.devices.bota_protocol import (
     BAUD_RATES,
     STATUS_ADVICE,
@@ -73,6 +70,7 @@ from labrig.devices.bota_protocol import (
     cmd_run_mode,
     cmd_save,
 )
+from labrig.devices.serial_link import LinkFailure, SerialLink, SerialPort
 from labrig.errors import LabrigError
 
 log = logging.getLogger(__name__)
@@ -241,7 +239,7 @@ class BotaSensor:
 
     def __init__(
         self,
-        port: serial.SerialBase | str,
+        port: SerialPort | str,
         *,
         baudrate: int = DEFAULT_BAUD_RATE,
         clock: HostClock | None = None,
@@ -268,16 +266,25 @@ class BotaSensor:
         self.read_timeout_s = read_timeout_s
         self.write_timeout_s = write_timeout_s
         self.stall_timeout_s = stall_timeout_s
-        self.port_name = port if isinstance(port, str) else str(getattr(port, "port", None) or port)
 
-        self._port: Any = None
-        self._owns_port = False
+        self._link = SerialLink(
+            port,
+            baudrate=baudrate,
+            clock=self.clock,
+            error_for=self._error_for,
+            on_chunk=self._on_chunk,
+            on_idle=self._on_idle,
+            on_failure=self._on_failure,
+            read_timeout_s=read_timeout_s,
+            write_timeout_s=write_timeout_s,
+            low_latency=True,
+            thread_name=f"labrig-bota:{port if isinstance(port, str) else 'port'}",
+        )
+        self.port_name = self._link.name
         self._receiver = BotaReceiver()
         self._cond = threading.Condition()
         self._state = SensorState.CLOSED
-        self._error: BotaError | None = None
-        self._reader: threading.Thread | None = None
-        self._closing = threading.Event()
+        self._connected = False
         self._restart_sync = False
         self._acks: list[Ack] = []
         self._boot = BootInfo()
@@ -291,8 +298,6 @@ class BotaSensor:
         self._stalled = False
         self._tare: tuple[float, ...] = (0.0,) * 6
         self._warnings = _WarningLimiter(round(warn_interval_s * 1e9))
-        #: Why the reader thread ended ("" while it runs or before it starts).
-        self.reader_exit_reason = ""
 
     # -- properties ------------------------------------------------------------
 
@@ -303,7 +308,14 @@ class BotaSensor:
     @property
     def error(self) -> BotaError | None:
         """The failure that ended the reader thread, if any."""
-        return self._error
+        error = self._link.error
+        assert error is None or isinstance(error, BotaError)
+        return error
+
+    @property
+    def reader_exit_reason(self) -> str:
+        """Why the reader thread ended ("" while it runs or before it starts)."""
+        return self._link.exit_reason
 
     @property
     def boot_info(self) -> BootInfo:
@@ -341,12 +353,10 @@ class BotaSensor:
         """
         if self._state is not SensorState.CLOSED:
             raise BotaError(f"F/T sensor on {self.port_name} is already connected; close() it first")
-        self._error = None
-        self._open_port()
-        self._closing.clear()
-        self._reader = threading.Thread(target=self._read_loop, name=f"labrig-bota:{self.port_name}", daemon=True)
+        self._link.open()
+        self._connected = True
         self._set_state(SensorState.BOOTING if reset else SensorState.CONFIG)
-        self._reader.start()
+        self._link.start()
         try:
             if reset:
                 self._reboot(boot_timeout_s, boot_settle_s)
@@ -365,7 +375,7 @@ class BotaSensor:
         """
         self._require(SensorState.CONFIG, "configure")
         comm = settings.comm_setup
-        current = self._boot.comm_setup.baud_code if self._boot.comm_setup else _baud_code(self._port.baudrate)
+        current = self._boot.comm_setup.baud_code if self._boot.comm_setup else _baud_code(self._port_baudrate())
         self.command(cmd_comm_setup(comm))
         self.command(cmd_filter(settings.filter_setup))
         if settings.offsets is not None:
@@ -413,27 +423,16 @@ class BotaSensor:
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop streaming (if the port still works), end the reader, close the port if we opened it."""
-        if self._state is SensorState.CLOSED and self._reader is None:
+        if self._state is SensorState.CLOSED and not self._connected:
             return
-        in_reader = self._reader is threading.current_thread()  # close() from a callback: no waiting on acks
-        if self._error is None and not in_reader and self._state in (SensorState.RUNNING, SensorState.STARTING):
+        in_reader = self._link.in_reader_thread()  # close() from a callback: no waiting on acks
+        if self.error is None and not in_reader and self._state in (SensorState.RUNNING, SensorState.STARTING):
             try:
                 self.stop()
             except BotaError as exc:
                 log.warning("F/T sensor on %s: could not stop streaming cleanly: %s", self.port_name, exc)
-        self._closing.set()
-        port = self._port
-        if port is not None and hasattr(port, "cancel_read"):
-            with contextlib.suppress(Exception):
-                port.cancel_read()
-        if self._reader is not None and not in_reader:
-            self._reader.join(timeout_s)
-            if self._reader.is_alive():
-                log.warning("F/T sensor reader on %s did not end within %g s", self.port_name, timeout_s)
-        if self._owns_port and port is not None:
-            with contextlib.suppress(Exception):
-                port.close()
-        self._reader = None
+        self._link.close(timeout_s)
+        self._connected = False
         with self._cond:
             self._state = SensorState.CLOSED
             self._cond.notify_all()
@@ -453,7 +452,7 @@ class BotaSensor:
         :class:`BotaTimeout` when no acknowledgement comes in time.
         """
         self._raise_if_failed()
-        if self._port is None:
+        if not self._link.is_open:
             raise BotaError(f"F/T sensor on {self.port_name} is not connected; call connect() first")
         with self._cond:
             self._acks.clear()
@@ -513,38 +512,32 @@ class BotaSensor:
 
     # -- internals: port --------------------------------------------------------------
 
-    def _open_port(self) -> None:
-        if isinstance(self._port_arg, str):
-            try:
-                self._port = serial.serial_for_url(
-                    self._port_arg, baudrate=self.baudrate, timeout=self.read_timeout_s, write_timeout=self.write_timeout_s
-                )
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise BotaError(
-                    f"cannot open the F/T sensor port {self._port_arg}: {exc}; check the name (ls /dev/serial/by-id) "
-                    "and that you may use it (group dialout)"
-                ) from None
-            self._owns_port = True
-        else:
-            self._port = self._port_arg
-            self._owns_port = False
-            self._port.timeout = self.read_timeout_s
-            self._port.write_timeout = self.write_timeout_s
-        with contextlib.suppress(Exception):  # 1 ms FTDI latency where the port supports it
-            self._port.set_low_latency_mode(True)
+    def _error_for(self, failure: LinkFailure) -> BotaError:
+        """The sensor's error for a failure of its serial link."""
+        exc = failure.cause
+        if failure.kind == "open":
+            return BotaError(
+                f"cannot open the F/T sensor port {self.port_name}: {exc}; check the name (ls /dev/serial/by-id) "
+                "and that you may use it (group dialout)"
+            )
+        if failure.kind == "write":
+            return BotaDisconnected(
+                f"cannot write to the F/T sensor on {self.port_name} ({exc}); check the cable, then reconnect"
+            )
+        if failure.kind == "read":
+            return BotaDisconnected(
+                f"F/T sensor on {self.port_name} disconnected ({exc}); the reader stopped: "
+                "check the cable and power, then reconnect"
+            )
+        error = BotaError(f"F/T sample callback raised {type(exc).__name__}: {exc}; the reader stopped")
+        error.__cause__ = exc
+        return error
+
+    def _port_baudrate(self) -> int:
+        return int(getattr(self._link.port, "baudrate", self.baudrate))
 
     def _write(self, data: bytes) -> None:
-        try:
-            if self.char_gap_s > 0 and len(data) > 1:
-                for i in range(len(data)):
-                    self._port.write(data[i : i + 1])
-                    time.sleep(self.char_gap_s)
-            else:
-                self._port.write(data)
-        except (serial.SerialException, OSError) as exc:
-            raise self._fail(
-                BotaDisconnected(f"cannot write to the F/T sensor on {self.port_name} ({exc}); check the cable, then reconnect")
-            ) from None
+        self._link.write(data, char_gap_s=self.char_gap_s)
 
     def _reboot(self, boot_timeout_s: float, settle_s: float, new_baud: int | None = None) -> None:
         with self._cond:
@@ -555,14 +548,15 @@ class BotaSensor:
             how = self._reset_line()
         else:
             self._write(cmd_hardware_reset().encode())
+            port: Any = self._link.port
             with contextlib.suppress(Exception):
-                self._port.flush()  # let '#' leave at the old rate
-            self._port.baudrate = new_baud
+                port.flush()  # let '#' leave at the old rate
+            port.baudrate = new_baud
         self._wait(
             lambda: self._boot.app_init,
             boot_timeout_s,
             f"'App Init' after a reset by {how}",
-            f"check power and cable, and that the sensor talks at {self._port.baudrate} baud",
+            f"check power and cable, and that the sensor talks at {self._port_baudrate()} baud",
         )
         with contextlib.suppress(BotaTimeout):  # name, S/N, FW and comm lines follow, then frames
             self._wait(lambda: self._frames_idle > 0, settle_s, "", "")
@@ -570,13 +564,10 @@ class BotaSensor:
     def _reset_line(self) -> str:
         """Reset the sensor: a DTR pulse, or ``#`` when the port has no modem lines."""
         try:
-            self._port.dtr = False
-            time.sleep(0.05)
-            self._port.dtr = True
-            return "a DTR pulse"
+            if self._link.pulse_dtr():
+                return "a DTR pulse"
         except OSError as exc:
-            if exc.errno not in (errno.ENOTTY, errno.EINVAL):
-                raise self._fail(BotaDisconnected(f"cannot reset the F/T sensor on {self.port_name}: {exc}")) from None
+            raise self._fail(BotaDisconnected(f"cannot reset the F/T sensor on {self.port_name}: {exc}")) from None
         self._write(cmd_hardware_reset().encode())
         return "'#' (the port has no DTR line)"
 
@@ -590,8 +581,9 @@ class BotaSensor:
                 value = predicate()
                 if value:
                     return value
-                if self._error is not None:
-                    raise self._error
+                error = self.error
+                if error is not None:
+                    raise error
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise BotaTimeout(f"no {what} from the F/T sensor on {self.port_name} within {timeout_s:g} s; {hint}")
@@ -609,19 +601,19 @@ class BotaSensor:
             raise BotaError(f"cannot {action} the F/T sensor on {self.port_name} while it is {self._state.value}")
 
     def _raise_if_failed(self) -> None:
-        if self._error is not None:
-            raise self._error
+        self._link.raise_if_failed()
 
-    def _fail(self, error: BotaError) -> BotaError:
-        """Record the failure once, wake every waiter, tell on_error; returns the error to raise."""
+    def _fail(self, error: BotaError) -> Exception:
+        """Latch the failure (the first one wins); returns the error to raise."""
+        return self._link.fail(error)
+
+    def _on_failure(self, error: Exception) -> None:
+        """The link latched its first failure: wake every waiter, tell on_error."""
         with self._cond:
-            if self._error is not None:
-                return self._error
-            self._error = error
             self._state = SensorState.FAILED
             self._cond.notify_all()
         log.error("%s", error)
-        if self.on_error is not None:
+        if self.on_error is not None and isinstance(error, BotaError):
             try:
                 self.on_error(error)
             except Exception:
@@ -639,41 +631,14 @@ class BotaSensor:
 
     # -- internals: the reader thread ------------------------------------------------------------
 
-    def _read_loop(self) -> None:
-        port = self._port
-        try:
-            while not self._closing.is_set():
-                waiting = port.in_waiting
-                data = port.read(waiting or 1)
-                if not data:
-                    self._check_stall()
-                    continue
-                if not waiting:  # woke on the first byte: take what came with it
-                    more = port.in_waiting
-                    if more:
-                        data += port.read(more)
-                t_ns = self.clock.now_ns()
-                if self._restart_sync:
-                    self._restart_sync = False
-                    self._receiver.restart_sync()
-                self._handle(self._receiver.feed(data), t_ns)
-            self.reader_exit_reason = "closed"
-        except (serial.SerialException, OSError) as exc:
-            if self._closing.is_set():
-                self.reader_exit_reason = "closed"
-            else:
-                self.reader_exit_reason = f"port failed: {exc}"
-                self._fail(
-                    BotaDisconnected(
-                        f"F/T sensor on {self.port_name} disconnected ({exc}); the reader stopped: "
-                        "check the cable and power, then reconnect"
-                    )
-                )
-        except Exception as exc:
-            self.reader_exit_reason = f"on_sample raised {type(exc).__name__}: {exc}"
-            err = BotaError(f"F/T sample callback raised {type(exc).__name__}: {exc}; the reader stopped")
-            err.__cause__ = exc
-            self._fail(err)
+    def _on_chunk(self, data: bytes, t_ns: int) -> None:
+        if self._restart_sync:
+            self._restart_sync = False
+            self._receiver.restart_sync()
+        self._handle(self._receiver.feed(data), t_ns)
+
+    def _on_idle(self, t_ns: int) -> None:
+        self._check_stall()
 
     def _check_stall(self) -> None:
         if self._state is not SensorState.RUNNING or self._last_frame_ns is None or self._stalled:
@@ -811,24 +776,3 @@ def _baud_code(baud_rate: int) -> int:
         if rate == baud_rate:
             return code
     return -1
-
-
-def recording_sink(writer: Any) -> Callable[[FtSample], None]:
-    """An ``on_sample`` that puts each sample into a :class:`labrig.recording.RecordingWriter` ``ft`` stream.
-
-    The sensor must stamp on the writer's clock (``BotaSensor(..., clock=writer.clock)``):
-    ``t_host_us`` is host us since the recording's start, ``t_device_us`` the raw counter.
-    """
-
-    def put(sample: FtSample) -> None:
-        writer.put(
-            "ft",
-            t_device_us=sample.t_device_us,
-            t_host_us=(sample.t_host_ns - writer.t0_host_ns) // NS_PER_US,
-            force_n=sample.force_n,
-            torque_nm=sample.torque_nm,
-            status=sample.status,
-            temperature_c=sample.temperature_c,
-        )
-
-    return put
