@@ -653,9 +653,10 @@ def format_startup_line(index: int, line: str) -> str:
     return f"$N{index}={line}"
 
 
-def format_startup_result(line: str, error_code: int | None) -> str:
-    """``>line:ok`` or ``>line:error:N`` after a stored startup line ran."""
-    return f">{line}:" + (format_ok() if error_code is None else format_error(error_code))
+def format_startup_result(line: str, response: str) -> str:
+    """``>line:ok`` or ``>line:error:N`` after a stored startup line ran; ``response``: the
+    line's own answer (:func:`format_ok` or :func:`format_error`)."""
+    return f">{line}:{response}"
 
 
 def format_status(

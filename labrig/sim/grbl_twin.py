@@ -50,14 +50,34 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
+from labrig.devices.grbl_protocol import (
+    LINE_END,
+    LINE_MAX_CHARS,
+    PLANNER_BLOCKS,
+    RX_BUFFER_BYTES,
+    format_alarm,
+    format_error,
+    format_help,
+    format_message,
+    format_ok,
+    format_options,
+    format_parameter,
+    format_parser_state,
+    format_probe,
+    format_setting,
+    format_startup_line,
+    format_startup_result,
+    format_status,
+    format_version,
+    format_welcome,
+)
 from labrig.devices.motion_profile import MachineLimits, MotionTimeline, make_block, quantize_mm
 
 VERSION = "1.1h.20190830"
-BANNER = "Grbl 1.1h ['$' for help]"
-HELP = "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"
-RX_BUFFER_BYTES = 128
-PLANNER_BLOCKS = 15
-LINE_BUFFER_CHARS = 79
+BANNER = format_welcome("1.1h")
+HELP = format_help("$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x")
+OK = format_ok()
+LINE_BUFFER_CHARS = LINE_MAX_CHARS
 MAX_STEP_RATE_HZ = 30_000.0
 
 #: GRBL 1.1h default settings ($$ of a fresh EEPROM).
@@ -129,10 +149,6 @@ def _words(text: str) -> list[tuple[str, float]]:
 def _g_code(value: float) -> tuple[int, int]:
     number = int(value)
     return number, round((value - number) * 100)
-
-
-def _fmt3(values: Sequence[float]) -> str:
-    return ",".join(f"{v:.3f}" for v in values)
 
 
 @dataclass
@@ -427,7 +443,7 @@ class GrblTwin:
 
     def _emit(self, text: str) -> None:
         assert self._t is not None
-        data = text.encode("ascii") + b"\r\n"
+        data = text.encode("ascii") + LINE_END
         start = max(self._t, self._tx_free_us)
         self._tx.append((start, data))
         self._tx_free_us = start + len(data) * self.byte_us
@@ -435,35 +451,34 @@ class GrblTwin:
     def _status_report(self) -> str:
         position = self._tl.position_mm
         wco = self._wco()
-        state = self._state_text()
-        if int(self.settings[10]) & 1:
-            parts = [state, "MPos:" + _fmt3(position)]
-        else:
-            parts = [state, "WPos:" + _fmt3([p - o for p, o in zip(position, wco)])]
-        if int(self.settings[10]) & 2:
-            parts.append(f"Bf:{PLANNER_BLOCKS - len(self._tl.queue)},{RX_BUFFER_BYTES - len(self._ring)}")
-        rpm = self._modal.spindle_rpm if self._modal.spindle in (3, 4) else 0.0
-        parts.append(f"FS:{self._tl.speed_mm_s * 60.0:.0f},{rpm:.0f}")
-        pins = self._pins()
-        if pins:
-            parts.append("Pn:" + pins)
+        mask = int(self.settings[10])
+        work = None if mask & 1 else [p - o for p, o in zip(position, wco)]
         busy = self._state in _BUSY_STATES
-        if self._wco_counter > 0:
-            self._wco_counter -= 1
-        else:
+        wco_due = self._wco_counter == 0
+        if wco_due:
             self._wco_counter = 29 if busy else 9
             if self._ovr_counter == 0:
                 self._ovr_counter = 1
-            parts.append("WCO:" + _fmt3(wco))
-        if self._ovr_counter > 0:
-            self._ovr_counter -= 1
         else:
+            self._wco_counter -= 1
+        ovr_due = self._ovr_counter == 0
+        if ovr_due:
             self._ovr_counter = 19 if busy else 9
-            parts.append("Ov:{},{},{}".format(*self._overrides))
-            accessories = {3: "S", 4: "C"}.get(self._modal.spindle, "") + ("F" if self._modal.flood else "")
-            if accessories:
-                parts.append("A:" + accessories)
-        return "<" + "|".join(parts) + ">"
+        else:
+            self._ovr_counter -= 1
+        accessories = {3: "S", 4: "C"}.get(self._modal.spindle, "") + ("F" if self._modal.flood else "")
+        return format_status(
+            self._state_text(),
+            machine_mm=position if work is None else None,
+            work_mm=work,
+            buffer=(PLANNER_BLOCKS - len(self._tl.queue), RX_BUFFER_BYTES - len(self._ring)) if mask & 2 else None,
+            feed_mm_min=self._tl.speed_mm_s * 60.0,
+            spindle_rpm=self._modal.spindle_rpm if self._modal.spindle in (3, 4) else 0.0,
+            pins=self._pins(),
+            wco_mm=wco if wco_due else None,
+            overrides_pct=(self._overrides[0], self._overrides[1], self._overrides[2]) if ovr_due else None,
+            accessories=accessories if ovr_due else "",
+        )
 
     def _state_text(self) -> str:
         if self._state == "Hold":
@@ -547,9 +562,9 @@ class GrblTwin:
         self._set_spindle(5)
         self._set_flood(False)
         if alarm is not None:
-            self._emit(f"ALARM:{alarm}")
+            self._emit(format_alarm(alarm))
         if self._deferred_ok:
-            self._emit("ok")
+            self._emit(OK)
         stay_alarm = alarm is not None or self._state in ("Alarm", "Sleep")
         self._boot(power_on=False, alarm=stay_alarm)
 
@@ -569,7 +584,7 @@ class GrblTwin:
         self._emit(BANNER)
         if alarm or (power_on and self.settings[22]):
             self._state = "Alarm"
-            self._emit("[MSG:'$H'|'$X' to unlock]")
+            self._emit(format_message("'$H'|'$X' to unlock"))
         else:
             self._state = "Idle"
             self._start_job(self._startup_lines_job())
@@ -632,13 +647,13 @@ class GrblTwin:
         self.lines_executed += 1
         self.received.append(line)
         if overflow:
-            return "error:11"
+            return format_error(11)
         if not line:
-            return "ok"
+            return OK
         if line.startswith("$"):
             return (yield from self._system_command(line[1:]))
         if self._state in ("Alarm", "Jog"):
-            return "error:9"
+            return format_error(9)
         return (yield from self._gcode(line))
 
     def _startup_lines_job(self) -> Job:
@@ -647,7 +662,7 @@ class GrblTwin:
                 result = yield from self._gcode(line)
                 if result is None:  # a soft-limit alarm locked the controller
                     return None
-                self._emit(f">{line}:{result}")
+                self._emit(format_startup_result(line, result))
         return None
 
     # -- $ commands --------------------------------------------------------------------------
@@ -656,119 +671,115 @@ class GrblTwin:
         state = self._state
         if body == "":
             self._emit(HELP)
-            return "ok"
+            return OK
         if body == "$":
             if state in ("Run", "Hold"):
-                return "error:8"
+                return format_error(8)
             for number in sorted(self.settings):
-                self._emit(f"${number}={self._setting_text(number)}")
-            return "ok"
+                self._emit(format_setting(number, self.settings[number], integer=number in _INTEGER_SETTINGS))
+            return OK
         if body == "G":
             self._emit(self._parser_state())
-            return "ok"
+            return OK
         if body == "C":
             if state == "Check":
-                self._emit("[MSG:Disabled]")
+                self._emit(format_message("Disabled"))
                 self._after_response = self._soft_reset
-                return "ok"
+                return OK
             if state != "Idle":
-                return "error:8"
+                return format_error(8)
             self._state = "Check"
-            self._emit("[MSG:Enabled]")
-            return "ok"
+            self._emit(format_message("Enabled"))
+            return OK
         if body == "X":
             if state == "Alarm":
-                self._emit("[MSG:Caution: Unlocked]")
+                self._emit(format_message("Caution: Unlocked"))
                 self._state = "Idle"
                 self._gc_mm = list(self._tl.position_mm)
-            return "ok"
+            return OK
         if body.startswith("J"):
             if state not in ("Idle", "Jog"):
-                return "error:8"
+                return format_error(8)
             if body[1:2] != "=":
-                return "error:3"
+                return format_error(3)
             return (yield from self._jog(body[2:]))
         if state not in ("Idle", "Alarm"):
-            return "error:8"
+            return format_error(8)
         if body == "#":
             for n in range(6):
-                self._emit(f"[G{54 + n}:{_fmt3(self._wcs[n])}]")
-            self._emit(f"[G28:{_fmt3(self._g28)}]")
-            self._emit(f"[G30:{_fmt3(self._g30)}]")
-            self._emit(f"[G92:{_fmt3(self._g92)}]")
-            self._emit(f"[TLO:{self._tlo:.3f}]")
-            self._emit(f"[PRB:{_fmt3(self._probe[0])}:{int(self._probe[1])}]")
-            return "ok"
+                self._emit(format_parameter(f"G{54 + n}", self._wcs[n]))
+            self._emit(format_parameter("G28", self._g28))
+            self._emit(format_parameter("G30", self._g30))
+            self._emit(format_parameter("G92", self._g92))
+            self._emit(format_parameter("TLO", [self._tlo]))
+            self._emit(format_probe(*self._probe))
+            return OK
         if body == "H":
             return (yield from self._home())
         if body == "SLP":
             self._after_response = self._sleep
-            return "ok"
+            return OK
         if body == "I":
-            self._emit(f"[VER:{VERSION}:{self.build_info}]")
-            self._emit(f"[OPT:V,{PLANNER_BLOCKS},{RX_BUFFER_BYTES}]")
-            return "ok"
+            self._emit(format_version(VERSION, self.build_info))
+            self._emit(format_options("V", PLANNER_BLOCKS, RX_BUFFER_BYTES))
+            return OK
         if body.startswith("I="):
             self.build_info = body[2:]
             yield from self._eeprom_write()
-            return "ok"
+            return OK
         if body.startswith("RST="):
             return (yield from self._restore(body[4:]))
         if body == "N":
             for i, line in enumerate(self.startup_lines):
-                self._emit(f"$N{i}={line}")
-            return "ok"
+                self._emit(format_startup_line(i, line))
+            return OK
         m = re.fullmatch(r"N(\d+)=(.*)", body)
         if m:
             index = int(m.group(1))
             if index >= len(self.startup_lines):
-                return "error:3"
+                return format_error(3)
             try:
                 _words(m.group(2))
             except _GcodeError as exc:
-                return f"error:{exc.code}"
+                return format_error(exc.code)
             self.startup_lines[index] = m.group(2)
             yield from self._eeprom_write()
-            return "ok"
+            return OK
         m = re.fullmatch(r"(\d+)=(.*)", body)
         if m:
             return (yield from self._write_setting(int(m.group(1)), m.group(2)))
-        return "error:3"
-
-    def _setting_text(self, number: int) -> str:
-        value = self.settings[number]
-        return f"{value:.0f}" if number in _INTEGER_SETTINGS else f"{value:.3f}"
+        return format_error(3)
 
     def _write_setting(self, number: int, text: str) -> Job:
         if _NUMBER.fullmatch(text) is None:
-            return "error:2"
+            return format_error(2)
         value = float(text)
         if number not in DEFAULT_SETTINGS:
-            return "error:3"
+            return format_error(3)
         if value < 0:
-            return "error:4"
+            return format_error(4)
         if number in _INTEGER_SETTINGS:
             value = float(int(value))
         if number in _BOOLEAN_SETTINGS:
             value = 1.0 if value else 0.0
         if number == 0 and value < 3:
-            return "error:6"
+            return format_error(6)
         if number == 20 and value and not self.settings[22]:
-            return "error:10"
+            return format_error(10)
         if 100 <= number <= 102 and value * self.settings[number + 10] / 60.0 > MAX_STEP_RATE_HZ:
-            return "error:12"
+            return format_error(12)
         if 110 <= number <= 112 and self.settings[number - 10] * value / 60.0 > MAX_STEP_RATE_HZ:
-            return "error:12"
+            return format_error(12)
         self.settings[number] = value
         if number == 22 and not value:
             self.settings[20] = 0.0  # soft limits cannot stay on without homing
         self._tl.limits = self._limits()
         yield from self._eeprom_write()
-        return "ok"
+        return OK
 
     def _restore(self, which: str) -> Job:
         if which not in ("$", "#", "*"):
-            return "error:3"
+            return format_error(3)
         if which in ("$", "*"):
             self.settings = dict(DEFAULT_SETTINGS)
             self._tl.limits = self._limits()
@@ -780,9 +791,9 @@ class GrblTwin:
             self.startup_lines = ["", ""]
             self.build_info = ""
         yield from self._eeprom_write()
-        self._emit("[MSG:Restoring defaults]")
+        self._emit(format_message("Restoring defaults"))
         self._after_response = self._soft_reset
-        return "ok"
+        return OK
 
     def _eeprom_write(self) -> Generator[Wait, None, None]:
         assert self._t is not None
@@ -790,7 +801,7 @@ class GrblTwin:
         yield ("time", self._blackout_until_us)
 
     def _sleep(self) -> None:
-        self._emit("[MSG:Sleeping]")
+        self._emit(format_message("Sleeping"))
         self._set_spindle(5)
         self._set_flood(False)
         self._state = "Sleep"
@@ -803,7 +814,7 @@ class GrblTwin:
             "G93" if m.inverse_time else "G94", f"M{m.spindle}", "M8" if m.flood else "M9", f"T{m.tool}",
             f"F{m.feed_mm_min:.0f}", f"S{m.spindle_rpm:.0f}",
         ]  # fmt: skip
-        return "[GC:" + " ".join(words) + "]"
+        return format_parser_state(words)
 
     # -- jogging and homing ------------------------------------------------------------------
 
@@ -812,7 +823,7 @@ class GrblTwin:
         try:
             words = _words(body)
         except _GcodeError as exc:
-            return f"error:{exc.code}"
+            return format_error(exc.code)
         inches, incremental, machine = self._modal.inches, self._modal.incremental, False
         values: dict[int, float] = {}
         feed = None
@@ -826,28 +837,28 @@ class GrblTwin:
                 elif code == (53, 0):
                     machine = True
                 else:
-                    return "error:16"
+                    return format_error(16)
             elif letter in "XYZ":
                 axis = "XYZ".index(letter)
                 if axis in values:
-                    return "error:25"
+                    return format_error(25)
                 values[axis] = value
             elif letter == "F":
                 if feed is not None:
-                    return "error:25"
+                    return format_error(25)
                 feed = value
             else:
-                return "error:16"
+                return format_error(16)
         if feed is None:
-            return "error:22"
+            return format_error(22)
         if not values:
-            return "error:26"
+            return format_error(26)
         if feed < 0:
-            return "error:4"
+            return format_error(4)
         unit = 25.4 if inches else 1.0
         target = self._target({a: v * unit for a, v in values.items()}, incremental, machine)
         if self.settings[20] and self._beyond_travel(target):
-            return "error:15"
+            return format_error(15)
         self._gc_mm = target
         while len(self._tl.queue) >= PLANNER_BLOCKS:
             yield ("slot",)
@@ -857,7 +868,7 @@ class GrblTwin:
             if self._state == "Idle":
                 self._tl.start(self._t)
                 self._state = "Jog"
-        return "ok"
+        return OK
 
     def _switch_mm(self, axis: int) -> float:
         """The limit switch's place in the physical frame (travel is ``[-max_travel, 0]``)."""
@@ -867,7 +878,7 @@ class GrblTwin:
     def _home(self) -> Job:
         assert self._t is not None
         if not self.settings[22]:
-            return "error:5"
+            return format_error(5)
         self._state = "Home"
         pull = self.settings[27]
         for axis in (2, 0, 1):
@@ -878,7 +889,7 @@ class GrblTwin:
             if distance > 1.5 * travel:
                 yield from self._home_move(axis, direction * 1.5 * travel, self.settings[25])
                 self._alarm(9)
-                return "ok"
+                return OK
             for delta, rate in (
                 (distance, self.settings[25]),
                 (-pull, self.settings[24]),
@@ -893,7 +904,7 @@ class GrblTwin:
         self._gc_mm = list(self._tl.position_mm)
         self._state = "Idle"
         yield from self._startup_lines_job()
-        return "ok"
+        return OK
 
     def _home_move(self, axis: int, delta_mm: float, rate_mm_min: float) -> Generator[Wait, None, None]:
         assert self._t is not None
@@ -908,10 +919,10 @@ class GrblTwin:
                 yield ("idle",)
 
     def _alarm(self, code: int, critical: bool = False) -> None:
-        self._emit(f"ALARM:{code}")
+        self._emit(format_alarm(code))
         self._state = "Alarm"
         if critical:
-            self._emit("[MSG:Reset to continue]")
+            self._emit(format_message("Reset to continue"))
             self._locked = True
 
     # -- G-code ------------------------------------------------------------------------
@@ -921,7 +932,7 @@ class GrblTwin:
         try:
             plan = self._interpret(_words(line))
         except _GcodeError as exc:
-            return f"error:{exc.code}"
+            return format_error(exc.code)
         check = self._state == "Check"
         new, old = plan.modal, self._modal
         spindle_change = new.spindle != old.spindle or (new.spindle in (3, 4) and new.spindle_rpm != old.spindle_rpm)
@@ -984,8 +995,8 @@ class GrblTwin:
                 self._set_flood(False)
             self._modal.spindle, self._modal.flood = 5, False
             self._overrides = [100, 100, 100]
-            self._emit("[MSG:Pgm End]")
-        return "ok"
+            self._emit(format_message("Pgm End"))
+        return OK
 
     def _synchronize(self) -> Generator[Wait, None, None]:
         while self._tl.state != "idle":
