@@ -45,14 +45,12 @@ import re
 import threading
 from collections import deque
 from collections.abc import Callable, Generator, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
 
 from labrig.devices.grbl_protocol import (
-    LINE_END,
-    LINE_MAX_CHARS,
     PLANNER_BLOCKS,
     RX_BUFFER_BYTES,
     format_alarm,
@@ -64,7 +62,6 @@ from labrig.devices.grbl_protocol import (
     format_parameter,
     format_parser_state,
     format_probe,
-    format_setting,
     format_startup_line,
     format_startup_result,
     format_status,
@@ -72,118 +69,21 @@ from labrig.devices.grbl_protocol import (
     format_welcome,
 )
 from labrig.devices.motion_profile import MachineLimits, MotionTimeline, make_block, quantize_mm
+from labrig.sim.grbl_gcode import Coordinates, GcodeError, ModalState, g_code, interpret, parser_state_words
+from labrig.sim.grbl_gcode import words as split_words
+from labrig.sim.grbl_settings import DEFAULT_SETTINGS, initial_settings, setting_lines, write_setting
+from labrig.sim.grbl_uart import TwinUart
 
 VERSION = "1.1h.20190830"
 BANNER = format_welcome("1.1h")
 HELP = format_help("$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x")
 OK = format_ok()
-LINE_BUFFER_CHARS = LINE_MAX_CHARS
-MAX_STEP_RATE_HZ = 30_000.0
-
-#: GRBL 1.1h default settings ($$ of a fresh EEPROM).
-DEFAULT_SETTINGS: dict[int, float] = {
-    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
-    20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
-    100: 250.0, 101: 250.0, 102: 250.0, 110: 500.0, 111: 500.0, 112: 500.0,
-    120: 10.0, 121: 10.0, 122: 10.0, 130: 200.0, 131: 200.0, 132: 200.0,
-}  # fmt: skip
-_INTEGER_SETTINGS = frozenset({0, 1, 2, 3, 4, 5, 6, 10, 13, 20, 21, 22, 23, 26, 30, 31, 32})
-_BOOLEAN_SETTINGS = frozenset({4, 13, 20, 21, 22, 32})
 _BUSY_STATES = frozenset({"Run", "Jog", "Hold", "Home", "Door"})
 
 # ("now",) | ("time", t_us) | ("slot",) | ("idle",) | ("rest",)
 Wait = tuple
 Job = Generator[Wait, None, "str | None"]
 OutputHook = Callable[[int, str, int], None]
-
-_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)")
-
-# Modal groups of the G and M words the twin knows: (number, mantissa*100) -> group.
-_G_GROUPS: dict[tuple[int, int], str] = {
-    (0, 0): "motion", (1, 0): "motion", (2, 0): "motion", (3, 0): "motion", (80, 0): "motion",
-    (38, 20): "motion", (38, 30): "motion", (38, 40): "motion", (38, 50): "motion",
-    (4, 0): "non_modal", (10, 0): "non_modal", (28, 0): "non_modal", (28, 10): "non_modal",
-    (30, 0): "non_modal", (30, 10): "non_modal", (53, 0): "non_modal", (92, 0): "non_modal", (92, 10): "non_modal",
-    (17, 0): "plane", (18, 0): "plane", (19, 0): "plane", (90, 0): "distance", (91, 0): "distance",
-    (91, 10): "arc_distance", (93, 0): "feed_mode", (94, 0): "feed_mode", (20, 0): "units", (21, 0): "units",
-    (40, 0): "cutter", (43, 10): "tlo", (49, 0): "tlo", (61, 0): "path",
-    **{(n, 0): "wcs" for n in range(54, 60)},
-}  # fmt: skip
-_G_NUMBERS = frozenset(n for n, _ in _G_GROUPS)
-_M_GROUPS = {
-    0: "stopping",
-    1: "stopping",
-    2: "stopping",
-    30: "stopping",
-    3: "spindle",
-    4: "spindle",
-    5: "spindle",
-    8: "coolant",
-    9: "coolant",
-}
-_AXIS_COMMANDS = frozenset({(10, 0), (28, 0), (30, 0), (92, 0)})
-
-
-class _GcodeError(Exception):
-    def __init__(self, code: int) -> None:
-        super().__init__(code)
-        self.code = code
-
-
-def _words(text: str) -> list[tuple[str, float]]:
-    """Letter/number pairs of a pre-parsed line (``error:1``/``error:2`` on malformed words)."""
-    out = []
-    i = 0
-    while i < len(text):
-        letter = text[i]
-        if not "A" <= letter <= "Z":
-            raise _GcodeError(1)
-        m = _NUMBER.match(text, i + 1)
-        if m is None:
-            raise _GcodeError(2)
-        out.append((letter, float(m.group())))
-        i = m.end()
-    return out
-
-
-def _g_code(value: float) -> tuple[int, int]:
-    number = int(value)
-    return number, round((value - number) * 100)
-
-
-@dataclass
-class _Modal:
-    """The G-code parser's modal state (feed in mm/min)."""
-
-    motion: tuple[int, int] = (0, 0)
-    wcs: int = 0
-    plane: int = 17
-    inches: bool = False
-    incremental: bool = False
-    inverse_time: bool = False
-    spindle: int = 5
-    flood: bool = False
-    tool: int = 0
-    feed_mm_min: float = 0.0
-    spindle_rpm: float = 0.0
-
-
-@dataclass
-class _Plan:
-    """A validated G-code block: what to do, in GRBL's execution order."""
-
-    modal: _Modal
-    dwell_s: float | None = None
-    non_modal: tuple[int, int] | None = None
-    axis_values: dict[int, float] | None = None  # axis -> value in mm (non-modal commands)
-    target_mm: list[float] | None = None  # machine target of a G0/G1
-    feed_mm_min: float | None = None  # None: rapid
-    l_value: int = 0
-    p_value: int = 0
-    tlo_mm: float | None = None
-    stopping: int | None = None
-    wco_changed: bool = False
-
 
 class GrblTwin:
     """GRBL 1.1h on a simulated 328P: see the module docstring.
@@ -210,11 +110,7 @@ class GrblTwin:
         link_latency_us: float = 0.0,
         homed: bool = False,
     ) -> None:
-        self.settings: dict[int, float] = dict(DEFAULT_SETTINGS)
-        for number, value in (settings or {}).items():
-            if number not in DEFAULT_SETTINGS:
-                raise ValueError(f"GRBL has no setting ${number}")
-            self.settings[number] = float(value)
+        self.settings = initial_settings(settings)
         self.byte_us = 10 * 1e6 / baud
         self.parse_us = float(parse_us)
         self.eeprom_write_us = float(eeprom_write_us)
@@ -224,26 +120,12 @@ class GrblTwin:
         self.startup_lines = ["", ""]
         self.outputs: list[tuple[int, str, int]] = []
         self.lines_executed = 0
-        self.rx_overflow_bytes = 0
-        self.rx_blackout_bytes = 0
-        self.max_rx_fill_bytes = 0
         self.received: deque[str] = deque(maxlen=4096)
         self._lock = threading.RLock()
         self._power_on_physical = [float(x) for x in power_on_physical_mm]
         self._homed_at_power_on = bool(homed)
         self._t: float | None = None
-        # serial
-        self._wire: deque[tuple[float, int]] = deque()
-        self._wire_free_us = -math.inf
-        self._ring: deque[int] = deque()
-        self._blackout_until_us = -math.inf
-        self._tx: deque[tuple[float, bytes]] = deque()
-        self._tx_free_us = -math.inf
-        # line assembly
-        self._line = bytearray()
-        self._in_paren = False
-        self._in_comment = False
-        self._line_overflow = False
+        self._uart = TwinUart(self.byte_us, self.link_latency_us)
         # main loop
         self._job: Job | None = None
         self._wait: Wait = ("now",)
@@ -255,14 +137,8 @@ class GrblTwin:
         self._state = "Idle"
         self._locked = False
         self._sync_gc_when_idle = False
-        self._modal = _Modal()
-        self._gc_mm = [0.0, 0.0, 0.0]
-        self._wcs = [[0.0, 0.0, 0.0] for _ in range(6)]
-        self._g28 = [0.0, 0.0, 0.0]
-        self._g30 = [0.0, 0.0, 0.0]
-        self._g92 = [0.0, 0.0, 0.0]
-        self._tlo = 0.0
-        self._probe = ([0.0, 0.0, 0.0], False)
+        self._modal = ModalState()
+        self._coords = Coordinates()
         self._overrides = [100, 100, 100]
         self._wco_counter = 0
         self._ovr_counter = 0
@@ -273,30 +149,13 @@ class GrblTwin:
         """Bytes the host wrote at ``now_us``: they arrive one per byte time after it."""
         with self._lock:
             self._run_until(now_us)
-            start = max(float(now_us) + self.link_latency_us, self._wire_free_us)
-            for i, b in enumerate(data):
-                self._wire.append((start + (i + 1) * self.byte_us, b))
-            if data:
-                self._wire_free_us = start + len(data) * self.byte_us
+            self._uart.host_wrote(data, now_us)
 
     def transmit(self, now_us: int) -> bytes:
         """Bytes whose last bit has left the UART by ``now_us`` (less the link latency)."""
         with self._lock:
             self._run_until(now_us)
-            out = bytearray()
-            while self._tx:
-                start, data = self._tx[0]
-                n = int((now_us - self.link_latency_us - start) / self.byte_us + 1e-9)
-                if n <= 0:
-                    break
-                if n >= len(data):
-                    out += data
-                    self._tx.popleft()
-                    continue
-                out += data[:n]
-                self._tx[0] = (start + n * self.byte_us, data[n:])
-                break
-            return bytes(out)
+            return self._uart.transmit(now_us)
 
     # -- fault injection ------------------------------------------------------------------
 
@@ -342,7 +201,21 @@ class GrblTwin:
 
     @property
     def rx_fill_bytes(self) -> int:
-        return len(self._ring)
+        return self._uart.rx_fill_bytes
+
+    @property
+    def rx_overflow_bytes(self) -> int:
+        """Bytes dropped because the RX ring was full (GRBL drops them silently)."""
+        return self._uart.rx_overflow_bytes
+
+    @property
+    def rx_blackout_bytes(self) -> int:
+        """Bytes lost while an EEPROM write kept the receiver deaf."""
+        return self._uart.rx_blackout_bytes
+
+    @property
+    def max_rx_fill_bytes(self) -> int:
+        return self._uart.max_rx_fill_bytes
 
     def segments(self) -> list:
         """The executed and planned motion segments (see :class:`~labrig.devices.motion_profile.Segment`)."""
@@ -365,7 +238,7 @@ class GrblTwin:
         while True:
             self._step_main_loop()
             t_next = min(
-                self._wire[0][0] if self._wire else math.inf,
+                self._uart.next_arrival_us(),
                 self._wait[1]
                 if self._job is not None and self._wait[0] == "time" and not self._locked and self._state != "Sleep"
                 else math.inf,
@@ -375,8 +248,9 @@ class GrblTwin:
                 break
             self._t = max(self._t, t_next)
             self._advance_motion()
-            if self._wire and self._wire[0][0] <= self._t:
-                self._on_byte(self._wire.popleft()[1])
+            b = self._uart.arrived(self._t)
+            if b is not None:
+                self._on_byte(b)
         self._t = max(self._t, now)
         self._advance_motion()
 
@@ -385,17 +259,13 @@ class GrblTwin:
         self._tl.advance(self._t)
         if self._state in ("Run", "Jog") and self._tl.state == "idle":
             if self._state == "Jog" or self._sync_gc_when_idle:
-                self._gc_mm = list(self._tl.position_mm)
+                self._coords.position_mm = list(self._tl.position_mm)
                 self._sync_gc_when_idle = False
             self._state = "Idle"
 
     # -- serial in ----------------------------------------------------------------------
 
     def _on_byte(self, b: int) -> None:
-        assert self._t is not None
-        if self._t < self._blackout_until_us:
-            self.rx_blackout_bytes += 1
-            return
         if b == 0x18:
             self._soft_reset()
         elif b == 0x3F:  # ?
@@ -407,50 +277,18 @@ class GrblTwin:
             self._cycle_start()
         elif b >= 0x80:
             self._realtime_extended(b)
-        elif len(self._ring) >= RX_BUFFER_BYTES:
-            self.rx_overflow_bytes += 1
         else:
-            self._ring.append(b)
-            self.max_rx_fill_bytes = max(self.max_rx_fill_bytes, len(self._ring))
-
-    def _take_line(self) -> tuple[str, bool] | None:
-        """Drain the ring into the line buffer like GRBL's pre-parser; a complete line or None."""
-        ring = self._ring
-        while ring:
-            b = ring.popleft()
-            if b in (0x0A, 0x0D):
-                line, overflow = self._line.decode("ascii"), self._line_overflow
-                self._line.clear()
-                self._in_paren = self._in_comment = self._line_overflow = False
-                return line, overflow
-            if self._in_comment:
-                continue
-            if self._in_paren:
-                self._in_paren = b != 0x29
-            elif b == 0x28:
-                self._in_paren = True
-            elif b == 0x3B:
-                self._in_comment = True
-            elif b <= 0x20 or b >= 0x7F or b == 0x2F:
-                continue
-            elif len(self._line) >= LINE_BUFFER_CHARS:
-                self._line_overflow = True
-            else:
-                self._line.append(b - 32 if 0x61 <= b <= 0x7A else b)
-        return None
+            self._uart.store(b)
 
     # -- serial out ---------------------------------------------------------------------
 
     def _emit(self, text: str) -> None:
         assert self._t is not None
-        data = text.encode("ascii") + LINE_END
-        start = max(self._t, self._tx_free_us)
-        self._tx.append((start, data))
-        self._tx_free_us = start + len(data) * self.byte_us
+        self._uart.send(text, self._t)
 
     def _status_report(self) -> str:
         position = self._tl.position_mm
-        wco = self._wco()
+        wco = self._coords.wco_mm(self._modal.wcs)
         mask = int(self.settings[10])
         work = None if mask & 1 else [p - o for p, o in zip(position, wco)]
         busy = self._state in _BUSY_STATES
@@ -471,7 +309,7 @@ class GrblTwin:
             self._state_text(),
             machine_mm=position if work is None else None,
             work_mm=work,
-            buffer=(PLANNER_BLOCKS - len(self._tl.queue), RX_BUFFER_BYTES - len(self._ring)) if mask & 2 else None,
+            buffer=(PLANNER_BLOCKS - len(self._tl.queue), RX_BUFFER_BYTES - self._uart.rx_fill_bytes) if mask & 2 else None,
             feed_mm_min=self._tl.speed_mm_s * 60.0,
             spindle_rpm=self._modal.spindle_rpm if self._modal.spindle in (3, 4) else 0.0,
             pins=self._pins(),
@@ -556,9 +394,7 @@ class GrblTwin:
         if self._job is not None:
             self._job.close()
         self._job, self._wait, self._after_response = None, ("now",), None
-        self._ring.clear()
-        self._line.clear()
-        self._in_paren = self._in_comment = self._line_overflow = False
+        self._uart.clear_input()
         self._set_spindle(5)
         self._set_flood(False)
         if alarm is not None:
@@ -572,12 +408,12 @@ class GrblTwin:
         """After power-up or a soft reset: banner, parser defaults, Alarm or the startup lines."""
         self._locked = False
         self._deferred_ok = False
-        self._modal = _Modal()
-        self._g92 = [0.0, 0.0, 0.0]
-        self._tlo = 0.0
+        self._modal = ModalState()
+        self._coords.g92_mm = [0.0, 0.0, 0.0]
+        self._coords.tlo_mm = 0.0
         self._overrides = [100, 100, 100]
         self._tl.feed_scale = self._tl.rapid_scale = 1.0
-        self._gc_mm = list(self._tl.position_mm)
+        self._coords.position_mm = list(self._tl.position_mm)
         self._wco_counter = self._ovr_counter = 0
         self._sync_gc_when_idle = False
         self._emit("")
@@ -607,7 +443,7 @@ class GrblTwin:
                     self._job = None
                     self._respond(stop.value)
                 continue
-            taken = self._take_line()
+            taken = self._uart.take_line()
             if taken is None:
                 self._auto_start()
                 return
@@ -675,11 +511,11 @@ class GrblTwin:
         if body == "$":
             if state in ("Run", "Hold"):
                 return format_error(8)
-            for number in sorted(self.settings):
-                self._emit(format_setting(number, self.settings[number], integer=number in _INTEGER_SETTINGS))
+            for line in setting_lines(self.settings):
+                self._emit(line)
             return OK
         if body == "G":
-            self._emit(self._parser_state())
+            self._emit(format_parser_state(parser_state_words(self._modal)))
             return OK
         if body == "C":
             if state == "Check":
@@ -695,7 +531,7 @@ class GrblTwin:
             if state == "Alarm":
                 self._emit(format_message("Caution: Unlocked"))
                 self._state = "Idle"
-                self._gc_mm = list(self._tl.position_mm)
+                self._coords.position_mm = list(self._tl.position_mm)
             return OK
         if body.startswith("J"):
             if state not in ("Idle", "Jog"):
@@ -707,12 +543,12 @@ class GrblTwin:
             return format_error(8)
         if body == "#":
             for n in range(6):
-                self._emit(format_parameter(f"G{54 + n}", self._wcs[n]))
-            self._emit(format_parameter("G28", self._g28))
-            self._emit(format_parameter("G30", self._g30))
-            self._emit(format_parameter("G92", self._g92))
-            self._emit(format_parameter("TLO", [self._tlo]))
-            self._emit(format_probe(*self._probe))
+                self._emit(format_parameter(f"G{54 + n}", self._coords.wcs_mm[n]))
+            self._emit(format_parameter("G28", self._coords.g28_mm))
+            self._emit(format_parameter("G30", self._coords.g30_mm))
+            self._emit(format_parameter("G92", self._coords.g92_mm))
+            self._emit(format_parameter("TLO", [self._coords.tlo_mm]))
+            self._emit(format_probe(*self._coords.probe))
             return OK
         if body == "H":
             return (yield from self._home())
@@ -739,43 +575,21 @@ class GrblTwin:
             if index >= len(self.startup_lines):
                 return format_error(3)
             try:
-                _words(m.group(2))
-            except _GcodeError as exc:
+                split_words(m.group(2))
+            except GcodeError as exc:
                 return format_error(exc.code)
             self.startup_lines[index] = m.group(2)
             yield from self._eeprom_write()
             return OK
         m = re.fullmatch(r"(\d+)=(.*)", body)
         if m:
-            return (yield from self._write_setting(int(m.group(1)), m.group(2)))
+            error = write_setting(self.settings, int(m.group(1)), m.group(2))
+            if error is not None:
+                return format_error(error)
+            self._tl.limits = self._limits()
+            yield from self._eeprom_write()
+            return OK
         return format_error(3)
-
-    def _write_setting(self, number: int, text: str) -> Job:
-        if _NUMBER.fullmatch(text) is None:
-            return format_error(2)
-        value = float(text)
-        if number not in DEFAULT_SETTINGS:
-            return format_error(3)
-        if value < 0:
-            return format_error(4)
-        if number in _INTEGER_SETTINGS:
-            value = float(int(value))
-        if number in _BOOLEAN_SETTINGS:
-            value = 1.0 if value else 0.0
-        if number == 0 and value < 3:
-            return format_error(6)
-        if number == 20 and value and not self.settings[22]:
-            return format_error(10)
-        if 100 <= number <= 102 and value * self.settings[number + 10] / 60.0 > MAX_STEP_RATE_HZ:
-            return format_error(12)
-        if 110 <= number <= 112 and self.settings[number - 10] * value / 60.0 > MAX_STEP_RATE_HZ:
-            return format_error(12)
-        self.settings[number] = value
-        if number == 22 and not value:
-            self.settings[20] = 0.0  # soft limits cannot stay on without homing
-        self._tl.limits = self._limits()
-        yield from self._eeprom_write()
-        return OK
 
     def _restore(self, which: str) -> Job:
         if which not in ("$", "#", "*"):
@@ -784,9 +598,7 @@ class GrblTwin:
             self.settings = dict(DEFAULT_SETTINGS)
             self._tl.limits = self._limits()
         if which in ("#", "*"):
-            self._wcs = [[0.0, 0.0, 0.0] for _ in range(6)]
-            self._g28 = [0.0, 0.0, 0.0]
-            self._g30 = [0.0, 0.0, 0.0]
+            self._coords.clear_stored()
         if which == "*":
             self.startup_lines = ["", ""]
             self.build_info = ""
@@ -797,8 +609,8 @@ class GrblTwin:
 
     def _eeprom_write(self) -> Generator[Wait, None, None]:
         assert self._t is not None
-        self._blackout_until_us = self._t + self.eeprom_write_us
-        yield ("time", self._blackout_until_us)
+        self._uart.deaf_until(self._t + self.eeprom_write_us)
+        yield ("time", self._t + self.eeprom_write_us)
 
     def _sleep(self) -> None:
         self._emit(format_message("Sleeping"))
@@ -806,30 +618,20 @@ class GrblTwin:
         self._set_flood(False)
         self._state = "Sleep"
 
-    def _parser_state(self) -> str:
-        m = self._modal
-        motion = {(0, 0): "G0", (1, 0): "G1", (80, 0): "G80"}.get(m.motion, "G0")
-        words = [
-            motion, f"G{54 + m.wcs}", f"G{m.plane}", "G20" if m.inches else "G21", "G91" if m.incremental else "G90",
-            "G93" if m.inverse_time else "G94", f"M{m.spindle}", "M8" if m.flood else "M9", f"T{m.tool}",
-            f"F{m.feed_mm_min:.0f}", f"S{m.spindle_rpm:.0f}",
-        ]  # fmt: skip
-        return format_parser_state(words)
-
     # -- jogging and homing ------------------------------------------------------------------
 
     def _jog(self, body: str) -> Job:
         assert self._t is not None
         try:
-            words = _words(body)
-        except _GcodeError as exc:
+            words = split_words(body)
+        except GcodeError as exc:
             return format_error(exc.code)
         inches, incremental, machine = self._modal.inches, self._modal.incremental, False
         values: dict[int, float] = {}
         feed = None
         for letter, value in words:
             if letter == "G":
-                code = _g_code(value)
+                code = g_code(value)
                 if code == (20, 0) or code == (21, 0):
                     inches = code == (20, 0)
                 elif code == (90, 0) or code == (91, 0):
@@ -856,10 +658,10 @@ class GrblTwin:
         if feed < 0:
             return format_error(4)
         unit = 25.4 if inches else 1.0
-        target = self._target({a: v * unit for a, v in values.items()}, incremental, machine)
+        target = self._coords.target_mm({a: v * unit for a, v in values.items()}, incremental, machine, self._modal.wcs)
         if self.settings[20] and self._beyond_travel(target):
             return format_error(15)
-        self._gc_mm = target
+        self._coords.position_mm = target
         while len(self._tl.queue) >= PLANNER_BLOCKS:
             yield ("slot",)
         block = make_block(self._tl.tail_mm, self._quantize(target), feed * unit, self._tl.limits, tag="jog")
@@ -901,7 +703,7 @@ class GrblTwin:
             homed[axis] = -pull if direction > 0 else -travel + pull
             self._offset[axis] += self._tl.position_mm[axis] - homed[axis]
             self._tl.set_position(homed, self._t)
-        self._gc_mm = list(self._tl.position_mm)
+        self._coords.position_mm = list(self._tl.position_mm)
         self._state = "Idle"
         yield from self._startup_lines_job()
         return OK
@@ -930,8 +732,8 @@ class GrblTwin:
     def _gcode(self, line: str) -> Job:
         assert self._t is not None
         try:
-            plan = self._interpret(_words(line))
-        except _GcodeError as exc:
+            plan = interpret(split_words(line), self._modal, self._coords)
+        except GcodeError as exc:
             return format_error(exc.code)
         check = self._state == "Check"
         new, old = plan.modal, self._modal
@@ -948,36 +750,31 @@ class GrblTwin:
             yield from self._synchronize()
             yield ("time", self._t + plan.dwell_s * 1e6)
         if plan.tlo_mm is not None:
-            self._tlo = plan.tlo_mm
+            self._coords.tlo_mm = plan.tlo_mm
         if plan.wco_changed:
             self._wco_counter = 0
         nm = plan.non_modal
         values = plan.axis_values or {}
         if nm == (10, 0):
             index = self._modal.wcs if plan.p_value == 0 else plan.p_value - 1
-            for axis, v in values.items():
-                if plan.l_value == 2:
-                    self._wcs[index][axis] = v
-                else:
-                    self._wcs[index][axis] = self._gc_mm[axis] - v - self._g92[axis] - (self._tlo if axis == 2 else 0.0)
+            self._coords.set_wcs(index, values, here=plan.l_value == 20)
             self._wco_counter = 0
             yield from self._eeprom_write()
         elif nm in ((28, 10), (30, 10)):
-            (self._g28 if nm[0] == 28 else self._g30)[:] = self._gc_mm
+            (self._coords.g28_mm if nm[0] == 28 else self._coords.g30_mm)[:] = self._coords.position_mm
             yield from self._eeprom_write()
         elif nm == (92, 0):
-            for axis, v in values.items():
-                self._g92[axis] = self._gc_mm[axis] - self._wcs[self._modal.wcs][axis] - v - (self._tlo if axis == 2 else 0.0)
+            self._coords.set_g92(values, self._modal.wcs)
             self._wco_counter = 0
         elif nm == (92, 10):
-            self._g92 = [0.0, 0.0, 0.0]
+            self._coords.g92_mm = [0.0, 0.0, 0.0]
             self._wco_counter = 0
         elif nm in ((28, 0), (30, 0)):
             if values:
-                intermediate = self._target(values, self._modal.incremental, False)
+                intermediate = self._coords.target_mm(values, self._modal.incremental, False, self._modal.wcs)
                 if not (yield from self._motion(intermediate, None, check)):
                     return None
-            stored = list(self._g28 if nm[0] == 28 else self._g30)
+            stored = list(self._coords.g28_mm if nm[0] == 28 else self._coords.g30_mm)
             if not (yield from self._motion(stored, None, check)):
                 return None
         if plan.target_mm is not None and not (yield from self._motion(plan.target_mm, plan.feed_mm_min, check)):
@@ -1014,7 +811,7 @@ class GrblTwin:
             self._alarm(2, critical=True)
             self._deferred_ok = True
             return False
-        self._gc_mm = list(target)
+        self._coords.position_mm = list(target)
         if check:
             return True
         while len(self._tl.queue) >= PLANNER_BLOCKS:
@@ -1024,146 +821,6 @@ class GrblTwin:
             self._tl.append(block, self._t)
         return True
 
-    def _interpret(self, words: list[tuple[str, float]]) -> _Plan:
-        """Validate a block against the parser state; what to do, or the GRBL error code."""
-        g: dict[str, tuple[int, int]] = {}
-        m: dict[str, int] = {}
-        vals: dict[str, float] = {}
-        for letter, value in words:
-            if letter == "G":
-                code = _g_code(value)
-                group = _G_GROUPS.get(code)
-                if group is None:
-                    if code[0] == 59:
-                        raise _GcodeError(29)
-                    raise _GcodeError(23 if code[0] in _G_NUMBERS and code[1] else 20)
-                if group in g:
-                    raise _GcodeError(21)
-                g[group] = code
-            elif letter == "M":
-                if value != int(value) or int(value) not in _M_GROUPS:
-                    raise _GcodeError(20)
-                group = _M_GROUPS[int(value)]
-                if group in m:
-                    raise _GcodeError(21)
-                m[group] = int(value)
-            elif letter in "FIJKLNPRSTXYZ":
-                if letter in vals:
-                    raise _GcodeError(25)
-                vals[letter] = value
-            else:
-                raise _GcodeError(20)
-        for letter in "FNPST":
-            if vals.get(letter, 0.0) < 0:
-                raise _GcodeError(4)
-        if vals.get("N", 0.0) > 9_999_999:
-            raise _GcodeError(27)
-        if vals.get("T", 0.0) > 255:
-            raise _GcodeError(38)
-        used = {"N"}
-        modal = replace(self._modal)
-        plan = _Plan(modal)
-        if "feed_mode" in g:
-            modal.inverse_time = g["feed_mode"] == (93, 0)
-        if "units" in g:
-            modal.inches = g["units"] == (20, 0)
-        unit = 25.4 if modal.inches else 1.0
-        if "F" in vals:
-            used.add("F")
-            if not modal.inverse_time:
-                modal.feed_mm_min = vals["F"] * unit
-        if "S" in vals:
-            used.add("S")
-            modal.spindle_rpm = vals["S"]
-        if "T" in vals:
-            used.add("T")
-            modal.tool = int(vals["T"])
-        if "spindle" in m:
-            modal.spindle = m["spindle"]
-        if "coolant" in m:
-            modal.flood = m["coolant"] == 8
-        if "stopping" in m and m["stopping"] != 1:
-            plan.stopping = m["stopping"]
-        nm = g.get("non_modal")
-        plan.non_modal = nm
-        if nm == (4, 0):
-            if "P" not in vals:
-                raise _GcodeError(28)
-            used.add("P")
-            plan.dwell_s = vals["P"]
-        if "plane" in g:
-            modal.plane = g["plane"][0]
-        if "distance" in g:
-            modal.incremental = g["distance"] == (91, 0)
-        if "wcs" in g:
-            plan.wco_changed = g["wcs"][0] - 54 != modal.wcs
-            modal.wcs = g["wcs"][0] - 54
-        if "motion" in g:
-            modal.motion = g["motion"]
-        axes = {i: vals[a] * unit for i, a in enumerate("XYZ") if a in vals}
-        axis_command = None
-        if nm in _AXIS_COMMANDS and (axes or nm in ((10, 0), (92, 0))):
-            axis_command = "non_modal"
-        if g.get("tlo") == (43, 10):
-            if axis_command is not None:
-                raise _GcodeError(24)
-            axis_command = "tlo"
-        if axis_command is not None and "motion" in g and axes:
-            raise _GcodeError(24)
-        if axis_command is None and axes:
-            axis_command = "motion"
-        if nm == (53, 0) and modal.motion not in ((0, 0), (1, 0)):
-            raise _GcodeError(30)
-        used |= set("XYZ") & set(vals)
-        if axis_command == "tlo":
-            if set(axes) != {2}:
-                raise _GcodeError(37 if axes else 26)
-            plan.tlo_mm = axes[2]
-            plan.wco_changed = True
-        elif g.get("tlo") == (49, 0):
-            plan.tlo_mm = 0.0
-            plan.wco_changed = True
-        if nm == (10, 0):
-            if "L" not in vals or "P" not in vals:
-                raise _GcodeError(28)
-            used |= {"L", "P"}
-            if vals["L"] not in (2.0, 20.0):
-                raise _GcodeError(20)
-            if vals["P"] != int(vals["P"]):
-                raise _GcodeError(23)
-            if vals["P"] > 6:
-                raise _GcodeError(29)
-            if not axes:
-                raise _GcodeError(26)
-            plan.l_value, plan.p_value = int(vals["L"]), int(vals["P"])
-            plan.axis_values = axes
-        elif nm == (92, 0):
-            if not axes:
-                raise _GcodeError(26)
-            plan.axis_values = axes
-        elif nm in ((28, 0), (30, 0)):
-            plan.axis_values = axes
-        if axis_command == "motion":
-            if modal.motion == (80, 0):
-                raise _GcodeError(31)
-            if modal.motion not in ((0, 0), (1, 0)):
-                raise _GcodeError(20)  # arcs and probing are not simulated
-            target = self._target(axes, modal.incremental and nm != (53, 0), nm == (53, 0), modal)
-            plan.target_mm = target
-            if modal.motion == (1, 0):
-                if modal.inverse_time:
-                    if vals.get("F", 0.0) <= 0:
-                        raise _GcodeError(22)
-                    length = math.dist(target, self._gc_mm)
-                    plan.feed_mm_min = length * vals["F"]
-                elif modal.feed_mm_min <= 0:
-                    raise _GcodeError(22)
-                else:
-                    plan.feed_mm_min = modal.feed_mm_min
-        if set(vals) - used:
-            raise _GcodeError(36)
-        return plan
-
     # -- helpers -----------------------------------------------------------------------
 
     def _limits(self) -> MachineLimits:
@@ -1171,22 +828,6 @@ class GrblTwin:
 
     def _quantize(self, target: Sequence[float]) -> tuple[float, float, float]:
         return quantize_mm(target, self._tl.limits.steps_per_mm)
-
-    def _wco(self) -> list[float]:
-        return [self._wcs[self._modal.wcs][i] + self._g92[i] + (self._tlo if i == 2 else 0.0) for i in range(3)]
-
-    def _target(self, axes: Mapping[int, float], incremental: bool, machine: bool, modal: _Modal | None = None) -> list[float]:
-        """Machine target of axis words (mm) in the given distance mode and frame."""
-        wcs = self._wcs[(modal or self._modal).wcs]
-        target = list(self._gc_mm)
-        for axis, v in axes.items():
-            if machine:
-                target[axis] = v
-            elif incremental:
-                target[axis] = self._gc_mm[axis] + v
-            else:
-                target[axis] = v + wcs[axis] + self._g92[axis] + (self._tlo if axis == 2 else 0.0)
-        return target
 
     def _beyond_travel(self, target: Sequence[float]) -> bool:
         return any(target[i] > 0.0 or target[i] < -self.settings[130 + i] for i in range(3))
