@@ -35,14 +35,13 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from labrig.clock import HostClock, MonotonicClock
+from labrig.devices.bota_health import BotaStats, StreamHealth, WarningLimiter
 from labrig.devices.bota_protocol import (
     BAUD_RATES,
-    STATUS_ADVICE,
-    TIMESTAMP_MODULUS,
     Ack,
     AppInit,
     BootInfo,
@@ -50,7 +49,6 @@ from labrig.devices.bota_protocol import (
     Command,
     CommSetup,
     CommSetupLine,
-    CrcError,
     Event,
     FilterSetup,
     Frame,
@@ -58,8 +56,6 @@ from labrig.devices.bota_protocol import (
     Offsets,
     ReceiverCounters,
     Status,
-    SyncAcquired,
-    SyncLost,
     TextLine,
     Vector3,
     cmd_comm_setup,
@@ -157,42 +153,6 @@ class BotaSettings:
         return self.filter_setup.period_us
 
 
-@dataclass(frozen=True)
-class BotaStats:
-    """Streaming counters since the last :meth:`BotaSensor.start`."""
-
-    frames: int = 0
-    frames_lost: int = 0  # from device timestamp steps longer than the nominal period
-    gaps: int = 0  # places where frames were lost
-    crc_errors: int = 0
-    sync_losses: int = 0
-    resyncs: int = 0
-    skipped_bytes: int = 0
-    clock_jumps: int = 0  # device timestamp steps that are zero or backwards
-    stalls: int = 0  # no frame for stall_timeout_s while running
-    restarts: int = 0  # boot text seen while connected (power dip, watchdog)
-    status_frames: dict[str, int] = field(default_factory=dict)  # frames with each status bit set
-
-
-@dataclass
-class _Counters:
-    frames: int = 0
-    frames_lost: int = 0
-    gaps: int = 0
-    crc_errors: int = 0
-    sync_losses: int = 0
-    resyncs: int = 0
-    skipped_bytes: int = 0
-    clock_jumps: int = 0
-    stalls: int = 0
-    restarts: int = 0
-    status_frames: dict[str, int] = field(default_factory=dict)
-
-    def snapshot(self) -> BotaStats:
-        values = {k: v for k, v in vars(self).items() if k != "status_frames"}
-        return BotaStats(**values, status_frames=dict(self.status_frames))
-
-
 class _Collector:
     """Raw samples gathered for :meth:`BotaSensor.wait_samples`."""
 
@@ -200,24 +160,6 @@ class _Collector:
         self.n = n
         self.accept = accept
         self.samples: list[FtSample] = []
-
-
-class _WarningLimiter:
-    """At most one message per key per interval; counts what it held back."""
-
-    def __init__(self, interval_ns: int) -> None:
-        self.interval_ns = interval_ns
-        self._last: dict[str, int] = {}
-        self._held: dict[str, int] = {}
-
-    def allow(self, key: str, now_ns: int) -> int | None:
-        """None: stay quiet; else the number of occurrences held back since the last message."""
-        last = self._last.get(key)
-        if last is not None and now_ns - last < self.interval_ns:
-            self._held[key] = self._held.get(key, 0) + 1
-            return None
-        self._last[key] = now_ns
-        return self._held.pop(key, 0)
 
 
 def _no_sample(sample: FtSample) -> None:
@@ -291,13 +233,9 @@ class BotaSensor:
         self._frames_idle = 0  # frames seen outside RUN (boot streaming)
         self._collectors: list[_Collector] = []
         self._settings: BotaSettings | None = None
-        self._counters = _Counters()
-        self._last_t_device: int | None = None
-        self._period_us: float | None = None  # for gap detection; None: unknown or not trusted
-        self._last_frame_ns: int | None = None
-        self._stalled = False
+        self._health = StreamHealth()
         self._tare: tuple[float, ...] = (0.0,) * 6
-        self._warnings = _WarningLimiter(round(warn_interval_s * 1e9))
+        self._warnings = WarningLimiter(round(warn_interval_s * 1e9))
 
     # -- properties ------------------------------------------------------------
 
@@ -333,7 +271,7 @@ class BotaSensor:
 
     def stats(self) -> BotaStats:
         with self._cond:
-            return self._counters.snapshot()
+            return self._health.snapshot()
 
     def receiver_counters(self) -> ReceiverCounters:
         """The byte-level totals since connect (all modes)."""
@@ -394,11 +332,9 @@ class BotaSensor:
         self._require(SensorState.CONFIG, "start")
         with self._cond:
             self._state = SensorState.STARTING
-            self._counters = _Counters()
-            self._last_t_device = None
-            self._period_us = self._settings.period_us if self._settings else None
-            self._last_frame_ns = self.clock.now_ns()
-            self._stalled = False
+            settings = self._settings
+            raw_gauges = settings is not None and not settings.calibrated
+            self._health = StreamHealth(settings.period_us if settings else None, self.clock.now_ns(), raw_gauges=raw_gauges)
             self._restart_sync = True
         try:
             self.command(cmd_run_mode())  # the reader switches to RUNNING on the ack, before the frames
@@ -620,6 +556,10 @@ class BotaSensor:
                 log.exception("F/T sensor on_error callback raised")
         return error
 
+    def _warn_all(self, warnings: list[tuple[str, str]], now_ns: int) -> None:
+        for key, message in warnings:
+            self._warn(key, message, now_ns)
+
     def _warn(self, key: str, message: str, now_ns: int) -> None:
         held = self._warnings.allow(key, now_ns)
         if held is None:
@@ -638,17 +578,11 @@ class BotaSensor:
         self._handle(self._receiver.feed(data), t_ns)
 
     def _on_idle(self, t_ns: int) -> None:
-        self._check_stall()
-
-    def _check_stall(self) -> None:
-        if self._state is not SensorState.RUNNING or self._last_frame_ns is None or self._stalled:
+        if self._state is not SensorState.RUNNING:
             return
-        now = self.clock.now_ns()
-        if now - self._last_frame_ns > self.stall_timeout_s * 1e9:
-            self._stalled = True
-            with self._cond:
-                self._counters.stalls += 1
-            self._warn("stall", f"no frame for {self.stall_timeout_s:g} s while streaming; check the sensor", now)
+        with self._cond:
+            warnings = self._health.quiet(t_ns, self.stall_timeout_s)
+        self._warn_all(warnings, t_ns)
 
     def _handle(self, events: list[Event], t_ns: int) -> None:
         for ev in events:
@@ -669,13 +603,8 @@ class BotaSensor:
 
     def _on_unexpected_boot(self, t_ns: int) -> None:
         with self._cond:
-            self._counters.restarts += 1
-            self._period_us = None  # it streams its saved configuration now: the period may differ
-        self._warn(
-            "restart",
-            "the sensor restarted by itself (power dip?) and runs its saved configuration; stop, configure and start again",
-            t_ns,
-        )
+            warnings = self._health.restarted()
+        self._warn_all(warnings, t_ns)
 
     def _on_ack(self, ack: Ack) -> None:
         with self._cond:
@@ -688,18 +617,8 @@ class BotaSensor:
 
     def _on_sync_event(self, ev: Event, t_ns: int) -> None:
         with self._cond:
-            c = self._counters
-            if isinstance(ev, CrcError):
-                c.crc_errors += 1
-            elif isinstance(ev, SyncLost):
-                c.sync_losses += 1
-            elif isinstance(ev, SyncAcquired) and ev.resync:
-                c.skipped_bytes += ev.skipped_bytes
-                c.resyncs += 1
-        if isinstance(ev, CrcError):
-            self._warn("crc", "frame with a bad CRC dropped (noise on the line?)", t_ns)
-        elif isinstance(ev, SyncAcquired) and ev.resync:
-            self._warn("resync", f"frame sync lost and found again ({ev.skipped_bytes} bytes skipped)", t_ns)
+            warnings = self._health.sync_event(ev)
+        self._warn_all(warnings, t_ns)
 
     def _on_frame(self, frame: Frame, t_ns: int) -> None:
         state = self._state
@@ -709,52 +628,16 @@ class BotaSensor:
                 if self._frames_idle == 1:
                     self._cond.notify_all()
             return
-        self._last_frame_ns = t_ns
-        self._stalled = False
         raw = FtSample(frame.t_device_us, t_ns, frame.force_n, frame.torque_nm, frame.status, frame.temperature_c)
         with self._cond:
-            c = self._counters
-            c.frames += 1
-            lost = self._step(frame.t_device_us)
-            if lost > 0:
-                c.frames_lost += lost
-                c.gaps += 1
-            elif lost < 0:
-                c.clock_jumps += 1
-            for bit in STATUS_ADVICE:
-                if frame.status & bit:
-                    name = str(bit.name).lower()
-                    c.status_frames[name] = c.status_frames.get(name, 0) + 1
+            warnings = self._health.frame(frame, t_ns)
             if self._collectors:
                 for collector in self._collectors:
                     if len(collector.samples) < collector.n and collector.accept(frame):
                         collector.samples.append(raw)
                 self._cond.notify_all()
-        if lost > 0:
-            self._warn("gap", f"{lost} frame(s) lost before device time {frame.t_device_us} us", t_ns)
-        elif lost < 0:
-            self._warn("clock", f"device timestamp stepped back or stood still at {frame.t_device_us} us", t_ns)
-        if frame.status:
-            self._warn_status(frame.status, t_ns)
+        self._warn_all(warnings, t_ns)
         self.on_sample(self._tared(raw))
-
-    def _step(self, t_device_us: int) -> int:
-        """Frames lost before this one (from the device timestamps); -1 for a backwards step."""
-        last, self._last_t_device = self._last_t_device, t_device_us
-        period_us = self._period_us
-        if last is None or period_us is None:
-            return 0
-        delta = (t_device_us - last) % TIMESTAMP_MODULUS
-        if delta == 0 or delta > TIMESTAMP_MODULUS // 2:
-            return -1
-        return max(0, round(delta / period_us) - 1)
-
-    def _warn_status(self, status: int, t_ns: int) -> None:
-        for bit, advice in STATUS_ADVICE.items():
-            if status & bit:
-                if bit is Status.RAW_MEASUREMENTS and self._settings is not None and not self._settings.calibrated:
-                    continue  # asked for raw gauges
-                self._warn(f"status:{bit.name}", advice, t_ns)
 
     def _tared(self, s: FtSample) -> FtSample:
         t = self._tare

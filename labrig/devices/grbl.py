@@ -1,7 +1,8 @@
 """GRBL 1.1 CNC driver: the command API over a serial link, streaming, status samples, the pose.
 
-The driver stands on three parts: :class:`~labrig.devices.grbl_channel.GrblChannel` (the serial
-link, the lines in flight and their answers, polling, callbacks, waits with timeouts),
+The driver stands on four parts: :class:`~labrig.devices.grbl_channel.GrblChannel` (the serial
+link, the lines in flight and their answers, polling, callbacks),
+:class:`~labrig.devices.grbl_waits.GrblWaits` (send-response, streaming, every wait with its timeout),
 :class:`~labrig.devices.grbl_pose.PoseModel` (the tool pose rebuilt from the conversation) and
 :class:`~labrig.devices.grbl_protocol.GrblProtocol` (the wire format). All host times are integer
 microseconds of the injectable host clock (:mod:`labrig.clock`) relative to ``time_base_ns``
@@ -16,22 +17,21 @@ Callbacks (run on the I/O thread, or the caller's thread for lines it sends; kee
   command was sent and acknowledged.
 
 (:mod:`labrig.protocol.routing` puts them into a recording.) Every wait has a timeout; see
-:mod:`labrig.devices.grbl_channel` for when a response counts as late. :meth:`Grbl.pose_at`
+:mod:`labrig.devices.grbl_waits` for when a response counts as late. :meth:`Grbl.pose_at`
 evaluates the reconstructed motion at any host time (:mod:`labrig.devices.grbl_pose`).
 """
 
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from labrig.clock import HostClock, MonotonicClock
-from labrig.devices.grbl_channel import QUERY_TIMEOUT_S, GrblChannel, Reply, StatusSample, Ticket
+from labrig.devices.grbl_channel import GrblChannel, Reply, StatusSample
 from labrig.devices.grbl_protocol import (
     GrblAlarm,
     GrblCommandError,
@@ -47,6 +47,7 @@ from labrig.devices.grbl_protocol import (
     jog_line,
     motion_line,
 )
+from labrig.devices.grbl_waits import GrblWaits, StreamResult
 from labrig.devices.motion_profile import MachineLimits, Segment
 from labrig.devices.serial_link import SerialPort
 
@@ -61,7 +62,6 @@ __all__ = [
     "GrblTimeout",
     "GrblUsageError",
     "OutputEdge",
-    "StreamResult",
 ]
 
 
@@ -80,21 +80,6 @@ class OutputEdge:
 
 
 @dataclass(frozen=True)
-class StreamResult:
-    """What :meth:`Grbl.stream` did."""
-
-    mode: str
-    lines: int
-    t_start_us: int
-    t_end_us: int
-    max_in_flight_bytes: int
-
-    @property
-    def lines_per_s(self) -> float:
-        return self.lines / max((self.t_end_us - self.t_start_us) / 1e6, 1e-9)
-
-
-@dataclass(frozen=True)
 class ConnectInfo:
     """The controller after :meth:`Grbl.connect` or :meth:`Grbl.soft_reset`."""
 
@@ -105,25 +90,13 @@ class ConnectInfo:
     messages: tuple[str, ...]
 
 
-@dataclass
-class _StreamRun:
-    """Book-keeping of one :meth:`Grbl.stream` call."""
-
-    total: int
-    progress: Callable[[int, int], None] | None
-    tickets: list[Ticket] = field(default_factory=list)
-    answered: int = 0
-    failed: Ticket | None = None
-    max_in_flight_bytes: int = 0
-
-
 class Grbl:
     """A GRBL 1.1 controller on a serial port.
 
     ``port``: an open serial-like object, or a port name/URL for ``serial.serial_for_url``
     (opened by :meth:`connect`, closed by :meth:`close`). ``poll_hz``: status polling rate (0: no
     automatic polling, responses then time out from sending). ``response_timeout_s``: see
-    :mod:`labrig.devices.grbl_channel`. ``output_on``/``output_off``: the lines :meth:`set_output` sends.
+    :mod:`labrig.devices.grbl_waits`. ``output_on``/``output_off``: the lines :meth:`set_output` sends.
     """
 
     def __init__(
@@ -146,7 +119,6 @@ class Grbl:
             raise GrblUsageError(f"poll_hz must be 0..50 (GRBL recommends at most 10), got {poll_hz}")
         self.baudrate = baudrate
         self.clock = clock or MonotonicClock()
-        self.response_timeout_s = float(response_timeout_s)
         self.on_output = on_output
         self.output_on = GrblProtocol.check_line(output_on)
         self.output_off = GrblProtocol.check_line(output_off)
@@ -156,6 +128,7 @@ class Grbl:
             rx_limit_bytes=rx_limit_bytes, on_sample=on_sample, on_gcode=on_gcode,
         )  # fmt: skip
         self._pose = self._io.pose
+        self._waits = GrblWaits(self._io, response_timeout_s)
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -174,22 +147,22 @@ class Grbl:
         """
         if reset not in ("auto", "dtr", "soft", "none"):
             raise GrblUsageError(f"reset must be auto, dtr, soft or none, got {reset!r}")
-        io = self._io
+        io, waits = self._io, self._waits
         io.open()
         t_begin = self.now_us()
         method = reset
         if reset in ("auto", "dtr"):
             count = io.welcomes
             if io.pulse_dtr():
-                if not io.wait_welcome(count, timeout_s if reset == "dtr" else min(timeout_s, 2.5), required=reset == "dtr"):
+                if not waits.wait_welcome(count, timeout_s if reset == "dtr" else min(timeout_s, 2.5), required=reset == "dtr"):
                     method = "soft"
             else:
                 method = "soft"
         if method == "soft":
             count = io.welcomes
             io.write_realtime(Realtime.SOFT_RESET)
-            io.wait_welcome(count, timeout_s, required=True)
-        io.wait_quiet(0.05, 0.5)
+            waits.wait_welcome(count, timeout_s, required=True)
+        waits.wait_quiet(0.05, 0.5)
         sample = self.status(timeout_s=timeout_s)
         if read_settings:
             self.read_settings(timeout_s=timeout_s)
@@ -223,6 +196,10 @@ class Grbl:
     @on_gcode.setter
     def on_gcode(self, callback: Callable[[int, int, bytes], None] | None) -> None:
         self._io.on_gcode = callback
+
+    @property
+    def response_timeout_s(self) -> float:
+        return self._waits.response_timeout_s
 
     @property
     def time_base_ns(self) -> int:
@@ -272,7 +249,7 @@ class Grbl:
         """One-way latency of the link (us), from the status queries' round trips."""
         return self._pose.link_latency_us
 
-    # -- commands ------------------------------------------------------------------------
+    # -- lines and waits -------------------------------------------------------------------
 
     def send(self, line: str | bytes, timeout_s: float | None = None) -> Reply:
         """Send one line after every earlier one is answered and wait for its ``ok`` (send-response).
@@ -280,18 +257,7 @@ class Grbl:
         Raises :class:`GrblCommandError` on ``error:N``, :class:`GrblAlarm` when a critical alarm
         locks the controller meanwhile, :class:`GrblTimeout`, :class:`GrblConnectionError`.
         """
-        io = self._io
-        data = io.core.check_line(line)
-        timeout = self.response_timeout_s if timeout_s is None else float(timeout_s)
-        with io.cond:
-            while io.core.in_flight:
-                io.wait_oldest()
-            ticket = io.send_locked(data, timeout)
-        io.run_callbacks()
-        io.wait_ticket(ticket)
-        if ticket.code is not None:
-            raise GrblCommandError(ticket.code, ticket.line)
-        return Reply(ticket.line, ticket.t_sent_us, ticket.t_answer_us, tuple(ticket.pushed))
+        return self._waits.send(line, timeout_s)
 
     def stream(
         self,
@@ -311,39 +277,25 @@ class Grbl:
         is raised with the line's index. Validate programs with :meth:`check_program` first.
         Settings writes must not be streamed (use :meth:`write_setting`).
         """
-        if mode not in ("count", "send-response"):
-            raise GrblUsageError(f"mode must be 'count' or 'send-response', got {mode!r}")
-        io = self._io
-        program = [io.core.check_line(line) for line in lines]
-        for data in program:
-            if re.match(rb"\s*\$\s*(\d|N\d|I=|RST)", data, re.IGNORECASE):
-                raise GrblUsageError(f"{data!r} writes EEPROM and must be sent alone: use write_setting() or send()")
-        timeout = self.response_timeout_s if timeout_s is None else float(timeout_s)
-        run = _StreamRun(len(program), progress)
-        t_start = self.now_us()
-        with io.cond:
-            for i, data in enumerate(program):
-                while run.failed is None:
-                    self._scan(run)
-                    fits = io.core.can_send(data) if mode == "count" else not io.core.in_flight
-                    if run.failed is not None or fits:
-                        break
-                    io.wait_oldest()
-                if run.failed is not None:
-                    break
-                run.tickets.append(io.send_locked(data, timeout, index=i))
-                run.max_in_flight_bytes = max(run.max_in_flight_bytes, io.core.in_flight_bytes)
-                if io.callbacks_pending or progress is not None:
-                    self._scan(run)
-            while run.answered < len(run.tickets):
-                self._scan(run)
-                if run.answered < len(run.tickets):
-                    io.wait_step(run.tickets[run.answered])
-        io.run_callbacks()
-        if run.failed is not None:
-            assert run.failed.code is not None
-            raise GrblCommandError(run.failed.code, run.failed.line, run.failed.index)
-        return StreamResult(mode, len(run.tickets), t_start, self.now_us(), run.max_in_flight_bytes)
+        return self._waits.stream(lines, mode=mode, progress=progress, timeout_s=timeout_s)
+
+    def status(self, timeout_s: float = 1.0) -> StatusSample:
+        """A fresh status report (its ``?`` sent after this call began).
+
+        Raises :class:`GrblAlarm` at once while a critical alarm locks the controller (it ignores
+        ``?`` until :meth:`soft_reset`), :class:`GrblTimeout` when no report comes in ``timeout_s``.
+        """
+        return self._waits.status(timeout_s)
+
+    def wait_idle(self, timeout_s: float = 60.0) -> StatusSample:
+        """Wait until every line is answered and GRBL reports Idle (polling status).
+
+        Raises :class:`GrblAlarm` if it ends in Alarm, :class:`GrblTimeout` after ``timeout_s``
+        (a hold counts as not idle).
+        """
+        return self._waits.wait_idle(timeout_s)
+
+    # -- commands ------------------------------------------------------------------------
 
     def check_program(self, lines: Iterable[str | bytes], timeout_s: float | None = None) -> list[tuple[int, GrblCommandError]]:
         """Run a program through GRBL's check mode (``$C``): the errors it would give, by line index.
@@ -362,7 +314,7 @@ class Grbl:
         finally:
             count = self._io.welcomes
             self.send("$C", timeout_s)
-            self._io.wait_welcome(count, 5.0, required=True)
+            self._waits.wait_welcome(count, 5.0, required=True)
             self._pose.checking = False
             self.status()
         return errors
@@ -396,7 +348,7 @@ class Grbl:
         """``$H``: run the homing cycle (GRBL is silent while homing, so the timeout covers all of it)."""
         t0 = self.now_us()
         self.send("$H", timeout_s)
-        self._raise_alarm_since(t0, "during homing")
+        self._waits.raise_alarm_since(t0, "during homing")
         return self.status()
 
     def move_to(
@@ -472,8 +424,8 @@ class Grbl:
         t = io.write_realtime(Realtime.SOFT_RESET)
         with io.cond:
             self._pose.soft_reset_written(t)
-        io.wait_welcome(count, timeout_s, required=True)
-        io.wait_quiet(0.02, 0.3)
+        self._waits.wait_welcome(count, timeout_s, required=True)
+        self._waits.wait_quiet(0.02, 0.3)
         sample = self.status(timeout_s=timeout_s)
         alarms = io.alarms_since(t0)
         return ConnectInfo(io.version, sample.state, "soft", alarms[-1] if alarms else None, io.messages_since(t0))
@@ -490,64 +442,6 @@ class Grbl:
         if self.on_output is not None:
             self._io.call(self.on_output, edge)
         return edge
-
-    def status(self, timeout_s: float = 1.0) -> StatusSample:
-        """A fresh status report (its ``?`` sent after this call began).
-
-        Raises :class:`GrblAlarm` at once while a critical alarm locks the controller (it ignores
-        ``?`` until :meth:`soft_reset`), :class:`GrblTimeout` when no report comes in ``timeout_s``.
-        """
-        io = self._io
-        t0 = self.now_us()
-        deadline = t0 + timeout_s * 1e6
-        with io.cond:
-            io.request_poll_locked(t0)
-            while True:
-                io.raise_if_failed()
-                sample = io.last_sample
-                if sample is not None and sample.t_query_us is not None and sample.t_query_us >= t0:
-                    return sample
-                if io.core.locked:  # no report will come: say why at once
-                    raise GrblAlarm(io.core.alarm or 0, "GRBL answers nothing, not even '?', until soft_reset()")
-                now = self.now_us()
-                if now >= deadline:
-                    raise GrblTimeout(
-                        f"no status report within {timeout_s:.1f} s (last state {self.state}); GRBL does not answer '?' "
-                        "while homing: wait for it, else check the port and cable"
-                    )
-                if io.query_sent_us is None or now - io.query_sent_us > QUERY_TIMEOUT_S * 1e6:
-                    io.request_poll_locked(now)
-                io.cond.wait(min(0.02, (deadline - now) / 1e6))
-
-    def wait_idle(self, timeout_s: float = 60.0) -> StatusSample:
-        """Wait until every line is answered and GRBL reports Idle (polling status).
-
-        Raises :class:`GrblAlarm` if it ends in Alarm, :class:`GrblTimeout` after ``timeout_s``
-        (a hold counts as not idle).
-        """
-        io = self._io
-        t0 = self.now_us()
-        deadline = t0 + timeout_s * 1e6
-        interval_s = 1.0 / io.poll_hz if io.poll_hz > 0 else 0.1
-        with io.cond:
-            while io.core.in_flight:
-                if self.now_us() > deadline:
-                    raise GrblTimeout(f"lines still unanswered after {timeout_s:.1f} s")
-                io.wait_oldest()
-        while True:
-            sample = self.status(timeout_s=max(min(2.0, (deadline - self.now_us()) / 1e6), 0.05))
-            if sample.report.state == "Idle":
-                return sample
-            if sample.report.state == "Alarm":
-                self._raise_alarm_since(t0, "while waiting for Idle")
-                raise GrblAlarm(io.core.alarm or 0, "controller in Alarm while waiting for Idle")
-            if self.now_us() > deadline:
-                raise GrblTimeout(f"controller still {sample.state} after {timeout_s:.1f} s")
-            next_us = min(sample.t_host_us + interval_s * 1e6, deadline)
-            with io.cond:  # poll no faster than poll_hz
-                while (now := self.now_us()) < next_us:
-                    io.raise_if_failed()
-                    io.cond.wait((next_us - now) / 1e6)
 
     # -- pose reconstruction ----------------------------------------------------------------
 
@@ -569,32 +463,3 @@ class Grbl:
         if wait:
             self.wait_idle(timeout_s if timeout_s is not None else 3600.0)
         return reply
-
-    def _raise_alarm_since(self, t0: int, context: str) -> None:
-        alarms = self._io.alarms_since(t0)
-        if alarms:
-            raise GrblAlarm(alarms[-1], context)
-
-    def _scan(self, run: _StreamRun) -> None:
-        """Advance over a stream's answered lines (answers come in order): note the first error,
-        raise if the controller reset under the stream, report progress, run pending callbacks.
-        """
-        io = self._io
-        tickets = run.tickets
-        k = run.answered
-        while k < len(tickets) and tickets[k].done:
-            if tickets[k].code is not None and run.failed is None:
-                run.failed = tickets[k]
-            k += 1
-        if k < len(tickets) and tickets[k].discarded:
-            io.raise_discarded(tickets[k])
-        progressed = k != run.answered
-        run.answered = k
-        if (progressed and run.progress is not None) or io.callbacks_pending:
-            io.cond.release()  # callbacks run without the lock
-            try:
-                io.run_callbacks()
-                if progressed and run.progress is not None:
-                    run.progress(k, run.total)
-            finally:
-                io.cond.acquire()

@@ -1,5 +1,5 @@
 """The GRBL conversation over a serial link: lines in flight and their answers, status polling,
-push messages, callbacks, and every wait with its timeout.
+push messages and callbacks.
 
 Threads and time
 ----------------
@@ -7,20 +7,13 @@ The link's reader thread (:class:`~labrig.devices.serial_link.SerialLink`) feeds
 :class:`~labrig.devices.grbl_protocol.GrblProtocol` with each stamped chunk, pairs responses
 with the tickets of the lines waiting for them, feeds the
 :class:`~labrig.devices.grbl_pose.PoseModel`, and polls ``?`` at ``poll_hz``. Callers write lines
-and real-time bytes from their own thread. Everything is guarded by :attr:`GrblChannel.cond`. All
-host times are integer microseconds of the host clock relative to ``time_base_ns``.
+and real-time bytes from their own thread and wait on :attr:`GrblChannel.cond`, which guards
+everything here (:mod:`labrig.devices.grbl_waits`). All host times are integer microseconds of the
+host clock relative to ``time_base_ns``.
 
 Callbacks (``on_sample``, ``on_gcode``, and the driver's ``on_output``) are queued under the lock
 and run without it, in order, on the reader thread or the caller's thread for lines it sends. One
 that raises is kept in :attr:`GrblChannel.callback_errors`; the link goes on.
-
-Waiting
--------
-A response is late when ``response_timeout_s`` passed since the line was sent *and* since the
-last status report that showed the machine busy (Run, Jog, Hold, Home): GRBL legitimately holds
-back ``ok`` while its planner is full, while a ``G4``/``M8`` waits for motion to finish, and
-during a feed hold. So a lost ``ok`` is reported once the machine is idle (or silent) for that
-long; with ``poll_hz=0`` the timeout counts from sending only.
 """
 
 from __future__ import annotations
@@ -41,8 +34,6 @@ from labrig.devices.grbl_protocol import (
     GrblConnectionError,
     GrblError,
     GrblProtocol,
-    GrblResetError,
-    GrblTimeout,
     Message,
     Ok,
     Realtime,
@@ -363,43 +354,7 @@ class GrblChannel:
         if on_sample is not None:
             self._pending_callbacks.append(lambda: on_sample(sample))
 
-    # -- waiting (the lock held) ----------------------------------------------------------------
-
-    def wait_step(self, ticket: Ticket | None) -> None:
-        """One bounded wait for progress on ``ticket`` (the oldest unanswered line); raises on trouble."""
-        self.raise_if_failed()
-        if ticket is None:
-            self.cond.wait(0.01)
-            return
-        if ticket.discarded:
-            self.raise_discarded(ticket)
-        if self.core.locked and self.alarms and self.alarms[-1][0] >= ticket.t_sent_us:
-            raise GrblAlarm(self.alarms[-1][1], f"{ticket.line.decode()!r} unanswered; GRBL ignores all lines until soft_reset()")
-        if ticket.done:
-            return
-        now = self.now_us()
-        deadline = self._deadline_us(ticket)
-        if now >= deadline and not self._awaiting_fresh_status(deadline, now):
-            raise self._timeout(ticket, now)
-        self.cond.wait(min(0.05, max(deadline - now, 10_000) / 1e6))
-
-    def wait_oldest(self) -> None:
-        """One bounded wait for progress on the oldest unanswered line."""
-        self.wait_step(self.tickets[0] if self.tickets else None)
-
-    def wait_ticket(self, ticket: Ticket) -> None:
-        with self.cond:
-            while not ticket.done:
-                self.wait_step(ticket)
-        self.run_callbacks()
-
-    def raise_discarded(self, ticket: Ticket) -> None:
-        alarms = [code for t, code in self.alarms if t >= ticket.t_sent_us]
-        if alarms:
-            raise GrblAlarm(alarms[-1], f"the controller reset and dropped {ticket.line.decode()!r} unanswered")
-        raise GrblResetError(
-            f"the controller reset and dropped {ticket.line.decode()!r} unanswered; send it again if still wanted"
-        )
+    # -- what came in -------------------------------------------------------------------------
 
     def alarms_since(self, t0: int) -> list[int]:
         with self.cond:
@@ -408,59 +363,3 @@ class GrblChannel:
     def messages_since(self, t0: int) -> tuple[str, ...]:
         with self.cond:
             return tuple(text for t, text in self.messages if t >= t0)
-
-    def wait_welcome(self, count: int, timeout_s: float, *, required: bool) -> bool:
-        """Wait for banner number ``count + 1``; False (or :class:`GrblTimeout` if ``required``) without it."""
-        deadline = self.now_us() + timeout_s * 1e6
-        with self.cond:
-            while self.welcomes <= count:
-                self.raise_if_failed()
-                now = self.now_us()
-                if now >= deadline:
-                    if required:
-                        raise GrblTimeout(
-                            f"no GRBL welcome banner within {timeout_s:.1f} s on {self.link.name}; "
-                            f"is a GRBL controller connected at {self.link.baudrate} baud?"
-                        )
-                    return False
-                self.cond.wait(min(0.05, (deadline - now) / 1e6))
-        return True
-
-    def wait_quiet(self, quiet_s: float, max_s: float) -> None:
-        """Wait until nothing arrived for ``quiet_s`` (push messages after a banner), at most ``max_s``."""
-        end = self.now_us() + max_s * 1e6
-        with self.cond:
-            while True:
-                now = self.now_us()
-                if now >= end or now - self.last_rx_us >= quiet_s * 1e6:
-                    return
-                self.cond.wait(quiet_s / 2)
-
-    def _deadline_us(self, ticket: Ticket) -> float:
-        base = ticket.t_sent_us + ticket.timeout_s * 1e6
-        if self.poll_hz > 0:
-            base = max(base, self.last_busy_us + ticket.timeout_s * 1e6)
-        return base
-
-    def _awaiting_fresh_status(self, deadline_us: float, now_us: int) -> bool:
-        """Past a line's deadline, a lost 'ok' is only concluded from a status report newer than
-        the deadline: a report from before it (the poller starved on a loaded host) may say Idle
-        from before the cycle started. Without any report for 1 s the controller is unresponsive."""
-        sample = self.last_sample
-        return (self.poll_hz > 0 and sample is not None and sample.t_host_us < deadline_us
-                and now_us - sample.t_host_us <= 1e6)
-
-    def _timeout(self, ticket: Ticket, now: int) -> GrblTimeout:
-        sample = self.last_sample
-        line = ticket.line.decode()
-        waited = (now - ticket.t_sent_us) / 1e6
-        if self.poll_hz > 0 and (sample is None or now - sample.t_host_us > 1e6):
-            why = "no status reports either: the controller is unresponsive (unplugged, wrong baud rate, or hung)"
-        elif sample is not None:
-            why = f"GRBL reports {sample.state}, so the 'ok' was lost (noise or an RX overflow)"
-        else:
-            why = "the 'ok' was lost or the controller is unresponsive"
-        return GrblTimeout(
-            f"no response to {line!r} after {waited:.1f} s ({ticket.timeout_s:.1f} s allowed); {why}; "
-            "soft_reset() clears the line accounting"
-        )
