@@ -13,18 +13,20 @@ Life cycle::
 One reader thread (a :class:`~labrig.devices.serial_link.SerialLink`) owns the
 input side from :meth:`BotaSensor.connect` on. It stamps every chunk of bytes on
 the host clock (an injectable :class:`labrig.clock.HostClock`, integer ns) the
-moment the read returns; the sensor feeds it to the sans-I/O :class:`~labrig.devices.bota_protocol.BotaReceiver`, and for each
-frame in RUN mode calls ``on_sample`` with an :class:`FtSample` (from the reader
-thread: keep it short). Acknowledgements and boot text wake the caller's
-command methods. Every wait has a timeout. When the port fails (unplugged), the
-reader ends, :attr:`BotaSensor.error` says why, ``on_error`` is called, and
-every later call raises that error at once.
+moment the read returns; the sensor feeds the chunk to the sans-I/O
+:class:`~labrig.devices.bota_protocol.BotaReceiver`, and for each frame in RUN
+mode calls ``on_sample`` with an :class:`FtSample` (from the reader thread: keep
+it short). Acknowledgements and boot text wake the caller's command methods.
+Every wait has a timeout. When the port fails (unplugged), the reader ends,
+:attr:`BotaSensor.error` says why, ``on_error`` is called, and every later call
+raises that error at once.
 
-Counters (:meth:`BotaSensor.stats`, since :meth:`BotaSensor.start`): frames,
-CRC errors, sync losses and resyncs, skipped bytes, and frames lost, found from
-the device timestamps against the nominal period. Status bits are counted and
-logged as warnings (``labrig.devices.bota`` logger, and ``on_warning``), at most
-once per ``warn_interval_s`` per kind.
+Counters (:meth:`BotaSensor.stats`, since :meth:`BotaSensor.start`, kept by
+:class:`~labrig.devices.bota_health.StreamHealth`): frames, CRC errors, sync
+losses and resyncs, skipped bytes, and frames lost, found from the device
+timestamps against the nominal period. Status bits are counted and logged as
+warnings (``labrig.devices.bota`` logger, and ``on_warning``), at most once per
+``warn_interval_s`` per kind.
 """
 
 from __future__ import annotations
