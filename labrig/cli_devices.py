@@ -389,8 +389,9 @@ def ft(
     """Read the force-torque sensor: rate, mean, noise and range per axis, status bits, CRC errors, frames lost."""
     import numpy as np
 
-    from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
+    from labrig.devices.bota import BotaSensor, BotaSettings
     from labrig.devices.bota_protocol import STATUS_ADVICE
+    from labrig.devices.bota_stream import FtSample
 
     if not seconds > 0:
         raise LabrigError(f"--seconds must be positive, got {seconds:g}")

@@ -21,8 +21,6 @@ from labrig.devices.bota import (
     BotaSensor,
     BotaSettings,
     BotaTimeout,
-    FtSample,
-    SensorState,
 )
 from labrig.devices.bota_protocol import (
     BootInfo,
@@ -34,6 +32,7 @@ from labrig.devices.bota_protocol import (
     encode_boot_text,
     encode_frame,
 )
+from labrig.devices.bota_stream import FtSample, SensorState
 
 BOOT = encode_boot_text(BootInfo(name="Rokubi", serial_number="SN42", firmware_version="2.1"), CommSetup())
 

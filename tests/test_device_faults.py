@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from labrig.devices.bota import BotaDisconnected, BotaSensor, BotaSettings, FtSample, SensorState
+from labrig.devices.bota import BotaDisconnected, BotaSensor, BotaSettings
 from labrig.devices.bota_protocol import cmd_config_mode
+from labrig.devices.bota_stream import FtSample, SensorState
 from labrig.devices.grbl import Grbl, GrblAlarm, GrblConnectionError, GrblTimeout
 from labrig.devices.grbl_channel import StatusSample
 from labrig.devices.grbl_protocol import Realtime

@@ -32,34 +32,24 @@ warnings (``labrig.devices.bota`` logger, and ``on_warning``), at most once per
 from __future__ import annotations
 
 import contextlib
-import enum
 import logging
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from labrig.clock import HostClock, MonotonicClock
-from labrig.devices.bota_health import BotaStats, StreamHealth, WarningLimiter
+from labrig.devices.bota_health import BotaStats
 from labrig.devices.bota_protocol import (
     BAUD_RATES,
     Ack,
-    AppInit,
     BootInfo,
-    BotaReceiver,
     Command,
     CommSetup,
-    CommSetupLine,
-    Event,
     FilterSetup,
-    Frame,
-    InfoLine,
     Offsets,
     ReceiverCounters,
     Status,
-    TextLine,
-    Vector3,
     cmd_comm_setup,
     cmd_config_mode,
     cmd_filter,
@@ -68,7 +58,8 @@ from labrig.devices.bota_protocol import (
     cmd_run_mode,
     cmd_save,
 )
-from labrig.devices.serial_link import LinkFailure, SerialLink, SerialPort
+from labrig.devices.bota_stream import BotaStream, Collector, FtSample, SensorState
+from labrig.devices.serial_link import LinkFailure, SerialLink, SerialPort, port_name
 from labrig.errors import LabrigError
 
 log = logging.getLogger(__name__)
@@ -90,28 +81,6 @@ class BotaDisconnected(BotaError):
 
 class BotaCommandError(BotaError):
     """The sensor rejected a command (non-zero return code)."""
-
-
-class SensorState(enum.Enum):
-    CLOSED = "closed"
-    BOOTING = "booting"
-    CONFIG = "config"
-    STARTING = "starting"
-    RUNNING = "running"
-    STOPPING = "stopping"
-    FAILED = "failed"
-
-
-@dataclass(frozen=True, slots=True)
-class FtSample:
-    """One sample as handed to ``on_sample``. Sensor frame; tare subtracted."""
-
-    t_device_us: int  # raw uint32 device counter [us]
-    t_host_ns: int  # host clock [ns] when the frame's last byte was read
-    force_n: Vector3
-    torque_nm: Vector3
-    status: int
-    temperature_c: float
 
 
 @dataclass(frozen=True)
@@ -155,19 +124,6 @@ class BotaSettings:
         return self.filter_setup.period_us
 
 
-class _Collector:
-    """Raw samples gathered for :meth:`BotaSensor.wait_samples`."""
-
-    def __init__(self, n: int, accept: Callable[[Frame], bool]) -> None:
-        self.n = n
-        self.accept = accept
-        self.samples: list[FtSample] = []
-
-
-def _no_sample(sample: FtSample) -> None:
-    pass
-
-
 class BotaSensor:
     """A Bota serial F/T sensor on a pyserial port (an open port object, or a port name / URL).
 
@@ -198,52 +154,61 @@ class BotaSensor:
         stall_timeout_s: float = 0.5,
         warn_interval_s: float = 5.0,
     ) -> None:
-        self._port_arg = port
         self.baudrate = baudrate
         self.clock = clock or MonotonicClock()
-        self.on_sample = on_sample or _no_sample
         self.on_error = on_error
-        self.on_warning = on_warning
         self.terminator = terminator
         self.char_gap_s = char_gap_s
         self.ack_timeout_s = ack_timeout_s
         self.read_timeout_s = read_timeout_s
         self.write_timeout_s = write_timeout_s
-        self.stall_timeout_s = stall_timeout_s
-
+        self.port_name = port_name(port)
+        self._stream = BotaStream(
+            self.port_name, on_sample=on_sample, on_warning=on_warning, stall_timeout_s=stall_timeout_s,
+            warn_interval_s=warn_interval_s,
+        )  # fmt: skip
         self._link = SerialLink(
             port,
             baudrate=baudrate,
             clock=self.clock,
             error_for=self._error_for,
-            on_chunk=self._on_chunk,
-            on_idle=self._on_idle,
+            on_chunk=self._stream.on_chunk,
+            on_idle=self._stream.on_idle,
             on_failure=self._on_failure,
             read_timeout_s=read_timeout_s,
             write_timeout_s=write_timeout_s,
             low_latency=True,
             thread_name=f"labrig-bota:{port if isinstance(port, str) else 'port'}",
         )
-        self.port_name = self._link.name
-        self._receiver = BotaReceiver()
-        self._cond = threading.Condition()
-        self._state = SensorState.CLOSED
         self._connected = False
-        self._restart_sync = False
-        self._acks: list[Ack] = []
-        self._boot = BootInfo()
-        self._frames_idle = 0  # frames seen outside RUN (boot streaming)
-        self._collectors: list[_Collector] = []
         self._settings: BotaSettings | None = None
-        self._health = StreamHealth()
-        self._tare: tuple[float, ...] = (0.0,) * 6
-        self._warnings = WarningLimiter(round(warn_interval_s * 1e9))
 
     # -- properties ------------------------------------------------------------
 
     @property
     def state(self) -> SensorState:
-        return self._state
+        return self._stream.state
+
+    @property
+    def on_sample(self) -> Callable[[FtSample], None]:
+        """Called from the reader thread with every sample in RUN mode (tare subtracted)."""
+        return self._stream.on_sample
+
+    @on_sample.setter
+    def on_sample(self, callback: Callable[[FtSample], None]) -> None:
+        self._stream.on_sample = callback
+
+    @property
+    def on_warning(self) -> Callable[[str], None] | None:
+        return self._stream.on_warning
+
+    @on_warning.setter
+    def on_warning(self, callback: Callable[[str], None] | None) -> None:
+        self._stream.on_warning = callback
+
+    @property
+    def stall_timeout_s(self) -> float:
+        return self._stream.stall_timeout_s
 
     @property
     def error(self) -> BotaError | None:
@@ -259,7 +224,7 @@ class BotaSensor:
 
     @property
     def boot_info(self) -> BootInfo:
-        return self._boot
+        return self._stream.boot
 
     @property
     def settings(self) -> BotaSettings | None:
@@ -268,16 +233,16 @@ class BotaSensor:
     @property
     def tare_offset(self) -> Offsets:
         """The software tare subtracted from every sample [N, N m]."""
-        t = self._tare
+        t = self._stream.tare
         return Offsets((t[0], t[1], t[2]), (t[3], t[4], t[5]))
 
     def stats(self) -> BotaStats:
-        with self._cond:
-            return self._health.snapshot()
+        with self._stream.cond:
+            return self._stream.health.snapshot()
 
     def receiver_counters(self) -> ReceiverCounters:
         """The byte-level totals since connect (all modes)."""
-        return self._receiver.counters()
+        return self._stream.receiver.counters()
 
     # -- life cycle ------------------------------------------------------------------
 
@@ -291,11 +256,11 @@ class BotaSensor:
         collected until frames stream or ``boot_settle_s`` passes.
         ``reset=False`` attaches to a sensor that is already up.
         """
-        if self._state is not SensorState.CLOSED:
+        if self._stream.state is not SensorState.CLOSED:
             raise BotaError(f"F/T sensor on {self.port_name} is already connected; close() it first")
         self._link.open()
         self._connected = True
-        self._set_state(SensorState.BOOTING if reset else SensorState.CONFIG)
+        self._stream.set_state(SensorState.BOOTING if reset else SensorState.CONFIG)
         self._link.start()
         try:
             if reset:
@@ -304,8 +269,8 @@ class BotaSensor:
         except BaseException:
             self.close()  # a later connect() starts afresh
             raise
-        self._set_state(SensorState.CONFIG)
-        return self._boot
+        self._stream.set_state(SensorState.CONFIG)
+        return self._stream.boot
 
     def configure(self, settings: BotaSettings) -> None:
         """Send the comm setup, filter and offsets (CONFIG mode).
@@ -315,7 +280,8 @@ class BotaSensor:
         """
         self._require(SensorState.CONFIG, "configure")
         comm = settings.comm_setup
-        current = self._boot.comm_setup.baud_code if self._boot.comm_setup else _baud_code(self._port_baudrate())
+        boot_comm = self._stream.boot.comm_setup
+        current = boot_comm.baud_code if boot_comm else _baud_code(self._port_baudrate())
         self.command(cmd_comm_setup(comm))
         self.command(cmd_filter(settings.filter_setup))
         if settings.offsets is not None:
@@ -323,57 +289,54 @@ class BotaSensor:
         if settings.save or comm.baud_code != current:
             self.command(cmd_save(), timeout_s=max(self.ack_timeout_s, 2.0))
         if comm.baud_code != current:
-            self._set_state(SensorState.BOOTING)
+            self._stream.set_state(SensorState.BOOTING)
             self._reboot(10.0, 0.5, new_baud=comm.baud_rate)
             self.command(cmd_config_mode())
-            self._set_state(SensorState.CONFIG)
+            self._stream.set_state(SensorState.CONFIG)
         self._settings = settings
 
     def start(self) -> None:
         """RUN mode: frames stream and reach ``on_sample``. Counters restart."""
         self._require(SensorState.CONFIG, "start")
-        with self._cond:
-            self._state = SensorState.STARTING
-            settings = self._settings
-            raw_gauges = settings is not None and not settings.calibrated
-            self._health = StreamHealth(settings.period_us if settings else None, self.clock.now_ns(), raw_gauges=raw_gauges)
-            self._restart_sync = True
+        settings = self._settings
+        raw_gauges = settings is not None and not settings.calibrated
+        self._stream.begin_run(settings.period_us if settings else None, self.clock.now_ns(), raw_gauges=raw_gauges)
         try:
             self.command(cmd_run_mode())  # the reader switches to RUNNING on the ack, before the frames
         except BotaError:
-            with self._cond:
-                if self._state is SensorState.STARTING:
-                    self._state = SensorState.CONFIG
+            with self._stream.cond:
+                if self._stream.state is SensorState.STARTING:
+                    self._stream.state = SensorState.CONFIG
             raise
 
     def stop(self) -> None:
         """Back to CONFIG mode: streaming stops. Frames before the acknowledgement are still delivered."""
         self._raise_if_failed()
-        if self._state not in (SensorState.RUNNING, SensorState.STARTING):
+        if self._stream.state not in (SensorState.RUNNING, SensorState.STARTING):
             return
-        self._set_state(SensorState.STOPPING)
+        self._stream.set_state(SensorState.STOPPING)
         try:
             self.command(cmd_config_mode())
         finally:
-            with self._cond:
-                if self._state is SensorState.STOPPING:
-                    self._state = SensorState.CONFIG
+            with self._stream.cond:
+                if self._stream.state is SensorState.STOPPING:
+                    self._stream.state = SensorState.CONFIG
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop streaming (if the port still works), end the reader, close the port if we opened it."""
-        if self._state is SensorState.CLOSED and not self._connected:
+        if self._stream.state is SensorState.CLOSED and not self._connected:
             return
         in_reader = self._link.in_reader_thread()  # close() from a callback: no waiting on acks
-        if self.error is None and not in_reader and self._state in (SensorState.RUNNING, SensorState.STARTING):
+        if self.error is None and not in_reader and self._stream.state in (SensorState.RUNNING, SensorState.STARTING):
             try:
                 self.stop()
             except BotaError as exc:
                 log.warning("F/T sensor on %s: could not stop streaming cleanly: %s", self.port_name, exc)
         self._link.close(timeout_s)
         self._connected = False
-        with self._cond:
-            self._state = SensorState.CLOSED
-            self._cond.notify_all()
+        with self._stream.cond:
+            self._stream.state = SensorState.CLOSED
+            self._stream.cond.notify_all()
 
     def __enter__(self) -> BotaSensor:
         return self
@@ -392,14 +355,14 @@ class BotaSensor:
         self._raise_if_failed()
         if not self._link.is_open:
             raise BotaError(f"F/T sensor on {self.port_name} is not connected; call connect() first")
-        with self._cond:
-            self._acks.clear()
+        with self._stream.cond:
+            self._stream.acks.clear()
         self._write(command.encode(self.terminator))
         if not command.expects_ack:
             return None
         timeout = self.ack_timeout_s if timeout_s is None else timeout_s
         ack = self._wait(
-            lambda: next((a for a in self._acks if a.command == command.code), None),
+            lambda: next((a for a in self._stream.acks if a.command == command.code), None),
             timeout,
             f"acknowledgement of {command.text!r}",
             "check that the sensor is powered and the port's baud rate matches the sensor",
@@ -417,22 +380,22 @@ class BotaSensor:
         """The next ``n`` samples (RUN mode). ``raw``: without the tare; ``valid_only``: skip
         frames flagged overrange or invalid. Default timeout: twice their duration + 1 s."""
         self._raise_if_failed()
-        if self._state not in (SensorState.RUNNING, SensorState.STARTING):
+        if self._stream.state not in (SensorState.RUNNING, SensorState.STARTING):
             raise BotaError(f"F/T sensor on {self.port_name} is not streaming; call start() first")
         if timeout_s is None:
             period_s = (self._settings.period_us if self._settings else 20_000.0) * 1e-6
             timeout_s = 2 * n * period_s + 1.0
         bad = Status.OVERRANGE | Status.INVALID_MEASUREMENTS
-        collector = _Collector(n, (lambda f: not f.status & bad) if valid_only else (lambda f: True))
-        with self._cond:
-            self._collectors.append(collector)
+        collector = Collector(n, (lambda f: not f.status & bad) if valid_only else (lambda f: True))
+        with self._stream.cond:
+            self._stream.collectors.append(collector)
         try:
             self._wait(lambda: len(collector.samples) >= n, timeout_s, f"{n} samples", "is the sensor streaming?")
         finally:
-            with self._cond:
-                self._collectors.remove(collector)
+            with self._stream.cond:
+                self._stream.collectors.remove(collector)
         samples = collector.samples[:n]
-        return samples if raw else [self._tared(s) for s in samples]
+        return samples if raw else [self._stream.tared(s) for s in samples]
 
     def tare(self, n_samples: int = 256, timeout_s: float | None = None) -> Offsets:
         """Average the next ``n_samples`` valid samples and subtract that from every later sample."""
@@ -441,12 +404,12 @@ class BotaSensor:
         for s in samples:
             for i, v in enumerate((*s.force_n, *s.torque_nm)):
                 sums[i] += v
-        self._tare = tuple(v / len(samples) for v in sums)
+        self._stream.tare = tuple(v / len(samples) for v in sums)
         log.info("F/T sensor on %s tared over %d samples: %s", self.port_name, len(samples), self.tare_offset)
         return self.tare_offset
 
     def clear_tare(self) -> None:
-        self._tare = (0.0,) * 6
+        self._stream.tare = (0.0,) * 6
 
     # -- internals: port --------------------------------------------------------------
 
@@ -478,9 +441,7 @@ class BotaSensor:
         self._link.write(data, char_gap_s=self.char_gap_s)
 
     def _reboot(self, boot_timeout_s: float, settle_s: float, new_baud: int | None = None) -> None:
-        with self._cond:
-            self._boot = BootInfo()
-            self._frames_idle = 0
+        self._stream.expect_boot()
         how = "'#'"
         if new_baud is None:
             how = self._reset_line()
@@ -491,13 +452,13 @@ class BotaSensor:
                 port.flush()  # let '#' leave at the old rate
             port.baudrate = new_baud
         self._wait(
-            lambda: self._boot.app_init,
+            lambda: self._stream.boot.app_init,
             boot_timeout_s,
             f"'App Init' after a reset by {how}",
             f"check power and cable, and that the sensor talks at {self._port_baudrate()} baud",
         )
         with contextlib.suppress(BotaTimeout):  # name, S/N, FW and comm lines follow, then frames
-            self._wait(lambda: self._frames_idle > 0, settle_s, "", "")
+            self._wait(lambda: self._stream.frames_idle > 0, settle_s, "", "")
 
     def _reset_line(self) -> str:
         """Reset the sensor: a DTR pulse, or ``#`` when the port has no modem lines."""
@@ -514,7 +475,7 @@ class BotaSensor:
     def _wait(self, predicate: Callable[[], Any], timeout_s: float, what: str, hint: str) -> Any:
         """Wait for ``predicate()`` to be truthy and return it; raise the reader's failure or a timeout."""
         deadline = time.monotonic() + timeout_s
-        with self._cond:
+        with self._stream.cond:
             while True:
                 value = predicate()
                 if value:
@@ -525,18 +486,18 @@ class BotaSensor:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise BotaTimeout(f"no {what} from the F/T sensor on {self.port_name} within {timeout_s:g} s; {hint}")
-                self._cond.wait(left)
+                self._stream.cond.wait(left)
 
     def _set_state(self, state: SensorState) -> None:
-        with self._cond:
-            if self._state is not SensorState.FAILED:
-                self._state = state
-            self._cond.notify_all()
+        with self._stream.cond:
+            if self._stream.state is not SensorState.FAILED:
+                self._stream.state = state
+            self._stream.cond.notify_all()
 
     def _require(self, state: SensorState, action: str) -> None:
         self._raise_if_failed()
-        if self._state is not state:
-            raise BotaError(f"cannot {action} the F/T sensor on {self.port_name} while it is {self._state.value}")
+        if self._stream.state is not state:
+            raise BotaError(f"cannot {action} the F/T sensor on {self.port_name} while it is {self._stream.state.value}")
 
     def _raise_if_failed(self) -> None:
         self._link.raise_if_failed()
@@ -547,113 +508,15 @@ class BotaSensor:
 
     def _on_failure(self, error: Exception) -> None:
         """The link latched its first failure: wake every waiter, tell on_error."""
-        with self._cond:
-            self._state = SensorState.FAILED
-            self._cond.notify_all()
+        with self._stream.cond:
+            self._stream.state = SensorState.FAILED
+            self._stream.cond.notify_all()
         log.error("%s", error)
         if self.on_error is not None and isinstance(error, BotaError):
             try:
                 self.on_error(error)
             except Exception:
                 log.exception("F/T sensor on_error callback raised")
-        return error
-
-    def _warn_all(self, warnings: list[tuple[str, str]], now_ns: int) -> None:
-        for key, message in warnings:
-            self._warn(key, message, now_ns)
-
-    def _warn(self, key: str, message: str, now_ns: int) -> None:
-        held = self._warnings.allow(key, now_ns)
-        if held is None:
-            return
-        text = f"F/T sensor on {self.port_name}: {message}" + (f" ({held} more since the last report)" if held else "")
-        log.warning("%s", text)
-        if self.on_warning is not None:
-            self.on_warning(text)
-
-    # -- internals: the reader thread ------------------------------------------------------------
-
-    def _on_chunk(self, data: bytes, t_ns: int) -> None:
-        if self._restart_sync:
-            self._restart_sync = False
-            self._receiver.restart_sync()
-        self._handle(self._receiver.feed(data), t_ns)
-
-    def _on_idle(self, t_ns: int) -> None:
-        if self._state is not SensorState.RUNNING:
-            return
-        with self._cond:
-            warnings = self._health.quiet(t_ns, self.stall_timeout_s)
-        self._warn_all(warnings, t_ns)
-
-    def _handle(self, events: list[Event], t_ns: int) -> None:
-        for ev in events:
-            if isinstance(ev, Frame):
-                self._on_frame(ev, t_ns)
-            elif isinstance(ev, Ack):
-                self._on_ack(ev)
-            elif isinstance(ev, AppInit | InfoLine | CommSetupLine):
-                with self._cond:
-                    self._boot = self._boot.updated(ev)
-                    self._cond.notify_all()
-                if isinstance(ev, AppInit) and self._state is not SensorState.BOOTING:
-                    self._on_unexpected_boot(t_ns)
-            elif isinstance(ev, TextLine):
-                log.debug("F/T sensor on %s says %r", self.port_name, ev.text)
-            elif self._state is SensorState.RUNNING:
-                self._on_sync_event(ev, t_ns)
-
-    def _on_unexpected_boot(self, t_ns: int) -> None:
-        with self._cond:
-            warnings = self._health.restarted()
-        self._warn_all(warnings, t_ns)
-
-    def _on_ack(self, ack: Ack) -> None:
-        with self._cond:
-            self._acks.append(ack)
-            if ack.ok and ack.command == "R" and self._state is SensorState.STARTING:
-                self._state = SensorState.RUNNING
-            elif ack.ok and ack.command == "C" and self._state is SensorState.STOPPING:
-                self._state = SensorState.CONFIG
-            self._cond.notify_all()
-
-    def _on_sync_event(self, ev: Event, t_ns: int) -> None:
-        with self._cond:
-            warnings = self._health.sync_event(ev)
-        self._warn_all(warnings, t_ns)
-
-    def _on_frame(self, frame: Frame, t_ns: int) -> None:
-        state = self._state
-        if state not in (SensorState.RUNNING, SensorState.STOPPING):
-            with self._cond:
-                self._frames_idle += 1
-                if self._frames_idle == 1:
-                    self._cond.notify_all()
-            return
-        raw = FtSample(frame.t_device_us, t_ns, frame.force_n, frame.torque_nm, frame.status, frame.temperature_c)
-        with self._cond:
-            warnings = self._health.frame(frame, t_ns)
-            if self._collectors:
-                for collector in self._collectors:
-                    if len(collector.samples) < collector.n and collector.accept(frame):
-                        collector.samples.append(raw)
-                self._cond.notify_all()
-        self._warn_all(warnings, t_ns)
-        self.on_sample(self._tared(raw))
-
-    def _tared(self, s: FtSample) -> FtSample:
-        t = self._tare
-        if not any(t):
-            return s
-        f, m = s.force_n, s.torque_nm
-        return FtSample(
-            s.t_device_us,
-            s.t_host_ns,
-            (f[0] - t[0], f[1] - t[1], f[2] - t[2]),
-            (m[0] - t[3], m[1] - t[4], m[2] - t[5]),
-            s.status,
-            s.temperature_c,
-        )
 
 
 def _baud_code(baud_rate: int) -> int:

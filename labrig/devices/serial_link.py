@@ -71,6 +71,13 @@ class SerialPort(Protocol):
     def close(self) -> None: ...
 
 
+def port_name(port: str | SerialPort | None) -> str:
+    """A port's name for messages: the name or URL itself, or an open port's own name."""
+    if isinstance(port, str):
+        return port
+    return str(getattr(port, "port", None) or getattr(port, "name", None) or "the port")
+
+
 @dataclass(frozen=True)
 class LinkFailure:
     """Why a link failed: the port could not be opened, read or written, or the owner's callback raised."""
@@ -130,8 +137,7 @@ class SerialLink:
     @property
     def name(self) -> str:
         """The port's name for messages: the URL, or the open port's own name."""
-        port = self._port if self._port is not None else self._given
-        return self._url or str(getattr(port, "port", None) or getattr(port, "name", None) or "the port")
+        return port_name(self._url or (self._port if self._port is not None else self._given))
 
     @property
     def port(self) -> SerialPort:

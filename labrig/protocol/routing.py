@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from labrig.clock import NS_PER_US
-from labrig.devices.bota import FtSample
+from labrig.devices.bota_stream import FtSample
 from labrig.devices.camera import Camera, EventChunk
 from labrig.devices.grbl_channel import StatusSample
 from labrig.recording import RecordingWriter

@@ -30,7 +30,8 @@ import numpy as np
 
 from labrig.clock import HostClock, MonotonicClock
 from labrig.config import RigConfig
-from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
+from labrig.devices.bota import BotaSensor, BotaSettings
+from labrig.devices.bota_stream import FtSample
 from labrig.devices.camera import Camera, CameraError, EventChunk, open_camera
 from labrig.devices.grbl import Grbl
 from labrig.devices.grbl_channel import StatusSample

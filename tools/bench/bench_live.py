@@ -37,7 +37,8 @@ from _common import bench_main, emit
 
 from labrig.clock import CounterUnwrapper
 from labrig.config import RigConfig, load_rig
-from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
+from labrig.devices.bota import BotaSensor, BotaSettings
+from labrig.devices.bota_stream import FtSample
 from labrig.devices.camera import open_camera
 from labrig.devices.grbl import Grbl
 from labrig.indenters import Indenter, load_indenter
