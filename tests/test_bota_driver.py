@@ -21,9 +21,6 @@ from labrig.devices.bota import (
     BotaSensor,
     BotaSettings,
     BotaTimeout,
-    FtSample,
-    SensorState,
-    recording_sink,
 )
 from labrig.devices.bota_protocol import (
     BootInfo,
@@ -35,6 +32,7 @@ from labrig.devices.bota_protocol import (
     encode_boot_text,
     encode_frame,
 )
+from labrig.devices.bota_stream import FtSample, SensorState
 
 BOOT = encode_boot_text(BootInfo(name="Rokubi", serial_number="SN42", firmware_version="2.1"), CommSetup())
 
@@ -398,13 +396,14 @@ def test_callback_error_stops_the_reader() -> None:
     sensor.close()
 
 
-def test_recording_sink_puts_ft_rows(tmp_path: Path) -> None:
+def test_ft_sink_puts_ft_rows(tmp_path: Path) -> None:
+    from labrig.protocol.routing import ft_sink
     from labrig.recording import RecordingWriter
     from labrig.recording.reader import Recording
 
     clock = ManualClock(5_000_000_000)
     writer = RecordingWriter(tmp_path / "ft.h5", clock=clock).open()
-    sink = recording_sink(writer)
+    sink = ft_sink(writer)
     for i in range(3):
         sink(
             FtSample(

@@ -10,8 +10,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from labrig.devices.bota import BotaDisconnected, BotaError, BotaSensor, BotaSettings, FtSample, SensorState
+from labrig.devices.bota import BotaDisconnected, BotaError, BotaSensor, BotaSettings
 from labrig.devices.bota_protocol import CommSetup, FilterSetup, Status
+from labrig.devices.bota_stream import FtSample, SensorState
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.serial_pty import TwinServer
 

@@ -20,10 +20,10 @@ from labrig.devices.camera import (
     MetavisionCamera,
     metavision_sdk,
     open_camera,
-    record_camera,
 )
 from labrig.devices.raw import TRIGGER_DTYPE, encode_evt3, read_raw
 from labrig.eventtypes import EVENT_DTYPE
+from labrig.protocol.routing import record_camera
 from labrig.testing.fake_metavision import Channel, FakeCamera, fake_metavision_hal
 
 pytestmark = pytest.mark.usefixtures("time_limit_20s")

@@ -16,10 +16,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from labrig.devices.bota import BotaDisconnected, BotaSensor, BotaSettings, FtSample, SensorState, recording_sink
+from labrig.devices.bota import BotaDisconnected, BotaSensor, BotaSettings
 from labrig.devices.bota_protocol import cmd_config_mode
-from labrig.devices.grbl import Grbl, GrblAlarm, GrblConnectionError, GrblTimeout, StatusSample
+from labrig.devices.bota_stream import FtSample, SensorState
+from labrig.devices.grbl import Grbl, GrblAlarm, GrblConnectionError, GrblTimeout
+from labrig.devices.grbl_channel import StatusSample
 from labrig.devices.grbl_protocol import Realtime
+from labrig.protocol.routing import ft_sink
 from labrig.recording import Recording, RecordingWriter
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.grbl_twin import GrblTwin
@@ -278,7 +281,7 @@ def bota_rig(**sensor_kwargs: Any) -> Iterator[tuple[BotaTwin, TwinServer, BotaS
 
 def test_bota_unplugged_mid_stream_keeps_the_recorded_frames(tmp_path: Path) -> None:
     writer = RecordingWriter(tmp_path / "ft.h5").open()
-    sink = recording_sink(writer)
+    sink = ft_sink(writer)
     got: list[FtSample] = []
     errors: list[Exception] = []
 

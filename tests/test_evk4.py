@@ -19,10 +19,10 @@ from labrig.devices.camera import (
     RawReplayCamera,
     SimCamera,
     open_camera,
-    record_camera,
 )
 from labrig.devices.raw import TRIGGER_DTYPE, Evt3Decoder, Evt3StreamEncoder, write_raw
 from labrig.eventtypes import EVENT_DTYPE
+from labrig.protocol.routing import record_camera
 from labrig.sim.evk4_twin import Evk4Twin
 
 LOOP_US = 1 << 24

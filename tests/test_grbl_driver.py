@@ -19,9 +19,10 @@ from labrig.devices.grbl import (
     GrblTimeout,
     GrblUsageError,
     OutputEdge,
-    StatusSample,
 )
-from labrig.sim.grbl_twin import BANNER, DEFAULT_SETTINGS
+from labrig.devices.grbl_channel import StatusSample
+from labrig.sim.grbl_settings import DEFAULT_SETTINGS
+from labrig.sim.grbl_twin import BANNER
 
 WELCOME = b"\r\n" + BANNER.encode() + b"\r\n"
 UNLOCK = b"[MSG:'$H'|'$X' to unlock]\r\n"

@@ -10,7 +10,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from labrig.devices.grbl import Grbl, GrblAlarm, GrblCommandError, GrblConnectionError, GrblTimeout, StatusSample
+from labrig.devices.grbl import Grbl, GrblAlarm, GrblCommandError, GrblConnectionError, GrblTimeout
+from labrig.devices.grbl_channel import StatusSample
 from labrig.sim.grbl_twin import GrblTwin
 from labrig.sim.serial_pty import TwinServer
 

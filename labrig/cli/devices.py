@@ -69,8 +69,9 @@ def ft(
     as_json: JsonResultOption = False,
 ) -> None:
     """Read the force-torque sensor: rate, mean, noise and range per axis, status bits, CRC errors, frames lost."""
-    from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
+    from labrig.devices.bota import BotaSensor, BotaSettings
     from labrig.devices.bota_protocol import STATUS_ADVICE
+    from labrig.devices.bota_stream import FtSample
     from labrig.devices.ft_statistics import FT_AXES, SampleRateError, ft_statistics, sinc_length_for_rate
 
     if not seconds > 0:

@@ -2,7 +2,7 @@
 
 Life cycle::
 
-    sensor = BotaSensor("/dev/ttyUSB0", clock=writer.clock, on_sample=recording_sink(writer))
+    sensor = BotaSensor("/dev/ttyUSB0", clock=clock, on_sample=samples.append)
     sensor.connect()                       # reset, wait for "App Init", CONFIG mode
     sensor.configure(BotaSettings(sinc_length=64))   # 800 Hz
     sensor.start()                         # RUN mode: samples reach on_sample
@@ -10,61 +10,46 @@ Life cycle::
     ...
     sensor.close()                         # CONFIG mode, reader stopped, port closed
 
-One reader thread owns the input side from :meth:`BotaSensor.connect` on. It
-stamps every chunk of bytes on the host clock (an injectable
-:class:`labrig.clock.HostClock`, integer ns) the moment the read returns, feeds
-the sans-I/O :class:`~labrig.devices.bota_protocol.BotaReceiver`, and for each
-frame in RUN mode calls ``on_sample`` with an :class:`FtSample` (from the reader
-thread: keep it short). Acknowledgements and boot text wake the caller's
-command methods. Every wait has a timeout. When the port fails (unplugged), the
-reader ends, :attr:`BotaSensor.error` says why, ``on_error`` is called, and
-every later call raises that error at once.
+One reader thread (a :class:`~labrig.devices.serial_link.SerialLink`) owns the
+input side from :meth:`BotaSensor.connect` on. It stamps every chunk of bytes on
+the host clock (an injectable :class:`labrig.clock.HostClock`, integer ns) the
+moment the read returns; the sensor feeds the chunk to the sans-I/O
+:class:`~labrig.devices.bota_protocol.BotaReceiver`, and for each frame in RUN
+mode calls ``on_sample`` with an :class:`FtSample` (from the reader thread: keep
+it short). Acknowledgements and boot text wake the caller's command methods.
+Every wait has a timeout. When the port fails (unplugged), the reader ends,
+:attr:`BotaSensor.error` says why, ``on_error`` is called, and every later call
+raises that error at once.
 
-Counters (:meth:`BotaSensor.stats`, since :meth:`BotaSensor.start`): frames,
-CRC errors, sync losses and resyncs, skipped bytes, and frames lost, found from
-the device timestamps against the nominal period. Status bits are counted and
-logged as warnings (``labrig.devices.bota`` logger, and ``on_warning``), at most
-once per ``warn_interval_s`` per kind.
+Counters (:meth:`BotaSensor.stats`, since :meth:`BotaSensor.start`, kept by
+:class:`~labrig.devices.bota_health.StreamHealth`): frames, CRC errors, sync
+losses and resyncs, skipped bytes, and frames lost, found from the device
+timestamps against the nominal period. Status bits are counted and logged as
+warnings (``labrig.devices.bota`` logger, and ``on_warning``), at most once per
+``warn_interval_s`` per kind.
 """
 
 from __future__ import annotations
 
 import contextlib
-import enum
-import errno
 import logging
-import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
-import serial
-
-from labrig.clock import NS_PER_US, HostClock, MonotonicClock
+from labrig.clock import HostClock, MonotonicClock
+from labrig.devices.bota_health import BotaStats
 from labrig.devices.bota_protocol import (
     BAUD_RATES,
-    STATUS_ADVICE,
-    TIMESTAMP_MODULUS,
     Ack,
-    AppInit,
     BootInfo,
-    BotaReceiver,
     Command,
     CommSetup,
-    CommSetupLine,
-    CrcError,
-    Event,
     FilterSetup,
-    Frame,
-    InfoLine,
     Offsets,
     ReceiverCounters,
     Status,
-    SyncAcquired,
-    SyncLost,
-    TextLine,
-    Vector3,
     cmd_comm_setup,
     cmd_config_mode,
     cmd_filter,
@@ -73,6 +58,8 @@ from labrig.devices.bota_protocol import (
     cmd_run_mode,
     cmd_save,
 )
+from labrig.devices.bota_stream import BotaStream, Collector, FtSample, SensorState
+from labrig.devices.serial_link import LinkFailure, SerialLink, SerialPort, port_name
 from labrig.errors import LabrigError
 
 log = logging.getLogger(__name__)
@@ -94,28 +81,6 @@ class BotaDisconnected(BotaError):
 
 class BotaCommandError(BotaError):
     """The sensor rejected a command (non-zero return code)."""
-
-
-class SensorState(enum.Enum):
-    CLOSED = "closed"
-    BOOTING = "booting"
-    CONFIG = "config"
-    STARTING = "starting"
-    RUNNING = "running"
-    STOPPING = "stopping"
-    FAILED = "failed"
-
-
-@dataclass(frozen=True, slots=True)
-class FtSample:
-    """One sample as handed to ``on_sample``. Sensor frame; tare subtracted."""
-
-    t_device_us: int  # raw uint32 device counter [us]
-    t_host_ns: int  # host clock [ns] when the frame's last byte was read
-    force_n: Vector3
-    torque_nm: Vector3
-    status: int
-    temperature_c: float
 
 
 @dataclass(frozen=True)
@@ -159,73 +124,6 @@ class BotaSettings:
         return self.filter_setup.period_us
 
 
-@dataclass(frozen=True)
-class BotaStats:
-    """Streaming counters since the last :meth:`BotaSensor.start`."""
-
-    frames: int = 0
-    frames_lost: int = 0  # from device timestamp steps longer than the nominal period
-    gaps: int = 0  # places where frames were lost
-    crc_errors: int = 0
-    sync_losses: int = 0
-    resyncs: int = 0
-    skipped_bytes: int = 0
-    clock_jumps: int = 0  # device timestamp steps that are zero or backwards
-    stalls: int = 0  # no frame for stall_timeout_s while running
-    restarts: int = 0  # boot text seen while connected (power dip, watchdog)
-    status_frames: dict[str, int] = field(default_factory=dict)  # frames with each status bit set
-
-
-@dataclass
-class _Counters:
-    frames: int = 0
-    frames_lost: int = 0
-    gaps: int = 0
-    crc_errors: int = 0
-    sync_losses: int = 0
-    resyncs: int = 0
-    skipped_bytes: int = 0
-    clock_jumps: int = 0
-    stalls: int = 0
-    restarts: int = 0
-    status_frames: dict[str, int] = field(default_factory=dict)
-
-    def snapshot(self) -> BotaStats:
-        values = {k: v for k, v in vars(self).items() if k != "status_frames"}
-        return BotaStats(**values, status_frames=dict(self.status_frames))
-
-
-class _Collector:
-    """Raw samples gathered for :meth:`BotaSensor.wait_samples`."""
-
-    def __init__(self, n: int, accept: Callable[[Frame], bool]) -> None:
-        self.n = n
-        self.accept = accept
-        self.samples: list[FtSample] = []
-
-
-class _WarningLimiter:
-    """At most one message per key per interval; counts what it held back."""
-
-    def __init__(self, interval_ns: int) -> None:
-        self.interval_ns = interval_ns
-        self._last: dict[str, int] = {}
-        self._held: dict[str, int] = {}
-
-    def allow(self, key: str, now_ns: int) -> int | None:
-        """None: stay quiet; else the number of occurrences held back since the last message."""
-        last = self._last.get(key)
-        if last is not None and now_ns - last < self.interval_ns:
-            self._held[key] = self._held.get(key, 0) + 1
-            return None
-        self._last[key] = now_ns
-        return self._held.pop(key, 0)
-
-
-def _no_sample(sample: FtSample) -> None:
-    pass
-
-
 class BotaSensor:
     """A Bota serial F/T sensor on a pyserial port (an open port object, or a port name / URL).
 
@@ -241,7 +139,7 @@ class BotaSensor:
 
     def __init__(
         self,
-        port: serial.SerialBase | str,
+        port: SerialPort | str,
         *,
         baudrate: int = DEFAULT_BAUD_RATE,
         clock: HostClock | None = None,
@@ -256,58 +154,77 @@ class BotaSensor:
         stall_timeout_s: float = 0.5,
         warn_interval_s: float = 5.0,
     ) -> None:
-        self._port_arg = port
         self.baudrate = baudrate
         self.clock = clock or MonotonicClock()
-        self.on_sample = on_sample or _no_sample
         self.on_error = on_error
-        self.on_warning = on_warning
         self.terminator = terminator
         self.char_gap_s = char_gap_s
         self.ack_timeout_s = ack_timeout_s
         self.read_timeout_s = read_timeout_s
         self.write_timeout_s = write_timeout_s
-        self.stall_timeout_s = stall_timeout_s
-        self.port_name = port if isinstance(port, str) else str(getattr(port, "port", None) or port)
-
-        self._port: Any = None
-        self._owns_port = False
-        self._receiver = BotaReceiver()
-        self._cond = threading.Condition()
-        self._state = SensorState.CLOSED
-        self._error: BotaError | None = None
-        self._reader: threading.Thread | None = None
-        self._closing = threading.Event()
-        self._restart_sync = False
-        self._acks: list[Ack] = []
-        self._boot = BootInfo()
-        self._frames_idle = 0  # frames seen outside RUN (boot streaming)
-        self._collectors: list[_Collector] = []
+        self.port_name = port_name(port)
+        self._stream = BotaStream(
+            self.port_name, on_sample=on_sample, on_warning=on_warning, stall_timeout_s=stall_timeout_s,
+            warn_interval_s=warn_interval_s,
+        )  # fmt: skip
+        self._link = SerialLink(
+            port,
+            baudrate=baudrate,
+            clock=self.clock,
+            error_for=self._error_for,
+            on_chunk=self._stream.on_chunk,
+            on_idle=self._stream.on_idle,
+            on_failure=self._on_failure,
+            read_timeout_s=read_timeout_s,
+            write_timeout_s=write_timeout_s,
+            low_latency=True,
+            thread_name=f"labrig-bota:{port if isinstance(port, str) else 'port'}",
+        )
+        self._connected = False
         self._settings: BotaSettings | None = None
-        self._counters = _Counters()
-        self._last_t_device: int | None = None
-        self._period_us: float | None = None  # for gap detection; None: unknown or not trusted
-        self._last_frame_ns: int | None = None
-        self._stalled = False
-        self._tare: tuple[float, ...] = (0.0,) * 6
-        self._warnings = _WarningLimiter(round(warn_interval_s * 1e9))
-        #: Why the reader thread ended ("" while it runs or before it starts).
-        self.reader_exit_reason = ""
 
     # -- properties ------------------------------------------------------------
 
     @property
     def state(self) -> SensorState:
-        return self._state
+        return self._stream.state
+
+    @property
+    def on_sample(self) -> Callable[[FtSample], None]:
+        """Called from the reader thread with every sample in RUN mode (tare subtracted)."""
+        return self._stream.on_sample
+
+    @on_sample.setter
+    def on_sample(self, callback: Callable[[FtSample], None]) -> None:
+        self._stream.on_sample = callback
+
+    @property
+    def on_warning(self) -> Callable[[str], None] | None:
+        return self._stream.on_warning
+
+    @on_warning.setter
+    def on_warning(self, callback: Callable[[str], None] | None) -> None:
+        self._stream.on_warning = callback
+
+    @property
+    def stall_timeout_s(self) -> float:
+        return self._stream.stall_timeout_s
 
     @property
     def error(self) -> BotaError | None:
         """The failure that ended the reader thread, if any."""
-        return self._error
+        error = self._link.error
+        assert error is None or isinstance(error, BotaError)
+        return error
+
+    @property
+    def reader_exit_reason(self) -> str:
+        """Why the reader thread ended ("" while it runs or before it starts)."""
+        return self._link.exit_reason
 
     @property
     def boot_info(self) -> BootInfo:
-        return self._boot
+        return self._stream.boot
 
     @property
     def settings(self) -> BotaSettings | None:
@@ -316,16 +233,16 @@ class BotaSensor:
     @property
     def tare_offset(self) -> Offsets:
         """The software tare subtracted from every sample [N, N m]."""
-        t = self._tare
+        t = self._stream.tare
         return Offsets((t[0], t[1], t[2]), (t[3], t[4], t[5]))
 
     def stats(self) -> BotaStats:
-        with self._cond:
-            return self._counters.snapshot()
+        with self._stream.cond:
+            return self._stream.health.snapshot()
 
     def receiver_counters(self) -> ReceiverCounters:
         """The byte-level totals since connect (all modes)."""
-        return self._receiver.counters()
+        return self._stream.receiver.counters()
 
     # -- life cycle ------------------------------------------------------------------
 
@@ -339,14 +256,12 @@ class BotaSensor:
         collected until frames stream or ``boot_settle_s`` passes.
         ``reset=False`` attaches to a sensor that is already up.
         """
-        if self._state is not SensorState.CLOSED:
+        if self._stream.state is not SensorState.CLOSED:
             raise BotaError(f"F/T sensor on {self.port_name} is already connected; close() it first")
-        self._error = None
-        self._open_port()
-        self._closing.clear()
-        self._reader = threading.Thread(target=self._read_loop, name=f"labrig-bota:{self.port_name}", daemon=True)
-        self._set_state(SensorState.BOOTING if reset else SensorState.CONFIG)
-        self._reader.start()
+        self._link.open()
+        self._connected = True
+        self._stream.set_state(SensorState.BOOTING if reset else SensorState.CONFIG)
+        self._link.start()
         try:
             if reset:
                 self._reboot(boot_timeout_s, boot_settle_s)
@@ -354,8 +269,8 @@ class BotaSensor:
         except BaseException:
             self.close()  # a later connect() starts afresh
             raise
-        self._set_state(SensorState.CONFIG)
-        return self._boot
+        self._stream.set_state(SensorState.CONFIG)
+        return self._stream.boot
 
     def configure(self, settings: BotaSettings) -> None:
         """Send the comm setup, filter and offsets (CONFIG mode).
@@ -365,7 +280,8 @@ class BotaSensor:
         """
         self._require(SensorState.CONFIG, "configure")
         comm = settings.comm_setup
-        current = self._boot.comm_setup.baud_code if self._boot.comm_setup else _baud_code(self._port.baudrate)
+        boot_comm = self._stream.boot.comm_setup
+        current = boot_comm.baud_code if boot_comm else _baud_code(self._port_baudrate())
         self.command(cmd_comm_setup(comm))
         self.command(cmd_filter(settings.filter_setup))
         if settings.offsets is not None:
@@ -373,70 +289,54 @@ class BotaSensor:
         if settings.save or comm.baud_code != current:
             self.command(cmd_save(), timeout_s=max(self.ack_timeout_s, 2.0))
         if comm.baud_code != current:
-            self._set_state(SensorState.BOOTING)
+            self._stream.set_state(SensorState.BOOTING)
             self._reboot(10.0, 0.5, new_baud=comm.baud_rate)
             self.command(cmd_config_mode())
-            self._set_state(SensorState.CONFIG)
+            self._stream.set_state(SensorState.CONFIG)
         self._settings = settings
 
     def start(self) -> None:
         """RUN mode: frames stream and reach ``on_sample``. Counters restart."""
         self._require(SensorState.CONFIG, "start")
-        with self._cond:
-            self._state = SensorState.STARTING
-            self._counters = _Counters()
-            self._last_t_device = None
-            self._period_us = self._settings.period_us if self._settings else None
-            self._last_frame_ns = self.clock.now_ns()
-            self._stalled = False
-            self._restart_sync = True
+        settings = self._settings
+        raw_gauges = settings is not None and not settings.calibrated
+        self._stream.begin_run(settings.period_us if settings else None, self.clock.now_ns(), raw_gauges=raw_gauges)
         try:
             self.command(cmd_run_mode())  # the reader switches to RUNNING on the ack, before the frames
         except BotaError:
-            with self._cond:
-                if self._state is SensorState.STARTING:
-                    self._state = SensorState.CONFIG
+            with self._stream.cond:
+                if self._stream.state is SensorState.STARTING:
+                    self._stream.state = SensorState.CONFIG
             raise
 
     def stop(self) -> None:
         """Back to CONFIG mode: streaming stops. Frames before the acknowledgement are still delivered."""
         self._raise_if_failed()
-        if self._state not in (SensorState.RUNNING, SensorState.STARTING):
+        if self._stream.state not in (SensorState.RUNNING, SensorState.STARTING):
             return
-        self._set_state(SensorState.STOPPING)
+        self._stream.set_state(SensorState.STOPPING)
         try:
             self.command(cmd_config_mode())
         finally:
-            with self._cond:
-                if self._state is SensorState.STOPPING:
-                    self._state = SensorState.CONFIG
+            with self._stream.cond:
+                if self._stream.state is SensorState.STOPPING:
+                    self._stream.state = SensorState.CONFIG
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop streaming (if the port still works), end the reader, close the port if we opened it."""
-        if self._state is SensorState.CLOSED and self._reader is None:
+        if self._stream.state is SensorState.CLOSED and not self._connected:
             return
-        in_reader = self._reader is threading.current_thread()  # close() from a callback: no waiting on acks
-        if self._error is None and not in_reader and self._state in (SensorState.RUNNING, SensorState.STARTING):
+        in_reader = self._link.in_reader_thread()  # close() from a callback: no waiting on acks
+        if self.error is None and not in_reader and self._stream.state in (SensorState.RUNNING, SensorState.STARTING):
             try:
                 self.stop()
             except BotaError as exc:
                 log.warning("F/T sensor on %s: could not stop streaming cleanly: %s", self.port_name, exc)
-        self._closing.set()
-        port = self._port
-        if port is not None and hasattr(port, "cancel_read"):
-            with contextlib.suppress(Exception):
-                port.cancel_read()
-        if self._reader is not None and not in_reader:
-            self._reader.join(timeout_s)
-            if self._reader.is_alive():
-                log.warning("F/T sensor reader on %s did not end within %g s", self.port_name, timeout_s)
-        if self._owns_port and port is not None:
-            with contextlib.suppress(Exception):
-                port.close()
-        self._reader = None
-        with self._cond:
-            self._state = SensorState.CLOSED
-            self._cond.notify_all()
+        self._link.close(timeout_s)
+        self._connected = False
+        with self._stream.cond:
+            self._stream.state = SensorState.CLOSED
+            self._stream.cond.notify_all()
 
     def __enter__(self) -> BotaSensor:
         return self
@@ -453,16 +353,16 @@ class BotaSensor:
         :class:`BotaTimeout` when no acknowledgement comes in time.
         """
         self._raise_if_failed()
-        if self._port is None:
+        if not self._link.is_open:
             raise BotaError(f"F/T sensor on {self.port_name} is not connected; call connect() first")
-        with self._cond:
-            self._acks.clear()
+        with self._stream.cond:
+            self._stream.acks.clear()
         self._write(command.encode(self.terminator))
         if not command.expects_ack:
             return None
         timeout = self.ack_timeout_s if timeout_s is None else timeout_s
         ack = self._wait(
-            lambda: next((a for a in self._acks if a.command == command.code), None),
+            lambda: next((a for a in self._stream.acks if a.command == command.code), None),
             timeout,
             f"acknowledgement of {command.text!r}",
             "check that the sensor is powered and the port's baud rate matches the sensor",
@@ -480,22 +380,22 @@ class BotaSensor:
         """The next ``n`` samples (RUN mode). ``raw``: without the tare; ``valid_only``: skip
         frames flagged overrange or invalid. Default timeout: twice their duration + 1 s."""
         self._raise_if_failed()
-        if self._state not in (SensorState.RUNNING, SensorState.STARTING):
+        if self._stream.state not in (SensorState.RUNNING, SensorState.STARTING):
             raise BotaError(f"F/T sensor on {self.port_name} is not streaming; call start() first")
         if timeout_s is None:
             period_s = (self._settings.period_us if self._settings else 20_000.0) * 1e-6
             timeout_s = 2 * n * period_s + 1.0
         bad = Status.OVERRANGE | Status.INVALID_MEASUREMENTS
-        collector = _Collector(n, (lambda f: not f.status & bad) if valid_only else (lambda f: True))
-        with self._cond:
-            self._collectors.append(collector)
+        collector = Collector(n, (lambda f: not f.status & bad) if valid_only else (lambda f: True))
+        with self._stream.cond:
+            self._stream.collectors.append(collector)
         try:
             self._wait(lambda: len(collector.samples) >= n, timeout_s, f"{n} samples", "is the sensor streaming?")
         finally:
-            with self._cond:
-                self._collectors.remove(collector)
+            with self._stream.cond:
+                self._stream.collectors.remove(collector)
         samples = collector.samples[:n]
-        return samples if raw else [self._tared(s) for s in samples]
+        return samples if raw else [self._stream.tared(s) for s in samples]
 
     def tare(self, n_samples: int = 256, timeout_s: float | None = None) -> Offsets:
         """Average the next ``n_samples`` valid samples and subtract that from every later sample."""
@@ -504,79 +404,69 @@ class BotaSensor:
         for s in samples:
             for i, v in enumerate((*s.force_n, *s.torque_nm)):
                 sums[i] += v
-        self._tare = tuple(v / len(samples) for v in sums)
+        self._stream.tare = tuple(v / len(samples) for v in sums)
         log.info("F/T sensor on %s tared over %d samples: %s", self.port_name, len(samples), self.tare_offset)
         return self.tare_offset
 
     def clear_tare(self) -> None:
-        self._tare = (0.0,) * 6
+        self._stream.tare = (0.0,) * 6
 
     # -- internals: port --------------------------------------------------------------
 
-    def _open_port(self) -> None:
-        if isinstance(self._port_arg, str):
-            try:
-                self._port = serial.serial_for_url(
-                    self._port_arg, baudrate=self.baudrate, timeout=self.read_timeout_s, write_timeout=self.write_timeout_s
-                )
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise BotaError(
-                    f"cannot open the F/T sensor port {self._port_arg}: {exc}; check the name (ls /dev/serial/by-id) "
-                    "and that you may use it (group dialout)"
-                ) from None
-            self._owns_port = True
-        else:
-            self._port = self._port_arg
-            self._owns_port = False
-            self._port.timeout = self.read_timeout_s
-            self._port.write_timeout = self.write_timeout_s
-        with contextlib.suppress(Exception):  # 1 ms FTDI latency where the port supports it
-            self._port.set_low_latency_mode(True)
+    def _error_for(self, failure: LinkFailure) -> BotaError:
+        """The sensor's error for a failure of its serial link."""
+        exc = failure.cause
+        if failure.kind == "open":
+            return BotaError(
+                f"cannot open the F/T sensor port {self.port_name}: {exc}; check the name (ls /dev/serial/by-id) "
+                "and that you may use it (group dialout)"
+            )
+        if failure.kind == "write":
+            return BotaDisconnected(
+                f"cannot write to the F/T sensor on {self.port_name} ({exc}); check the cable, then reconnect"
+            )
+        if failure.kind == "read":
+            return BotaDisconnected(
+                f"F/T sensor on {self.port_name} disconnected ({exc}); the reader stopped: "
+                "check the cable and power, then reconnect"
+            )
+        error = BotaError(f"F/T sample callback raised {type(exc).__name__}: {exc}; the reader stopped")
+        error.__cause__ = exc
+        return error
+
+    def _port_baudrate(self) -> int:
+        return int(getattr(self._link.port, "baudrate", self.baudrate))
 
     def _write(self, data: bytes) -> None:
-        try:
-            if self.char_gap_s > 0 and len(data) > 1:
-                for i in range(len(data)):
-                    self._port.write(data[i : i + 1])
-                    time.sleep(self.char_gap_s)
-            else:
-                self._port.write(data)
-        except (serial.SerialException, OSError) as exc:
-            raise self._fail(
-                BotaDisconnected(f"cannot write to the F/T sensor on {self.port_name} ({exc}); check the cable, then reconnect")
-            ) from None
+        self._link.write(data, char_gap_s=self.char_gap_s)
 
     def _reboot(self, boot_timeout_s: float, settle_s: float, new_baud: int | None = None) -> None:
-        with self._cond:
-            self._boot = BootInfo()
-            self._frames_idle = 0
+        self._stream.expect_boot()
         how = "'#'"
         if new_baud is None:
             how = self._reset_line()
         else:
             self._write(cmd_hardware_reset().encode())
+            port: Any = self._link.port
             with contextlib.suppress(Exception):
-                self._port.flush()  # let '#' leave at the old rate
-            self._port.baudrate = new_baud
+                port.flush()  # let '#' leave at the old rate
+            port.baudrate = new_baud
         self._wait(
-            lambda: self._boot.app_init,
+            lambda: self._stream.boot.app_init,
             boot_timeout_s,
             f"'App Init' after a reset by {how}",
-            f"check power and cable, and that the sensor talks at {self._port.baudrate} baud",
+            f"check power and cable, and that the sensor talks at {self._port_baudrate()} baud",
         )
         with contextlib.suppress(BotaTimeout):  # name, S/N, FW and comm lines follow, then frames
-            self._wait(lambda: self._frames_idle > 0, settle_s, "", "")
+            self._wait(lambda: self._stream.frames_idle > 0, settle_s, "", "")
 
     def _reset_line(self) -> str:
         """Reset the sensor: a DTR pulse, or ``#`` when the port has no modem lines."""
         try:
-            self._port.dtr = False
-            time.sleep(0.05)
-            self._port.dtr = True
-            return "a DTR pulse"
+            if self._link.pulse_dtr():
+                return "a DTR pulse"
         except OSError as exc:
-            if exc.errno not in (errno.ENOTTY, errno.EINVAL):
-                raise self._fail(BotaDisconnected(f"cannot reset the F/T sensor on {self.port_name}: {exc}")) from None
+            raise self._fail(BotaDisconnected(f"cannot reset the F/T sensor on {self.port_name}: {exc}")) from None
         self._write(cmd_hardware_reset().encode())
         return "'#' (the port has no DTR line)"
 
@@ -585,225 +475,48 @@ class BotaSensor:
     def _wait(self, predicate: Callable[[], Any], timeout_s: float, what: str, hint: str) -> Any:
         """Wait for ``predicate()`` to be truthy and return it; raise the reader's failure or a timeout."""
         deadline = time.monotonic() + timeout_s
-        with self._cond:
+        with self._stream.cond:
             while True:
                 value = predicate()
                 if value:
                     return value
-                if self._error is not None:
-                    raise self._error
+                error = self.error
+                if error is not None:
+                    raise error
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise BotaTimeout(f"no {what} from the F/T sensor on {self.port_name} within {timeout_s:g} s; {hint}")
-                self._cond.wait(left)
+                self._stream.cond.wait(left)
 
     def _set_state(self, state: SensorState) -> None:
-        with self._cond:
-            if self._state is not SensorState.FAILED:
-                self._state = state
-            self._cond.notify_all()
+        with self._stream.cond:
+            if self._stream.state is not SensorState.FAILED:
+                self._stream.state = state
+            self._stream.cond.notify_all()
 
     def _require(self, state: SensorState, action: str) -> None:
         self._raise_if_failed()
-        if self._state is not state:
-            raise BotaError(f"cannot {action} the F/T sensor on {self.port_name} while it is {self._state.value}")
+        if self._stream.state is not state:
+            raise BotaError(f"cannot {action} the F/T sensor on {self.port_name} while it is {self._stream.state.value}")
 
     def _raise_if_failed(self) -> None:
-        if self._error is not None:
-            raise self._error
+        self._link.raise_if_failed()
 
-    def _fail(self, error: BotaError) -> BotaError:
-        """Record the failure once, wake every waiter, tell on_error; returns the error to raise."""
-        with self._cond:
-            if self._error is not None:
-                return self._error
-            self._error = error
-            self._state = SensorState.FAILED
-            self._cond.notify_all()
+    def _fail(self, error: BotaError) -> Exception:
+        """Latch the failure (the first one wins); returns the error to raise."""
+        return self._link.fail(error)
+
+    def _on_failure(self, error: Exception) -> None:
+        """The link latched its first failure: wake every waiter, tell on_error."""
+        with self._stream.cond:
+            self._stream.state = SensorState.FAILED
+            self._stream.cond.notify_all()
         log.error("%s", error)
-        if self.on_error is not None:
+        if self.on_error is not None and isinstance(error, BotaError):
             try:
                 self.on_error(error)
             except Exception:
                 log.exception("F/T sensor on_error callback raised")
-        return error
-
-    def _warn(self, key: str, message: str, now_ns: int) -> None:
-        held = self._warnings.allow(key, now_ns)
-        if held is None:
-            return
-        text = f"F/T sensor on {self.port_name}: {message}" + (f" ({held} more since the last report)" if held else "")
-        log.warning("%s", text)
-        if self.on_warning is not None:
-            self.on_warning(text)
-
-    # -- internals: the reader thread ------------------------------------------------------------
-
-    def _read_loop(self) -> None:
-        port = self._port
-        try:
-            while not self._closing.is_set():
-                waiting = port.in_waiting
-                data = port.read(waiting or 1)
-                if not data:
-                    self._check_stall()
-                    continue
-                if not waiting:  # woke on the first byte: take what came with it
-                    more = port.in_waiting
-                    if more:
-                        data += port.read(more)
-                t_ns = self.clock.now_ns()
-                if self._restart_sync:
-                    self._restart_sync = False
-                    self._receiver.restart_sync()
-                self._handle(self._receiver.feed(data), t_ns)
-            self.reader_exit_reason = "closed"
-        except (serial.SerialException, OSError) as exc:
-            if self._closing.is_set():
-                self.reader_exit_reason = "closed"
-            else:
-                self.reader_exit_reason = f"port failed: {exc}"
-                self._fail(
-                    BotaDisconnected(
-                        f"F/T sensor on {self.port_name} disconnected ({exc}); the reader stopped: "
-                        "check the cable and power, then reconnect"
-                    )
-                )
-        except Exception as exc:
-            self.reader_exit_reason = f"on_sample raised {type(exc).__name__}: {exc}"
-            err = BotaError(f"F/T sample callback raised {type(exc).__name__}: {exc}; the reader stopped")
-            err.__cause__ = exc
-            self._fail(err)
-
-    def _check_stall(self) -> None:
-        if self._state is not SensorState.RUNNING or self._last_frame_ns is None or self._stalled:
-            return
-        now = self.clock.now_ns()
-        if now - self._last_frame_ns > self.stall_timeout_s * 1e9:
-            self._stalled = True
-            with self._cond:
-                self._counters.stalls += 1
-            self._warn("stall", f"no frame for {self.stall_timeout_s:g} s while streaming; check the sensor", now)
-
-    def _handle(self, events: list[Event], t_ns: int) -> None:
-        for ev in events:
-            if isinstance(ev, Frame):
-                self._on_frame(ev, t_ns)
-            elif isinstance(ev, Ack):
-                self._on_ack(ev)
-            elif isinstance(ev, AppInit | InfoLine | CommSetupLine):
-                with self._cond:
-                    self._boot = self._boot.updated(ev)
-                    self._cond.notify_all()
-                if isinstance(ev, AppInit) and self._state is not SensorState.BOOTING:
-                    self._on_unexpected_boot(t_ns)
-            elif isinstance(ev, TextLine):
-                log.debug("F/T sensor on %s says %r", self.port_name, ev.text)
-            elif self._state is SensorState.RUNNING:
-                self._on_sync_event(ev, t_ns)
-
-    def _on_unexpected_boot(self, t_ns: int) -> None:
-        with self._cond:
-            self._counters.restarts += 1
-            self._period_us = None  # it streams its saved configuration now: the period may differ
-        self._warn(
-            "restart",
-            "the sensor restarted by itself (power dip?) and runs its saved configuration; stop, configure and start again",
-            t_ns,
-        )
-
-    def _on_ack(self, ack: Ack) -> None:
-        with self._cond:
-            self._acks.append(ack)
-            if ack.ok and ack.command == "R" and self._state is SensorState.STARTING:
-                self._state = SensorState.RUNNING
-            elif ack.ok and ack.command == "C" and self._state is SensorState.STOPPING:
-                self._state = SensorState.CONFIG
-            self._cond.notify_all()
-
-    def _on_sync_event(self, ev: Event, t_ns: int) -> None:
-        with self._cond:
-            c = self._counters
-            if isinstance(ev, CrcError):
-                c.crc_errors += 1
-            elif isinstance(ev, SyncLost):
-                c.sync_losses += 1
-            elif isinstance(ev, SyncAcquired) and ev.resync:
-                c.skipped_bytes += ev.skipped_bytes
-                c.resyncs += 1
-        if isinstance(ev, CrcError):
-            self._warn("crc", "frame with a bad CRC dropped (noise on the line?)", t_ns)
-        elif isinstance(ev, SyncAcquired) and ev.resync:
-            self._warn("resync", f"frame sync lost and found again ({ev.skipped_bytes} bytes skipped)", t_ns)
-
-    def _on_frame(self, frame: Frame, t_ns: int) -> None:
-        state = self._state
-        if state not in (SensorState.RUNNING, SensorState.STOPPING):
-            with self._cond:
-                self._frames_idle += 1
-                if self._frames_idle == 1:
-                    self._cond.notify_all()
-            return
-        self._last_frame_ns = t_ns
-        self._stalled = False
-        raw = FtSample(frame.t_device_us, t_ns, frame.force_n, frame.torque_nm, frame.status, frame.temperature_c)
-        with self._cond:
-            c = self._counters
-            c.frames += 1
-            lost = self._step(frame.t_device_us)
-            if lost > 0:
-                c.frames_lost += lost
-                c.gaps += 1
-            elif lost < 0:
-                c.clock_jumps += 1
-            for bit in STATUS_ADVICE:
-                if frame.status & bit:
-                    name = str(bit.name).lower()
-                    c.status_frames[name] = c.status_frames.get(name, 0) + 1
-            if self._collectors:
-                for collector in self._collectors:
-                    if len(collector.samples) < collector.n and collector.accept(frame):
-                        collector.samples.append(raw)
-                self._cond.notify_all()
-        if lost > 0:
-            self._warn("gap", f"{lost} frame(s) lost before device time {frame.t_device_us} us", t_ns)
-        elif lost < 0:
-            self._warn("clock", f"device timestamp stepped back or stood still at {frame.t_device_us} us", t_ns)
-        if frame.status:
-            self._warn_status(frame.status, t_ns)
-        self.on_sample(self._tared(raw))
-
-    def _step(self, t_device_us: int) -> int:
-        """Frames lost before this one (from the device timestamps); -1 for a backwards step."""
-        last, self._last_t_device = self._last_t_device, t_device_us
-        period_us = self._period_us
-        if last is None or period_us is None:
-            return 0
-        delta = (t_device_us - last) % TIMESTAMP_MODULUS
-        if delta == 0 or delta > TIMESTAMP_MODULUS // 2:
-            return -1
-        return max(0, round(delta / period_us) - 1)
-
-    def _warn_status(self, status: int, t_ns: int) -> None:
-        for bit, advice in STATUS_ADVICE.items():
-            if status & bit:
-                if bit is Status.RAW_MEASUREMENTS and self._settings is not None and not self._settings.calibrated:
-                    continue  # asked for raw gauges
-                self._warn(f"status:{bit.name}", advice, t_ns)
-
-    def _tared(self, s: FtSample) -> FtSample:
-        t = self._tare
-        if not any(t):
-            return s
-        f, m = s.force_n, s.torque_nm
-        return FtSample(
-            s.t_device_us,
-            s.t_host_ns,
-            (f[0] - t[0], f[1] - t[1], f[2] - t[2]),
-            (m[0] - t[3], m[1] - t[4], m[2] - t[5]),
-            s.status,
-            s.temperature_c,
-        )
 
 
 def _baud_code(baud_rate: int) -> int:
@@ -811,24 +524,3 @@ def _baud_code(baud_rate: int) -> int:
         if rate == baud_rate:
             return code
     return -1
-
-
-def recording_sink(writer: Any) -> Callable[[FtSample], None]:
-    """An ``on_sample`` that puts each sample into a :class:`labrig.recording.RecordingWriter` ``ft`` stream.
-
-    The sensor must stamp on the writer's clock (``BotaSensor(..., clock=writer.clock)``):
-    ``t_host_us`` is host us since the recording's start, ``t_device_us`` the raw counter.
-    """
-
-    def put(sample: FtSample) -> None:
-        writer.put(
-            "ft",
-            t_device_us=sample.t_device_us,
-            t_host_us=(sample.t_host_ns - writer.t0_host_ns) // NS_PER_US,
-            force_n=sample.force_n,
-            torque_nm=sample.torque_nm,
-            status=sample.status,
-            temperature_c=sample.temperature_c,
-        )
-
-    return put

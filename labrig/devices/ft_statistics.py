@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labrig.devices.bota import FtSample
 from labrig.devices.bota_protocol import ADC_BASE_RATE_HZ, SINC_LENGTH_MAX, SINC_LENGTH_MIN
+from labrig.devices.bota_stream import FtSample
 from labrig.errors import LabrigError
 
 #: The six axes: (key, name, unit key, unit). Forces in N, torques in N m, sensor frame.

@@ -1,5 +1,10 @@
 """GRBL 1.1 serial protocol, sans I/O: bytes in, events out; lines out, bytes to write.
 
+Both sides of the wire live here: :func:`classify_line` reads what GRBL sends and the
+``format_*`` functions write it (the twin, :mod:`labrig.sim.grbl_twin`, answers with them;
+:func:`classify_line` reads every one of them back); :func:`motion_line` and :func:`jog_line`
+write the G-code lines the driver sends.
+
 Theory of operation
 -------------------
 :class:`GrblProtocol` never touches a port. The caller writes what :meth:`GrblProtocol.send_line`
@@ -37,8 +42,10 @@ it, too long, a real-time character inside a line); :class:`GrblCommandError` an
 
 from __future__ import annotations
 
+import math
 import re
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from labrig.errors import LabrigError
@@ -573,6 +580,162 @@ def preparsed_length(line: bytes) -> int:
         elif c > 0x20 and c < 0x7F:
             n += 1
     return n
+
+
+# -- formatting: the lines GRBL sends (the twin's side), read back by classify_line -----------
+
+#: What ends every line GRBL sends.
+LINE_END = b"\r\n"
+
+
+def format_mm(values: Sequence[float], decimals: int = 3) -> str:
+    """Comma-separated values as GRBL prints positions (mm mode: 3 decimals)."""
+    return ",".join(f"{v:.{decimals}f}" for v in values)
+
+
+def format_ok() -> str:
+    return "ok"
+
+
+def format_error(code: int) -> str:
+    return f"error:{code}"
+
+
+def format_alarm(code: int) -> str:
+    return f"ALARM:{code}"
+
+
+def format_welcome(version: str) -> str:
+    """The banner after power-up or a reset, e.g. ``Grbl 1.1h ['$' for help]``."""
+    return f"Grbl {version} ['$' for help]"
+
+
+def format_message(text: str) -> str:
+    return f"[MSG:{text}]"
+
+
+def format_help(text: str) -> str:
+    return f"[HLP:{text}]"
+
+
+def format_parser_state(words: Sequence[str]) -> str:
+    """``[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]`` from the modal words."""
+    return "[GC:" + " ".join(words) + "]"
+
+
+def format_parameter(name: str, values: Sequence[float]) -> str:
+    """``[G54:x,y,z]`` ... ``[G92:...]``, ``[TLO:z]`` (mm)."""
+    return f"[{name}:{format_mm(values)}]"
+
+
+def format_probe(position_mm: Sequence[float], success: bool) -> str:
+    return f"[PRB:{format_mm(position_mm)}:{int(success)}]"
+
+
+def format_version(version: str, info: str) -> str:
+    return f"[VER:{version}:{info}]"
+
+
+def format_options(codes: str, planner_blocks: int, rx_buffer_bytes: int) -> str:
+    return f"[OPT:{codes},{planner_blocks},{rx_buffer_bytes}]"
+
+
+def format_echo(text: str) -> str:
+    return f"[echo:{text}]"
+
+
+def format_setting(number: int, value: float, *, integer: bool) -> str:
+    """``$N=value`` as ``$$`` lists it: integer settings without decimals, the others with 3."""
+    return f"${number}={value:.0f}" if integer else f"${number}={value:.3f}"
+
+
+def format_startup_line(index: int, line: str) -> str:
+    return f"$N{index}={line}"
+
+
+def format_startup_result(line: str, response: str) -> str:
+    """``>line:ok`` or ``>line:error:N`` after a stored startup line ran; ``response``: the
+    line's own answer (:func:`format_ok` or :func:`format_error`)."""
+    return f">{line}:{response}"
+
+
+def format_status(
+    state: str,
+    *,
+    machine_mm: Sequence[float] | None = None,
+    work_mm: Sequence[float] | None = None,
+    buffer: tuple[int, int] | None = None,
+    line_number: int | None = None,
+    feed_mm_min: float | None = None,
+    spindle_rpm: float | None = None,
+    pins: str = "",
+    wco_mm: Sequence[float] | None = None,
+    overrides_pct: tuple[int, int, int] | None = None,
+    accessories: str = "",
+) -> str:
+    """A status report ``<state|MPos:...|Bf:...|Ln:...|FS:...|Pn:...|WCO:...|Ov:...|A:...>``.
+
+    ``state`` as printed (``Hold:0``); one of ``machine_mm`` (MPos) or ``work_mm`` (WPos), mm;
+    ``buffer``: free planner blocks and RX bytes; ``feed_mm_min`` with ``spindle_rpm`` gives
+    ``FS``, alone ``F`` (builds without a variable spindle). Fields left out are not printed.
+    """
+    if (machine_mm is None) == (work_mm is None):
+        raise ValueError("a status report has exactly one of MPos (machine_mm) and WPos (work_mm)")
+    parts = [state, "MPos:" + format_mm(machine_mm) if machine_mm is not None else "WPos:" + format_mm(work_mm or ())]
+    if buffer is not None:
+        parts.append(f"Bf:{buffer[0]},{buffer[1]}")
+    if line_number is not None:
+        parts.append(f"Ln:{line_number}")
+    if feed_mm_min is not None:
+        parts.append(f"F:{feed_mm_min:.0f}" if spindle_rpm is None else f"FS:{feed_mm_min:.0f},{spindle_rpm:.0f}")
+    if pins:
+        parts.append("Pn:" + pins)
+    if wco_mm is not None:
+        parts.append("WCO:" + format_mm(wco_mm))
+    if overrides_pct is not None:
+        parts.append("Ov:{},{},{}".format(*overrides_pct))
+    if accessories:
+        parts.append("A:" + accessories)
+    return "<" + "|".join(parts) + ">"
+
+
+# -- formatting: the lines we send ---------------------------------------------------------------
+
+
+def format_number(value: float) -> str:
+    """A G-code number: at most 4 decimals, no trailing zeros, no ``-0``."""
+    text = f"{value:.4f}".rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text
+
+
+def _axis_words(x: float | None, y: float | None, z: float | None) -> str:
+    words = "".join(f"{a}{format_number(v)}" for a, v in zip("XYZ", (x, y, z)) if v is not None)
+    if not words:
+        raise GrblUsageError("give at least one of x, y, z")
+    for v in (x, y, z):
+        if v is not None and not math.isfinite(v):
+            raise GrblUsageError(f"axis values must be finite, got {v!r}")
+    return words
+
+
+def motion_line(x: float | None, y: float | None, z: float | None, feed_mm_min: float | None) -> str:
+    """``G1X..Y..Z..F..`` (only the axes given), or a rapid ``G0X..`` when ``feed_mm_min`` is None."""
+    words = _axis_words(x, y, z)
+    if feed_mm_min is None:
+        return "G0" + words
+    if not feed_mm_min > 0 or not math.isfinite(feed_mm_min):
+        raise GrblUsageError(f"feed_mm_min must be positive (or None for a rapid), got {feed_mm_min!r}")
+    return "G1" + words + f"F{format_number(feed_mm_min)}"
+
+
+def jog_line(
+    x: float | None, y: float | None, z: float | None, *, feed_mm_min: float, relative: bool = True, machine: bool = False
+) -> str:
+    """``$J=G91X..F..``: a jog, relative or absolute, in work or machine (G53) coordinates (mm, mm/min)."""
+    if feed_mm_min is None or not feed_mm_min > 0:
+        raise GrblUsageError("a jog needs a positive feed_mm_min (F is not modal for jogs)")
+    head = "$J=" + ("G91" if relative else "G90") + ("G53" if machine else "")
+    return head + _axis_words(x, y, z) + f"F{format_number(feed_mm_min)}"
 
 
 # -- the state machine ---------------------------------------------------------------------

@@ -32,12 +32,15 @@ import numpy as np
 
 from labrig.clock import HostClock, MonotonicClock
 from labrig.config import RigConfig
-from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
+from labrig.devices.bota import BotaSensor, BotaSettings
+from labrig.devices.bota_stream import FtSample
 from labrig.devices.camera import Camera, CameraError, EventChunk, open_camera
-from labrig.devices.grbl import Grbl, StatusSample
+from labrig.devices.grbl import Grbl
+from labrig.devices.grbl_channel import StatusSample
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
 from labrig.protocol.rigfile import DeviceConfig, device_config, safety_limits
+from labrig.protocol.routing import put_chunk, put_cnc, put_ft, put_gcode
 from labrig.protocol.safety import ForceMonitor, SafetyLimits
 from labrig.recording import RecordingWriter
 from labrig.sim.live import put_truth_rows
@@ -251,21 +254,17 @@ class RigSession:
         self.monitor.on_sample(sample.t_host_ns, sample.force_n)
         writer = self._writer
         if writer is not None:
-            writer.put("ft", t_device_us=sample.t_device_us, t_host_us=(sample.t_host_ns - writer.t0_host_ns) // NS_PER_US,
-                       force_n=sample.force_n, torque_nm=sample.torque_nm, status=sample.status,
-                       temperature_c=sample.temperature_c)
+            put_ft(writer, sample)
 
     def _on_cnc(self, sample: StatusSample) -> None:
         writer = self._writer
         if writer is not None:
-            row = sample.columns()
-            row["t_host_us"] = sample.t_host_us - writer.t0_host_ns // NS_PER_US
-            writer.put("cnc", **row)
+            put_cnc(writer, sample)
 
     def _on_gcode(self, t_host_us: int, direction: int, line: bytes) -> None:
         writer = self._writer
         if writer is not None:
-            writer.put("gcode", t_host_us=t_host_us - writer.t0_host_ns // NS_PER_US, direction=direction, line=line[:128])
+            put_gcode(writer, t_host_us, direction, line)
 
     def _pump_truth(self) -> None:
         while not self._stop.is_set() and self.world is not None:
@@ -291,12 +290,6 @@ class RigSession:
             self.camera_events += int(chunk.events.size)
             writer = self._writer
             if writer is not None:
-                t_host_us = (chunk.t_host_ns - writer.t0_host_ns) // NS_PER_US
-                ev = chunk.events
-                if ev.size:
-                    writer.put_events(ev["x"], ev["y"], ev["p"], ev["t"], t_host_us)
-                if chunk.triggers.size:
-                    tr = chunk.triggers
-                    writer.put("triggers", t_device_us=tr["t"], polarity=tr["p"], channel=tr["id"])
+                put_chunk(writer, chunk)
             if self._listeners:
                 self._notify_listeners(chunk)

@@ -28,8 +28,9 @@ import numpy as np
 from _common import bench_main, emit
 
 from labrig.clock import CounterUnwrapper
-from labrig.devices.bota import BotaSensor, BotaSettings, FtSample
+from labrig.devices.bota import BotaSensor, BotaSettings
 from labrig.devices.bota_protocol import BotaReceiver, FilterSetup, Frame, encode_frame
+from labrig.devices.bota_stream import FtSample
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.serial_pty import TwinServer
 

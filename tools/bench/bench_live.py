@@ -37,11 +37,13 @@ from _common import bench_main, emit
 
 from labrig.clock import CounterUnwrapper
 from labrig.config import RigConfig, load_rig
-from labrig.devices.bota import BotaSensor, BotaSettings, FtSample, recording_sink
-from labrig.devices.camera import open_camera, record_camera
+from labrig.devices.bota import BotaSensor, BotaSettings
+from labrig.devices.bota_stream import FtSample
+from labrig.devices.camera import open_camera
 from labrig.devices.grbl import Grbl
 from labrig.indenters import Indenter, load_indenter
 from labrig.physics.grid import network_grid_gel_mm
+from labrig.protocol.routing import ft_sink, put_cnc, put_gcode, record_camera
 from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
 from labrig.sim.live import publish_truth
 from labrig.sim.motion import PiecewiseLinearPath, probing_path
@@ -97,15 +99,15 @@ def _writer(out: Path, rig: RigConfig, truth: bool) -> RecordingWriter:
 
 
 def _drivers(paths: dict[str, str], writer: RecordingWriter, ft: list[FtSample]) -> tuple[Grbl, BotaSensor]:
-    sink = recording_sink(writer)
+    sink = ft_sink(writer)
 
     def on_ft(sample: FtSample) -> None:
         ft.append(sample)
         sink(sample)
 
     grbl = Grbl(paths["grbl"], clock=writer.clock, time_base_ns=writer.t0_host_ns,
-                on_sample=lambda s: writer.put("cnc", **s.columns()),
-                on_gcode=lambda t, d, line: writer.put("gcode", t_host_us=t, direction=d, line=line[:128]))
+                on_sample=lambda s: put_cnc(writer, s, time_base_ns=writer.t0_host_ns),
+                on_gcode=lambda t, d, line: put_gcode(writer, t, d, line, time_base_ns=writer.t0_host_ns))
     bota = BotaSensor(paths["bota"], clock=writer.clock, on_sample=on_ft, char_gap_s=0.0)
     grbl.connect()
     bota.connect(boot_timeout_s=5)

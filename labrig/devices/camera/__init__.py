@@ -19,12 +19,8 @@ from the factory default), the region of interest and the trigger inputs.
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-from labrig.clock import NS_PER_US
 from labrig.devices.camera.base import (
     DEFAULT_QUEUE_CHUNKS,
     IMX636_ALLOWED_BIASES,
@@ -58,15 +54,12 @@ __all__ = [
     "MetavisionCamera",
     "MetavisionSdk",
     "RawReplayCamera",
-    "RecordStats",
     "Roi",
     "SimCamera",
     "import_metavision_hal",
     "metavision_sdk",
     "open_camera",
-    "record_camera",
 ]
-
 
 
 def open_camera(backend: str, **options: Any) -> Camera:
@@ -81,55 +74,3 @@ def open_camera(backend: str, **options: Any) -> Camera:
     if backend == "sim":
         return SimCamera(**options)
     raise CameraError(f"unknown camera backend {backend!r}; choose one of {', '.join(BACKENDS)}")
-
-
-@dataclass
-class RecordStats:
-    chunks: int = 0
-    events: int = 0
-    triggers: int = 0
-    rejected_chunks: int = 0
-
-
-def record_camera(
-    camera: Camera,
-    writer: Any,
-    stop_event: threading.Event,
-    *,
-    poll_s: float = 0.05,
-    on_chunk: Callable[[EventChunk], None] | None = None,
-) -> RecordStats:
-    """Move the camera's chunks into a RecordingWriter until ``stop_event`` is set or the stream ends.
-
-    Raises :class:`CameraError` if the stream broke (what arrived before is in the writer).
-
-    Events go through ``writer.put_events`` with their device time and the chunk's host
-    receive time in the recording's time base (so the camera clock model is fitted at
-    finalization); trigger edges go to the ``triggers`` stream. The camera and the writer must
-    share the host clock. Starts the camera if it is not streaming; does not stop it.
-    """
-    t0_ns = int(writer.t0_host_ns)
-    if not camera.streaming:
-        camera.start()
-    stats = RecordStats()
-    while not stop_event.is_set():
-        chunk = camera.read(timeout_s=poll_s)
-        if chunk is None:
-            if camera.ended:
-                break
-            continue
-        t_host_us = (chunk.t_host_ns - t0_ns) // NS_PER_US
-        ev = chunk.events
-        ok = True
-        if ev.size:
-            ok = writer.put_events(ev["x"], ev["y"], ev["p"], ev["t"], t_host_us)
-        if chunk.triggers.size:
-            tr = chunk.triggers
-            ok = writer.put("triggers", t_device_us=tr["t"], polarity=tr["p"], channel=tr["id"]) and ok
-        stats.chunks += 1
-        stats.events += int(ev.size)
-        stats.triggers += int(chunk.triggers.size)
-        stats.rejected_chunks += 0 if ok else 1
-        if on_chunk is not None:
-            on_chunk(chunk)
-    return stats
