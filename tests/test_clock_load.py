@@ -18,14 +18,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from labrig.clock import (
-    DRIFT_BOUND_PPM,
-    ClockModel,
-    ManualClock,
-    OnlineClockFit,
-    fit_lower_envelope,
-    fit_triggers,
-)
+from labrig.clock import ClockModel, ManualClock
+from labrig.clock_fit import DRIFT_BOUND_PPM, OnlineClockFit, fit_lower_envelope, fit_triggers
 from labrig.recording import Recording, RecordingWriter
 from labrig.testing.loaded_clock import LoadedCameraScene
 

@@ -11,14 +11,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from labrig.clock import (
-    ClockModel,
-    align_trigger_edges,
-    fit_lower_envelope,
-    fit_triggers,
-    match_trigger_edges,
-    unwrap_counter,
-)
+from labrig.clock import ClockModel, unwrap_counter
+from labrig.clock_fit import align_trigger_edges, fit_lower_envelope, fit_triggers, match_trigger_edges
 from labrig.recording import schema
 from labrig.recording.layout import stream_group
 

@@ -37,7 +37,8 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig import __version__
-from labrig.clock import NS_PER_US, ClockModel, CounterUnwrapper, HostClock, MonotonicClock, OnlineClockFit
+from labrig.clock import NS_PER_US, ClockModel, CounterUnwrapper, HostClock, MonotonicClock
+from labrig.clock_fit import OnlineClockFit
 from labrig.errors import RecordingError, RecordingFault
 from labrig.recording import schema
 from labrig.recording.codecs import DEFAULT_BULK_CODEC, PORTABLE_CODEC, codec_kwargs

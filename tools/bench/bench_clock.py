@@ -40,7 +40,8 @@ import h5py
 import numpy as np
 from _common import bench_main, emit
 
-from labrig.clock import ClockModel, fit_lower_envelope, fit_triggers
+from labrig.clock import ClockModel
+from labrig.clock_fit import fit_lower_envelope, fit_triggers
 from labrig.testing.loaded_clock import LoadedCameraScene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -118,7 +119,7 @@ def _scores(part: str, camera_drift_ppm: float, model: ClockModel, online: Clock
 
 
 def _synthetic(drift: float, seed: int) -> dict[str, Any]:
-    from labrig.clock import OnlineClockFit
+    from labrig.clock_fit import OnlineClockFit
 
     scene = LoadedCameraScene(drift_ppm=drift, seed=seed)
     device, receive = scene.packets()
