@@ -135,3 +135,20 @@ def test_chunks_are_stamped_when_read_and_a_closed_link_refuses_writes() -> None
     with pytest.raises(RuntimeError, match="write"):
         link.write(b"?")
     assert link.error is None  # a write to a closed link is refused, not latched
+
+
+def test_a_write_is_stamped_before_its_bytes_go_out() -> None:
+    """The send stamp is a lower bound of when the device can act (trigger edges' host times rest on it):
+    a write that returns late (this thread descheduled, a slow port) must not move it."""
+    clock = ManualClock(5_000)
+
+    class SlowPort(_Port):
+        def write(self, data: bytes) -> int:
+            clock.advance_ns(3_000_000)  # the device acts now; the write returns 3 ms later
+            return super().write(data)
+
+    link = SerialLink(SlowPort(b""), baudrate=115200, clock=clock, error_for=lambda f: RuntimeError(f.kind),
+                      on_chunk=lambda data, t_ns: None, read_timeout_s=0.001)
+    link.open()
+    assert link.write(b"M8\n") == 5_000 and clock.now_ns() == 3_005_000
+    link.close()

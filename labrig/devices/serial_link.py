@@ -248,10 +248,13 @@ class SerialLink:
 
     def write(self, data: bytes, *, char_gap_s: float = 0.0) -> int:
         """Write ``data`` (a byte at a time with ``char_gap_s`` pauses when positive and longer
-        than one byte); returns the host time (ns) the write returned. A failing port latches and
-        raises the owner's error; a link not open raises it without latching."""
+        than one byte); returns the host time (ns) just before the first byte went out: the earliest
+        the device can act on them, a true lower bound however long this thread is descheduled
+        afterwards (a stamp taken when the write returned was late by milliseconds on a loaded host).
+        A failing port latches and raises the owner's error; a link not open raises it without latching."""
         if self._port is None:
             raise self._error_for(LinkFailure("write", RuntimeError("the port is not open: connect first")))
+        t_start_ns = self.clock.now_ns()
         try:
             if char_gap_s > 0 and len(data) > 1:
                 for i in range(len(data)):
@@ -261,7 +264,7 @@ class SerialLink:
                 self.port.write(data)
         except WRITE_ERRORS as exc:
             raise self.fail(self._error_for(LinkFailure("write", exc))) from None
-        return self.clock.now_ns()
+        return t_start_ns
 
     # -- the failure latch -------------------------------------------------------------------
 
