@@ -51,6 +51,28 @@ def test_a_full_run_on_the_virtual_rig_records_everything(rig: RigConfig, sphere
         assert rec.clock_model("camera").method.startswith("triggers")
 
 
+def test_waits_add_trigger_edge_pairs_for_the_clock_fit(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:
+    """A wait long enough for sync pulses toggles the trigger in pairs: every phase keeps its edge
+    and level, the camera sees every edge, and the clock fit rests on them."""
+    spec = replace(QUICK, wait_s=0.8)  # one pair per wait (SYNC_EDGE_INTERVAL_S = 0.25 s)
+    with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere) as session:
+        result = _runner(session, rig, sphere).run(spec, tmp_path / "run.h5")
+    assert result.exit_status == "complete", result.reason
+    waits = list(spec.phases()).count("wait")
+    with Recording(result.path) as rec:
+        assert [p.name for p in rec.phases()] == list(spec.phases())
+        n_edges = len(spec.phases()) + 2 * waits
+        assert rec.rows("triggers") == rec.rows("trigger_out") == n_edges
+        sent = rec.column("trigger_out", "t_host_us")
+        polarity = rec.column("trigger_out", "polarity")
+        starts = np.array([p.t_start_us for p in rec.phases()])
+        at_phase = np.isin(sent, starts)
+        assert at_phase.sum() == len(spec.phases())
+        assert polarity[at_phase].tolist() == [(k + 1) % 2 for k in range(len(spec.phases()))]
+        camera = rec.clock_model("camera")
+        assert camera.method.startswith("triggers") and camera.n_trigger_pairs == n_edges
+
+
 @pytest.fixture()
 def live(rig: RigConfig, sphere: Indenter, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveWorld, RigSession]]:
     """An in-process world, so tests can inject faults into its twins."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -51,6 +52,11 @@ APPROACH_FRACTION = 0.7
 FINE_SPEED_MM_S = 0.3
 #: A controller's time from receiving an output line to switching the output, us (GRBL's parse).
 OUTPUT_EXECUTE_US = 250.0
+#: While the machine dwells, the camera trigger output toggles this often, s (in pairs, so each
+#: phase keeps its level): edges for the camera clock fit beside the phase starts. On a loaded
+#: host some lines reach the controller late and their edges lie below the fit; the more edges,
+#: the more prompt ones for the fit to rest on (a 4 s wait adds 14).
+SYNC_EDGE_INTERVAL_S = 0.25
 #: F/T samples averaged for contact and force-target detection (noise 0.02 N -> 0.005 N).
 DETECT_SAMPLES = 16
 
@@ -276,10 +282,20 @@ class ProbeRunner:
             self._report()
 
     def _dwell(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
+        """Hold still for ``seconds``, toggling the trigger output in pairs (SYNC_EDGE_INTERVAL_S)."""
+        start = time.monotonic()
+        end = start + seconds
+        pairs = max(0, math.floor((seconds - SYNC_EDGE_INTERVAL_S / 2) / (2 * SYNC_EDGE_INTERVAL_S)))
+        edges = [start + (k + 1) * SYNC_EDGE_INTERVAL_S for k in range(2 * pairs)]
         while (left := end - time.monotonic()) > 0:
             self._check_faults()
-            time.sleep(min(left, 0.02))
+            if edges and time.monotonic() >= edges[0]:
+                edges.pop(0)
+                self._toggle_output()
+            pause = min(left, 0.02)
+            if edges:
+                pause = min(pause, max(0.0, edges[0] - time.monotonic()))
+            time.sleep(pause)
             self._report()
 
     def _checked(self, action: Callable[[], Any]) -> Any:
@@ -329,22 +345,29 @@ class ProbeRunner:
         the trigger output cannot be switched."""
         writer = self._writer
         assert writer is not None
-        self._output_level ^= 1
-        level = self._output_level
         t_us = writer.host_us()
         try:
-            edge = self.grbl.set_output(bool(level)) if recovering else self._checked(lambda: self.grbl.set_output(bool(level)))
-            # The output switches once the line has arrived (motion finished before it was sent):
-            # the send time plus the line on the wire is the edge; the ack can come much later.
-            on_wire_us = (len(edge.line) + 1) * self.grbl.byte_us + OUTPUT_EXECUTE_US
-            t_us = round(min(edge.t_sent_us + on_wire_us, edge.t_ack_us)) - writer.t0_host_ns // NS_PER_US
-            writer.put("trigger_out", t_host_us=t_us, polarity=level)
+            t_us = self._toggle_output(recovering=recovering)
         except GrblError:
             if not recovering:
                 raise
         writer.phase_begin(name, t_us)
         self._phases.append(name)
         self._report()
+
+    def _toggle_output(self, *, recovering: bool = False) -> int:
+        """Toggle the camera trigger output; log the edge; its recording host time (us)."""
+        writer = self._writer
+        assert writer is not None
+        self._output_level ^= 1
+        level = self._output_level
+        edge = self.grbl.set_output(bool(level)) if recovering else self._checked(lambda: self.grbl.set_output(bool(level)))
+        # The output switches once the line has arrived (motion finished before it was sent):
+        # the send time plus the line on the wire is the edge; the ack can come much later.
+        on_wire_us = (len(edge.line) + 1) * self.grbl.byte_us + OUTPUT_EXECUTE_US
+        t_us = round(min(edge.t_sent_us + on_wire_us, edge.t_ack_us)) - writer.t0_host_ns // NS_PER_US
+        writer.put("trigger_out", t_host_us=t_us, polarity=level)
+        return t_us
 
     def _travel_to_start(self, plan: ProbePlan) -> None:
         """Up to the travel height, across, down to the approach start (not recorded)."""

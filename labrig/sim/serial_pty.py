@@ -7,6 +7,11 @@ own timing). :class:`TwinServer` runs any number of twins in one thread, each
 on its own pty, on the host clock. Drivers see ordinary serial ports
 (``/dev/pts/N``); nothing bypasses the bytes.
 
+A twin whose timing must not depend on the server's load (the GRBL twin: its trigger
+output switches when a line arrives) can have its port in a relay process
+(:mod:`labrig.sim.pty_relay`, a :class:`RelayedPort`) that stamps the host's bytes as they
+arrive; the twin gets those stamps instead of the time the server got round to reading.
+
 Pseudo-terminals have no modem lines: setting DTR or RTS on one fails with
 ENOTTY, which drivers must tolerate (a real port resets some boards on DTR).
 """
@@ -17,11 +22,16 @@ import contextlib
 import errno
 import os
 import select
+import socket
+import subprocess
+import sys
 import threading
 import tty
+from pathlib import Path
 from typing import Protocol
 
 from labrig.clock import HostClock, MonotonicClock
+from labrig.sim import pty_relay
 
 
 class SerialTwin(Protocol):
@@ -44,6 +54,14 @@ class PtyPort:
         os.set_blocking(self.master, False)
         self.dropped_bytes = 0
         self.closed = False
+
+    def fileno(self) -> int:
+        return self.master
+
+    def receive(self, now_us: int) -> list[tuple[int, bytes]]:
+        """What the host wrote, stamped ``now_us`` (when the server read it)."""
+        data = self.read()
+        return [(now_us, data)] if data else []
 
     def read(self) -> bytes:
         try:
@@ -77,14 +95,92 @@ class PtyPort:
                 os.close(fd)
 
 
-class TwinServer:
-    """Serve twins on ptys from one thread until stopped. Use as a context manager."""
+class RelayedPort:
+    """A pty held by a :mod:`~labrig.sim.pty_relay` process, which stamps the host's bytes on arrival
+    (``time.monotonic_ns``: the server's clock must be the monotonic host clock)."""
 
-    def __init__(self, twins: dict[str, SerialTwin], clock: HostClock | None = None, tick_s: float = 0.0005) -> None:
+    #: Seconds to wait for the relay to start and name its port.
+    START_TIMEOUT_S = 10.0
+
+    def __init__(self) -> None:
+        self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        try:
+            self._process = subprocess.Popen([sys.executable, "-I", "-S", str(Path(pty_relay.__file__)), str(theirs.fileno())],
+                                             pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+        finally:
+            theirs.close()
+        self._sock.settimeout(self.START_TIMEOUT_S)
+        try:
+            self.path = self._sock.recv(4096).decode()
+        except (TimeoutError, OSError) as exc:
+            self.close()
+            raise RuntimeError(f"the serial relay did not start within {self.START_TIMEOUT_S} s: {exc}") from exc
+        if not self.path:
+            self.close()
+            raise RuntimeError(f"the serial relay exited at start (code {self._process.wait()})")
+        self._sock.setblocking(False)
+        self.dropped_bytes = 0
+        self.closed = False
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def receive(self, now_us: int) -> list[tuple[int, bytes]]:
+        """What the host wrote, each read stamped (us) when the relay saw it arrive."""
+        out: list[tuple[int, bytes]] = []
+        while True:
+            try:
+                message = self._sock.recv(pty_relay.STAMP.size + pty_relay.READ_BYTES)
+            except (BlockingIOError, InterruptedError):
+                return out
+            if not message:  # the relay is gone: the port with it
+                return out
+            (stamp_ns,) = pty_relay.STAMP.unpack_from(message)
+            out.append((stamp_ns // 1000, message[pty_relay.STAMP.size:]))
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._sock.send(data)
+        except (BlockingIOError, OSError):
+            self.dropped_bytes += len(data)
+
+    def close(self) -> None:
+        if getattr(self, "closed", False):
+            return
+        self.closed = True
+        self._sock.close()  # the relay sees EOF and exits; its pty goes with it
+        try:
+            self._process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+
+
+SerialPort = PtyPort | RelayedPort
+
+
+class TwinServer:
+    """Serve twins on ptys from one thread until stopped. Use as a context manager.
+
+    ``relayed``: names of twins whose port sits in a relay process stamping arrivals
+    (:class:`RelayedPort`; needs the monotonic host clock, the default).
+    """
+
+    def __init__(self, twins: dict[str, SerialTwin], clock: HostClock | None = None, tick_s: float = 0.0005,
+                 relayed: frozenset[str] | set[str] = frozenset()) -> None:
         self.twins = twins
         self.clock = clock or MonotonicClock()
+        if relayed and not isinstance(self.clock, MonotonicClock):
+            raise ValueError("relayed ports stamp with the monotonic host clock: serve them on a MonotonicClock")
         self.tick_s = tick_s
-        self.ports = {name: PtyPort() for name in twins}
+        self.ports: dict[str, SerialPort] = {}
+        try:
+            for name in twins:
+                self.ports[name] = RelayedPort() if name in relayed else PtyPort()
+        except BaseException:
+            for port in self.ports.values():
+                port.close()
+            raise
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="labrig-twins", daemon=True)
         self.error: BaseException | None = None
@@ -92,6 +188,9 @@ class TwinServer:
         self.unplugged: set[str] = set()
         self._unplug_lock = threading.Lock()
         self._unplug_requests: list[tuple[str, threading.Event]] = []
+        #: Host time (us) up to which every twin has run on everything the host wrote before it:
+        #: what a twin does (an output edge) before this time is known to its callbacks.
+        self.served_until_us = -(1 << 62)
 
     @property
     def paths(self) -> dict[str, str]:
@@ -142,7 +241,8 @@ class TwinServer:
         self.stop()
 
     def _run(self) -> None:
-        masters = {port.master: name for name, port in self.ports.items()}
+        masters = {port.fileno(): name for name, port in self.ports.items()}
+        relayed = [name for name, port in self.ports.items() if isinstance(port, RelayedPort)]
         try:
             while not self._stop.is_set():
                 if self._unplug_requests:
@@ -151,20 +251,22 @@ class TwinServer:
                     for name, done in requests:
                         self._pull(name)
                         done.set()
-                    masters = {port.master: name for name, port in self.ports.items() if name not in self.unplugged}
+                    masters = {port.fileno(): name for name, port in self.ports.items() if name not in self.unplugged}
+                    relayed = [name for name in relayed if name not in self.unplugged]
                 readable, _, _ = select.select(list(masters), [], [], self.tick_s)
                 now = self.now_us()
-                for fd in readable:
-                    name = masters[fd]
-                    data = self.ports[name].read()
-                    if data:
-                        self.twins[name].receive(data, now)
+                # Relayed bytes stamped before ``now`` are in their sockets by now: take them all
+                # before the twins run on to ``now``, so that each acts on its bytes at their stamps.
+                for name in {*(masters[fd] for fd in readable), *relayed}:
+                    for stamp_us, data in self.ports[name].receive(now):
+                        self.twins[name].receive(data, stamp_us)
                 for name, twin in self.twins.items():
                     if name in self.unplugged:
                         continue
-                    out = twin.transmit(self.now_us())
+                    out = twin.transmit(now)
                     if out:
                         self.ports[name].write(out)
+                self.served_until_us = now
         except BaseException as exc:  # surfaced to the owner; the thread must not die silently
             self.error = exc
             raise

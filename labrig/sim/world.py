@@ -114,7 +114,11 @@ class LiveWorld:
             bota_params or BotaTwinParams(clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM, seed=seed),
             wrench_at=self._wrench_at,
         )
-        self.server = TwinServer({"grbl": self.grbl, "bota": self.bota, **(extra_twins or {})}, clock=self.clock)
+        # The GRBL twin's port in a relay process: it switches its trigger output when a line
+        # arrives, which must not wait on this process's renderer (see labrig.sim.pty_relay).
+        relayed = {"grbl"} if isinstance(self.clock, MonotonicClock) else set()
+        self.server = TwinServer({"grbl": self.grbl, "bota": self.bota, **(extra_twins or {})}, clock=self.clock,
+                                 relayed=relayed)
         self.stats = WorldStats()
         self.error: BaseException | None = None
         self._origin_us: int | None = None
@@ -189,10 +193,13 @@ class LiveWorld:
     def _render_loop(self) -> None:
         try:
             while not self._stop.is_set():
-                target = self.now_world_us() - self.render_lag_us
+                # Never past what the twins have served: an output edge (the camera trigger) a
+                # starved twin switches late, at its line's arrival, must still lie ahead.
+                served = self.server.served_until_us - self.origin_us
+                target = min(self.now_world_us() - self.render_lag_us, served)
                 ahead = target - self.rig.t_us
                 if ahead < self.chunk_us:
-                    self._stop.wait((self.chunk_us - ahead) / 1e6)
+                    self._stop.wait(min(self.chunk_us - ahead, self.chunk_us) / 1e6)
                     continue
                 t_end = self.rig.t_us + min(ahead, 5 * self.chunk_us)
                 out = self.rig.advance(t_end, self._tool_world)
