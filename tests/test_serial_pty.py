@@ -78,3 +78,94 @@ def test_unplug_closes_one_port_and_the_other_twins_keep_running() -> None:
         gone.close()
         echo.close()
     assert server.error is None
+
+
+class StallingRecorder:
+    """A twin that keeps the server busy for ``stall_s`` when the host first writes (a starved
+    server), and records the arrival stamps it is given."""
+
+    def __init__(self, stall_s: float) -> None:
+        self.stall_s = stall_s
+        self.stamps: list[int] = []
+
+    def receive(self, data: bytes, now_us: int) -> None:
+        self.stamps.append(now_us)
+        if len(self.stamps) == 1:
+            time.sleep(self.stall_s)
+
+    def transmit(self, now_us: int) -> bytes:
+        return b""
+
+
+@pytest.mark.parametrize("relayed", [False, True])
+def test_a_relayed_port_stamps_bytes_when_they_arrive_not_when_the_server_gets_to_them(relayed: bool) -> None:
+    twin = StallingRecorder(stall_s=0.2)
+    with TwinServer({"dev": twin}, relayed={"dev"} if relayed else set()) as server:
+        port = serial.Serial(server.paths["dev"], 115200, timeout=1.0)
+        port.write(b"a")  # stalls the server for 0.2 s
+        deadline = time.monotonic() + 2.0
+        while not twin.stamps and time.monotonic() < deadline:
+            time.sleep(0.001)
+        written_us = time.monotonic_ns() // 1000
+        port.write(b"b")
+        deadline = time.monotonic() + 2.0
+        while len(twin.stamps) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        port.close()
+    late_us = twin.stamps[1] - written_us
+    if relayed:
+        assert 0 <= late_us < 20_000
+    else:
+        assert late_us > 100_000  # the server read it after its stall
+
+
+def test_a_relayed_port_unplugs_and_its_relay_exits_with_the_server() -> None:
+    from labrig.sim.serial_pty import RelayedPort
+
+    with TwinServer({"echo": EchoUpper(), "gone": EchoUpper()}, relayed={"echo", "gone"}) as server:
+        ports = dict(server.ports)
+        echo = serial.Serial(server.paths["echo"], 115200, timeout=1.0)
+        echo.write(b"hi\n")
+        assert echo.readline() == b"HI\r\n"
+        gone = serial.Serial(server.paths["gone"], 115200, timeout=0.2)
+        server.unplug("gone")
+        with pytest.raises(serial.SerialException):
+            gone.write(b"x")
+            gone.read(1)
+        echo.close()
+    for port in ports.values():
+        assert isinstance(port, RelayedPort) and port._process.poll() is not None
+
+
+def test_a_relay_exits_when_its_server_process_is_killed(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, time\n"
+        "from labrig.sim.serial_pty import TwinServer\n"
+        "class T:\n"
+        "    def receive(self, data, now_us): pass\n"
+        "    def transmit(self, now_us): return b''\n"
+        "s = TwinServer({'t': T()}, relayed={'t'}).start()\n"
+        "print(s.ports['t']._process.pid, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    server = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    relay_pid = int(server.stdout.readline())  # type: ignore[union-attr]
+    os.kill(server.pid, signal.SIGKILL)
+    server.wait()
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        try:
+            os.kill(relay_pid, 0)
+        except ProcessLookupError:
+            return
+        with open(f"/proc/{relay_pid}/stat") as f:  # reaped by init or a zombie of ours: gone either way
+            if f.read().split()[2] == "Z":
+                return
+        time.sleep(0.05)
+    os.kill(relay_pid, signal.SIGKILL)
+    pytest.fail("the relay outlived its server by 2 s")
