@@ -102,7 +102,7 @@ def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
 
 
 def test_sweep_charts_accuracy_against_latency(campaign: Path, models: Path, tmp_path: Path) -> None:
-    from labrig.evaluation.executor import run_tasks
+    from labrig.executor import run_tasks
     from labrig.evaluation.report import Report
     from labrig.evaluation.sweep import add_sweep_to_report, run_sweep
     from labrig.pipeline.depthnet import build_unet, export_onnx

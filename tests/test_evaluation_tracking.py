@@ -16,7 +16,7 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
-from labrig.evaluation.executor import run_tasks
+from labrig.executor import run_tasks
 from labrig.evaluation.tracking import (
     LOST_PX,
     TrackingResult,

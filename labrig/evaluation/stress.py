@@ -36,7 +36,7 @@ from matplotlib.lines import Line2D
 from labrig.config import DEFAULT_RIG
 from labrig.dataset import sidecar_path
 from labrig.evaluation import charts
-from labrig.evaluation.executor import Run
+from labrig.executor import Run
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.stress_axes import AXES, StressAxis

@@ -27,7 +27,7 @@ import numpy as np
 from labrig.dataset import sidecar_path
 from labrig.evaluation import charts, tables
 from labrig.evaluation.depth import DepthTask, evaluate_depth
-from labrig.evaluation.executor import Run
+from labrig.executor import Run
 from labrig.evaluation.forces import ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.tracking import TrackingTask, track_recording
