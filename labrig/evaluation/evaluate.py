@@ -29,12 +29,12 @@ from labrig.errors import LabrigError
 from labrig.evaluation import stress as stress_suite
 from labrig.evaluation import tables
 from labrig.evaluation.depth import DepthResult, DepthTask, evaluate_depth
-from labrig.executor import Run, run_tasks
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.groundtruth_error import GroundTruthErrorResult, GroundTruthErrorTask, evaluate_groundtruth
 from labrig.evaluation.stress import StressResult
 from labrig.evaluation.sweep import SweepResult, run_sweep
 from labrig.evaluation.tracking import TABLE_PATCH_SCALES, TrackingResult, table_lost_tracks, table_tasks, track_recording
+from labrig.executor import Run, run_tasks
 from labrig.models import BUNDLED, bundled_model_path, model_path
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
 
