@@ -102,9 +102,9 @@ def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
 
 
 def test_sweep_charts_accuracy_against_latency(campaign: Path, models: Path, tmp_path: Path) -> None:
-    from labrig.evaluation.executor import run_tasks
     from labrig.evaluation.report import Report
     from labrig.evaluation.sweep import add_sweep_to_report, run_sweep
+    from labrig.executor import run_tasks
     from labrig.pipeline.depthnet import build_unet, export_onnx
 
     export_onnx(build_unet(width=4).eval(), models / "depth-w4-contact-10ms.onnx",

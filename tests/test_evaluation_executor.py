@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from labrig.errors import LabrigError
-from labrig.evaluation.executor import TasksFailed, run_tasks, task_inputs
-from labrig.evaluation.result_cache import ResultCache, file_fingerprint
+from labrig.executor import TasksFailed, run_tasks, task_inputs
+from labrig.result_cache import ResultCache, file_fingerprint
 
 
 def summarise_file(task: dict[str, Any]) -> dict[str, Any]:
@@ -215,7 +215,7 @@ def test_scheduler_without_dask_says_what_to_install(monkeypatch: pytest.MonkeyP
 
 
 def test_importing_the_evaluation_needs_no_dask() -> None:
-    code = ("import sys, labrig, labrig.evaluation.executor, labrig.evaluation.tracking; "
+    code = ("import sys, labrig, labrig.executor, labrig.evaluation.tracking; "
             "print(any(m == 'dask' or m.startswith(('dask.', 'distributed')) for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

@@ -17,11 +17,11 @@ from labrig.cli import app
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
 from labrig.evaluation import stress
-from labrig.evaluation.executor import TaskResults, run_tasks
 from labrig.evaluation.report import Report, check_report
 from labrig.evaluation.stress import StressCurve, StressResult, breakdown_of, plan, run_stress, stress_summary
 from labrig.evaluation.stress_axes import AXES, axis_named
 from labrig.evaluation.stress_scene import StressScene
+from labrig.executor import TaskResults, run_tasks
 from labrig.indenters import Indenter
 
 TESTED_AXES = ("force_range", "event_noise")

@@ -16,7 +16,6 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
-from labrig.evaluation.executor import run_tasks
 from labrig.evaluation.tracking import (
     LOST_PX,
     TrackingResult,
@@ -27,6 +26,7 @@ from labrig.evaluation.tracking import (
     truth_at,
     truth_errors,
 )
+from labrig.executor import run_tasks
 from labrig.indenters import Indenter
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path

@@ -232,6 +232,21 @@ def test_cli_campaign_folder(probe: Path, tmp_path: Path) -> None:
     assert summary["results"][0]["split"] == "train"
 
 
+def test_cli_campaign_folder_on_worker_processes(probe: Path, tmp_path: Path) -> None:
+    """--workers 2: the same sidecars through the executor's local processes."""
+    import shutil
+
+    for name in ("a", "b"):
+        shutil.copy(probe, tmp_path / f"{name}.h5")
+    (tmp_path / "manifest.csv").write_text("id,split,status,file,sha256\na,train,complete,a.h5,\nb,val,complete,b.h5,\n")
+    result = _run(str(tmp_path), "--json", "--rate-hz", "20", "--workers", "2")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["written"] == 2 and summary["failed"] == 0
+    assert [r["split"] for r in summary["results"]] == ["train", "val"]
+    assert (tmp_path / "a.gt.h5").exists() and (tmp_path / "b.gt.h5").exists()
+
+
 @pytest.mark.parametrize(("make", "message"), [
     (lambda d: d, "no manifest.csv"),
     (lambda d: (d / "notes.txt").write_text("hello") and d / "notes.txt", "not an HDF5 file"),

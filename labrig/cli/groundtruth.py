@@ -32,12 +32,15 @@ def groundtruth(
     rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
     plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
+    workers: Annotated[int, typer.Option(help="Recordings in parallel, local processes (1: in this process).")] = 1,
+    scheduler: Annotated[str | None, typer.Option(help="A Dask scheduler (tcp://host:8786) instead of --workers.")] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Ground-truth normal-deformation maps and contact masks for recordings, as NAME.gt.h5 beside each."""
     from labrig.dataset import DatasetRecording, open_data
-    from labrig.groundtruth import ELASTIC_MODELS, generate, write_sidecar
-    from labrig.groundtruth.batch import is_current, plot_groundtruth
+    from labrig.executor import run_tasks
+    from labrig.groundtruth import ELASTIC_MODELS
+    from labrig.groundtruth.batch import SidecarTask, is_current, plot_groundtruth, write_sidecar_task
 
     if model not in ELASTIC_MODELS:
         raise LabrigError(f"--model must be one of {', '.join(ELASTIC_MODELS)}, not {model!r}")
@@ -45,6 +48,8 @@ def groundtruth(
         raise LabrigError(f"--method must be auto, hertz, sneddon or numerical, not {method!r}")
     if rate_hz <= 0 or scale_mm <= 0:
         raise LabrigError("--rate-hz and --scale-mm must be positive")
+    if workers < 1:
+        raise LabrigError("--workers must be at least 1")
     if calibration is not None and not calibration.is_dir():
         raise LabrigError(f"--calibration {calibration}: not a folder")
     source = open_data(data)
@@ -55,39 +60,25 @@ def groundtruth(
         settings["contact_model"] = method
     results: list[dict[str, Any]] = []
     start = time.perf_counter()
+    tasks = []
+    for job in jobs:
+        if not overwrite and is_current(job, settings):
+            results.append({"recording": str(job.path), "split": job.split, "status": "current", "sidecar": str(job.sidecar)})
+        else:
+            tasks.append(SidecarTask(str(job.path), str(job.sidecar), job.split, model, method, float(rate_hz),
+                                     float(scale_mm), None if calibration is None else str(calibration),
+                                     None if rig_path is None else str(rig_path)))
     with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
-        overall = bar.add_task("recordings", total=len(jobs))
-        maps = bar.add_task("maps", total=None)
-        for job in jobs:
-            entry: dict[str, Any] = {"recording": str(job.path), "split": job.split}
-            if not overwrite and is_current(job, settings):
-                entry.update(status="current", sidecar=str(job.sidecar))
-                results.append(entry)
-                bar.advance(overall)
-                continue
-            bar.update(maps, description=f"maps {job.path.name}", completed=0, total=None)
-            try:
-                gt = generate(job.path, elastic=model, method=method, rate_hz=rate_hz, scale_mm=scale_mm,
-                              calibration_dir=calibration, rig_path=rig_path,
-                              progress=lambda done, total: bar.update(maps, completed=done, total=total))
-                side = write_sidecar(gt, job.sidecar)
-            except LabrigError as exc:
-                if len(jobs) == 1:
-                    raise
-                entry.update(status="failed", reason=str(exc))
-            else:
-                n = int(gt.t_us.size)
-                duration_s = float(gt.t_us[-1] - gt.t_us[0]) / 1e6 if n > 1 else 0.0
-                entry.update(status="written", sidecar=str(side), maps=n, seconds=round(gt.seconds, 3),
-                             maps_per_s=round(n / gt.seconds, 1) if gt.seconds > 0 else None,
-                             recording_s=round(duration_s, 3), elastic_model=gt.attrs["elastic_model"],
-                             contact_model=gt.attrs["contact_model"],
-                             max_indentation_mm=round(float(gt.indentation_mm.max(initial=0.0)), 4),
-                             max_depth_mm=round(float(gt.depth_mm.max(initial=0.0)), 4),
-                             camera_source=gt.attrs["camera_source"], gel_pose_source=gt.attrs["gel_pose_source"],
-                             gel_source=gt.attrs["gel_source"], bytes=side.stat().st_size)
-            results.append(entry)
-            bar.advance(overall)
+        overall = bar.add_task("recordings", total=len(jobs), completed=len(results))
+        done = run_tasks(write_sidecar_task, tasks, workers=workers, scheduler=scheduler, use_cache=False,
+                         raise_on_error=False, progress=lambda n, total: bar.update(overall, completed=len(results) + n))
+    for task, entry, in zip(tasks, done):
+        results.append(entry if entry is not None else {"recording": task.recording, "split": task.split,
+                                                        "status": "failed", "reason": "the task raised"})
+    for failure in done.failures:
+        results[len(results) - len(tasks) + failure.index]["reason"] = f"{failure.error}: {failure.message}"
+    if len(jobs) == 1 and results[0]["status"] == "failed":
+        raise LabrigError(results[0]["reason"])
     written = [r for r in results if r["status"] == "written"]
     total_maps = sum(r["maps"] for r in written)
     busy_s = sum(r["seconds"] for r in written)

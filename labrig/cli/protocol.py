@@ -108,6 +108,11 @@ def campaign(
     file: Annotated[Path, typer.Argument(help="Campaign TOML (e.g. protocols/paper.toml).")],
     out: Annotated[Path, typer.Option("--out", help="Output directory (recordings and manifest.csv).")] = Path("data"),
     workers: Annotated[int, typer.Option(help="Virtual rigs in parallel (hardware campaigns run one at a time).")] = 1,
+    virtual_time: Annotated[bool, typer.Option("--virtual-time", help=(
+        "Simulate each recording in its own time on the virtual rig instead of serving it live to the drivers: "
+        "deterministic, as fast as the CPU allows (training data; see docs/running.md)."))] = False,
+    scheduler: Annotated[str | None, typer.Option(help="With --virtual-time: a Dask scheduler (tcp://host:8786) "
+                                                       "instead of --workers local processes.")] = None,
     limit: Annotated[int | None, typer.Option(help="Record at most this many of the pending recordings.")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="Hardware: do not ask before each indenter change.")] = False,
     rig_path: RigOption = None,
@@ -125,10 +130,16 @@ def campaign(
     rig, indenters, ind_path = load_rig_and_indenters(rig_path, indenters_path)
     plan = load_campaign(file, rig, indenters)
     devices = device_config(rig)
-    if workers > 1 and not devices.virtual:
+    if scheduler is not None and not virtual_time:
+        raise LabrigError("--scheduler needs --virtual-time: through-driver runs are served live by local virtual rigs")
+    if workers > 1 and not devices.virtual and not virtual_time:
         raise LabrigError("--workers > 1 needs the virtual rig: a hardware campaign runs one recording at a time")
     out.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(out, plan)
+    if virtual_time:
+        _virtual_campaign(plan, manifest, out, rig.path, ind_path, workers=workers, scheduler=scheduler, limit=limit,
+                          as_json=as_json)
+        return
     protocol_text = plan.protocol.read_text() if plan.protocol is not None else ""
     jobs = pending_jobs(plan, manifest, out, rig_path=rig.path, indenters_path=ind_path, protocol_toml=protocol_text,
                         workers=workers)
@@ -196,6 +207,70 @@ def campaign(
     console.print(f"manifest: {manifest.path}")
     if summary["pending"]:
         console.print("[yellow]some recordings are not complete: run the same command again to resume[/]")
+
+
+def _virtual_campaign(plan: Any, manifest: Any, out: Path, rig_path: Path, indenters_path: Path, *, workers: int,
+                      scheduler: str | None, limit: int | None, as_json: bool) -> None:
+    from labrig.protocol.virtual_campaign import pending_tasks, run_virtual_campaign
+
+    tasks = pending_tasks(plan, manifest, out, rig_path=rig_path, indenters_path=indenters_path, limit=limit)
+    skipped = sum(1 for p in plan.plans if manifest.done(p, out))
+    manifest.save()
+    if not as_json:
+        where = f"on the Dask cluster at {scheduler}" if scheduler else f"{workers} in parallel"
+        err_console.print(f"{len(tasks)} recordings in virtual time ({where})")
+    counts = {"complete": 0, "aborted": 0, "failed": 0}
+    simulated_s = 0.0
+    t0 = time.monotonic()
+    with progress_bar(TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
+        task = bar.add_task(f"campaign {plan.name} (virtual time)", total=len(tasks) or 1)
+
+        def take(outcome: Any) -> None:
+            nonlocal simulated_s
+            counts[outcome.status if outcome.status in counts else "failed"] += 1
+            bar.update(task, advance=1, description=f"campaign {plan.name}: {outcome.plan_id}")
+            if outcome.status != "complete":
+                err_console.print(f"[yellow]{outcome.plan_id} {outcome.status}[/]: {outcome.reason}")
+
+        outcomes = run_virtual_campaign(plan, manifest, tasks, workers=workers, scheduler=scheduler, take=take)
+    wall = time.monotonic() - t0
+    cpu_s = sum(o.duration_s for o in outcomes)
+    for o in outcomes:
+        row = manifest.rows[o.plan_id]
+        if o.status == "complete" and row["file"]:
+            simulated_s += _recording_seconds(out / row["file"])
+    summary = {
+        "campaign": plan.name, "out": str(out), "manifest": str(manifest.path), "made_by": "virtual-time",
+        "recordings": len(plan.plans), "skipped_complete": skipped, "recorded": counts["complete"],
+        "aborted": counts["aborted"], "failed": counts["failed"],
+        "pending": sum(1 for r in manifest.rows.values() if r["status"] != "complete"),
+        "workers": None if scheduler else workers, "scheduler": scheduler, "wall_s": round(wall, 2),
+        "recordings_per_min": round(60 * len(outcomes) / wall, 3) if outcomes and wall > 0 else 0.0,
+        "simulated_s": round(simulated_s, 2), "task_s_total": round(cpu_s, 2),
+        "simulated_s_per_task_s": round(simulated_s / cpu_s, 3) if cpu_s > 0 else 0.0,
+        "splits": {s: sum(1 for r in manifest.rows.values() if r["split"] == s) for s in SPLITS},
+    }
+    if as_json:
+        print_json(summary)
+    else:
+        table = Table(title=f"campaign {plan.name} (virtual time)", title_justify="left")
+        for column in ("recordings", "skipped", "recorded", "aborted", "failed", "pending", "per min", "sim s / task s"):
+            table.add_column(column, justify="right")
+        table.add_row(*(str(summary[k]) for k in ("recordings", "skipped_complete", "recorded", "aborted", "failed", "pending")),
+                      f"{summary['recordings_per_min']:.2f}", f"{summary['simulated_s_per_task_s']:.2f}")
+        console.print(table)
+        console.print(f"manifest: {manifest.path}")
+        if summary["pending"]:
+            console.print("[yellow]some recordings are not complete: run the same command again to resume[/]")
+    if counts["failed"]:
+        raise typer.Exit(1)
+
+
+def _recording_seconds(path: Path) -> float:
+    from labrig.recording import Recording
+
+    with Recording(path) as rec:
+        return rec.end_us() / 1e6
 
 
 def _limit(jobs: list[Any], limit: int) -> list[Any]:

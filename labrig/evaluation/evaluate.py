@@ -2,7 +2,7 @@
 
 :func:`evaluate_campaign` plans every per-recording task (tracking for Table I, depth for
 Table II and the per-range analysis, forces for Table III, label errors on the virtual
-rig), runs them through :func:`labrig.evaluation.executor.run_tasks` (parallel, cached) and
+rig), runs them through :func:`labrig.executor.run_tasks` (parallel, cached) and
 keeps their results (frozen dataclasses) in an :class:`Evaluation` with the headline numbers;
 :mod:`labrig.evaluation.report_sections` turns that into the report.
 """
@@ -29,12 +29,12 @@ from labrig.errors import LabrigError
 from labrig.evaluation import stress as stress_suite
 from labrig.evaluation import tables
 from labrig.evaluation.depth import DepthResult, DepthTask, evaluate_depth
-from labrig.evaluation.executor import Run, run_tasks
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.groundtruth_error import GroundTruthErrorResult, GroundTruthErrorTask, evaluate_groundtruth
 from labrig.evaluation.stress import StressResult
 from labrig.evaluation.sweep import SweepResult, run_sweep
 from labrig.evaluation.tracking import TABLE_PATCH_SCALES, TrackingResult, table_lost_tracks, table_tasks, track_recording
+from labrig.executor import Run, run_tasks
 from labrig.models import BUNDLED, bundled_model_path, model_path
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
 

@@ -36,12 +36,12 @@ from matplotlib.lines import Line2D
 from labrig.config import DEFAULT_RIG
 from labrig.dataset import sidecar_path
 from labrig.evaluation import charts
-from labrig.evaluation.executor import Run
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.stress_axes import AXES, StressAxis
 from labrig.evaluation.stress_scene import SceneFacts, StressScene, record_scene, stressed_rig
 from labrig.evaluation.tracking import TrackingTask, track_recording
+from labrig.executor import Run
 
 #: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
 TRACKERS = {"paper": 3.0, "paper-published": 1.0, "evetac": 1.0}

@@ -27,10 +27,10 @@ import numpy as np
 from labrig.dataset import sidecar_path
 from labrig.evaluation import charts, tables
 from labrig.evaluation.depth import DepthTask, evaluate_depth
-from labrig.evaluation.executor import Run
 from labrig.evaluation.forces import ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.tracking import TrackingTask, track_recording
+from labrig.executor import Run
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS
 
 TOLERANCE = 0.05

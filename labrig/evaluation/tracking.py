@@ -8,7 +8,7 @@ tracker's error is measured directly at each window's end, and a track counts as
 the truth when that error exceeds 15 px at any time (it may have recovered by the end,
 which the start-end proxy cannot see).
 
-:func:`track_recording` is a pure task for :func:`labrig.evaluation.executor.run_tasks`;
+:func:`track_recording` is a pure task for :func:`labrig.executor.run_tasks`;
 :func:`table_lost_tracks` turns its results into Table I rows (mean and std over recordings).
 
 Settings map onto the trackers as follows. ``patch_scale`` is the patch side in marker

@@ -1,7 +1,9 @@
-"""Ground truth for the recordings of a campaign folder: whether a sidecar is current; a plot of a few maps."""
+"""Ground truth for the recordings of a campaign folder: whether a sidecar is current, one sidecar as an
+executor task (:func:`labrig.executor.run_tasks`), a plot of a few maps."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +12,7 @@ import numpy as np
 
 from labrig.cache import sha256_of
 from labrig.dataset import DatasetRecording
+from labrig.errors import LabrigError
 from labrig.groundtruth.inputs import GroundTruthError
 from labrig.groundtruth.sidecar import FORMAT, load_groundtruth
 from labrig.recording import Recording
@@ -85,3 +88,45 @@ def plot_groundtruth(recording: str | Path, gt_path: str | Path, out: str | Path
     fig.savefig(out, dpi=80)
     plt.close(fig)
     return out
+
+
+@dataclass(frozen=True)
+class SidecarTask:
+    """One recording's ground truth to write (plain values, so it travels to a worker process or a Dask worker)."""
+
+    recording: str
+    sidecar: str
+    split: str
+    elastic: str
+    method: str
+    rate_hz: float
+    scale_mm: float
+    calibration_dir: str | None
+    rig_path: str | None
+
+
+def write_sidecar_task(task: SidecarTask) -> dict[str, Any]:
+    """Generate and write one sidecar; returns its summary entry (``status`` ``written``, or
+    ``failed`` with the reason for a recording that cannot be labelled)."""
+    from labrig.groundtruth.generate import generate
+    from labrig.groundtruth.sidecar import write_sidecar
+
+    entry: dict[str, Any] = {"recording": task.recording, "split": task.split}
+    try:
+        gt = generate(task.recording, elastic=task.elastic, method=task.method, rate_hz=task.rate_hz,
+                      scale_mm=task.scale_mm, calibration_dir=task.calibration_dir, rig_path=task.rig_path)
+        side = write_sidecar(gt, task.sidecar)
+    except LabrigError as exc:
+        entry.update(status="failed", reason=str(exc))
+        return entry
+    n = int(gt.t_us.size)
+    duration_s = float(gt.t_us[-1] - gt.t_us[0]) / 1e6 if n > 1 else 0.0
+    entry.update(status="written", sidecar=str(side), maps=n, seconds=round(gt.seconds, 3),
+                 maps_per_s=round(n / gt.seconds, 1) if gt.seconds > 0 else None,
+                 recording_s=round(duration_s, 3), elastic_model=gt.attrs["elastic_model"],
+                 contact_model=gt.attrs["contact_model"],
+                 max_indentation_mm=round(float(gt.indentation_mm.max(initial=0.0)), 4),
+                 max_depth_mm=round(float(gt.depth_mm.max(initial=0.0)), 4),
+                 camera_source=gt.attrs["camera_source"], gel_pose_source=gt.attrs["gel_pose_source"],
+                 gel_source=gt.attrs["gel_source"], bytes=Path(side).stat().st_size)
+    return entry

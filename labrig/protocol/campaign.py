@@ -57,7 +57,7 @@ class Manifest:
             row = _plan_row(plan)
             before = old.get(plan.id)
             if before is not None and all(before.get(k) == row[k] for k in ("indenter", "x_mm", "y_mm", "split")):
-                row.update({k: before.get(k, "") for k in ("status", "reason", "file", "sha256", "duration_s")})
+                row.update({k: before.get(k) or "" for k in ("status", "reason", "file", "sha256", "duration_s", "made_by")})
             self.rows[plan.id] = row
 
     def done(self, plan: RecordingPlan, out_dir: Path) -> bool:
@@ -68,9 +68,10 @@ class Manifest:
         path = out_dir / row["file"]
         return path.exists() and sha256_of(path) == row["sha256"]
 
-    def record(self, outcome: Outcome) -> None:
+    def record(self, outcome: Outcome, made_by: str = "drivers") -> None:
+        """Store an outcome; ``made_by``: the path that made the recording (``drivers`` or ``virtual-time``)."""
         self.rows[outcome.plan_id].update(status=outcome.status, reason=outcome.reason, file=outcome.file,
-                                          sha256=outcome.sha256, duration_s=f"{outcome.duration_s:.3f}")
+                                          sha256=outcome.sha256, duration_s=f"{outcome.duration_s:.3f}", made_by=made_by)
         self.save()
 
     def save(self) -> None:
@@ -85,7 +86,7 @@ def _plan_row(plan: RecordingPlan) -> dict[str, str]:
         "force_n": "" if s.force_n is None else f"{s.force_n:g}", "normal_speed_mm_s": f"{s.normal_speed_mm_s:g}",
         "shear_direction_deg": f"{s.shear_direction_deg:g}", "shear_mm": f"{s.shear_mm:g}",
         "shear_speed_mm_s": f"{s.shear_speed_mm_s:g}", "wait_s": f"{s.wait_s:g}", "repetition": str(plan.repetition),
-        "split": plan.split, "status": "pending", "reason": "", "file": "", "sha256": "", "duration_s": "",
+        "split": plan.split, "status": "pending", "reason": "", "file": "", "sha256": "", "duration_s": "", "made_by": "",
     }
 
 

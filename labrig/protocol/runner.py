@@ -428,7 +428,8 @@ class ProbeRunner:
     def _open_writer(self, out: Path, spec: ProbeSpec, protocol_toml: str, extra: dict[str, Any] | None) -> RecordingWriter:
         from labrig.sim.truth import truth_streams
 
-        info = {"virtual_rig": self.session.virtual, "seed": self.session.seed, "location_mm": list(spec.location_mm),
+        info = {"virtual_rig": self.session.virtual, "made_by": "drivers", "seed": self.session.seed,
+                "location_mm": list(spec.location_mm),
                 "tare_n_nm": list(self.session.tare_n), "calibration": _calibration_files(self.rig), **(extra or {})}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      extra=info)

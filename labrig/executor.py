@@ -1,4 +1,6 @@
-"""Run one pure function over many tasks, in parallel, with every result cached on disk.
+"""Run one function over many tasks, in parallel, with every result cached on disk (a shared module).
+
+Used by ``labrig evaluate``, ``labrig groundtruth`` and virtual-time campaigns.
 
 :func:`run_tasks` sends ``fn(task)`` for each task through a ``concurrent.futures`` executor:
 in this process (``workers=1``), local processes (spawn context, one per core by default), or
@@ -11,8 +13,8 @@ nested dicts of them). A result is a frozen dataclass defined at module level (p
 it travels back from worker processes and Dask) of numbers, strings, None, numpy arrays,
 lists, and dicts and dataclasses of them; a dict of those works too.
 
-Every result is cached on disk (:class:`labrig.evaluation.result_cache.ResultCache`, default
-folder ``$LABRIG_CACHE/eval``), keyed by the function, its ``cache_version`` attribute, the
+Every result is cached on disk unless ``use_cache=False`` (:class:`labrig.result_cache.ResultCache`,
+default folder ``$LABRIG_CACHE/eval``), keyed by the function, its ``cache_version`` attribute, the
 task's inputs and the files they name: a rewritten or touched file misses, while an
 unchanged one costs a stat and about a megabyte of reading.
 """
@@ -34,7 +36,7 @@ import numpy as np
 
 from labrig.cache import cache_folder
 from labrig.errors import LabrigError
-from labrig.evaluation.result_cache import ResultCache
+from labrig.result_cache import ResultCache
 
 Task = Mapping[str, Any] | Any  # a dict, or a frozen dataclass instance
 ResultT = TypeVar("ResultT")  # what the task function returns: a frozen dataclass (or a dict)
@@ -101,12 +103,15 @@ class TasksFailed(LabrigError):
 def run_tasks(fn: Callable[[Any], ResultT], tasks: Sequence[Task], *, workers: int | None = None,
               scheduler: str | _HasExecutor | None = None, cache_dir: str | Path | None = None,
               use_cache: bool = True, progress: Progress | None = None,
-              raise_on_error: bool = True) -> TaskResults[ResultT]:
+              raise_on_error: bool = True,
+              on_result: Callable[[int, ResultT], None] | None = None) -> TaskResults[ResultT]:
     """``[fn(task) for task in tasks]``, in parallel and cached; see the module docstring.
 
     ``workers``: local processes (default: one per core); 1 runs in this process, no pool.
     ``scheduler``: a Dask scheduler address (or a ``distributed.Client``); overrides ``workers``.
-    ``progress(done, total)`` is called in this thread as tasks finish (cache hits first).
+    ``progress(done, total)`` is called in this thread as tasks finish (cache hits first);
+    ``on_result(index, result)`` too, for each task that returned (e.g. to update a manifest
+    as results come back rather than at the end).
     A task that raises does not stop the others; with ``raise_on_error`` the run then ends in
     :class:`TasksFailed` (which carries all results), else the failures are in ``.failures``.
     """
@@ -125,6 +130,8 @@ def run_tasks(fn: Callable[[Any], ResultT], tasks: Sequence[Task], *, workers: i
             todo.append(i)
         else:
             results[i] = cached
+            if on_result is not None:
+                on_result(i, cached)
     total, done = len(tasks), len(tasks) - len(todo)
     if progress is not None:
         progress(done, total)
@@ -138,6 +145,8 @@ def run_tasks(fn: Callable[[Any], ResultT], tasks: Sequence[Task], *, workers: i
             results[i] = outcome
             if store is not None:
                 store.save(keys[i], outcome, inputs[i])
+            if on_result is not None:
+                on_result(i, outcome)
         done += 1
         if progress is not None:
             progress(done, total)

@@ -1,0 +1,232 @@
+"""One probing run simulated in virtual time, into a recording shaped like a through-driver one.
+
+:func:`record_virtual` plays the runner's sequence (:mod:`labrig.protocol.runner`: the same
+checks, plan, phases, trigger edges, contact search, force targets, safety limits) against the
+virtual rig's devices stepped on a manual clock (:class:`~labrig.sim.offline.OfflineRig`), and
+routes their data into the recording as the rig session routes the drivers'
+(:mod:`labrig.protocol.routing`). Nothing waits on the wall clock, so the recording is the same
+for the same inputs and seed, whatever the load, and takes as long as the CPU needs.
+
+The recording says how it was made: root attribute ``extra_made_by`` = ``virtual-time`` (a
+through-driver campaign writes ``drivers``).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.calibration.registration_file import gel_pose
+from labrig.config import RigConfig
+from labrig.indenters import Indenter
+from labrig.physics.grid import network_grid_gel_mm
+from labrig.protocol.plan import ProbePlan
+from labrig.protocol.rigfile import safety_limits
+from labrig.protocol.routing import put_chunk, put_ft, put_gcode
+from labrig.protocol.runner import APPROACH_FRACTION, DETECT_SAMPLES, FINE_SPEED_MM_S, MOVE_MARGIN_S, ProbeRunner, RunResult
+from labrig.protocol.safety import ForceMonitor, SafetyLimits
+from labrig.protocol.session import NS_PER_US, RigSession
+from labrig.protocol.spec import ProbeSpec
+from labrig.recording import RecordingMetadata, RecordingWriter
+from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
+from labrig.sim.live import put_truth_rows, truth_rows
+from labrig.sim.offline import OfflineRig, OfflineSinks
+from labrig.sim.truth import truth_streams
+
+F64 = npt.NDArray[np.float64]
+MADE_BY_VIRTUAL_TIME = "virtual-time"
+MADE_BY_DRIVERS = "drivers"
+US = 1_000_000
+
+
+class _Abort(Exception):
+    pass
+
+
+class _LimitsOnly:
+    """What :meth:`ProbeRunner.check` reads of a session: its limits (the checks are the runner's own)."""
+
+    def __init__(self, limits: SafetyLimits) -> None:
+        self.limits = limits
+
+
+def record_virtual(spec: ProbeSpec, out: str | Path, rig: RigConfig, indenter: Indenter, *, seed: int = 0,
+                   protocol_toml: str = "", extra: dict[str, Any] | None = None) -> RunResult:
+    """Simulate the probing run ``spec`` in virtual time into ``out``; raises SafetyError before any
+    move if the plan is unsafe (the runner's checks), else returns the finalized recording."""
+    wall0 = time.perf_counter()
+    limits = safety_limits(rig)
+    checker = ProbeRunner(cast(RigSession, _LimitsOnly(limits)), rig, indenter, gel_in_machine=gel_pose(rig))
+    plan = checker.check(spec)
+    run = _VirtualRun(plan, rig, indenter, checker.limits, seed)
+    out = Path(out)
+    if out.exists():
+        out.unlink()
+    result = run.record(out, protocol_toml, extra or {})
+    result.wall_s = time.perf_counter() - wall0
+    return result
+
+
+class _VirtualRun:
+    def __init__(self, plan: ProbePlan, rig: RigConfig, indenter: Indenter, limits: SafetyLimits, seed: int) -> None:
+        self.plan, self.rig, self.indenter, self.limits, self.seed = plan, rig, indenter, limits, seed
+        self.writer: RecordingWriter | None = None
+        self.grid_gel = None
+        self.devices = OfflineRig(rig, indenter, seed=seed, start_tool_mm=plan.approach_start_mm, sinks=OfflineSinks(
+            ft=self._on_ft, cnc=self._on_cnc, gcode=self._on_gcode, camera=self._on_chunk, rig_chunk=self._on_rig_chunk))
+        self.monitor = ForceMonitor(limits, on_trip=self.devices.feed_hold)
+        self.level = 0
+        self.phases: list[str] = []
+
+    # -- routing (as RigSession routes the drivers' callbacks) -----------------------------------------
+
+    def _on_ft(self, sample: Any) -> None:
+        self.monitor.on_sample(sample.t_host_ns, sample.force_n)
+        if self.writer is not None:
+            put_ft(self.writer, sample)
+
+    def _on_cnc(self, status: Any) -> None:
+        if self.writer is not None:
+            row = status.columns()
+            row["t_host_us"] -= self.writer.t0_host_ns // NS_PER_US
+            self.writer.put("cnc", **row)
+
+    def _on_gcode(self, t_host_us: int, direction: int, line: bytes) -> None:
+        if self.writer is not None:
+            put_gcode(self.writer, t_host_us, direction, line)
+
+    def _on_chunk(self, chunk: Any) -> None:
+        if self.writer is not None:
+            put_chunk(self.writer, chunk)
+
+    def _on_rig_chunk(self, out: Any) -> None:
+        if self.writer is not None:
+            if self.grid_gel is None:
+                self.grid_gel = network_grid_gel_mm(self.rig, self.devices.rig.camera)
+            put_truth_rows(self.writer, truth_rows(out, self.grid_gel))
+
+    # -- the run ----------------------------------------------------------------------------------------
+
+    def record(self, out: Path, protocol_toml: str, extra: dict[str, Any]) -> RunResult:
+        d = self.devices
+        tare = d.power_on()
+        self.monitor.peak_n = np.zeros(3)
+        info = {"virtual_rig": True, "made_by": MADE_BY_VIRTUAL_TIME, "seed": self.seed,
+                "location_mm": list(self.plan.spec.location_mm), "tare_n_nm": list(tare), **extra}
+        metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
+                                     extra=info)
+        writer = RecordingWriter(out, metadata, clock=d.clock,
+                                 extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))).open()
+        self.writer = writer
+        result = RunResult(out, EXIT_COMPLETE)
+        try:
+            result.contact_mm = self._sequence()
+        except _Abort as abort:
+            result.exit_status, result.reason = EXIT_ABORTED, str(abort)
+            self._recover()
+        finally:
+            writer.phase_end(d.now_us - writer.t0_host_ns // NS_PER_US)
+            d.finish()
+            self.writer = None
+            recording = writer.close(result.exit_status, result.reason)
+            result.path = recording.path
+            result.phases = list(self.phases)
+            result.peak_force_n = tuple(float(v) for v in self.monitor.peak_n)  # type: ignore[assignment]
+        return result
+
+    def _phase(self, name: str) -> None:
+        writer = self.writer
+        assert writer is not None
+        self.level ^= 1
+        t_edge = self.devices.set_output(bool(self.level)) - writer.t0_host_ns // NS_PER_US
+        writer.put("trigger_out", t_host_us=t_edge, polarity=self.level)
+        writer.phase_begin(name, t_edge)
+        self.phases.append(name)
+
+    def _tripped(self) -> bool:
+        return self.monitor.trip is not None
+
+    def _check_trip(self) -> None:
+        trip = self.monitor.trip
+        if trip is not None:
+            raise _Abort(f"force limit: {trip.reason}")
+
+    def _move(self, target: F64, speed_mm_s: float, *, jog: bool = False) -> None:
+        d = self.devices
+        distance = float(np.linalg.norm(np.asarray(target) - np.asarray(d.timeline.tail_mm)))
+        d.move(target, speed_mm_s * 60, jog=jog)
+        self._wait(distance / speed_mm_s)
+
+    def _wait(self, nominal_s: float) -> None:
+        limit_s = 1.5 * nominal_s + MOVE_MARGIN_S
+        status = self.devices.wait_idle(round(limit_s * US), stop=self._tripped)
+        self._check_trip()
+        if status is None:
+            raise _Abort(f"the move did not finish within {limit_s:.1f} s")
+
+    def _sequence(self) -> tuple[float, float, float]:
+        plan, spec, d = self.plan, self.plan.spec, self.devices
+        self._phase("approach")
+        approach = spec.approach
+        reached = self.monitor.arm("contact", approach.contact_force_n, d.jog_cancel, average_samples=DETECT_SAMPLES)
+        self._move(plan.approach_limit_mm, approach.speed_mm_s, jog=True)
+        self.monitor.disarm()
+        if not reached.is_set():
+            raise _Abort(f"no contact within {approach.max_travel_mm} mm of the approach start "
+                         f"(|Fz| stayed under {approach.contact_force_n} N): check the gel height in the rig's gel pose")
+        contact = np.asarray(d.timeline.position_mm, dtype=np.float64)
+        self._phase("normal_down")
+        bottom = self._normal_down(contact)
+        steps: list[tuple[str, F64 | None, float]] = [("wait", None, spec.wait_s)]
+        if spec.shear_mm > 0:
+            steps += [("shear", plan.sheared_mm(bottom), spec.shear_speed_mm_s), ("wait", None, spec.wait_s),
+                      ("shear_opposite", bottom, spec.shear_speed_mm_s), ("wait", None, spec.wait_s)]
+        for name, target, value in steps:
+            self._phase(name)
+            if target is None:
+                d.dwell(round(value * US), stop=self._tripped)
+                self._check_trip()
+            else:
+                self._move(target, value)
+        self._phase("normal_up")
+        self._move(contact, spec.normal_speed_mm_s)
+        self._phase("retract")
+        self._move(contact - spec.retract_height_mm * plan.down, spec.retract_speed_mm_s)
+        return (float(contact[0]), float(contact[1]), float(contact[2]))
+
+    def _normal_down(self, contact: F64) -> F64:
+        plan, spec, d = self.plan, self.plan.spec, self.devices
+        if spec.depth_mm is not None:
+            self._move(plan.bottom_mm(contact), spec.normal_speed_mm_s)
+            return plan.bottom_mm(contact)
+        assert spec.force_n is not None
+        max_depth = min(spec.max_depth_mm or self.indenter.max_depth_mm, self.indenter.max_depth_mm)
+        deepest = plan.max_bottom_mm(contact, max_depth)
+        for threshold, speed in ((APPROACH_FRACTION * spec.force_n, spec.normal_speed_mm_s),
+                                 (spec.force_n, min(spec.normal_speed_mm_s, FINE_SPEED_MM_S))):
+            reached = self.monitor.arm("force", threshold, d.jog_cancel, average_samples=DETECT_SAMPLES)
+            self._move(deepest, speed, jog=True)
+            self.monitor.disarm()
+            if not reached.is_set():
+                raise _Abort(f"the force target {spec.force_n} N was not reached at the depth cap {max_depth} mm")
+        return np.asarray(d.timeline.position_mm, dtype=np.float64)
+
+    def _recover(self) -> None:
+        """After an abort: stop, flush the plan, go up along the gel normal to the retract point."""
+        plan, d = self.plan, self.devices
+        d.feed_hold()
+        d.dwell(500_000)
+        d.flush()
+        self._phase("retract")
+        here = np.asarray(d.timeline.position_mm, dtype=np.float64)
+        rise = float((here - plan.retract_mm) @ plan.down)
+        speed = plan.spec.retract_speed_mm_s
+        if rise > 0:
+            d.move(here - rise * plan.down, min(speed, plan.spec.normal_speed_mm_s * 2) * 60)
+            d.wait_idle(round((rise / speed * 3 + MOVE_MARGIN_S) * US))
+        d.move(plan.retract_mm, speed * 60)
+        d.wait_idle(30 * US)
