@@ -159,13 +159,14 @@ def plot_marker_residuals(marker_map: MarkerMap, path: str | Path, title: str = 
     norm_um = np.nan_to_num(marker_map.residual_norm_mm, nan=0.0) * 1e3
     residual = np.nan_to_num(marker_map.residual_px, nan=0.0)
     longest = float(marker_map.residual_norm_px[found].max()) if found.any() else 0.0
-    gain = 10.0 / longest if longest > 1.0 else 10.0  # the longest arrow about 10 px, never shrunk
+    pitch = float(np.median(np.linalg.norm(np.diff(nominal[: marker_map.cols], axis=0), axis=1)))
+    gain = 0.6 * pitch / max(longest, 1e-3)  # the longest arrow 0.6 of a pitch
     fig, ax = plt.subplots(figsize=(9, 6))
-    dots = ax.scatter(nominal[found, 0], nominal[found, 1], c=norm_um[found], cmap="viridis", s=60,
+    dots = ax.scatter(nominal[found, 0], nominal[found, 1], c=norm_um[found], cmap="viridis", s=40,
                       vmin=0.0, vmax=max(float(norm_um.max()), 1.0))
     fig.colorbar(dots, ax=ax, label="measured - nominal on the gel (um)")
     ax.quiver(nominal[found, 0], nominal[found, 1], gain * residual[found, 0], gain * residual[found, 1],
-              angles="xy", scale_units="xy", scale=1.0, color="tab:red", width=0.003)
+              angles="xy", scale_units="xy", scale=1.0, color="tab:red", width=0.003, zorder=3)
     ax.plot(nominal[missing, 0], nominal[missing, 1], "x", color="red", ms=12, mew=2.5,
             label=f"missing ({int(missing.sum())})")
     for worst in marker_map.worst(5):
@@ -176,7 +177,7 @@ def plot_marker_residuals(marker_map: MarkerMap, path: str | Path, title: str = 
     ax.set_xlabel("sensor x (px)")
     ax.set_ylabel("sensor y (px)")
     rms_um = float(np.sqrt(np.mean(norm_um[found] ** 2))) if found.any() else float("nan")
-    ax.set_title(f"{title}: residual rms {rms_um:.0f} um, max {float(norm_um.max()):.0f} um; arrows x{gain:.1f}")
+    ax.set_title(f"{title}: residual rms {rms_um:.0f} um, max {float(norm_um.max()):.0f} um; arrows x{gain:.0f}")
     if missing.any():
         ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
