@@ -182,3 +182,27 @@ def test_cli_calibrate_intrinsics_and_extrinsics(scenes: dict[str, Path], tmp_pa
     res = runner.invoke(app, ["calibrate", "extrinsics", str(target), "--intrinsics", str(tmp_path / "i.toml"),
                               "--out", str(tmp_path / "bad.toml")])
     assert isinstance(res.exception, CalibrationError) and "12x13" in str(res.exception)  # main() exits 2 on it
+
+
+def test_cli_extrinsics_reports_the_markers_as_printed(scenes: dict[str, Path], intrinsics: Intrinsics,
+                                                       tmp_path: Path) -> None:
+    """A perfect gel: no marker missing, every measured centre on its nominal site within the calibration's
+    accuracy (well under a pixel), and the residual map drawn beside the file."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from labrig.cli import app
+
+    res = CliRunner().invoke(app, ["calibrate", "extrinsics", str(scenes["led"]), "--intrinsics", str(intrinsics.path),
+                                   "--out", str(tmp_path / "e.toml"), "--json"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout)
+    assert summary["markers_missing"] == [] and summary["residual_max_px"] < 0.5 and summary["residual_max_mm"] < 0.02
+    assert len(summary["worst_residuals"]) == 5 and Path(summary["residual_map"]) == tmp_path / "e-residuals.png"
+    assert (tmp_path / "e-residuals.png").stat().st_size > 10_000
+    loaded = load_extrinsics(tmp_path / "e.toml")
+    assert loaded.format_version == 2 and np.abs(loaded.marker_map.rest_px - loaded.rest_px).max() < 0.5
+    table = CliRunner().invoke(app, ["calibrate", "extrinsics", str(scenes["led"]), "--intrinsics", str(intrinsics.path),
+                                     "--out", str(tmp_path / "t.toml")])
+    assert table.exit_code == 0 and "missing markers" in table.stdout and "none" in table.stdout

@@ -108,3 +108,22 @@ def test_labrig_run_rejects_bad_options(recording: Path, tmp_path: Path) -> None
                           ((str(tmp_path / "none.h5"),), "no such recording")):
         result = _invoke(*args)
         assert result.exit_code != 0 and message in (result.output + str(result.exception))
+
+
+def test_missing_markers_are_skipped_and_condensed(recording: Path) -> None:
+    """Three markers flagged missing (one under the contact): never tracked, forces finite and the press's
+    peak as with every marker (the depth network's input and the normal forces do not depend on them)."""
+    from dataclasses import replace
+
+    with Recording(recording) as rec:
+        setup = run_setup.setup_for_recording(rec, calibration_dir=None)
+        missing = np.zeros(len(setup.rest_px), bool)
+        missing[[20, 84, 150]] = True
+        runs = [list(runtime.Pipeline(s, depth_sources.TruthDepth(rec)).run(rec, window_us=10_000, concurrent=False))
+                for s in (setup, replace(setup, missing=missing))]
+    full, holed = runs
+    assert not any(r.updated[missing].any() for r in holed)
+    assert all(np.isfinite(r.forces_n).all() and np.isfinite(r.positions_px).all() for r in holed)
+    peak_full = min(r.net_force_n[2] for r in full)
+    peak_holed = min(r.net_force_n[2] for r in holed)
+    assert peak_holed == pytest.approx(peak_full, rel=0.02) and peak_full < -1.0

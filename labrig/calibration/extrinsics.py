@@ -28,14 +28,19 @@
    below the gel looking up, image x along gel x, image y along gel y).
 6. Markers without a candidate are fitted where that pose projects them;
    ``cv2.solvePnPRefineLM`` refines the pose, markers off by more than
-   max(3 x median, 1 px) are dropped and it is refined again; the per-marker
-   reprojection errors are reported.
+   max(3 x median, 1 px) are left out of it and it is refined again; the
+   per-marker reprojection errors are reported.
+7. The markers as printed (:class:`~labrig.calibration.marker_map.MarkerMap`):
+   every measured centre is kept, those left out of the pose included (a
+   marker printed off its site is still where it is); a marker with neither a
+   candidate nor a guided fit is missing. Residuals: measured less the nominal
+   lattice projected through the pose (px), and on the gel plane (mm).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -51,11 +56,21 @@ from labrig.calibration.eventframes import (
     fit_discs,
     harmonic_frame,
 )
-from labrig.calibration.files import DEFAULT_EXTRINSICS, Intrinsics, provenance, save_text_atomic, toml_table
+from labrig.calibration.files import (
+    DEFAULT_EXTRINSICS,
+    EXTRINSICS_FORMAT_VERSION,
+    Intrinsics,
+    marker_map_table,
+    provenance,
+    save_text_atomic,
+    toml_table,
+)
 from labrig.calibration.intrinsics import sensor_size
+from labrig.calibration.marker_map import MarkerMap
 from labrig.config import MarkerConfig
 from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix
+from labrig.physics.camera import CameraModel
 from labrig.recording import Recording
 
 Array = npt.NDArray[np.float64]
@@ -69,13 +84,15 @@ class ExtrinsicsResult:
     translation_mm: Array
     rest_gel_mm: Array  # (rows*cols, 3), node order row-major from -y, -x
     rest_px: Array  # projections of rest_gel_mm through the fitted pose, (rows*cols, 2)
-    measured_px: Array  # detected centres, NaN where a marker was not detected
+    measured_px: Array  # detected centres, NaN where a marker was not detected (missing)
     errors_px: Array  # per marker |measured - projected|, NaN where not detected
     blobs: Blobs
     spurious: int
     blinks: int
     frame: Array
     markers: MarkerConfig
+    in_pose: npt.NDArray[np.bool_]  # (M,) measured markers the pose was fitted on
+    marker_map: MarkerMap  # the markers as printed: measured rest, missing, residuals
     recording: Path | None = None
     recording_sha256: str = ""
 
@@ -85,15 +102,16 @@ class ExtrinsicsResult:
 
     @property
     def mean_error_px(self) -> float:
-        return float(np.nanmean(self.errors_px))
+        """Mean reprojection error over the markers the pose was fitted on (px)."""
+        return float(np.mean(self.errors_px[self.in_pose]))
 
     @property
     def std_error_px(self) -> float:
-        return float(np.nanstd(self.errors_px))
+        return float(np.std(self.errors_px[self.in_pose]))
 
     @property
     def max_error_px(self) -> float:
-        return float(np.nanmax(self.errors_px))
+        return float(np.max(self.errors_px[self.in_pose]))
 
 
 def associate_grid(
@@ -217,16 +235,18 @@ def _pose(obj: Array, img: Array, intrinsics: Intrinsics, rvec: Array, tvec: Arr
 def measure_markers(
     frame: Array, candidates: Blobs, labels: npt.NDArray[np.int64], markers: MarkerConfig, intrinsics: Intrinsics,
     nominal_rotvec_rad: tuple[float, float, float] = NOMINAL_ROTVEC_RAD,
-) -> tuple[Array, Array, Array]:
-    """Sub-pixel marker centres (rows*cols, 2; NaN where not measured) and the pose (rvec, tvec) they give.
+) -> tuple[Array, npt.NDArray[np.bool_], Array, Array]:
+    """Sub-pixel marker centres (rows*cols, 2; NaN where not measured), which of them the pose was fitted
+    on, and the pose (rvec, tvec).
 
     The matched candidates' discs are fitted freely (the strongest 40 give the
     markers' common radius and edge width), then all with that size fixed; the
     orientation is chosen (:func:`choose_orientation`); markers without a
     candidate are fitted where the pose projects them (kept if the fit stays
     within 2 px and its contrast is at least half the typical); after an LM
-    refinement, markers off by more than max(3 x median, 1 px) are dropped and
-    the pose refined again."""
+    refinement, markers off by more than max(3 x median, 1 px) are left out of
+    the pose (their centres are kept: a marker printed off its site is still
+    measured) and the pose refined again."""
     n_markers = markers.rows * markers.cols
     rest = markers.rest_positions_mm()
     good = np.flatnonzero(labels[:, 0] >= 0)
@@ -253,16 +273,17 @@ def measure_markers(
         typical = float(np.median(fixed.contrast[fixed.ok])) if fixed.ok.any() else 0.0
         keep = guided.ok & (guided.contrast >= 0.5 * typical)
         measured[missing[keep]] = guided.xy[keep]
+    in_pose = np.isfinite(measured[:, 0])
     for _ in range(2):
-        have = np.flatnonzero(np.isfinite(measured[:, 0]))
+        have = np.flatnonzero(in_pose)
         rvec, tvec = _pose(rest[have], measured[have], intrinsics, rvec, tvec)
         projected = cv2.projectPoints(rest[have], rvec, tvec, intrinsics.matrix, dist)[0].reshape(-1, 2)
         errors = np.linalg.norm(measured[have] - projected, axis=1)
         off = errors > max(3 * float(np.median(errors)), 1.0)
         if not off.any():
             break
-        measured[have[off]] = np.nan
-    return measured, rvec, tvec
+        in_pose[have[off]] = False
+    return measured, in_pose, rvec, tvec
 
 
 def calibrate_extrinsics(
@@ -275,7 +296,6 @@ def calibrate_extrinsics(
 ) -> ExtrinsicsResult:
     """Solve the gel-to-camera pose from an LED-blink recording (module docstring)."""
     recording = Path(recording)
-    n_markers = markers.rows * markers.cols
     with Recording(recording) as rec:
         width, height = sensor_size(rec)
         blinks = find_blinks(rec)
@@ -285,12 +305,30 @@ def calibrate_extrinsics(
                 "record the gel at rest while the LED ring switches off and on"
             )
         on, off = accumulate_polarities(rec, blinks, width, height)
-    frame = harmonic_frame(on, off)
+    result = extrinsics_from_frame(harmonic_frame(on, off), intrinsics, markers, nominal_rotvec_rad=nominal_rotvec_rad,
+                                   min_fraction=min_fraction, source=f"{recording}: ", blinks=len(blinks))
+    return replace(result, recording=recording, recording_sha256=sha256_of(recording))
+
+
+def extrinsics_from_frame(
+    frame: Array,
+    intrinsics: Intrinsics,
+    markers: MarkerConfig,
+    *,
+    nominal_rotvec_rad: tuple[float, float, float] = NOMINAL_ROTVEC_RAD,
+    min_fraction: float = 0.8,
+    source: str = "",
+    blinks: int = 0,
+) -> ExtrinsicsResult:
+    """Steps 2-7 of the module docstring on a marker frame (sensor px, markers brighter than the membrane).
+
+    ``source`` prefixes the error messages (the recording's name)."""
+    n_markers = markers.rows * markers.cols
     candidates = find_discs(frame, n_markers)
     need = math.ceil(min_fraction * n_markers)
     if len(candidates) < need:
         raise CalibrationError(
-            f"{recording}: {len(candidates)} marker blobs found in {len(blinks)} blink(s), need at least {need} of "
+            f"{source}{len(candidates)} marker blobs found in {blinks} blink(s), need at least {need} of "
             f"the {markers.rows}x{markers.cols} grid; check the LED blinks and that the markers are in view"
         )
     labels, spurious = associate_grid(candidates.xy, intrinsics, markers.rows, markers.cols,
@@ -298,24 +336,28 @@ def calibrate_extrinsics(
     matched = int((labels[:, 0] >= 0).sum())
     if matched < need:
         raise CalibrationError(
-            f"{recording}: {matched} of {len(candidates)} blobs matched the {markers.rows}x{markers.cols} marker "
+            f"{source}{matched} of {len(candidates)} blobs matched the {markers.rows}x{markers.cols} marker "
             f"grid (need {need}); check the marker rows/cols/pitch in the rig file and the intrinsics"
         )
-    measured, rvec, tvec = measure_markers(frame, candidates, labels, markers, intrinsics, nominal_rotvec_rad)
-    detected = int(np.isfinite(measured[:, 0]).sum())
+    measured, in_pose, rvec, tvec = measure_markers(frame, candidates, labels, markers, intrinsics, nominal_rotvec_rad)
+    detected = int(in_pose.sum())
     if detected < need:
         raise CalibrationError(
-            f"{recording}: {detected} of {len(candidates)} blobs matched the {markers.rows}x{markers.cols} marker "
+            f"{source}{detected} of {len(candidates)} blobs matched the {markers.rows}x{markers.cols} marker "
             f"grid after fitting (need {need}); check the marker rows/cols/pitch in the rig file and the intrinsics"
         )
     rest = markers.rest_positions_mm()
     projected, _ = cv2.projectPoints(rest, rvec, tvec, intrinsics.matrix, np.asarray(intrinsics.distortion))
     rest_px = projected.reshape(-1, 2)
     errors = np.linalg.norm(measured - rest_px, axis=1)
+    camera = CameraModel(intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px, intrinsics.cy_px, intrinsics.distortion,
+                         tuple(float(v) for v in rvec), tuple(float(v) for v in tvec),  # type: ignore[arg-type]
+                         intrinsics.width_px, intrinsics.height_px)
+    marker_map = MarkerMap.measure(markers.cols, rest_px, measured, in_pose, camera, rest)
     return ExtrinsicsResult(
         rotvec_rad=rvec.astype(float), translation_mm=tvec.astype(float), rest_gel_mm=rest,
         rest_px=rest_px, measured_px=measured, errors_px=errors, blobs=candidates, spurious=spurious,
-        blinks=len(blinks), frame=frame, markers=markers, recording=recording, recording_sha256=sha256_of(recording),
+        blinks=blinks, frame=frame, markers=markers, in_pose=in_pose, marker_map=marker_map,
     )
 
 
@@ -336,25 +378,26 @@ def write_extrinsics(result: ExtrinsicsResult, path: str | Path = DEFAULT_EXTRIN
         "blinks": result.blinks,
         "intrinsics_file": str(intrinsics.path) if intrinsics and intrinsics.path else "",
     }
+    body.update({"markers_missing": len(result.marker_map.missing_indices),
+                 "markers_in_pose": int(result.in_pose.sum())})
     m = result.markers
     markers = {
         "rows": m.rows, "cols": m.cols, "pitch_mm": m.pitch_mm,
         "rest_gel_mm": result.rest_gel_mm,
         "rest_px": result.rest_px,
-        "measured_px": result.measured_px,
         "detected": [bool(d) for d in result.detected],
         "error_px": result.errors_px,
     }
     text = (
         "# Gel-to-camera extrinsics (p_cam = R p_gel + t), from `labrig calibrate extrinsics`.\n"
         "# Markers in node order: row-major from -y, -x of the gel frame; rest_px projects rest_gel_mm through the pose;\n"
-        "# measured_px and error_px are nan where a marker was not detected.\n"
-        + toml_table("extrinsics", body) + "\n" + toml_table("markers", markers)
+        "# measured_px, residual_px/mm and error_px are nan where a marker is missing (listed in `missing`).\n"
+        f"format_version = {EXTRINSICS_FORMAT_VERSION}\n\n"
+        + toml_table("extrinsics", body) + "\n"
+        + toml_table("markers", {**markers, **marker_map_table(result.marker_map)})
         + "\n" + toml_table("source", provenance(result.recording, result.recording_sha256))
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     save_text_atomic(path, text)
     return path
 
-
-# -- reading ----------------------------------------------------------------------------------------

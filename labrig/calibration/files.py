@@ -6,6 +6,13 @@ or a wrong shape is a one-line :class:`CalibrationFileError` naming the file
 and the key. See docs/calibration.md for the keys. :func:`camera_model` picks
 the camera a rig's calibration works with: the calibrated one, else the
 virtual rig's true one.
+
+``extrinsics.toml`` versions (top-level ``format_version``; absent: 1): version 2 adds
+the markers as printed to ``[markers]`` (``measured_px``, ``in_pose``, ``missing``,
+``residual_px``, ``residual_mm``: :class:`~labrig.calibration.marker_map.MarkerMap`).
+A version-1 file is read with the measured centres it has (``measured_px``; a marker
+without one rests at its nominal projection) and no marker missing: version 1 did not
+tell a missing marker from one left out of the pose.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig import __version__
+from labrig.calibration.marker_map import MarkerMap
 from labrig.config import RigConfig
 from labrig.errors import CalibrationError, LabrigError
 from labrig.physics.camera import CameraModel
@@ -29,6 +37,8 @@ Array = npt.NDArray[np.float64]
 
 DEFAULT_INTRINSICS = Path("calibration/intrinsics.toml")
 DEFAULT_EXTRINSICS = Path("calibration/extrinsics.toml")
+#: ``extrinsics.toml``'s format (module docstring); readers accept every older one.
+EXTRINSICS_FORMAT_VERSION = 2
 
 
 class CalibrationFileError(LabrigError):
@@ -70,7 +80,9 @@ class Extrinsics:
     errors_px: Array
     mean_error_px: float
     std_error_px: float
+    marker_map: MarkerMap  # the markers as printed: measured rest positions (px), missing markers, residuals
     path: Path | None = None
+    format_version: int = EXTRINSICS_FORMAT_VERSION
 
 
 def camera_from_calibration(intrinsics: Intrinsics, extrinsics: Extrinsics | None = None) -> CameraModel:
@@ -192,20 +204,61 @@ def load_intrinsics(path: str | Path = DEFAULT_INTRINSICS) -> Intrinsics:
     )
 
 
+def marker_map_table(marker_map: MarkerMap) -> dict[str, Any]:
+    """The ``[markers]`` keys of a :class:`MarkerMap` (format version 2)."""
+    return {
+        "measured_px": marker_map.measured_px, "in_pose": [bool(v) for v in marker_map.in_pose],
+        "missing": marker_map.missing_indices, "residual_px": marker_map.residual_px,
+        "residual_mm": marker_map.residual_mm,
+    }
+
+
+def _marker_map(path: Path, data: dict[str, Any], version: int, rest_px: Array, rest_gel_mm: Array) -> MarkerMap:
+    """The file's markers as printed; a version-1 file's from its measured centres, none missing."""
+    n = len(rest_px)
+    cols = int(data["markers"].get("cols", n))
+    if version < 2:
+        measured = (_array(path, data, "markers", "measured_px", (n, 2)) if "measured_px" in data["markers"]
+                    else rest_px.copy())
+        found = np.isfinite(measured).all(axis=1)
+        measured = np.where(found[:, None], measured, rest_px)
+        return MarkerMap(cols, rest_px, measured, found, np.full((n, 2), np.nan))
+    measured = _array(path, data, "markers", "measured_px", (n, 2))
+    missing = np.zeros(n, bool)
+    listed = np.asarray(_get(path, data, "markers", "missing"), np.int64).reshape(-1)
+    if listed.size and (listed.min() < 0 or listed.max() >= n):
+        raise CalibrationFileError(f"{path}: [markers] missing lists markers outside 0..{n - 1}")
+    missing[listed] = True
+    if (np.isfinite(measured).all(axis=1) == missing).any():
+        raise CalibrationFileError(f"{path}: [markers] missing does not match the nan rows of measured_px")
+    in_pose = np.asarray(_get(path, data, "markers", "in_pose"), bool)
+    if in_pose.shape != (n,):
+        raise CalibrationFileError(f"{path}: [markers] in_pose has shape {in_pose.shape}, expected ({n},)")
+    return MarkerMap(cols, rest_px, measured, in_pose, _array(path, data, "markers", "residual_mm", (n, 2)))
+
+
 def load_extrinsics(path: str | Path = DEFAULT_EXTRINSICS) -> Extrinsics:
+    """``extrinsics.toml`` of any format version up to :data:`EXTRINSICS_FORMAT_VERSION`."""
     path, data = _read(path)
+    version = data.get("format_version", 1)
+    if not isinstance(version, int) or not 1 <= version <= EXTRINSICS_FORMAT_VERSION:
+        raise CalibrationFileError(f"{path}: format_version {version!r} is not one this labrig reads "
+                                   f"(1 to {EXTRINSICS_FORMAT_VERSION}); update labrig or recalibrate")
     rotvec = _array(path, data, "extrinsics", "rotation_rotvec_rad", (3,))
     translation = _array(path, data, "extrinsics", "translation_mm", (3,))
     rest = _array(path, data, "markers", "rest_gel_mm", (-1, 3))
     n = len(rest)
+    rest_px = _array(path, data, "markers", "rest_px", (n, 2))
     return Extrinsics(
         tuple(float(v) for v in rotvec),  # type: ignore[arg-type]
         tuple(float(v) for v in translation),  # type: ignore[arg-type]
         rest,
-        _array(path, data, "markers", "rest_px", (n, 2)),
+        rest_px,
         np.asarray(_get(path, data, "markers", "detected"), dtype=bool),
         _array(path, data, "markers", "error_px", (n,)),
         float(_get(path, data, "extrinsics", "reprojection_mean_px")),
         float(_get(path, data, "extrinsics", "reprojection_std_px")),
+        _marker_map(path, data, version, rest_px, rest),
         path,
+        version,
     )

@@ -13,6 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.calibration.gel import GelFit
+from labrig.calibration.marker_map import MarkerMap
 from labrig.calibration.registration_file import RigRegistration
 from labrig.physics.mechanics import ContactTable
 
@@ -142,3 +143,46 @@ def plot_extrinsics(result: ExtrinsicsResult, path: str | Path) -> Path:
     """The LED-blink frame with detected and reprojected marker centres (px) and the residual arrows."""
     path = Path(path)
     return _residual_axes(result.frame, result.measured_px, result.rest_px, "extrinsics", path)
+
+
+def plot_marker_residuals(marker_map: MarkerMap, path: str | Path, title: str = "markers as printed") -> Path:
+    """Per-marker residual map: each marker at its nominal site (sensor px), coloured by how far its measured
+    centre is from that site on the gel (um), an arrow to the measured centre (exaggerated), missing markers
+    as red crosses and the five worst labelled by (row, col)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    nominal, missing = marker_map.nominal_px, marker_map.missing
+    found = ~missing
+    norm_um = np.nan_to_num(marker_map.residual_norm_mm, nan=0.0) * 1e3
+    residual = np.nan_to_num(marker_map.residual_px, nan=0.0)
+    longest = float(marker_map.residual_norm_px[found].max()) if found.any() else 0.0
+    pitch = float(np.median(np.linalg.norm(np.diff(nominal[: marker_map.cols], axis=0), axis=1)))
+    gain = 0.6 * pitch / max(longest, 1e-3)  # the longest arrow 0.6 of a pitch
+    fig, ax = plt.subplots(figsize=(9, 6))
+    dots = ax.scatter(nominal[found, 0], nominal[found, 1], c=norm_um[found], cmap="viridis", s=40,
+                      vmin=0.0, vmax=max(float(norm_um.max()), 1.0))
+    fig.colorbar(dots, ax=ax, label="measured - nominal on the gel (um)")
+    ax.quiver(nominal[found, 0], nominal[found, 1], gain * residual[found, 0], gain * residual[found, 1],
+              angles="xy", scale_units="xy", scale=1.0, color="tab:red", width=0.003, zorder=3)
+    ax.plot(nominal[missing, 0], nominal[missing, 1], "x", color="red", ms=12, mew=2.5,
+            label=f"missing ({int(missing.sum())})")
+    for worst in marker_map.worst(5):
+        ax.annotate(f"({worst.row},{worst.col}) {worst.residual_mm * 1e3:.0f} um", nominal[worst.index], fontsize=7,
+                    xytext=(5, 5), textcoords="offset points")
+    ax.set_aspect("equal")
+    ax.invert_yaxis()
+    ax.set_xlabel("sensor x (px)")
+    ax.set_ylabel("sensor y (px)")
+    rms_um = float(np.sqrt(np.mean(norm_um[found] ** 2))) if found.any() else float("nan")
+    ax.set_title(f"{title}: residual rms {rms_um:.0f} um, max {float(norm_um.max()):.0f} um; arrows x{gain:.0f}")
+    if missing.any():
+        ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

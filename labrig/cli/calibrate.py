@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
@@ -16,6 +16,9 @@ from rich.table import Table
 
 from labrig.cli.calibrate_rig import add_rig_calibration_commands
 from labrig.cli.console import JsonOption, RigOption, console, err_console, print_json
+
+if TYPE_CHECKING:
+    from labrig.calibration.marker_map import MarkerMap
 
 calibrate_app = typer.Typer(
     help="Calibration from events: camera intrinsics, gel-to-camera extrinsics (and rig registration, gel modulus).",
@@ -102,12 +105,17 @@ def extrinsics_command(
     seed: SeedOption = 0,
     rig_path: RigOption = None,
     plot: PlotOption = None,
+    residual_map: Annotated[Path | None, typer.Option("--residual-map", help="Per-marker residual map PNG (default: OUT's name + -residuals.png, beside it).")] = None,  # noqa: E501
+    worst: Annotated[int, typer.Option(help="Markers listed with the largest residuals.", min=0)] = 5,
     as_json: JsonOption = False,
 ) -> None:
-    """Gel-to-camera pose and marker rest positions from a recording of the LED ring blinking."""
+    """Gel-to-camera pose and marker rest positions from a recording of the LED ring blinking.
+
+    Also finds missing markers and each marker's residual (measured less the nominal lattice through the
+    pose), drawn as a map beside the calibration file: a badly printed gel shows at a glance."""
     from labrig.calibration.extrinsics import calibrate_extrinsics, write_extrinsics
     from labrig.calibration.files import DEFAULT_INTRINSICS, load_intrinsics
-    from labrig.calibration.plots import plot_extrinsics
+    from labrig.calibration.plots import plot_extrinsics, plot_marker_residuals
     from labrig.config import DEFAULT_RIG, load_rig
 
     rig = load_rig(rig_path or DEFAULT_RIG)
@@ -126,7 +134,10 @@ def extrinsics_command(
         "reprojection_mean_px": result.mean_error_px, "reprojection_std_px": result.std_error_px,
         "reprojection_max_px": result.max_error_px, "markers_detected": int(result.detected.sum()),
         "markers": len(result.rest_gel_mm), "blobs_spurious": result.spurious, "blinks": result.blinks,
+        **result.marker_map.summary(worst),
     }
+    residual_map = residual_map or path.with_name(path.stem + "-residuals.png")
+    summary["residual_map"] = str(plot_marker_residuals(result.marker_map, residual_map, f"{path.name}"))
     if plot is not None:
         summary["plot"] = str(plot_extrinsics(result, plot))
     if as_json:
@@ -142,4 +153,19 @@ def extrinsics_command(
                   f"(max {result.max_error_px:.3f})")
     table.add_row("markers", f"{int(result.detected.sum())} of {len(result.rest_gel_mm)} detected, "
                   f"{result.spurious} spurious blob(s) ignored, {result.blinks} blink(s)")
+    _marker_rows(table, result.marker_map, worst)
+    table.add_row("residual map", str(summary["residual_map"]))
     console.print(table)
+
+
+def _marker_rows(table: Table, marker_map: MarkerMap, worst: int) -> None:
+    """The markers as printed: missing ones, the residual spread and the worst markers (row, col)."""
+    missing = [marker_map.row_col(i) for i in marker_map.missing_indices]
+    table.add_row("missing markers", ("[red]" + ", ".join(f"({r},{c})" for r, c in missing) + "[/]") if missing else "none")
+    found = ~marker_map.missing
+    if found.any():
+        mm, px = marker_map.residual_norm_mm[found], marker_map.residual_norm_px[found]
+        table.add_row("residual to nominal", f"rms {np.sqrt(np.nanmean(mm**2)) * 1e3:.1f} um "
+                      f"({np.sqrt(np.mean(px**2)):.2f} px), max {np.nanmax(mm) * 1e3:.1f} um ({px.max():.2f} px)")
+    for r in marker_map.worst(worst):
+        table.add_row(f"  marker ({r.row},{r.col})", f"{r.residual_mm * 1e3:.1f} um, {r.residual_px:.2f} px")

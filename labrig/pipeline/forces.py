@@ -26,14 +26,24 @@ from labrig.config import Roi
 from labrig.physics.camera import CameraModel
 from labrig.pipeline.displacement import grid_sampling_matrix
 from labrig.pipeline.ifem import SurfaceOperator
+from labrig.pipeline.unobserved import condense_unobserved, fill_in_plane, in_plane_fill
 
 Array = npt.NDArray[np.float64]
 
 
-def forces_from_displacements(k_n_per_mm: npt.ArrayLike, displacements_mm: npt.ArrayLike) -> Array:
-    """F (M, 3) N = K (3M x 3M, N/mm) @ U (M, 3) mm, marker-major DOFs."""
+def forces_from_displacements(k_n_per_mm: npt.ArrayLike, displacements_mm: npt.ArrayLike,
+                              observed: npt.ArrayLike | None = None) -> Array:
+    """F (M, 3) N = K (3M x 3M, N/mm) @ U (M, 3) mm, marker-major DOFs.
+
+    ``observed`` (M,): markers whose displacement is known; the others (missing markers, U may be
+    NaN there) are condensed out like interior nodes (:func:`~labrig.pipeline.unobserved.condense_unobserved`)
+    and get no force."""
     u = np.asarray(displacements_mm, np.float64)
-    return (np.asarray(k_n_per_mm) @ u.reshape(-1)).reshape(u.shape)
+    k = np.asarray(k_n_per_mm)
+    if observed is not None and not np.all(observed):
+        k = condense_unobserved(k, observed)
+        u = np.where(np.asarray(observed, bool)[:, None], u, 0.0)
+    return (k @ u.reshape(-1)).reshape(u.shape)
 
 
 class SurfaceForces:
@@ -41,11 +51,15 @@ class SurfaceForces:
 
     Binds a :class:`SurfaceOperator` to the camera and ROI: the operator's top nodes (gel frame, at
     rest) are projected once and the map is sampled bilinearly there (a sparse matrix), as the
-    ground truth's maps are indexed by the surface point each cell saw at rest.
+    ground truth's maps are indexed by the surface point each cell saw at rest. ``observed`` (M,):
+    markers with a tracked displacement; the in-plane displacements of the others (missing markers)
+    are condensed through the gel's stiffness (:func:`~labrig.pipeline.unobserved.in_plane_fill`).
     """
 
-    def __init__(self, operator: SurfaceOperator, camera: CameraModel, roi: Roi, grid_shape: tuple[int, int] = (90, 112)):
+    def __init__(self, operator: SurfaceOperator, camera: CameraModel, roi: Roi, grid_shape: tuple[int, int] = (90, 112),
+                 observed: npt.ArrayLike | None = None):
         self.operator = operator
+        self.fill = None if observed is None else in_plane_fill(operator, observed)
         self.grid_shape = grid_shape
         xy = operator.node_xy_mm
         self.node_px = camera.project(np.column_stack([xy, np.zeros(len(xy))]))
@@ -63,7 +77,8 @@ class SurfaceForces:
 
         ``mode`` "contact" (default): the map is used only where deeper than ``threshold_mm``,
         the rest of the surface is traction-free; "field": the whole map is prescribed."""
-        return self.operator.forces_n(-self.node_depths_mm(depth_map_mm), displacements_mm, mode, threshold_mm)
+        u = fill_in_plane(self.fill, displacements_mm)
+        return self.operator.forces_n(-self.node_depths_mm(depth_map_mm), u, mode, threshold_mm)
 
 
 def stiffening_factor(depth_map_mm: npt.ArrayLike, thickness_mm: float, stiffening: float) -> float:

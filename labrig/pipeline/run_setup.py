@@ -2,8 +2,11 @@
 
 The gel modulus is the fitted one (``calibration/gel.toml``) when present, else the rig's;
 the camera is the calibrated one (``calibration/intrinsics.toml`` + ``extrinsics.toml``)
-when present, else the rig's. :func:`setup_for_recording` resolves both for a recording,
-:func:`setup_for_rig` for a live stream.
+when present, else the rig's. The markers' rest pixels are those the extrinsic calibration
+measured (its marker map: where each marker really is, the nominal lattice only where one is
+missing), with the missing markers flagged; without a calibration, the nominal lattice through
+the rig's camera. :func:`setup_for_recording` resolves both for a recording, :func:`setup_for_rig`
+for a live stream.
 """
 
 from __future__ import annotations
@@ -36,6 +39,22 @@ class PipelineSetup:
     poisson_ratio: float
     sources: dict[str, str]
     stiffening: float = 0.0  # E_eff = E (1 + stiffening * depth / thickness); 0: linear (the paper's)
+    missing: npt.NDArray[np.bool_] | None = None  # (M,) markers the calibration found missing; None: none
+
+    @property
+    def observed(self) -> npt.NDArray[np.bool_]:
+        """(M,) markers that are tracked (not missing)."""
+        return np.ones(len(self.rest_px), bool) if self.missing is None else ~np.asarray(self.missing, bool)
+
+    def rest_mm(self, rest_px: npt.ArrayLike | None = None) -> Array:
+        """(M, 3) the markers' rest points on the gel surface (z = 0), gel frame mm: ``rest_px`` (default:
+        :attr:`rest_px`) back-projected, so a marker printed off its lattice site rests where it is."""
+        return rest_points_mm(self.camera, self.rest_px if rest_px is None else rest_px)
+
+
+def rest_points_mm(camera: CameraModel, rest_px: npt.ArrayLike) -> Array:
+    """(M, 3) gel-frame points (z = 0) that the pixels ``rest_px`` (M, 2) see."""
+    return camera.backproject_to_plane(np.asarray(rest_px, np.float64), 0.0)
 
 
 def rig_from_recording(recording: Recording) -> RigConfig | None:
@@ -105,13 +124,18 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calib
         nu = float(poisson_ratio)
     if stiffening is not None:
         b, sources["stiffening"] = float(stiffening), "argument"
-    camera, rest_px = CameraModel.from_rig(rig), None
+    camera, rest_px, missing = CameraModel.from_rig(rig), None, None
     sources["camera"] = "rig"
+    sources["rest"] = "nominal lattice through the rig's camera (no extrinsics.toml)"
     if "intrinsics.toml" in files and "extrinsics.toml" in files:
         extrinsics = load_extrinsics(files["extrinsics.toml"])
         camera = camera_from_calibration(load_intrinsics(files["intrinsics.toml"]), extrinsics)
-        rest_px = np.asarray(extrinsics.rest_px, np.float64)
+        marker_map = extrinsics.marker_map
+        if len(marker_map.rest_px) == rig.markers.rows * rig.markers.cols:
+            rest_px, missing = marker_map.rest_px, marker_map.missing
+            sources["rest"] = (f"measured ({files['extrinsics.toml']}, format {extrinsics.format_version}; "
+                               f"{int(missing.sum())} missing)")
         sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
     if rest_px is None:
         rest_px = camera.project(rig.markers.rest_positions_mm())
-    return PipelineSetup(rig, camera, rest_px, e, nu, sources, stiffening=b)
+    return PipelineSetup(rig, camera, rest_px, e, nu, sources, stiffening=b, missing=missing)

@@ -14,6 +14,10 @@ in event count (``window_events``, 20,000 in the paper's evaluation). Per window
 With ``concurrent=True`` the two stages run in two threads (:class:`~labrig.pipeline.front_thread.FrontThread`,
 window k's forces while window k+1 is tracked), as in the paper. ``concurrent=False`` runs them in turn.
 The run's camera, rest pixels and gel law are a :class:`~labrig.pipeline.run_setup.PipelineSetup`.
+Tracking starts from the calibration's measured rest pixels, refined by the stream's first quiet
+windows (:class:`~labrig.pipeline.rest.RestRefiner`; each tracked window carries the rest it is
+measured from); missing markers are not tracked and their in-plane displacements are condensed by
+the inverse FEM (:mod:`labrig.pipeline.unobserved`).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import displacement, forces, ifem, sae, tracking
 from labrig.pipeline.depth_sources import DepthSource
 from labrig.pipeline.front_thread import FrontThread, Handoff
+from labrig.pipeline.rest import RestParams, RestRefiner
 from labrig.pipeline.run_setup import PipelineSetup
 from labrig.pipeline.windows import DEFAULT_WINDOW_US, Events, WindowSpec, recording_windows
 from labrig.recording import Recording
@@ -60,6 +65,7 @@ class TrackedWindow:
     # has its own array: the front runs ahead of the back stage, which must still see this one.
     sae: npt.NDArray[np.float32] | None
     seconds: Mapping[str, float]  # the front stage's processing time: read, sae, track
+    rest_px: Array | None = None  # (M, 2) the rest this window's displacements are measured from (None: the setup's)
 
 
 @dataclass
@@ -88,18 +94,20 @@ class Pipeline:
     def __init__(self, setup: PipelineSetup, depth: DepthSource, *,
                  tracker_params: tracking.TrackerParams | None = None,
                  surface_params: ifem.SurfaceParams | None = None, normal_mode: str = "contact",
-                 threshold_mm: float = 0.01, keep_sae: bool = False, cache_dir: str | Path | None = None) -> None:
+                 threshold_mm: float = 0.01, keep_sae: bool = False, cache_dir: str | Path | None = None,
+                 rest_params: RestParams | None = None) -> None:
         self.setup = setup
         self.depth = depth
         rig = setup.rig
         params = tracker_params or tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(rig))
-        self.tracker = tracking.Tracker(setup.rest_px, params)
+        self.tracker = tracking.Tracker(setup.rest_px, params, observed=setup.observed)
+        self.rest = RestRefiner(setup.rest_px, setup.observed, rest_params or RestParams())
+        self._rest_px, self._rest_mm = self.rest.rest_px, setup.rest_mm()
         base = surface_params or ifem.SurfaceParams()
         self.surface_params = replace(base, youngs_modulus_mpa=setup.youngs_modulus_mpa,
                                       poisson_ratio=setup.poisson_ratio)
         self.operator = ifem.build_surface_operator(rig, self.surface_params, cache_dir=cache_dir)
-        self.surface = forces.SurfaceForces(self.operator, setup.camera, rig.roi, GRID_SHAPE)
-        self.rest_mm = rig.markers.rest_positions_mm()
+        self.surface = forces.SurfaceForces(self.operator, setup.camera, rig.roi, GRID_SHAPE, observed=setup.observed)
         self.normal_mode = normal_mode
         self.threshold_mm = threshold_mm
         self.keep_sae = keep_sae
@@ -119,9 +127,12 @@ class Pipeline:
         seconds["sae"] = time.perf_counter() - start
         start = time.perf_counter()
         positions, updated = self.tracker.update(events)
+        if not self.rest.frozen:
+            self.rest.add(positions, len(events), t1_us - t0_us)
+            self.tracker.rest_px = self.rest.rest_px  # the neighbour prior's offsets
         seconds["track"] = time.perf_counter() - start
         tracked = TrackedWindow(self._index, t0_us, t1_us, len(events), positions.copy(), updated.copy(),
-                                d0_us, len(d_events), grid, seconds)
+                                d0_us, len(d_events), grid, seconds, self.rest.rest_px)
         self._index += 1
         return tracked
 
@@ -132,8 +143,9 @@ class Pipeline:
         depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
         seconds["depth"] = time.perf_counter() - start
         start = time.perf_counter()
-        u = displacement.displacements_mm(tracked.positions_px, depth, self.setup.camera, self.rest_mm,
-                                          self.setup.rig.roi, sample_px=self.setup.rest_px)
+        rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
+        u = displacement.displacements_mm(tracked.positions_px, depth, self.setup.camera, self._rest_points(rest_px),
+                                          self.setup.rig.roi, sample_px=rest_px)
         seconds["displacement"] = time.perf_counter() - start
         start = time.perf_counter()
         f = self.surface(depth, u, self.normal_mode, self.threshold_mm)
@@ -145,6 +157,12 @@ class Pipeline:
                             tracked.updated, u, f, forces.net_force_n(f), where.position_px if where else nan2,
                             where.position_mm if where else nan2, depth,
                             tracked.sae if self.keep_sae else None, seconds)
+
+    def _rest_points(self, rest_px: Array) -> Array:
+        """(M, 3) gel-frame rest points of ``rest_px``, recomputed only when the rest changed."""
+        if rest_px is not self._rest_px:
+            self._rest_px, self._rest_mm = rest_px, self.setup.rest_mm(rest_px)
+        return self._rest_mm
 
     def _depth_window(self, t0_us: int, t1_us: int, events: Events) -> tuple[int, Events]:
         """(start, events) of the depth source's window ending at ``t1_us``.

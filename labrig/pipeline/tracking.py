@@ -9,6 +9,11 @@ than ``min_events`` events keep their position; then the grid-aware refinement
 p = lambda * prior + (1 - lambda) * centroid, the prior being the mean of the
 neighbours' positions each shifted by its rest offset to the marker.
 
+Missing markers (never printed, found by the extrinsic calibration: ``observed`` False)
+are skipped: they get no patch, no neighbour prior counts them, and their reported
+position follows the mean displacement of their observed neighbours (never ``updated``),
+so downstream stages see finite positions and know from the mask which are estimates.
+
 Events reach markers through a label image (sensor pixel -> marker, -1 for
 none) of the clipped patches, repainted only where a patch moved; a compiled
 loop then sums each marker's events. Positions are sensor pixels (x, y), in
@@ -37,11 +42,12 @@ BoolArray = npt.NDArray[np.bool_]
 
 
 def rest_positions_px(rig: RigConfig, extrinsics_path: str | Path | None = None) -> Array:
-    """Markers' rest positions (M, 2) px: from a calibrated extrinsics file, else the rig's camera."""
+    """Markers' rest positions (M, 2) px: measured by the extrinsic calibration (its file's marker map:
+    the nominal projection only where a marker is missing), else the nominal lattice through the rig's camera."""
     if extrinsics_path is not None:
         from labrig.calibration.files import load_extrinsics
 
-        return np.asarray(load_extrinsics(extrinsics_path).rest_px, np.float64)
+        return np.asarray(load_extrinsics(extrinsics_path).marker_map.rest_px, np.float64)
     return CameraModel.from_rig(rig).project(rig.markers.rest_positions_mm())
 
 
@@ -227,18 +233,41 @@ def subtract_background(sums: npt.NDArray[np.float64], outside: npt.NDArray[np.f
     sums[sums[:, :, 0] < NOISE_SIGMAS * np.sqrt(expected)] = 0.0
 
 
+def drop_unobserved(neighbours: npt.NDArray[np.int64], observed: BoolArray) -> npt.NDArray[np.int64]:
+    """``neighbours`` (M, K) with every unobserved marker's row and every entry naming one set to -1."""
+    out = np.where((neighbours >= 0) & observed[np.maximum(neighbours, 0)], neighbours, -1)
+    out[~observed] = -1
+    return out
+
+
+def follow_neighbours(positions_px: Array, rest_px: Array, observed: BoolArray, neighbours: npt.NDArray[np.int64]) -> None:
+    """In place: each unobserved marker at its rest plus the mean displacement of its observed
+    ``neighbours`` (M, K; -1 for none); at rest when none is observed."""
+    for i in np.flatnonzero(~observed):
+        j = neighbours[i][neighbours[i] >= 0]
+        j = j[observed[j]]
+        shift = (positions_px[j] - rest_px[j]).mean(axis=0) if j.size else np.zeros(2)
+        positions_px[i] = rest_px[i] + shift
+
+
 class _PatchTracker:
     """What both trackers share: rest positions on the marker grid, and each marker's square patch
-    (half side ``_half`` px) clipped at the midpoints to its neighbours, painted into a label image."""
+    (half side ``_half`` px) clipped at the midpoints to its neighbours, painted into a label image;
+    unobserved (missing) markers get no patch and follow their observed neighbours."""
 
     _half: float
 
-    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams | EvetacParams) -> None:
+    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams | EvetacParams,
+                 observed: npt.ArrayLike | None = None) -> None:
         self.params = params
         self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
         if len(self.rest_px) != params.grid_rows * params.grid_cols:
             raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
+        self.observed = np.ones(len(self.rest_px), bool) if observed is None else np.array(observed, bool).reshape(-1)
+        if self.observed.shape != (len(self.rest_px),):
+            raise ValueError(f"observed mask of {self.observed.size} for {len(self.rest_px)} markers")
         self._neigh4 = grid_neighbours(params.grid_rows, params.grid_cols, 4)
+        self._follow = grid_neighbours(params.grid_rows, params.grid_cols, 8)
 
     def reset(self, positions_px: npt.ArrayLike | None = None) -> None:
         """Start again from the rest positions (or from ``positions_px``)."""
@@ -252,6 +281,7 @@ class _PatchTracker:
     def _sync_patches(self) -> None:
         p = self.params
         _clipped_rects(self.positions_px, self._neigh4, self._half, p.width_px, p.height_px, self._rects)
+        self._rects[~self.observed] = 0  # no patch: a missing marker's events are nobody's
         _repaint(self._label, self._painted, self._rects)
 
 
@@ -260,9 +290,11 @@ class Tracker(_PatchTracker):
 
     params: TrackerParams
 
-    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams = TrackerParams()) -> None:
-        super().__init__(rest_px, params)
-        self._prior = grid_neighbours(params.grid_rows, params.grid_cols, params.prior_connectivity)
+    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams = TrackerParams(),
+                 observed: npt.ArrayLike | None = None) -> None:
+        super().__init__(rest_px, params, observed)
+        self._prior = drop_unobserved(grid_neighbours(params.grid_rows, params.grid_cols, params.prior_connectivity),
+                                      self.observed)
         self._half = params.patch_scale * params.marker_diameter_px / 2
         self._sums = np.zeros((len(self.rest_px), 2, 3))
         self._outside = np.zeros((len(self.rest_px), 2))
@@ -291,6 +323,9 @@ class Tracker(_PatchTracker):
             _centroids_and_prior(centre, self._sums, self._prior, self.rest_px, float(p.min_events),
                                  float(p.min_each_polarity), p.polarity_balance, lam, out, updated)
             centre = out.copy()
+        if not self.observed.all():
+            follow_neighbours(out, self.rest_px, self.observed, self._follow)
+            updated &= self.observed
         self.positions_px = out
         self._sync_patches()
         return out.copy(), updated
@@ -369,9 +404,11 @@ class EvetacTracker(_PatchTracker):
 
     params: EvetacParams
 
-    def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams()) -> None:
-        super().__init__(rest_px, params)
-        self._neigh = grid_neighbours(params.grid_rows, params.grid_cols, params.spring_connectivity)
+    def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams(),
+                 observed: npt.ArrayLike | None = None) -> None:
+        super().__init__(rest_px, params, observed)
+        self._neigh = drop_unobserved(grid_neighbours(params.grid_rows, params.grid_cols, params.spring_connectivity),
+                                      self.observed)
         diff = self.rest_px[:, None, :] - self.rest_px[np.maximum(self._neigh, 0)]
         self._rest_d2 = np.where(self._neigh >= 0, (diff**2).sum(-1), 1.0)
         r = params.marker_diameter_px / 2
@@ -397,6 +434,9 @@ class EvetacTracker(_PatchTracker):
             updated |= ok
             if p.spring:
                 _springs(pos, self._neigh, self._rest_d2, p.spring)
+        if not self.observed.all():
+            follow_neighbours(pos, self.rest_px, self.observed, self._follow)
+            updated &= self.observed
         self.positions_px = pos
         self._sync_patches()
         return pos.copy(), updated
