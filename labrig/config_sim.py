@@ -78,9 +78,8 @@ class SimCameraDelivery:
 
 @dataclass(frozen=True)
 class SimFt:
-    """``[sim.ft]``: the F/T link (see the module docstring)."""
+    """``[sim.ft]``: the F/T link (see the module docstring); drops follow the run's seed."""
 
-    seed: int = 0
     drop_probability: float = 0.0
 
 
