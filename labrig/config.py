@@ -158,9 +158,10 @@ class SimConfig:
     camera_clock: SimCameraClock
     #: The true gel (``[sim.gel]``; keys left out, or the whole section: the nominal ``[gel]``'s).
     gel: GelConfig
-    markers: SimMarkers = SimMarkers()
-    camera_delivery: SimCameraDelivery = SimCameraDelivery()
-    ft: SimFt = SimFt()
+    #: The markers as printed, the camera's delivery, the F/T link (optional sections: :mod:`labrig.config_sim`).
+    markers: SimMarkers
+    camera_delivery: SimCameraDelivery
+    ft: SimFt
 
 
 @dataclass(frozen=True)
