@@ -11,6 +11,9 @@ Frames and units
 
 Sections named ``sim.*`` are the virtual rig's truth (the true camera, the true
 rig pose, the event model); everything else is what a lab knows about its rig.
+The sections of an imperfect sensor (``sim.gel``, ``sim.markers``,
+``sim.camera_delivery``, ``sim.ft``, :mod:`labrig.config_sim`) may be left out:
+their defaults are the ideal sensor (the true gel is the nominal ``[gel]``).
 """
 
 from __future__ import annotations
@@ -19,20 +22,19 @@ import json
 import re
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from labrig.errors import LabrigError
+from labrig.config_sim import SimCameraDelivery, SimFt, SimMarkers, check_imperfections, parse_imperfections
+from labrig.errors import ConfigError
+
+__all__ = ["ConfigError", "SimCameraDelivery", "SimFt", "SimMarkers"]
 
 DEFAULT_RIG = Path(__file__).resolve().parent.parent / "calibration" / "rig.toml"
-
-
-class ConfigError(LabrigError):
-    """A bad rig configuration file."""
 
 
 @dataclass(frozen=True)
@@ -154,6 +156,12 @@ class SimConfig:
     lighting: SimLighting
     events: SimEvents
     camera_clock: SimCameraClock
+    #: The true gel (``[sim.gel]``; keys left out, or the whole section: the nominal ``[gel]``'s).
+    gel: GelConfig
+    #: The markers as printed, the camera's delivery, the F/T link (optional sections: :mod:`labrig.config_sim`).
+    markers: SimMarkers
+    camera_delivery: SimCameraDelivery
+    ft: SimFt
 
 
 @dataclass(frozen=True)
@@ -185,8 +193,11 @@ def parse_rig(text: str, path: Path) -> RigConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     sim = _table(data, "sim", path)
+    gel = _build(GelConfig, data, "gel", path)
+    markers, delivery, ft = parse_imperfections(sim, path)
+    sim_gel = _true_gel(sim, gel, path)
     config = RigConfig(
-        gel=_build(GelConfig, data, "gel", path),
+        gel=gel,
         markers=_build(MarkerConfig, data, "markers", path),
         camera=_build(CameraGeometry, data, "camera", path),
         roi=_build(Roi, data, "roi", path),
@@ -198,6 +209,10 @@ def parse_rig(text: str, path: Path) -> RigConfig:
             lighting=_build(SimLighting, sim, "lighting", path, "sim."),
             events=_build(SimEvents, sim, "events", path, "sim."),
             camera_clock=_build(SimCameraClock, sim, "camera_clock", path, "sim."),
+            gel=sim_gel,
+            markers=markers,
+            camera_delivery=delivery,
+            ft=ft,
         ),
         text=text,
         path=path,
@@ -206,7 +221,10 @@ def parse_rig(text: str, path: Path) -> RigConfig:
     return config
 
 
-TomlValue = bool | int | float | str | tuple[float, ...]
+#: Sections a rig file may leave out (their defaults: the ideal sensor, the true gel = [gel]).
+OPTIONAL_SECTIONS = ("sim.gel", "sim.markers", "sim.camera_delivery", "sim.ft")
+
+TomlValue = bool | int | float | str | tuple[float, ...] | tuple[int, ...] | tuple[tuple[float, float], ...]
 
 
 def rig_with(rig: RigConfig, changes: Mapping[str, TomlValue]) -> RigConfig:
@@ -215,25 +233,36 @@ def rig_with(rig: RigConfig, changes: Mapping[str, TomlValue]) -> RigConfig:
     Keys are ``section.name`` (``sim.events.shot_noise_rate_hz``, ``gel.friction``). The TOML
     text is rewritten line by line (comments and layout kept), so the copy's ``text``, which a
     recording stores, states the changed values; ``path`` stays the original's. A key the
-    text does not hold is a :class:`ConfigError`.
+    text does not hold is a :class:`ConfigError`, except in the optional sections
+    (:data:`OPTIONAL_SECTIONS`): there it is added (with its section if the text has none),
+    so they can be set on any rig; the parse then checks the name.
     """
     lines = rig.text.splitlines(keepends=True)
     for key, value in changes.items():
         section, _, name = key.rpartition(".")
         if not section:
             raise ConfigError(f"{key!r}: give section.name, e.g. 'sim.events.shot_noise_rate_hz'")
-        current = ""
+        current, header_at = "", -1
         for i, line in enumerate(lines):
             header = _SECTION.match(line)
             if header:
                 current = header.group(1).strip()
+                header_at = i if current == section else header_at
                 continue
             match = _ASSIGNMENT.match(line)
             if current == section and match and match.group("name") == name:
                 lines[i] = f"{match.group('head')}{_toml_value(value)}{match.group('tail')}"
                 break
         else:
-            raise ConfigError(f"{rig.path}: no key {name!r} in [{section}] to change")
+            if section not in OPTIONAL_SECTIONS:
+                raise ConfigError(f"{rig.path}: no key {name!r} in [{section}] to change")
+            assignment = f"{name} = {_toml_value(value)}\n"
+            if header_at >= 0:
+                lines.insert(header_at + 1, assignment)
+            else:
+                if lines and not lines[-1].endswith("\n"):
+                    lines[-1] += "\n"
+                lines += ["\n", f"[{section}]\n", assignment]
     return parse_rig("".join(lines), rig.path)
 
 
@@ -243,13 +272,13 @@ _ASSIGNMENT = re.compile(r'^(?P<head>\s*(?P<name>[A-Za-z0-9_-]+)\s*=\s*)(?P<valu
 
 
 def _toml_value(value: TomlValue) -> str:
+    if isinstance(value, tuple | list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int | float):
         return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)
-    return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return json.dumps(value)
 
 
 def _table(data: dict[str, Any], name: str, path: Path, prefix: str = "") -> dict[str, Any]:
@@ -277,14 +306,29 @@ def _build(cls: type, data: dict[str, Any], name: str, path: Path, prefix: str =
     return cls(**values)
 
 
+def _true_gel(sim: dict[str, Any], nominal: GelConfig, path: Path) -> GelConfig:
+    """``[sim.gel]``: the true gel; keys left out (or the whole section) take the nominal ``[gel]``'s values."""
+    table = sim.get("gel", {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: [sim.gel] must be a table")
+    names = [f.name for f in fields(GelConfig)]
+    unknown = sorted(set(table) - set(names))
+    if unknown:
+        raise ConfigError(f"{path}: [sim.gel] unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
+    for key, value in table.items():
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            raise ConfigError(f"{path}: [sim.gel] {key} must be a number, not {value!r}")
+    return replace(nominal, **{key: float(value) for key, value in table.items()})
+
+
 def _check(config: RigConfig) -> None:
     where = str(config.path)
-    gel = config.gel
-    if not 0 < gel.poisson_ratio < 0.5:
-        raise ConfigError(f"{where}: [gel] poisson_ratio must be in (0, 0.5), not {gel.poisson_ratio}")
-    for key in ("thickness_mm", "size_x_mm", "size_y_mm", "youngs_modulus_mpa"):
-        if getattr(gel, key) <= 0:
-            raise ConfigError(f"{where}: [gel] {key} must be positive")
+    for section, gel in (("gel", config.gel), ("sim.gel", config.sim.gel)):
+        if not 0 < gel.poisson_ratio < 0.5:
+            raise ConfigError(f"{where}: [{section}] poisson_ratio must be in (0, 0.5), not {gel.poisson_ratio}")
+        for key in ("thickness_mm", "size_x_mm", "size_y_mm", "youngs_modulus_mpa"):
+            if getattr(gel, key) <= 0:
+                raise ConfigError(f"{where}: [{section}] {key} must be positive")
     roi, cam = config.roi, config.camera
     if not (0 <= roi.x0_px < roi.x1_px <= cam.width_px and 0 <= roi.y0_px < roi.y1_px <= cam.height_px):
         raise ConfigError(f"{where}: [roi] must lie inside the {cam.width_px}x{cam.height_px} sensor")
@@ -292,3 +336,6 @@ def _check(config: RigConfig) -> None:
         raise ConfigError(f"{where}: [sim.mechanics] mode must be 'layer' or 'halfspace'")
     if len(config.sim.camera.distortion) != 5:
         raise ConfigError(f"{where}: [sim.camera] distortion must be [k1, k2, p1, p2, k3]")
+    mk, roi = config.markers, config.roi
+    check_imperfections(config.sim.markers, config.sim.camera_delivery, config.sim.ft, mk.rows * mk.cols, mk.pitch_mm,
+                        roi.width_px * roi.height_px, where)

@@ -13,6 +13,10 @@ class LabrigError(Exception):
     exit_code = 2
 
 
+class ConfigError(LabrigError):
+    """A bad rig configuration file."""
+
+
 class RecordingError(LabrigError):
     """A recording file cannot be opened or used."""
 

@@ -146,7 +146,7 @@ def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
     normal = np.abs(force[:, 2])
     tangential = np.linalg.norm(force[:, :2], axis=1)
     sheared = (t_us >= phases["shear"].t_start_us) & (t_us < phases["normal_up"].t_start_us) & (normal > 0)
-    slip = tangential[sheared] / (rig.gel.friction * normal[sheared]) if sheared.any() else np.zeros(1)
+    slip = tangential[sheared] / (rig.sim.gel.friction * normal[sheared]) if sheared.any() else np.zeros(1)
     drift = rig.sim.camera_clock.drift_ppm * 1e-6
     skew_ms = 0.0 if scene.sync_age_min is None else abs(drift) * (scene.sync_age_min * US_PER_MIN
                                                                    + path.duration_us) / 1e3

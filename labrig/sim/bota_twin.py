@@ -119,6 +119,8 @@ class BotaTwinParams:
     clock_offset_us: int = 0
     clock_drift_ppm: float = 0.0
     seed: int = 0
+    #: The chance that a sample's frame never reaches the host (lost on the link; the device counter goes on).
+    drop_probability: float = 0.0
 
 
 def _boot_info(p: BotaTwinParams) -> BootInfo:
@@ -139,6 +141,7 @@ class BotaTwin:
         self.frame_hook = frame_hook
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(p.seed)
+        self._drop_rng = np.random.default_rng([p.seed, 8])
         self._rate = 1.0 + p.clock_drift_ppm * 1e-6
         self._noise_sigma = np.array([p.force_noise_n] * 3 + [p.torque_noise_nm] * 3)
         self._bias0 = np.array([*p.force_bias_n, *p.torque_bias_nm])
@@ -170,6 +173,8 @@ class BotaTwin:
         self.boots = 0
         self.frames_sent = 0
         self.samples_skipped = 0
+        #: Frames lost on the link (``drop_probability``).
+        self.frames_dropped = 0
 
     # -- SerialTwin ------------------------------------------------------------
 
@@ -409,5 +414,8 @@ class BotaTwin:
             data = bytes(flipped)
         if self.frame_hook is not None:
             data = self.frame_hook(data)
+        if p.drop_probability > 0 and self._drop_rng.random() < p.drop_probability:
+            self.frames_dropped += 1
+            return
         self.frames_sent += 1
         self._send(t_us, data)

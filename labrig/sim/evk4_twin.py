@@ -11,6 +11,9 @@ client does not read fast enough the FIFO fills and new chunks are dropped and c
 ``dropped_events`` (as the camera's FIFO overflows). Without a client, fed chunks are
 discarded and counted in ``unclaimed_events``. One client at a time; when it disconnects the
 twin waits for the next one, which gets a fresh header and stream (device times keep going).
+
+USB bursts (``release_at``): a chunk fed at host time t leaves the twin no earlier than
+``release_at(t)`` (host us, on ``clock``), so the client receives the data in bursts.
 """
 
 from __future__ import annotations
@@ -21,13 +24,14 @@ import select
 import socket
 import threading
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from labrig.clock import HostClock, MonotonicClock
 from labrig.devices.raw import TRIGGER_DTYPE, Evt3StreamEncoder, make_header
 
 #: Bytes handed to one send() call at most.
@@ -65,8 +69,13 @@ class Evk4Twin:
         max_buffered_events: int = 4_000_000,
         serial: str = "00000000",
         header: dict[str, str] | None = None,
+        release_at: Callable[[int], int] | None = None,
+        clock: HostClock | None = None,
     ) -> None:
+        """``release_at(t_host_us)``: the host time (us, ``clock``'s) a chunk fed at ``t_host_us`` may leave (None: at once)."""
         self.path = Path(path)
+        self.release_at = release_at
+        self.clock = clock or MonotonicClock()
         self.width = int(width)
         self.height = int(height)
         self.max_buffered_events = int(max_buffered_events)
@@ -83,7 +92,7 @@ class Evk4Twin:
         self.triggers_sent = 0
         #: Clients accepted so far.
         self.connections = 0
-        self._fifo: deque[tuple[npt.NDArray[Any], npt.NDArray[Any]]] = deque()
+        self._fifo: deque[tuple[npt.NDArray[Any], npt.NDArray[Any], int]] = deque()  # events, triggers, release us
         self._fifo_events = 0
         self._lock = threading.Lock()
         self._client_on = threading.Event()
@@ -167,7 +176,8 @@ class Evk4Twin:
                 self.dropped_events += n
                 self.dropped_triggers += int(tr.size)
                 return False
-            self._fifo.append((np.array(events, copy=True), tr))
+            release = 0 if self.release_at is None else self.release_at(self.clock.now_ns() // 1000)
+            self._fifo.append((np.array(events, copy=True), tr, release))
             self._fifo_events += n
         self._poke()
         return True
@@ -208,17 +218,23 @@ class Evk4Twin:
         out = bytearray(make_header("EVT3", self.width, self.height, self.header_fields))
         self._client_on.set()
         while not self._stop.is_set():
+            wait_s = 0.2
             while len(out) < _OUT_LOW_WATER:
                 with self._lock:
                     if not self._fifo:
                         break
-                    events, triggers = self._fifo.popleft()
+                    if self._fifo[0][2]:
+                        early_us = self._fifo[0][2] - self.clock.now_ns() // 1000
+                        if early_us > 0:  # its burst is not released yet
+                            wait_s = min(wait_s, early_us / 1e6)
+                            break
+                    events, triggers, _ = self._fifo.popleft()
                     self._fifo_events -= events.size
                 out += encoder.encode(events, triggers)
                 self.events_sent += int(events.size)
                 self.triggers_sent += int(triggers.size)
             watch_w = [client] if out else []
-            readable, writable, _ = select.select([client, self._wake_r], watch_w, [], 0.2)
+            readable, writable, _ = select.select([client, self._wake_r], watch_w, [], wait_s)
             if self._wake_r in readable:
                 self._drain_wake()
             if client in readable:

@@ -8,6 +8,12 @@ minus the chunk's end) is measured and reported.
 
 This path skips the device byte protocols: the pty twins (GRBL, Bota, EVK4)
 replace these direct puts when they land, with the same timing rules.
+
+The rig file's delivery knobs apply here as through the twins: with USB bursts
+(``[sim.camera_delivery] burst_period_ms``) a camera chunk is held until the first
+burst release at or after its end and stamped with that release (offline) or with
+the host time it was published (real time); F/T samples are dropped with
+``[sim.ft] drop_probability`` (deterministic under the run's seed).
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from labrig.indenters import Indenter
 from labrig.physics.grid import network_grid_gel_mm
 from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
 from labrig.recording.finalize import store_clock_model
+from labrig.sim.delivery import BurstSchedule
 from labrig.sim.motion import PiecewiseLinearPath
 from labrig.sim.rig import RigOutput, Solve, VirtualRig
 from labrig.sim.truth import truth_streams
@@ -85,6 +92,9 @@ def record_live(
     phase_starts = {int(start): name for name, start, _ in tool_path.phases}
     ft_period_us = 1e6 / FT_RATE_HZ
     next_ft_us, next_cnc_us, trigger_level = 0.0, 0.0, 0
+    bursts = BurstSchedule.from_rig(rig, seed)
+    held: list[tuple[int, RigOutput]] = []  # camera chunks waiting for their burst: (release, chunk)
+    ft_drop = _FtDrops(rig.sim.ft.drop_probability, seed)
     max_lag_us, late, chunks, events = 0.0, 0, 0, 0
     wall0 = time.perf_counter()
     with RecordingWriter(path, metadata, clock=clock, extra_streams=truth_streams(n_markers)) as writer:
@@ -111,8 +121,12 @@ def record_live(
             events += len(out.events)
             receive_us = max(now_us, t1) if realtime else t1
             solves = ([last_solve] if last_solve is not None else []) + out.solves
-            _publish_chunk(writer, vr, out, receive_us)
-            next_ft_us = _publish_ft(writer, vr, solves, next_ft_us, t1, ft_period_us, receive_us)
+            if bursts is None:
+                _publish_chunk(writer, vr, out, receive_us)
+            else:
+                held.append((bursts.release_after(t1), out))
+                held = _publish_released(writer, vr, held, now_us if realtime else t1, realtime)
+            next_ft_us = _publish_ft(writer, vr, solves, next_ft_us, t1, ft_period_us, receive_us, ft_drop)
             while next_cnc_us < t1:
                 # A status report has no device clock: the host stamps it on arrival, a link's
                 # transit after GRBL sampled its position (not when this chunk is published).
@@ -124,6 +138,7 @@ def record_live(
                 last_solve = out.solves[-1]
             if progress is not None:
                 progress(t1 / 1e6)
+        _publish_released(writer, vr, held, None, realtime)
         writer.phase_end(duration_us)
     if camera_clock_model is not None:
         store_clock_model(writer.path, "camera", camera_clock_model)
@@ -139,12 +154,44 @@ def _publish_chunk(writer: RecordingWriter, vr: VirtualRig, out: RigOutput, rece
         writer.put("triggers", t_device_us=vr.camera_time_us(t_world), polarity=polarity, channel=0)
 
 
+def _publish_released(
+    writer: RecordingWriter, vr: VirtualRig, held: list[tuple[int, RigOutput]], now_us: int | None, realtime: bool
+) -> list[tuple[int, RigOutput]]:
+    """Publish the held camera chunks whose burst is released by ``now_us`` (None: all, at the end); the rest.
+
+    Stamped with the release (offline) or with the host time now, at or after it (real time)."""
+    for release, out in held:
+        if now_us is not None and release > now_us:
+            break
+        _publish_chunk(writer, vr, out, max(writer.host_us(), release) if realtime else release)
+    return [item for item in held if now_us is not None and item[0] > now_us]
+
+
+class _FtDrops:
+    """Which F/T samples never reach the host: one draw per sample, in time order."""
+
+    def __init__(self, probability: float, seed: int) -> None:
+        self.probability = probability
+        self._rng = np.random.default_rng([seed, 8]) if probability > 0 else None
+
+    def kept(self, n: int) -> npt.NDArray[np.bool_] | None:
+        """A mask over the next ``n`` samples (None: all kept)."""
+        return None if self._rng is None else self._rng.random(n) >= self.probability
+
+
 def _publish_ft(
-    writer: RecordingWriter, vr: VirtualRig, solves: list[Solve], next_us: float, t1: int, period_us: float, receive_us: int
+    writer: RecordingWriter, vr: VirtualRig, solves: list[Solve], next_us: float, t1: int, period_us: float, receive_us: int,
+    drops: _FtDrops,
 ) -> float:
     times = np.arange(next_us, t1, period_us)
     if times.size == 0 or not solves:
         return next_us
+    next_after = float(times[-1] + period_us)
+    kept = drops.kept(times.size)
+    if kept is not None:
+        times = times[kept]
+        if times.size == 0:
+            return next_after
     t_solve = np.array([s.t_us for s in solves], dtype=np.float64)
     forces, torques = zip(*(vr.ft_wrench(s) for s in solves))
     force = np.stack([np.interp(times, t_solve, np.array(forces)[:, i]) for i in range(3)], axis=1)
@@ -159,7 +206,7 @@ def _publish_ft(
         status=np.zeros(times.size, np.uint16),
         temperature_c=np.full(times.size, 30.0, np.float32),
     )
-    return float(times[-1] + period_us)
+    return next_after
 
 
 TruthRows = dict[str, dict[str, np.ndarray]]

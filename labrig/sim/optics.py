@@ -7,7 +7,10 @@ Scene model (units: intensity relative to full scale, pixels of the sensor):
   anti-aliased ellipse (:mod:`labrig.sim.discs`) centred on the projection of
   the marker's 3D centre (gel frame, mm) and shaped by the projection's local
   Jacobian in the gel x-y plane (the membrane's own tilt is neglected).
-  Overlapping markers add coverage, clipped at 1.
+  Overlapping markers add coverage, clipped at 1. Printed markers may differ
+  (``marker_diameter_mm``, ``marker_contrast``: :mod:`labrig.config_sim`): a
+  marker's coverage is weighted by its contrast c (its brightness above the
+  membrane relative to the nominal), and the clip is at max(1, max c).
 * Everything is scaled by the slope shading S of :mod:`labrig.sim.shading`
   (1 on flat membrane), sampled at each pixel's rest back-projection
   onto z = 0 (small-displacement approximation), and clipped to [0, 1]:
@@ -115,6 +118,8 @@ class Renderer:
         camera: CameraModel | None = None,
         *,
         marker_xyz_mm: npt.ArrayLike | None = None,
+        marker_diameter_mm: npt.ArrayLike | None = None,
+        marker_contrast: npt.ArrayLike | None = None,
         edge_px: float = 1.0,
         half_px: int | None = None,
         min_move_px: float = 0.002,
@@ -122,10 +127,16 @@ class Renderer:
         slope_tol: float = 1e-4,
         shade_tol: float = 1e-6,
     ) -> None:
+        """``marker_xyz_mm`` (N, 3): the markers drawn, rest centres in the gel frame (default: the nominal
+        lattice); ``marker_diameter_mm`` (N,), ``marker_contrast`` (N,): per marker (default: nominal, 1)."""
         self.camera = camera or CameraModel.from_rig(rig)
         self.roi = rig.roi
         self.lighting = rig.sim.lighting
-        self.radius_mm = rig.markers.diameter_mm / 2
+        self.radius_mm: float | Array = (rig.markers.diameter_mm / 2 if marker_diameter_mm is None
+                                         else np.asarray(marker_diameter_mm, dtype=np.float64)[:, None, None] / 2)
+        #: Per-marker coverage weights (contrast), or None: all 1 (the compiled rim update then serves every move).
+        self.ink: Array | None = None if marker_contrast is None else np.asarray(marker_contrast, dtype=np.float64)
+        self._coverage_max = 1.0 if self.ink is None else max(1.0, float(self.ink.max()))
         self.edge_px, self.min_move_px, self.min_rel_change = edge_px, min_move_px, min_rel_change
         self.slope_tol, self.shade_tol = slope_tol, shade_tol
         rest = rig.markers.rest_positions_mm() if marker_xyz_mm is None else np.asarray(marker_xyz_mm, float)
@@ -158,7 +169,7 @@ class Renderer:
         self._centres, self._axes_px = self._project(rest)
         self._origins = patch_origins(self._centres, self.half_px)
         self._patches = ellipse_coverage(self._centres, self._axes_px, self._origins, self.half_px, edge_px)
-        np.add.at(self._cov, self._patch_index(self._origins).ravel(), self._patches.ravel())
+        np.add.at(self._cov, self._patch_index(self._origins).ravel(), self._inked(self._patches).ravel())
         self._inner_px, self._outer_px = rim_radii(self._axes_px, edge_px)
 
         self._lum[:] = self._luminance(self._cov)
@@ -204,7 +215,7 @@ class Renderer:
         origins = patch_origins(centres, self.half_px)
         cov = np.zeros_like(self._cov)
         patches = ellipse_coverage(centres, axes, origins, self.half_px, self.edge_px)
-        np.add.at(cov, self._patch_index(origins).ravel(), patches.ravel())
+        np.add.at(cov, self._patch_index(origins).ravel(), self._inked(patches).ravel())
         shade = np.ones((self.roi.height_px, self.roi.width_px))
         box = self._slope_box(depth)
         if box is not None and depth is not None:
@@ -215,6 +226,13 @@ class Renderer:
         return self._intensity(lum, shade, led)
 
     # -- markers -----------------------------------------------------------------------------------
+
+    def _inked(self, patches: Array, markers: Index | None = None) -> Array:
+        """Coverage patches (K, S, S) of ``markers`` (default: all) weighted by their contrast."""
+        if self.ink is None:
+            return patches
+        ink = self.ink if markers is None else self.ink[markers]
+        return patches * ink[:, None, None]
 
     def _axes(self, xyz: Array) -> Array:
         return self.camera.jacobian_px_per_mm(xyz)[..., :2] * self.radius_mm
@@ -258,7 +276,7 @@ class Renderer:
         low = np.maximum(np.minimum(self._inner_px[moved] - move, inner1) - 0.05, 0.0)
         high = np.maximum(self._outer_px[moved] + move, outer1) + 0.05
         origins = patch_origins(c1, self.half_px)
-        rim = high <= self.half_px - 1
+        rim = (high <= self.half_px - 1) if self.ink is None else np.zeros(moved.size, dtype=bool)
         parts = []
         if rim.any():  # (adds its change to the coverage)
             parts.append(self._rim_change(moved[rim], c1[rim], a1[rim], origins[rim], low[rim], high[rim])[0])
@@ -311,7 +329,7 @@ class Renderer:
         reach = int(np.abs(new_origins - old_origins).max(initial=0))
         if reach >= side:  # a jump past the patch: old and new patches are disjoint
             index = np.concatenate([self._patch_index(old_origins).ravel(), self._patch_index(new_origins).ravel()])
-            delta = np.concatenate([-old.ravel(), new.ravel()])
+            delta = np.concatenate([-self._inked(old, markers).ravel(), self._inked(new, markers).ravel()])
             keep = delta != 0
             return index[keep], delta[keep]
         win = side + reach
@@ -330,11 +348,12 @@ class Renderer:
         # The window's top-left pixel on the canvas, placed as the new patch is (see _patch_index).
         lead = new_origins - corner
         top_left = self._canvas_corner(new_origins, side) - (lead[:, 1] * cw + lead[:, 0])
-        return top_left[marker] + row * cw + col, window[nonzero]
+        delta = window[nonzero] if self.ink is None else window[nonzero] * self.ink[markers][marker]
+        return top_left[marker] + row * cw + col, delta
 
     def _luminance(self, coverage: Array) -> Array:
         m, big_m = self.lighting.membrane_level, self.lighting.marker_level
-        return m + np.clip(coverage, 0.0, 1.0) * (big_m - m)
+        return m + np.clip(coverage, 0.0, self._coverage_max) * (big_m - m)
 
     def _lum2d(self) -> Array:
         """Canvas luminance as a 2D view."""

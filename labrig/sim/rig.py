@@ -32,6 +32,9 @@ See :mod:`labrig.sim.contact_track`: tool positions become contact states
 F/T twin shares when the rig is served live; the rig turns the states it
 solves at into contact fields. Indenter yaw relative to the gel and the gel's
 tilt are ignored in the contact shape (both are below a degree).
+
+The markers are the printed ones (:mod:`labrig.sim.printed`); hot pixels
+(:class:`~labrig.sim.delivery.HotPixels`) add their events to the sensor's.
 """
 
 from __future__ import annotations
@@ -49,9 +52,11 @@ from labrig.indenters import Indenter
 from labrig.physics.camera import CameraModel
 from labrig.physics.mechanics import ContactFields, ContactTable
 from labrig.sim.contact_track import ContactKinematics, ContactState, ContactTrack
+from labrig.sim.delivery import HotPixels, merge_events
 from labrig.sim.events import EVENT_DTYPE, EventSensor
 from labrig.sim.motion import true_gel_in_machine
 from labrig.sim.optics import Renderer
+from labrig.sim.printed import PrintedLayout
 from labrig.sim.shading import DepthField
 
 ToolPath = Callable[[npt.ArrayLike], npt.NDArray[np.float64]]
@@ -119,11 +124,14 @@ class VirtualRig:
         #: F/T sensor axes in the gel frame; its origin rides with the tool.
         self.ft_axes_in_gel = rotvec_to_matrix(pose.ft_axes_in_gel_rotvec_rad)
         self.ft_origin_from_tip_mm = np.asarray(pose.ft_origin_in_gel_mm, dtype=np.float64)
-        self.rest_mm = rig.markers.rest_positions_mm()
+        #: The markers as printed ([sim.markers]); ``rest_mm``: their rest centres (N = rows * cols, gel mm).
+        self.printed = PrintedLayout(rig)
+        self.rest_mm = self.printed.rest_mm
         self.cells = _marker_cells(rig)
-        self.renderer = Renderer(rig, self.camera)
+        self.renderer = Renderer(rig, self.camera, **self.printed.renderer_options())
         self.renderer.prepare_shading()
         self.sensor = EventSensor.from_rig(rig, self.renderer.image, t_us=0, seed=seed, dead=_dead_mask(rig.roi, dead_pixels))
+        self.hot_pixels = HotPixels(rig, seed)
         self.solve_step_mm = solve_step_mm
         self.min_solve_interval_us = min_solve_interval_us
         self.max_solve_interval_us = max_solve_interval_us
@@ -192,7 +200,7 @@ class VirtualRig:
         """Contact fields, displaced markers and per-marker forces for a contact state."""
         if not state.in_contact:
             return Solve(state.t_us, state.tip_gel_mm, 0.0, self.rest_mm.copy(), np.zeros(3),
-                         state.centre_of_pressure_mm, np.zeros((len(self.rest_mm), 3)), None, None)
+                         state.centre_of_pressure_mm, self.printed.mask_truth(np.zeros((len(self.rest_mm), 3))), None, None)
         assert state.anchor_mm is not None
         table = state.table or self.table
         fields = table.fields_for_terms(state.depth_mm, state.terms, state.angle_rad)
@@ -225,7 +233,7 @@ class VirtualRig:
         loaded = fields.pressure_mpa > 0
         rows = np.flatnonzero(loaded.any(axis=1))
         if rows.size == 0:
-            return out
+            return self.printed.mask_truth(out)
         cols = np.flatnonzero(loaded[rows[0] : rows[-1] + 1].any(axis=0))
         box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
         flat, index = self._node_cells(fields, anchor, box)
@@ -233,7 +241,7 @@ class VirtualRig:
         out[:, 0] = np.bincount(index, fields.traction_mpa[0][box].ravel()[flat], minlength=n) * area
         out[:, 1] = np.bincount(index, fields.traction_mpa[1][box].ravel()[flat], minlength=n) * area
         out[:, 2] = -np.bincount(index, fields.pressure_mpa[box].ravel()[flat], minlength=n) * area
-        return out
+        return self.printed.mask_truth(out)
 
     def _node_cells(
         self, fields: ContactFields, anchor: npt.NDArray[np.float64], box: tuple[slice, slice]
@@ -248,6 +256,7 @@ class VirtualRig:
             col = np.where((col >= 0) & (col < self.cells.cols), col, -1)
             row = np.where((row >= 0) & (row < self.cells.rows), row, -1)
             cell = np.where((row[:, None] >= 0) & (col[None, :] >= 0), row[:, None] * self.cells.cols + col[None, :], -1)
+            cell = self.printed.cells(x_mm + anchor[0], y_mm + anchor[1], cell)
             flat = np.flatnonzero(cell >= 0)
             self._cells_of_nodes = (flat, cell.ravel()[flat])
             self._cells_key = key
@@ -279,6 +288,7 @@ class VirtualRig:
         if t_end_us < self.t_us:
             raise ValueError("the virtual rig cannot go back in time")
         out = RigOutput(events=np.zeros(0, EVENT_DTYPE))
+        t_start_us = self.t_us
         chunks: list[npt.NDArray[np.void]] = []
         truth_t: list[int] = []
         truth_mm: list[npt.NDArray[np.float64]] = []
@@ -309,7 +319,7 @@ class VirtualRig:
                 truth_t.extend(times.tolist())
                 truth_mm.extend(self._markers_at_times(times))
                 self._next_truth_us = int(times[-1]) + TRUTH_MARKER_INTERVAL_US
-            update = self.renderer.render(markers, self._depth_field)
+            update = self.renderer.render(self.printed.drawn(markers), self._depth_field)
             chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
             out.renders += 1
             self.t_us = t1
@@ -317,12 +327,14 @@ class VirtualRig:
                 # The LED switches within LED_SWITCH_US; the photoreceptors' low-pass spreads the events.
                 _, on = self._led_switches.pop(0)
                 t1 = min(t1 + LED_SWITCH_US, t_end_us)
-                update = self.renderer.render(self._markers_at(t1), self._depth_field, led_on=on)
+                update = self.renderer.render(self.printed.drawn(self._markers_at(t1)), self._depth_field, led_on=on)
                 chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
                 out.renders += 1
                 self.t_us = t1
         if chunks:
             out.events = np.concatenate(chunks)
+        if len(self.hot_pixels):
+            out.events = merge_events(out.events, self.hot_pixels.events(t_start_us, t_end_us))
         with self._trigger_lock:
             edges = sorted(self._pending_triggers)
             out.triggers = [e for e in edges if e[0] <= t_end_us]
@@ -330,8 +342,9 @@ class VirtualRig:
         if truth_t:
             out.truth_t_us = np.array(truth_t, np.int64)
             mm = np.array(truth_mm)
-            out.truth_markers_mm = mm.astype(np.float32)
-            out.truth_markers_px = self.camera.project(mm.reshape(-1, 3)).reshape(len(truth_t), -1, 2).astype(np.float32)
+            out.truth_markers_mm = self.printed.mask_truth(mm.astype(np.float32), axis=1)
+            out.truth_markers_px = self.printed.mask_truth(
+                self.camera.project(mm.reshape(-1, 3)).reshape(len(truth_t), -1, 2).astype(np.float32), axis=1)
         return out
 
     def _next_solve_time(self, prev: Solve, tool_path: ToolPath) -> int:

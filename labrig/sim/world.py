@@ -38,6 +38,7 @@ from labrig.config import RigConfig
 from labrig.indenters import Indenter
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.contact_track import ContactTrack
+from labrig.sim.delivery import BurstSchedule
 from labrig.sim.evk4_twin import Evk4Twin
 from labrig.sim.grbl_twin import GrblTwin
 from labrig.sim.motion import true_gel_in_machine
@@ -99,7 +100,9 @@ class LiveWorld:
         homed: bool = False,
     ) -> None:
         self.clock = clock or MonotonicClock()
-        self.evk4 = Evk4Twin(camera_socket) if camera_socket is not None else None
+        self.bursts = BurstSchedule.from_rig(rig, seed)
+        self.evk4 = (Evk4Twin(camera_socket, clock=self.clock, release_at=None if self.bursts is None else self._release_at)
+                     if camera_socket is not None else None)
         self.camera_sink = camera_sink
         self.on_chunk = on_chunk
         self.trigger_output = trigger_output
@@ -111,7 +114,8 @@ class LiveWorld:
         self.grbl = GrblTwin(grbl_settings, power_on_physical_mm=power_on_tool_mm(rig, indenter), on_output=self._on_output,
                              homed=homed)
         self.bota = BotaTwin(
-            bota_params or BotaTwinParams(clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM, seed=seed),
+            bota_params or BotaTwinParams(clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM, seed=seed,
+                                          drop_probability=rig.sim.ft.drop_probability),
             wrench_at=self._wrench_at,
         )
         # The GRBL twin's port in a relay process: it switches its trigger output when a line
@@ -183,6 +187,11 @@ class LiveWorld:
             return np.zeros(3), np.zeros(3)
         force, cop, tip = self.track.wrench_state(t_host_us - self._origin_us)
         return self.rig.ft_wrench_of(force, cop, tip)
+
+    def _release_at(self, t_host_us: int) -> int:
+        """Host time of the first USB burst at or after ``t_host_us``."""
+        assert self.bursts is not None and self._origin_us is not None
+        return self._origin_us + self.bursts.release_after(t_host_us - self._origin_us)
 
     def _on_output(self, t_host_us: int, name: str, level: int) -> None:
         if name == self.trigger_output and self._origin_us is not None:

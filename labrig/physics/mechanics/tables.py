@@ -171,12 +171,12 @@ class ContactTable:
 
     @classmethod
     def from_rig(cls, indenter: Indenter, rig: RigConfig, **options: Any) -> ContactTable:
-        """:meth:`build` with the gel, mode, grid spacing and stiffening of a rig configuration."""
+        """:meth:`build` with the virtual rig's true gel (``rig.sim.gel``), mode, grid spacing and stiffening."""
         mechanics = rig.sim.mechanics
         options.setdefault("mode", mechanics.mode)
         options.setdefault("spacing_mm", mechanics.grid_spacing_mm)
         options.setdefault("stiffening", mechanics.stiffening)
-        return cls.build(indenter, rig.gel, **options)
+        return cls.build(indenter, rig.sim.gel, **options)
 
     def save(self, path: str | Path) -> Path:
         """Write the table as an uncompressed ``.npz`` (atomically)."""

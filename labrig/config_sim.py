@@ -1,0 +1,228 @@
+"""The virtual rig's imperfect sensor, from the rig file's optional ``sim.*`` sections.
+
+A real gel's markers are printed by hand or through a stencil, a real EVK4 hands its
+events to the host in USB bursts, a serial F/T link loses the odd frame. These
+sections say how the virtual rig's sensor differs from the ideal one; each may be
+left out, and every default is the ideal sensor (the rig then behaves exactly as
+without the section).
+
+``[sim.markers]`` (the markers as printed; the nominal lattice is ``[markers]``):
+
+* ``position_error_mm``: a number, the standard deviation (mm, per gel axis x and y)
+  of each marker's placement error, drawn once from ``seed``; or an explicit list of
+  ``[dx, dy]`` pairs (mm, gel frame), one per marker in the lattice's row-major order.
+* ``diameter_variation``: the standard deviation of each marker's diameter relative
+  to ``[markers] diameter_mm`` (0.1: 10 %).
+* ``contrast_variation``: the standard deviation of each marker's contrast (its
+  brightness above the membrane, the ink density) relative to the nominal.
+* ``missing``: marker indices (row-major, 0-based) never printed; ``missing_count``:
+  that many more, chosen at random from the others (``seed``).
+
+``[sim.camera_delivery]``: ``burst_period_ms`` (0: no bursts) and ``burst_jitter_ms``:
+the host receives the camera's data in bursts, released at ``k * period + U(0, jitter)``
+ms of world time; ``hot_pixels``: that many pixels of the ROI (chosen from ``seed``)
+fire at ``hot_pixel_rate_hz`` on top of their own events.
+
+``[sim.ft]``: ``drop_probability``, the chance that one F/T sample never reaches the host.
+
+Random draws are independent per knob (a knob's draws do not change when another
+knob is set) and depend only on the section's ``seed``: the same file prints the
+same gel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.errors import ConfigError
+
+Offsets = tuple[tuple[float, float], ...]
+
+#: A marker's diameter and contrast factors are kept at or above this (a variation cannot make them vanish).
+MIN_FACTOR = 0.05
+
+
+@dataclass(frozen=True)
+class SimMarkers:
+    """``[sim.markers]``: how the markers were printed (see the module docstring)."""
+
+    seed: int = 0
+    position_error_mm: float | Offsets = 0.0
+    diameter_variation: float = 0.0
+    contrast_variation: float = 0.0
+    missing: tuple[int, ...] = ()
+    missing_count: int = 0
+
+    @property
+    def ideal(self) -> bool:
+        """Every marker printed where, as large and as dark as nominal."""
+        return (self.position_error_mm == 0.0 and self.diameter_variation == 0.0 and self.contrast_variation == 0.0
+                and not self.missing and self.missing_count == 0)
+
+
+@dataclass(frozen=True)
+class SimCameraDelivery:
+    """``[sim.camera_delivery]``: USB bursts (ms) and hot pixels (see the module docstring)."""
+
+    seed: int = 0
+    burst_period_ms: float = 0.0
+    burst_jitter_ms: float = 0.0
+    hot_pixels: int = 0
+    hot_pixel_rate_hz: float = 200.0
+
+
+@dataclass(frozen=True)
+class SimFt:
+    """``[sim.ft]``: the F/T link (see the module docstring); drops follow the run's seed."""
+
+    drop_probability: float = 0.0
+
+
+@dataclass(frozen=True)
+class PrintedMarkers:
+    """The markers as printed, in the lattice's row-major order (N = rows * cols).
+
+    ``rest_mm`` (N, 3): rest centres, gel frame (a missing marker's is where it would have
+    been); ``diameter_mm`` (N,); ``contrast`` (N,): brightness above the membrane relative
+    to the nominal; ``printed`` (N,): False for a missing marker.
+    """
+
+    rest_mm: npt.NDArray[np.float64]
+    diameter_mm: npt.NDArray[np.float64]
+    contrast: npt.NDArray[np.float64]
+    printed: npt.NDArray[np.bool_]
+
+    @property
+    def missing(self) -> npt.NDArray[np.int64]:
+        """Indices of the markers never printed."""
+        return np.flatnonzero(~self.printed)
+
+
+def printed_markers(spec: SimMarkers, nominal_rest_mm: npt.ArrayLike, diameter_mm: float) -> PrintedMarkers:
+    """Realise ``spec`` on the nominal lattice (N, 3 rest centres, gel mm; nominal diameter, mm)."""
+    rest = np.array(nominal_rest_mm, dtype=np.float64)
+    n = len(rest)
+    if isinstance(spec.position_error_mm, tuple):
+        rest[:, :2] += np.asarray(spec.position_error_mm, dtype=np.float64)
+    elif spec.position_error_mm > 0:
+        rest[:, :2] += _rng(spec.seed, 1).normal(0.0, spec.position_error_mm, (n, 2))
+    diameter = np.full(n, float(diameter_mm))
+    if spec.diameter_variation > 0:
+        diameter *= np.maximum(1.0 + _rng(spec.seed, 2).normal(0.0, spec.diameter_variation, n), MIN_FACTOR)
+    contrast = np.ones(n)
+    if spec.contrast_variation > 0:
+        contrast = np.maximum(1.0 + _rng(spec.seed, 3).normal(0.0, spec.contrast_variation, n), MIN_FACTOR)
+    printed = np.ones(n, dtype=bool)
+    printed[list(spec.missing)] = False
+    if spec.missing_count:
+        others = np.flatnonzero(printed)
+        printed[_rng(spec.seed, 4).choice(others, spec.missing_count, replace=False)] = False
+    return PrintedMarkers(rest, diameter, contrast, printed)
+
+
+def hot_pixel_indices(spec: SimCameraDelivery, roi_pixels: int) -> npt.NDArray[np.int64]:
+    """Flat ROI indices (row-major) of the hot pixels, sorted."""
+    if spec.hot_pixels == 0:
+        return np.zeros(0, np.int64)
+    return np.sort(_rng(spec.seed, 5).choice(roi_pixels, spec.hot_pixels, replace=False)).astype(np.int64)
+
+
+def _rng(seed: int, knob: int) -> np.random.Generator:
+    return np.random.default_rng([seed, knob])
+
+
+# -- parsing ----------------------------------------------------------------------------------------
+
+
+def parse_imperfections(sim: dict[str, Any], path: Path) -> tuple[SimMarkers, SimCameraDelivery, SimFt]:
+    """The optional ``[sim.markers]``, ``[sim.camera_delivery]``, ``[sim.ft]`` sections (defaults where absent)."""
+    return (_optional(SimMarkers, sim, "markers", path), _optional(SimCameraDelivery, sim, "camera_delivery", path),
+            _optional(SimFt, sim, "ft", path))
+
+
+def _optional(cls: type, sim: dict[str, Any], name: str, path: Path) -> Any:
+    table = sim.get(name, {})
+    where = f"{path}: [sim.{name}]"
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table, e.g. [sim.{name}] on its own line")
+    names = [f.name for f in fields(cls)]
+    unknown = sorted(set(table) - set(names))
+    if unknown:
+        raise ConfigError(f"{where} unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
+    values = {key: _value(cls, key, table[key], where) for key in table}
+    return cls(**values)
+
+
+def _value(cls: type, key: str, value: Any, where: str) -> Any:
+    default = next(f.default for f in fields(cls) if f.name == key)
+    if key == "position_error_mm":
+        if isinstance(value, list):
+            pairs = []
+            for item in value:
+                if not (isinstance(item, list) and len(item) == 2 and all(_is_number(v) for v in item)):
+                    raise ConfigError(f"{where} position_error_mm: give a number (mm std) or a list of [dx, dy] pairs, "
+                                      f"not {item!r} in the list")
+                pairs.append((float(item[0]), float(item[1])))
+            return tuple(pairs)
+        if not _is_number(value):
+            raise ConfigError(f"{where} position_error_mm must be a number (mm std) or a list of [dx, dy] pairs")
+        return float(value)
+    if isinstance(default, tuple):
+        if not (isinstance(value, list) and all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
+            raise ConfigError(f"{where} {key} must be a list of marker indices, e.g. [0, 17]")
+        return tuple(value)
+    if isinstance(default, int) and not isinstance(default, bool):
+        if not (isinstance(value, int) and not isinstance(value, bool)):
+            raise ConfigError(f"{where} {key} must be a whole number, not {value!r}")
+        return value
+    if not _is_number(value):
+        raise ConfigError(f"{where} {key} must be a number, not {value!r}")
+    return float(value)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def check_imperfections(
+    markers: SimMarkers, delivery: SimCameraDelivery, ft: SimFt, n_markers: int, pitch_mm: float, roi_pixels: int,
+    where: str,
+) -> None:
+    """Range checks; each error names the section and the key and says what is allowed."""
+    m = f"{where}: [sim.markers]"
+    error = markers.position_error_mm
+    if isinstance(error, tuple):
+        if len(error) != n_markers:
+            raise ConfigError(f"{m} position_error_mm lists {len(error)} [dx, dy] pairs; give one per marker ({n_markers})")
+        if max(max(abs(dx), abs(dy)) for dx, dy in error) >= pitch_mm / 2:
+            raise ConfigError(f"{m} position_error_mm: every offset must stay under half the pitch ({pitch_mm / 2:g} mm)")
+    elif not 0 <= error <= pitch_mm / 4:
+        raise ConfigError(f"{m} position_error_mm must be in [0, {pitch_mm / 4:g}] mm (a quarter of the pitch), not {error:g}")
+    for key in ("diameter_variation", "contrast_variation"):
+        if not 0 <= getattr(markers, key) <= 0.5:
+            raise ConfigError(f"{m} {key} must be in [0, 0.5] (a relative standard deviation), not {getattr(markers, key):g}")
+    bad = [i for i in markers.missing if not 0 <= i < n_markers]
+    if bad:
+        raise ConfigError(f"{m} missing: marker index {bad[0]} is outside 0..{n_markers - 1} (row-major)")
+    if len(set(markers.missing)) != len(markers.missing):
+        raise ConfigError(f"{m} missing lists a marker twice")
+    if not 0 <= markers.missing_count <= n_markers - len(markers.missing) - 1:
+        raise ConfigError(f"{m} missing_count must be in [0, {n_markers - len(markers.missing) - 1}] "
+                          f"(at least one marker printed), not {markers.missing_count}")
+    d = f"{where}: [sim.camera_delivery]"
+    if delivery.burst_period_ms < 0 or delivery.burst_jitter_ms < 0:
+        raise ConfigError(f"{d} burst_period_ms and burst_jitter_ms must be >= 0")
+    if delivery.burst_jitter_ms > delivery.burst_period_ms:
+        raise ConfigError(f"{d} burst_jitter_ms ({delivery.burst_jitter_ms:g}) must not exceed burst_period_ms "
+                          f"({delivery.burst_period_ms:g}); 0 jitter without bursts")
+    if not 0 <= delivery.hot_pixels <= roi_pixels:
+        raise ConfigError(f"{d} hot_pixels must be in [0, {roi_pixels}] (the ROI's pixels), not {delivery.hot_pixels}")
+    if not 0 < delivery.hot_pixel_rate_hz <= 3000:
+        raise ConfigError(f"{d} hot_pixel_rate_hz must be in (0, 3000] Hz, not {delivery.hot_pixel_rate_hz:g}")
+    if not 0 <= ft.drop_probability < 1:
+        raise ConfigError(f"{where}: [sim.ft] drop_probability must be in [0, 1), not {ft.drop_probability:g}")
