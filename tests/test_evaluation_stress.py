@@ -99,7 +99,7 @@ def test_the_report_section_renders_and_checks(suite: StressResult, tmp_path: Pa
     report.write(out)
     assert check_report(out) == []
     results = json.loads((out / "results.json").read_text())
-    assert len(results["tables"]["stress_breakdown"]["rows"]) == len(suite.breakdowns) == 7
+    assert len(results["tables"]["stress_breakdown"]["rows"]) == len(suite.breakdowns) == 8
     for key in ("stress_force_range_forces", "stress_event_noise_tracking", "stress_event_noise_forces"):
         assert key in results["figures"], key
         assert (out / results["figures"][key]["path"]).stat().st_size > 1000
