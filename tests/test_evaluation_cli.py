@@ -89,7 +89,9 @@ def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
              ([str(campaign), "--split", "holdout"], "--split must be one of"),
              ([str(campaign), "--split", "val"], "no complete recording in the 'val' split"),
              ([str(campaign), "--window-events", "100", "--window-ms", "10"], "not both"),
-             ([str(campaign), "--model", str(tmp_path / "x.onnx")], "no such file")]
+             ([str(campaign), "--model", str(tmp_path / "x.onnx")], "no such file"),
+             ([str(campaign), "--trackers", "paper,kalman"], "--trackers: kalman"),
+             ([str(campaign), "--trackers", ","], "--trackers: none given")]
     bare = tmp_path / "bare"
     shutil.copytree(campaign, bare)
     for side in bare.glob("*.gt.h5"):

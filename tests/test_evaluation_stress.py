@@ -80,8 +80,8 @@ def test_a_linear_gel_does_not_break_along_the_force_range(cache: Path) -> None:
 
 def test_event_noise_breaks_the_circle_fit_but_not_the_gated_tracker(suite: StressResult) -> None:
     assert curve(suite, "event_noise", "paper").values == [0.05, 2.0, 10.0]
-    c = curve(suite, "event_noise", "evetac")
-    point = breaks(suite, "event_noise", "evetac")
+    c = curve(suite, "event_noise", "circle-fit")
+    point = breaks(suite, "event_noise", "circle-fit")
     assert point is not None and 0.05 < point <= 10.0  # Hz per pixel
     assert max(c.error[1:]) >= 2 * c.error[0]
     paper = curve(suite, "event_noise", "paper")  # its gates subtract the background noise
@@ -99,7 +99,7 @@ def test_the_report_section_renders_and_checks(suite: StressResult, tmp_path: Pa
     report.write(out)
     assert check_report(out) == []
     results = json.loads((out / "results.json").read_text())
-    assert len(results["tables"]["stress_breakdown"]["rows"]) == len(suite.breakdowns) == 7
+    assert len(results["tables"]["stress_breakdown"]["rows"]) == len(suite.breakdowns) == 8
     for key in ("stress_force_range_forces", "stress_event_noise_tracking", "stress_event_noise_forces"):
         assert key in results["figures"], key
         assert (out / results["figures"][key]["path"]).stat().st_size > 1000
@@ -107,7 +107,7 @@ def test_the_report_section_renders_and_checks(suite: StressResult, tmp_path: Pa
     summary = stress_summary(suite)
     assert set(summary) == {"force_range_mm", "event_noise_hz"}
     assert summary["force_range_mm"]["forces-truth"] == pytest.approx(breaks(suite, "force_range", "forces-truth"))
-    assert set(summary["event_noise_hz"]) == {"paper", "paper-published", "evetac", "forces-truth", "forces-linear"}
+    assert set(summary["event_noise_hz"]) == {"paper", "paper-published", "circle-fit", "evetac", "forces-truth", "forces-linear"}
 
 
 def test_a_rerun_comes_from_the_cache(suite: StressResult, cache: Path) -> None:

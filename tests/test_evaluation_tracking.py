@@ -171,9 +171,11 @@ def test_settings_are_checked(presses: list[str]) -> None:
 
 
 def test_other_settings_run(presses: list[str]) -> None:
+    circle = track_recording(TrackingTask(presses[0], tracker="circle-fit", patch_scale=2.0))
     evetac = track_recording(TrackingTask(presses[0], tracker="evetac", patch_scale=2.0))
     counted = track_recording({"recording": presses[0], "window_us": None, "window_events": 20_000, "rest": "rig"})
-    assert evetac.lost_tracks == 0 and evetac.error_p95_px < 5.0
+    assert circle.lost_tracks == 0 and circle.error_p95_px < 5.0
+    assert evetac.lost_tracks == 0 and evetac.lost_by_truth == 0 and evetac.error_p95_px < 3.0
     assert counted.window_events == 20_000 and 5 <= counted.n_windows <= 40 and counted.lost_tracks == 0
     assert counted.rest_source == "rig camera (the recording's rig)"
 

@@ -9,9 +9,10 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.indenters import Indenter
+from labrig.pipeline.evetac import EvetacParams, EvetacTracker
 from labrig.pipeline.tracking import (
-    EvetacParams,
-    EvetacTracker,
+    CircleFitParams,
+    CircleFitTracker,
     Tracker,
     TrackerParams,
     grid_neighbours,
@@ -34,7 +35,7 @@ def probe_recording(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sp
     return out
 
 
-def track(recording: Path, tracker: Tracker | EvetacTracker) -> tuple[np.ndarray, np.ndarray]:
+def track(recording: Path, tracker: Tracker | CircleFitTracker | EvetacTracker) -> tuple[np.ndarray, np.ndarray]:
     """Per-window tracking errors (windows, M) px against the truth at each window's end, and the final drift."""
     with Recording(recording) as rec:
         truth = rec.stream("truth/markers")
@@ -72,13 +73,24 @@ def test_plain_paper_tracker_is_worse_without_the_gates(rig: RigConfig, probe_re
     assert np.percentile(errors, 95) > np.percentile(gated, 95)
 
 
-def test_evetac_baseline_follows_the_markers(rig: RigConfig, probe_recording: Path) -> None:
-    tracker = EvetacTracker(rest_positions_px(rig), EvetacParams(marker_diameter_px=marker_diameter_px(rig)))
+def test_circle_fit_baseline_follows_the_markers(rig: RigConfig, probe_recording: Path) -> None:
+    tracker = CircleFitTracker(rest_positions_px(rig), CircleFitParams(marker_diameter_px=marker_diameter_px(rig)))
     errors, drift = track(probe_recording, tracker)
-    print(f"evetac baseline: median {np.median(errors):.2f} px, p95 {np.percentile(errors, 95):.2f} px, "
+    print(f"circle-fit baseline: median {np.median(errors):.2f} px, p95 {np.percentile(errors, 95):.2f} px, "
           f"lost {(drift > LOST_PX).sum()}")
     assert np.median(errors) < 1.0 and np.percentile(errors, 95) < 5.0
     assert (drift > LOST_PX).sum() == 0
+
+
+def test_evetac_published_tracker_follows_the_markers(rig: RigConfig, probe_recording: Path) -> None:
+    tracker = EvetacTracker(rest_positions_px(rig), EvetacParams(marker_diameter_px=marker_diameter_px(rig)))
+    errors, drift = track(probe_recording, tracker)
+    print(f"evetac (published): median {np.median(errors):.2f} px, p95 {np.percentile(errors, 95):.2f} px, "
+          f"max {errors.max():.1f} px, lost {(drift > LOST_PX).sum()}")
+    assert np.median(errors) < 0.5 and np.percentile(errors, 95) < 2.0 and errors.max() < 8.0
+    assert (drift > LOST_PX).sum() == 0
+    unsprung = EvetacTracker(rest_positions_px(rig), EvetacParams(marker_diameter_px=marker_diameter_px(rig), springs=False))
+    assert track(probe_recording, unsprung)[0].max() > errors.max()  # the springs hold dots the events lose
 
 
 def test_tracker_ignores_sparse_noise_and_follows_a_translated_grid(rig: RigConfig) -> None:

@@ -38,6 +38,9 @@ def evaluate_command(
                      ] = None,
     no_cache: Annotated[bool, typer.Option("--no-cache", help="Recompute every task (results are still stored).")] = False,
     table1: Annotated[bool, typer.Option(help="Track each recording at 5 patch sizes x 2 for Table I.")] = True,
+    trackers: Annotated[str, typer.Option(
+        help="Table I's trackers, comma-separated: paper-published, paper, circle-fit, evetac (Evetac's published "
+             "tracker).")] = "paper-published,paper",
     sweep: Annotated[bool, typer.Option("--sweep", help="Also chart accuracy against latency over the pipeline's knobs.")
                      ] = False,
     sweep_recordings: Annotated[int, typer.Option(help="Recordings the sweep uses (spread over the split; 0: all).")] = 4,
@@ -56,7 +59,8 @@ def evaluate_command(
         data=data, split=split, model=model, models_dir=models,
         window_events=window_events if window_events is not None or window_ms is not None else 20_000,
         window_ms=window_ms, calibration_dir=calibration, workers=workers, scheduler=scheduler, cache_dir=cache,
-        use_cache=not no_cache, table1=table1, sweep=sweep, sweep_recordings=sweep_recordings or None,
+        use_cache=not no_cache, table1=table1, trackers=tuple(t.strip() for t in trackers.split(",") if t.strip()),
+        sweep=sweep, sweep_recordings=sweep_recordings or None,
         stress=stress, stress_grid=stress_grid)
     if sweep_recordings < 0:
         from labrig.errors import LabrigError

@@ -33,7 +33,14 @@ from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.groundtruth_error import GroundTruthErrorResult, GroundTruthErrorTask, evaluate_groundtruth
 from labrig.evaluation.stress import StressResult
 from labrig.evaluation.sweep import SweepResult, run_sweep
-from labrig.evaluation.tracking import TABLE_PATCH_SCALES, TrackingResult, table_lost_tracks, table_tasks, track_recording
+from labrig.evaluation.tracking import (
+    FIXED_BAND_TRACKERS,
+    TABLE_PATCH_SCALES,
+    TrackingResult,
+    table_lost_tracks,
+    table_tasks,
+    track_recording,
+)
 from labrig.executor import Run, run_tasks
 from labrig.models import BUNDLED, bundled_model_path, model_path
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
@@ -42,7 +49,10 @@ SPLIT_CHOICES = (*SPLITS, ALL_SPLITS)  # --split
 PAPER = {"force_x_mae_n": 0.14, "force_y_mae_n": 0.10, "force_z_mae_n": 0.93, "force_total_mae_n": 0.94,
          "position_total_mae_px": 2.47, "depth_total_mm": 0.091, "depth_contact_mm": 0.265, "lost_tracks": 2.8}
 Progress = Callable[[str, int, int], None]
-TABLE1_TRACKERS = {"paper-published": "as published", "paper": "bundled (event gates)"}
+#: Table I's trackers (``--trackers``) and their names in the report; the default is the first two.
+TABLE1_TRACKERS = {"paper-published": "as published", "paper": "bundled (event gates)", "circle-fit": "circle fit",
+                   "evetac": "Evetac (published)"}
+DEFAULT_TABLE1_TRACKERS = ("paper-published", "paper")
 
 
 @dataclass
@@ -62,6 +72,7 @@ class EvaluationSettings:
     use_cache: bool = True
     patch_scales: tuple[float, ...] = TABLE_PATCH_SCALES
     table1: bool = True
+    trackers: tuple[str, ...] = DEFAULT_TABLE1_TRACKERS  # Table I's trackers (keys of TABLE1_TRACKERS)
     label_errors: bool = True
     sweep: bool = False
     sweep_recordings: int | None = 4  # the sweep's recordings: the first N of the split (None: all)
@@ -74,6 +85,10 @@ class EvaluationSettings:
         WindowSpec.from_options(self.window_ms, self.window_events, default_ms=None)
         if self.models_dir is not None and not Path(self.models_dir).is_dir():
             raise LabrigError(f"--models {self.models_dir}: not a folder (give the folder tools/depth_sweep.py wrote)")
+        unknown = [t for t in self.trackers if t not in TABLE1_TRACKERS]
+        if unknown or not self.trackers:
+            raise LabrigError(f"--trackers: {', '.join(unknown) or 'none given'}; use a comma-separated list of "
+                              f"{', '.join(TABLE1_TRACKERS)}")
         if self.stress_grid not in ("full", "reduced"):
             raise LabrigError(f"--stress-grid must be full or reduced, not {self.stress_grid!r}")
         if self.model is not None and not model_path(self.model).exists():
@@ -163,8 +178,9 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
         ev.depth[m] = [r for t, r in zip(depth_tasks, results) if t.model == m]
     if settings.table1:
         ev.tracking = run("tracking", track_recording,
-                          [t for tracker in TABLE1_TRACKERS for t in table_tasks(
-                              paths, patch_scales=settings.patch_scales, calibration_dir=calibration, tracker=tracker)])
+                          [t for tracker in settings.trackers for t in table_tasks(
+                              paths, patch_scales=settings.patch_scales[:1] if tracker in FIXED_BAND_TRACKERS
+                              else settings.patch_scales, calibration_dir=calibration, tracker=tracker)])
     simulated, ev.camera_short_s = _scan_recordings(paths)
     if simulated:
         ev.forces_truth = run("forces-truth", evaluate_forces, [

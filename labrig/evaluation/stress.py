@@ -4,8 +4,9 @@ Every (axis, value) of :data:`labrig.evaluation.stress_axes.AXES` is a short pro
 the virtual rig with one knob pushed; the methods are measured on it against the sim's truth:
 
 * tracking: the bundled tracker ("paper", 3x patch), the tracker as published
-  ("paper-published", 1x) and the Evetac-style baseline ("evetac", 1x), each refined and at
-  its best patch in Table I on the virtual rig: p95 true error (px) and tracks lost by the
+  ("paper-published", 1x), the circle-fit baseline ("circle-fit", 1x) and Evetac's published
+  tracker ("evetac", its fixed ring band), each refined and at its best patch in Table I on
+  the virtual rig: p95 true error (px) and tracks lost by the
   truth (ever more than 15 px off), :func:`labrig.evaluation.tracking.track_recording`;
 * forces: the pipeline with the sim's true depth ("forces-truth", so the stress falls on
   tracking and the inverse FEM), the same with the paper's linear gel instead of the
@@ -44,7 +45,7 @@ from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
 
 #: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
-TRACKERS = {"paper": 3.0, "paper-published": 1.0, "evetac": 1.0}
+TRACKERS = {"paper": 3.0, "paper-published": 1.0, "circle-fit": 1.0, "evetac": 1.0}  # evetac: scale unused
 FORCES_TRUTH, FORCES_LINEAR, FORCES_MODEL = "forces-truth", "forces-linear", "forces-model"
 FACTOR = 2.0
 
@@ -122,7 +123,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
     return SceneMeasurement(facts, by_tracker, by_method)
 
 
-measure_scene.cache_version = "7"  # type: ignore[attr-defined]
+measure_scene.cache_version = "8"  # type: ignore[attr-defined]
 
 
 def window_key(window_ms: float) -> str:

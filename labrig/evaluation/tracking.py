@@ -12,10 +12,11 @@ which the start-end proxy cannot see).
 :func:`table_lost_tracks` turns its results into Table I rows (mean and std over recordings).
 
 Settings map onto the trackers as follows. ``patch_scale`` is the patch side in marker
-diameters (the paper's 1x-5x); for the Evetac-style baseline it sets the annulus' outer
-radius to the same half side (``outer_radius = patch_scale`` marker radii). ``refine``
-switches the grid-aware refinement: lambda 0.2 or 0 for the paper's tracker, the neighbour
-springs (gain 0.1 or 0) for the baseline.
+diameters (the paper's 1x-5x); for the circle-fit baseline it sets the annulus' outer
+radius to the same half side (``outer_radius = patch_scale`` marker radii); Evetac's
+published tracker has a fixed ring band and ignores it (:data:`FIXED_BAND_TRACKERS`).
+``refine`` switches the grid-aware refinement: lambda 0.2 or 0 for the paper's tracker, the
+neighbour springs (gain 0.1 or 0) for the circle fit, Evetac's springs on or off.
 """
 
 from __future__ import annotations
@@ -34,8 +35,9 @@ Array = npt.NDArray[np.float64]
 
 LOST_PX = 15.0  # the paper's threshold: start-end drift (px) above which a track is lost
 PAPER_LAMBDA = 0.2  # the paper's refinement weight
-EVETAC_SPRING = 0.1  # the baseline's neighbour-spring gain when refined
-TRACKERS = ("paper", "paper-published", "evetac")
+CIRCLE_FIT_SPRING = 0.1  # the circle-fit baseline's neighbour-spring gain when refined
+TRACKERS = ("paper", "paper-published", "circle-fit", "evetac")
+FIXED_BAND_TRACKERS = frozenset({"evetac"})  # trackers that ignore ``patch_scale``
 REST_SOURCES = ("calibration", "rig")
 TABLE_PATCH_SCALES = (1.0, 2.0, 3.0, 4.0, 5.0)
 
@@ -45,7 +47,8 @@ class TrackingTask:
     """One recording, one tracker setting. Windows: ``window_us`` long (default 10 ms) or ``window_events`` each.
 
     ``tracker``: "paper" (the bundled tracker with its event gates), "paper-published" (no gate,
-    no two-polarity test: the tracker as the paper describes it) or "evetac" (the baseline).
+    no two-polarity test: the tracker as the paper describes it), "circle-fit" (a circle-fit
+    baseline, formerly "evetac") or "evetac" (Evetac's published tracker, :mod:`labrig.pipeline.evetac`).
     ``rest``: where the markers' rest pixels come from: "calibration" (the extrinsics the
     recording names, else ``calibration_dir``'s, as ``labrig run`` resolves them; the rig's
     camera when there are none) or "rig" (the rig's own camera model).
@@ -114,14 +117,17 @@ class TrackingResult:
 
 def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float) -> Any:
     """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide."""
-    from labrig.pipeline.tracking import EvetacParams, EvetacTracker, Tracker, TrackerParams
+    from labrig.pipeline.evetac import EvetacParams, EvetacTracker
+    from labrig.pipeline.tracking import CircleFitParams, CircleFitTracker, Tracker, TrackerParams
 
     if task.patch_scale <= 0:
         raise LabrigError(f"patch_scale must be positive (a multiple of the marker diameter), not {task.patch_scale}")
     if task.tracker == "evetac":
-        spring = EVETAC_SPRING if task.refine else 0.0
-        params = EvetacParams(marker_diameter_px=diameter_px, outer_radius=float(task.patch_scale), spring=spring)
-        return EvetacTracker(rest_px, params)
+        return EvetacTracker(rest_px, EvetacParams(marker_diameter_px=diameter_px, springs=bool(task.refine)))
+    if task.tracker == "circle-fit":
+        spring = CIRCLE_FIT_SPRING if task.refine else 0.0
+        params = CircleFitParams(marker_diameter_px=diameter_px, outer_radius=float(task.patch_scale), spring=spring)
+        return CircleFitTracker(rest_px, params)
     lam = PAPER_LAMBDA if task.refine else 0.0
     base = TrackerParams(marker_diameter_px=diameter_px, patch_scale=float(task.patch_scale), refine_lambda=lam)
     if task.tracker == "paper":
@@ -165,7 +171,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         **{f.name: getattr(truth_fields, f.name) for f in fields(TruthErrors)})
 
 
-track_recording.cache_version = "3"  # type: ignore[attr-defined]
+track_recording.cache_version = "4"  # type: ignore[attr-defined]
 
 
 def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str]:

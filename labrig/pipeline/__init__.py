@@ -3,7 +3,8 @@
 Stages:
 
 * :mod:`labrig.pipeline.sae`: polarity-separated Surface of Active Events (sensor, ROI, network grid).
-* :mod:`labrig.pipeline.tracking`: the paper's patch-centroid marker tracker and an Evetac-style baseline.
+* :mod:`labrig.pipeline.tracking`: the paper's patch-centroid marker tracker and a circle-fit baseline.
+* :mod:`labrig.pipeline.evetac`: Evetac's published dot tracker (a baseline).
 * :mod:`labrig.pipeline.depthnet` and :mod:`labrig.pipeline.depth_sources`: the normal-displacement map per window.
 * :mod:`labrig.pipeline.displacement`: tracked pixels + normal displacement + camera -> 3D marker displacements.
 * :mod:`labrig.pipeline.ifem`: the gel's condensed stiffness K at the markers (hex8, B-bar, cached).

@@ -1,4 +1,4 @@
-"""Event-based marker tracking: the paper's patch-centroid tracker and an Evetac-style baseline.
+"""Event-based marker tracking: the paper's patch-centroid tracker and a circle-fit baseline.
 
 :class:`Tracker` (the paper's, section III-A): per window, each marker's square
 patch (``patch_scale`` x the marker diameter) around its last position, clipped
@@ -19,10 +19,11 @@ none) of the clipped patches, repainted only where a patch moved; a compiled
 loop then sums each marker's events. Positions are sensor pixels (x, y), in
 the rig's marker order (row-major from -y, -x of the gel frame).
 
-:class:`EvetacTracker` is the public baseline (Funk et al., physics.md 1.1):
-events on an annulus around each dot pull its centre toward a circle fit of
-the dot's radius; springs on the squared distances to the (up to 8)
-neighbours hold the grid together.
+:class:`CircleFitTracker` is a circle-fit baseline (formerly called "Evetac-style"; it
+is not Evetac's published algorithm, which is :mod:`labrig.pipeline.evetac`): events on
+an annulus around each dot pull its centre toward a circle fit of the dot's radius (the
+mean gradient, a few iterations, each move clipped); normalised springs on the squared
+distances to the (up to 8) neighbours hold the grid together.
 """
 
 from __future__ import annotations
@@ -257,7 +258,7 @@ class _PatchTracker:
 
     _half: float
 
-    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams | EvetacParams,
+    def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams | CircleFitParams,
                  observed: npt.ArrayLike | None = None) -> None:
         self.params = params
         self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
@@ -331,12 +332,12 @@ class Tracker(_PatchTracker):
         return out.copy(), updated
 
 
-# -- Evetac-style baseline ----------------------------------------------------------------------------
+# -- circle-fit baseline -------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class EvetacParams:
-    """Circle-fit + neighbour-spring tracker (Evetac-style); radii in marker radii."""
+class CircleFitParams:
+    """Circle-fit + normalised neighbour-spring tracker; radii in marker radii."""
 
     marker_diameter_px: float = 14.0
     fit_radius: float = 1.0  # events are pulled onto a circle of this many marker radii
@@ -399,12 +400,12 @@ def _springs(pos, neigh, rest_d2, gain):  # pragma: no cover - compiled
         pos[i, 1] += move[i, 1]
 
 
-class EvetacTracker(_PatchTracker):
-    """The baseline: ``update(events)`` -> (positions_px (M, 2), updated (M,))."""
+class CircleFitTracker(_PatchTracker):
+    """The circle-fit baseline: ``update(events)`` -> (positions_px (M, 2), updated (M,))."""
 
-    params: EvetacParams
+    params: CircleFitParams
 
-    def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams(),
+    def __init__(self, rest_px: npt.ArrayLike, params: CircleFitParams = CircleFitParams(),
                  observed: npt.ArrayLike | None = None) -> None:
         super().__init__(rest_px, params, observed)
         self._neigh = drop_unobserved(grid_neighbours(params.grid_rows, params.grid_cols, params.spring_connectivity),
