@@ -127,7 +127,10 @@ class ClockModel:
     the edges it rests on scatter (max - min of stamp - model, us): the
     lateness of a prompt edge, a scale for the offset's error (infinite without
     two such edges). ``n_trigger_pairs``: camera edges paired with a known host
-    edge; ``n_triggers``: those the model was fitted on.
+    edge; ``n_triggers``: those the model was fitted on. ``offset_bound_us``: where the edges'
+    latest times are known too (their device's answer), the model lies midway between the
+    highest earliest and the lowest latest time, and its offset is off by at most this (half
+    the width left between them; infinite: no latest times).
     """
 
     device_ref_us: float = 0.0
@@ -142,6 +145,7 @@ class ClockModel:
     drift_uncertainty_ppm: float = math.inf
     trigger_spread_us: float = math.inf
     n_trigger_pairs: int = 0
+    offset_bound_us: float = math.inf
 
     @property
     def rate(self) -> float:

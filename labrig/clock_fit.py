@@ -39,6 +39,12 @@ import numpy.typing as npt
 
 from labrig.clock import ClockModel
 
+#: Edges whose earliest time lies within this of the trigger line (us) bound its offset from above too.
+PROMPT_EDGE_US = 2000.0
+#: ``trigger_out.t_latest_host_us`` of an edge whose latest time is not known (and in files
+#: written before the column existed).
+UNKNOWN_LATEST_US = int(np.iinfo(np.int64).max)
+
 #: Fitted drifts stay within +-this, ppm: a constraint of the line fits, far beyond the tens to
 #: few hundred ppm of crystal oscillators (a fit held at it shows a large uncertainty).
 DRIFT_BOUND_PPM = 2000.0
@@ -443,6 +449,7 @@ def fit_triggers(
     device_us: npt.ArrayLike,
     host_us: npt.ArrayLike,
     fallback: ClockModel | None = None,
+    latest_host_us: npt.ArrayLike | None = None,
 ) -> ClockModel:
     """Fit on hardware trigger pairs: the device stamp of an edge and its host time.
 
@@ -454,6 +461,13 @@ def fit_triggers(
     and the model rests on the highest stamps (``envelope+trigger``, also with one or two
     pairs). Without a fallback, pairs that agree on no cluster are fitted by least squares
     and the drift's uncertainty is unknown.
+
+    ``latest_host_us``: per pair, the latest the edge can have happened (its device's answer
+    received; ``UNKNOWN_LATEST_US`` or ``None``: not known). The line found on the earliest
+    times rests on the most prompt edges, which still lag their stamps by the host's wake-up
+    and the device's read; where latest times are known, the line is raised to the middle of
+    the band between its earliest times and the lowest latest one (see
+    :func:`_centre_between_bounds`).
     """
     d = np.asarray(device_us, dtype=np.float64)
     h = np.asarray(host_us, dtype=np.float64)
@@ -476,9 +490,10 @@ def fit_triggers(
         line = _rest_on_highest_stamps(d, h, drift, uncertainty)
     else:
         method = "triggers"
+    raise_us, offset_bound_us = _centre_between_bounds(d, h, latest_host_us, line)
     return ClockModel(
         device_ref_us=line.device_ref_us,
-        host_ref_us=line.host_ref_us,
+        host_ref_us=line.host_ref_us + raise_us,
         drift_ppm=line.drift_ppm,
         method=method,
         n_pairs=n_pairs,
@@ -486,7 +501,31 @@ def fit_triggers(
         drift_uncertainty_ppm=line.drift_uncertainty_ppm,
         trigger_spread_us=line.spread_us if line.n_on_line >= 2 else math.inf,
         n_trigger_pairs=int(d.size),
+        offset_bound_us=offset_bound_us,
     )
+
+
+def _centre_between_bounds(
+    d: npt.NDArray[np.float64], h: npt.NDArray[np.float64], latest_host_us: npt.ArrayLike | None, line: _LineFit
+) -> tuple[float, float]:
+    """(raise, bound) us: how far to raise ``line`` to the middle of the band between the highest
+    earliest time (the line rests on it) and the lowest latest time over the prompt edges (their
+    earliest times within PROMPT_EDGE_US of the line: a late edge's answer is late too, and a
+    far-off one may be paired wrongly), and the half-width of that band. No raise, bound
+    infinite, where no latest time is known or one lies below the line (the band says nothing)."""
+    if latest_host_us is None:
+        return 0.0, math.inf
+    latest = np.asarray(latest_host_us, dtype=np.float64)
+    model_all = line.host_ref_us + (d - line.device_ref_us) * (1.0 + line.drift_ppm * 1e-6)
+    known = (latest < UNKNOWN_LATEST_US) & (h - model_all >= -PROMPT_EDGE_US)
+    if not known.any():
+        return 0.0, math.inf
+    model = line.host_ref_us + (d[known] - line.device_ref_us) * (1.0 + line.drift_ppm * 1e-6)
+    earliest_above = float(np.max(h[known] - model, initial=0.0))
+    headroom = float(np.min(latest[known] - model))
+    if headroom < earliest_above:
+        return 0.0, math.inf
+    return (earliest_above + headroom) / 2, (headroom - earliest_above) / 2
 
 
 def _rest_on_highest_stamps(

@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from labrig.clock import ClockModel, ManualClock
-from labrig.clock_fit import DRIFT_BOUND_PPM, OnlineClockFit, fit_lower_envelope, fit_triggers
+from labrig.clock_fit import DRIFT_BOUND_PPM, UNKNOWN_LATEST_US, OnlineClockFit, fit_lower_envelope, fit_triggers
 from labrig.recording import Recording, RecordingWriter
 from labrig.testing.loaded_clock import LoadedCameraScene
 
@@ -121,7 +121,8 @@ def write_scene(path: Path, scene: LoadedCameraScene) -> None:
         for d, h in zip(device.tolist(), receive.tolist()):
             writer.put_events([1, 2, 3], [4, 5, 6], [0, 1, 0], [d - 2, d - 1, d], h)
         writer.put("triggers", t_device_us=edges_device, polarity=polarity, channel=np.zeros(polarity.size, np.uint8))
-        writer.put("trigger_out", t_host_us=edges_stamp, polarity=polarity)
+        writer.put("trigger_out", t_host_us=edges_stamp, polarity=polarity,
+                   t_latest_host_us=np.full(polarity.size, UNKNOWN_LATEST_US))
 
 
 @pytest.mark.parametrize("drift_ppm", [-500.0, 300.0])
@@ -151,3 +152,41 @@ def test_clock_models_of_older_files_read_with_unknown_quality(tmp_path: Path) -
             group.attrs[key] = value
     with h5py.File(tmp_path / "attrs.h5", "r") as f:
         assert ClockModel.from_attrs(dict(f["camera"].attrs)) == model
+
+
+def test_latest_times_centre_the_trigger_line_and_bound_its_offset() -> None:
+    """Edges stamped before they happen (send + wire) and answered after: the model lies between the
+    bounds, nearer the truth than the earliest stamps alone, and its stated offset bound holds."""
+    rng = np.random.default_rng(4)
+    n, drift_ppm = 40, 250.0
+    true_host = np.sort(rng.uniform(0, 20e6, n))
+    device = 5e9 + true_host * (1 + drift_ppm * 1e-6)
+    wake = rng.uniform(40, 90, n)  # every edge lags its stamp by the host's wake-up ...
+    wake[rng.choice(n, 12, replace=False)] += rng.uniform(500, 8000, 12)  # ... some by much more
+    earliest = true_host - wake
+    latest = true_host + rng.uniform(40, 90, n)  # the answer's way back
+    alone = fit_triggers(device, earliest)
+    centred = fit_triggers(device, earliest, latest_host_us=latest)
+    offset_alone = np.median(true_host - alone.to_host_us(device))
+    offset_centred = np.median(true_host - centred.to_host_us(device))
+    assert offset_alone > 30  # resting on the earliest stamps leaves the model early by the wake-up
+    assert abs(offset_centred) < 25 and abs(offset_centred) <= centred.offset_bound_us
+    assert centred.drift_ppm == alone.drift_ppm and np.isinf(alone.offset_bound_us)
+    unknown = fit_triggers(device, earliest, latest_host_us=np.full(n, UNKNOWN_LATEST_US))
+    assert unknown.host_ref_us == alone.host_ref_us and np.isinf(unknown.offset_bound_us)
+
+
+def test_a_file_without_latest_trigger_times_refits_as_before(tmp_path: Path) -> None:
+    """Files written before ``trigger_out.t_latest_host_us`` existed refit with the bound unknown."""
+    import h5py
+
+    from labrig.recording.finalize import fit_clock_models
+    from labrig.recording.layout import stream_group
+
+    scene = LoadedCameraScene(drift_ppm=100.0, seed=2)
+    write_scene(tmp_path / "new.h5", scene)
+    with h5py.File(tmp_path / "new.h5", "r+") as f:
+        with_column = fit_clock_models(f)["camera"]
+        del stream_group(f, "trigger_out")["t_latest_host_us"]
+        without = fit_clock_models(f)["camera"]
+    assert without == with_column and np.isinf(without.offset_bound_us)

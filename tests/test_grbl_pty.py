@@ -267,7 +267,7 @@ def test_samples_and_gcode_log_go_into_a_recording(tmp_path) -> None:  # type: i
     with rig(
         on_sample=lambda s: writer.put("cnc", **s.columns()),
         on_gcode=lambda t, d, line: writer.put("gcode", t_host_us=t, direction=d, line=line),
-        on_output=lambda e: writer.put("trigger_out", t_host_us=e.t_ack_us, polarity=e.level),
+        on_output=lambda e: writer.put("trigger_out", t_host_us=e.t_sent_us, polarity=e.level, t_latest_host_us=e.t_ack_us),
         time_base_ns=writer.t0_host_ns,
         clock=writer.clock,
     ) as (_, _, grbl):

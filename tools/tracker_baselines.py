@@ -15,8 +15,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from labrig.config import load_rig
 from labrig.evaluation.executor import run_tasks
+
+from labrig.config import load_rig
 from labrig.evaluation.stress import run_stress, stress_summary
 from labrig.evaluation.stress_axes import AXES
 from labrig.evaluation.tracking import (

@@ -65,6 +65,10 @@ __all__ = [
 ]
 
 
+#: GRBL's acknowledgement as it goes over the wire.
+ACK_LINE = b"ok\r\n"
+
+
 @dataclass(frozen=True)
 class OutputEdge:
     """An output toggle: ``level`` 1/0, host times (us) the line was sent and acknowledged.
@@ -77,6 +81,19 @@ class OutputEdge:
     line: bytes
     t_sent_us: int
     t_ack_us: int
+
+    def bounds_us(self, byte_us: float, execute_us: float) -> tuple[int, int]:
+        """(earliest, latest) host times (us) of the switch, for an output line sent with nothing queued.
+
+        Earliest: the send stamp (taken before the write) plus the line on the wire (its bytes and
+        the newline at ``byte_us`` each) plus the controller's ``execute_us`` to parse it; never
+        after the acknowledgement. Latest: the acknowledgement's receipt less ``ok\r\n`` on the
+        wire, which the controller sends once the output has switched.
+        """
+        latest = round(self.t_ack_us - len(ACK_LINE) * byte_us)
+        earliest = round(self.t_sent_us + (len(self.line) + 1) * byte_us + execute_us)
+        latest = max(latest, round(self.t_sent_us))
+        return min(earliest, latest), latest
 
 
 @dataclass(frozen=True)

@@ -362,12 +362,12 @@ class ProbeRunner:
         self._output_level ^= 1
         level = self._output_level
         edge = self.grbl.set_output(bool(level)) if recovering else self._checked(lambda: self.grbl.set_output(bool(level)))
-        # The output switches once the line has arrived (motion finished before it was sent):
-        # the send time plus the line on the wire is the edge; the ack can come much later.
-        on_wire_us = (len(edge.line) + 1) * self.grbl.byte_us + OUTPUT_EXECUTE_US
-        t_us = round(min(edge.t_sent_us + on_wire_us, edge.t_ack_us)) - writer.t0_host_ns // NS_PER_US
-        writer.put("trigger_out", t_host_us=t_us, polarity=level)
-        return t_us
+        # The output switches once the line has arrived (motion finished before it was sent) and
+        # before the ack goes out: the clock fit rests on the earliest times, within the latest.
+        earliest, latest = edge.bounds_us(self.grbl.byte_us, OUTPUT_EXECUTE_US)
+        t0_us = writer.t0_host_ns // NS_PER_US
+        writer.put("trigger_out", t_host_us=earliest - t0_us, polarity=level, t_latest_host_us=latest - t0_us)
+        return earliest - t0_us
 
     def _travel_to_start(self, plan: ProbePlan) -> None:
         """Up to the travel height, across, down to the approach start (not recorded)."""

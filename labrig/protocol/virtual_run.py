@@ -143,7 +143,7 @@ class _VirtualRun:
         assert writer is not None
         self.level ^= 1
         t_edge = self.devices.set_output(bool(self.level)) - writer.t0_host_ns // NS_PER_US
-        writer.put("trigger_out", t_host_us=t_edge, polarity=self.level)
+        writer.put("trigger_out", t_host_us=t_edge, polarity=self.level, t_latest_host_us=t_edge)
         writer.phase_begin(name, t_edge)
         self.phases.append(name)
 

@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 
 from labrig.clock import ClockModel, unwrap_counter
-from labrig.clock_fit import align_trigger_edges, fit_lower_envelope, fit_triggers, match_trigger_edges
+from labrig.clock_fit import UNKNOWN_LATEST_US, align_trigger_edges, fit_lower_envelope, fit_triggers, match_trigger_edges
 from labrig.recording import schema
 from labrig.recording.layout import stream_group
 
@@ -34,8 +34,12 @@ def committed_rows(f: h5py.File) -> dict[str, int] | None:
 def fit_clock_models(f: h5py.File, rows: dict[str, int] | None = None) -> dict[str, ClockModel]:
     """Refit every device's clock model over the whole recording."""
 
-    def column(stream: str, name: str) -> np.ndarray:
-        ds = stream_group(f, stream)[name]
+    def column(stream: str, name: str, missing: int | None = None) -> np.ndarray:
+        """A column's committed rows; a column the file predates reads as ``missing`` (if given)."""
+        group = stream_group(f, stream)
+        if name not in group and missing is not None:
+            return np.full(column(stream, "t_host_us").shape[0], missing, np.int64)
+        ds = group[name]
         n = ds.shape[0] if rows is None else min(ds.shape[0], rows.get(stream, ds.shape[0]))
         return ds[:n]
 
@@ -55,16 +59,19 @@ def fit_clock_models(f: h5py.File, rows: dict[str, int] | None = None) -> dict[s
 def _fit_camera_triggers(column, envelope: ClockModel | None) -> ClockModel | None:  # type: ignore[no-untyped-def]
     edges_dev, edges_pol = column("triggers", "t_device_us"), column("triggers", "polarity")
     known_host, known_pol = column("trigger_out", "t_host_us"), column("trigger_out", "polarity")
+    known_latest = column("trigger_out", "t_latest_host_us", missing=UNKNOWN_LATEST_US)
     if edges_dev.size == 0 or known_host.size == 0:
         return envelope
     if envelope is None:
         if edges_dev.size != known_host.size:
             return None
-        return fit_triggers(edges_dev, known_host)
+        return fit_triggers(edges_dev, known_host, latest_host_us=known_latest)
     pairs_dev: list[np.ndarray] = []
     pairs_host: list[np.ndarray] = []
+    pairs_latest: list[np.ndarray] = []
     for polarity in (0, 1):
         dev, host = edges_dev[edges_pol == polarity], known_host[known_pol == polarity]
+        latest = known_latest[known_pol == polarity]
         spacing = np.diff(np.sort(host)).min() / 2 if host.size > 1 else TRIGGER_MATCH_TOLERANCE_US
         tolerance = min(spacing, TRIGGER_MATCH_TOLERANCE_US)
         di, hi = match_trigger_edges(dev, host, envelope, tolerance)
@@ -79,8 +86,9 @@ def _fit_camera_triggers(column, envelope: ClockModel | None) -> ClockModel | No
                     di, hi = ai, ah
         pairs_dev.append(dev[di])
         pairs_host.append(host[hi])
+        pairs_latest.append(latest[hi])
     dev, host = np.concatenate(pairs_dev), np.concatenate(pairs_host)
-    return fit_triggers(dev, host, fallback=envelope) if dev.size else envelope
+    return fit_triggers(dev, host, fallback=envelope, latest_host_us=np.concatenate(pairs_latest)) if dev.size else envelope
 
 
 def store_clock_model(path: Path, device: str, model: ClockModel) -> None:

@@ -111,8 +111,11 @@ TRIGGERS = StreamSpec(
 TRIGGER_OUT = StreamSpec(
     "trigger_out",
     (
-        _c("t_host_us", "<i8", "us", "host time of the edge, as known by the device that made it"),
+        _c("t_host_us", "<i8", "us", "host time of the edge, as known by the device that made it: the earliest it "
+                                    "can have happened"),
         _c("polarity", "u1", "", "1 rising, 0 falling"),
+        _c("t_latest_host_us", "<i8", "us", "the latest host time the edge can have happened (e.g. its device's "
+                                           "answer received); int64 max: not known"),
     ),
     chunk_rows=1024,
     description="trigger edges sent to the camera (for hardware sync)",

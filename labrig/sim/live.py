@@ -107,7 +107,7 @@ def record_live(
                     trigger_level ^= 1
                     vr.trigger(t_phase, trigger_level)
                     writer.phase_begin(name, t_phase)
-                    writer.put("trigger_out", t_host_us=t_phase, polarity=trigger_level)
+                    writer.put("trigger_out", t_host_us=t_phase, polarity=trigger_level, t_latest_host_us=t_phase)
             out = vr.advance(t1, tool_path)
             if realtime:
                 wait_ns = start_ns + t1 * 1000 - clock.now_ns()

@@ -179,7 +179,7 @@ class SyntheticRun:
             items.append((start + 4000, "gcode", {"t_host_us": start + 4000, "direction": 1, "line": b"ok"}))
         if self.trigger_period_s > 0:
             for k, t in enumerate(np.arange(self.trigger_period_s / 2, self.duration_s, self.trigger_period_s) * 1e6):
-                items.append((int(t), "trigger", {"t_host_us": int(t), "polarity": (k + 1) % 2}))
+                items.append((int(t), "trigger", {"t_host_us": int(t), "polarity": (k + 1) % 2, "t_latest_host_us": int(t)}))
         items.sort(key=lambda item: item[0])
         for _, kind, payload in items:
             yield kind, payload

@@ -219,7 +219,7 @@ def _probe(grbl: Grbl, writer: RecordingWriter, work_mm: np.ndarray, phases: tup
     for i, (name, t0, t1) in enumerate(phases):
         level ^= 1
         edge = grbl.set_output(bool(level), timeout_s=30)
-        writer.put("trigger_out", t_host_us=edge.t_ack_us, polarity=level)
+        writer.put("trigger_out", t_host_us=edge.t_ack_us, polarity=level, t_latest_host_us=edge.t_ack_us)
         writer.phase_begin(name, edge.t_ack_us)
         duration_s = (t1 - t0) / 1e6
         distance = float(np.linalg.norm(work_mm[i + 1] - work_mm[i]))
