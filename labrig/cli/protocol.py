@@ -132,6 +132,9 @@ def campaign(
     devices = device_config(rig)
     if scheduler is not None and not virtual_time:
         raise LabrigError("--scheduler needs --virtual-time: through-driver runs are served live by local virtual rigs")
+    if plan.variation is not None and not virtual_time:
+        raise LabrigError(f"{file}: [vary] gives each recording a sensor of its own, which only a virtual-time "
+                          "campaign makes: add --virtual-time")
     if workers > 1 and not devices.virtual and not virtual_time:
         raise LabrigError("--workers > 1 needs the virtual rig: a hardware campaign runs one recording at a time")
     out.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,7 @@ from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
 from labrig.protocol.spec import ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
 from labrig.protocol.split import PAPER_SPLIT, assign_splits, split_counts
+from labrig.protocol.variation import parse_variation
 
 PROTOCOLS_DIR = Path(__file__).resolve().parent.parent.parent / "protocols"
 DEFAULT_PROTOCOL = PROTOCOLS_DIR / "probe.toml"
@@ -479,6 +480,7 @@ def apply_overrides(
 CAMPAIGN_KEYS: dict[str, tuple[str, ...]] = {
     "campaign": ("name", "seed", "protocol", "repetitions", "description"),
     "split": SPLITS,
+    "vary": (),  # any sim.* rig key (labrig.protocol.variation)
     "group": (
         "name",
         "indenters",
@@ -652,6 +654,15 @@ def load_campaign(
                 )
             else:
                 counts = split_counts(n, fractions)
+    variation = None
+    vary = data.get("vary")
+    if vary is not None:
+        if not isinstance(vary, dict):
+            problems.add((file, loc.line("vary")), "[vary]", 'must be a table of "sim.key" = [low, high]')
+        else:
+            variation, refused = parse_variation(vary, rig)
+            for key, message in refused:
+                problems.add((file, loc.line("vary")), f"vary.{key}", message)
     problems.raise_if_any()
 
     splits = assign_splits([spec.indenter for _, _, spec in expanded], counts, seed)
@@ -660,7 +671,7 @@ def load_campaign(
         RecordingPlan(id=f"{name}-{i:0{width}d}", index=i, spec=spec, repetition=rep, split=splits[i], group=g)
         for i, (g, rep, spec) in enumerate(expanded)
     )
-    return Campaign(name=name, seed=seed, plans=plans, source=path, protocol=protocol_path)
+    return Campaign(name=name, seed=seed, plans=plans, source=path, protocol=protocol_path, variation=variation)
 
 
 def _expand_group(

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from labrig.dataset import SPLITS
 from labrig.errors import LabrigError
+from labrig.protocol.variation import SensorVariation
 
 #: Depth assumed when timing a force-target run that has no depth cap (see ``nominal_duration_s``).
 FORCE_TARGET_DEPTH_GUESS_MM = 1.5
@@ -144,6 +145,8 @@ class Campaign:
     plans: tuple[RecordingPlan, ...]
     source: Path | None = None
     protocol: Path | None = None
+    #: Per-recording sensor changes (the file's ``[vary]``; virtual rig only).
+    variation: SensorVariation | None = None
 
     def __len__(self) -> int:
         return len(self.plans)

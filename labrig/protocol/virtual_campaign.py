@@ -55,13 +55,16 @@ def record_task(task: VirtualTask) -> Outcome:
     if plan is None:
         raise LabrigError(f"{task.campaign_path} has no recording {task.plan_id!r} (was the file changed?)")
     indenter = indenters[plan.spec.indenter]
+    seed = recording_seed(campaign, plan)
+    if campaign.variation is not None:
+        rig = campaign.variation.rig_for(rig, seed)
     prepare_contact_tables(rig, indenter, [plan.spec.shear_direction_deg])
     path = Dataset(Path(task.out_dir)).recording_path(plan.id)
     _set_aside_partial(path)
     protocol_toml = campaign.protocol.read_text() if campaign.protocol is not None else ""
     extra = {"campaign_id": plan.id, "split": plan.split, "repetition": plan.repetition}
     try:
-        result = record_virtual(plan.spec, path, rig, indenter, seed=recording_seed(campaign, plan),
+        result = record_virtual(plan.spec, path, rig, indenter, seed=seed,
                                 protocol_toml=protocol_toml, extra=extra)
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
