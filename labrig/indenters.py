@@ -228,7 +228,7 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
             raise IndenterError(f"{where} height map {file} has no finite height")
     yaw = entry.get("yaw_deg", 0.0)
     if not isinstance(yaw, int | float) or isinstance(yaw, bool) or not np.isfinite(yaw):
-        raise IndenterError(f"{where} yaw_deg must be a number of degrees (the indenter's turn about the CNC z axis), not {yaw!r}")
+        raise IndenterError(f"{where} yaw_deg must be a number of degrees (the turn about the CNC z axis), not {yaw!r}")
     axis = _axis_mm(where, entry.get("axis_mm"), heightmap, float(geometry.get("spacing_mm", 0.0)))
     return Indenter(
         name=name,
@@ -244,7 +244,9 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
     )
 
 
-def _axis_mm(where: str, value: object, heightmap: npt.NDArray[np.float64] | None, spacing_mm: float) -> tuple[float, float] | None:
+def _axis_mm(
+    where: str, value: object, heightmap: npt.NDArray[np.float64] | None, spacing_mm: float
+) -> tuple[float, float] | None:
     """A height map's ``axis_mm`` = [x, y] (mm from its first sample), checked to lie on its surface."""
     if value is None:
         return None
