@@ -97,8 +97,13 @@ def test_footprint_yaw_is_the_indenters_yaw_minus_the_gels_reduced_by_symmetry(r
     assert replace(indenters["ridge"], yaw_deg=200.0).footprint_yaw_deg(0.0) == pytest.approx(20.0)
 
 
-def test_table_cache_keys_differ_by_yaw(rig: RigConfig) -> None:
+def test_table_cache_keys_differ_by_yaw(rig: RigConfig, tmp_path: Path) -> None:
     indenters = load_indenters()
+    # The virtual rig's tables (ContactTable.from_rig) take the yaw relative to the true gel, cached apart.
+    turned = ContactTable.from_rig(indenters["square"], rig, cache_dir=tmp_path, **SMALL)
+    unturned = ContactTable.from_rig(indenters["square"], rig, cache_dir=tmp_path, yaw_deg=0.0, **SMALL)
+    assert turned.yaw_deg == pytest.approx(-0.6) and unturned.yaw_deg == 0.0
+    assert turned.meta["key"] != unturned.meta["key"] and len(list(tmp_path.rglob("square-*.npz"))) == 2
     options = {"mode": "layer", "spacing_mm": 0.1, "size_mm": 24.0, "direction_deg": 0.0, "depth_step_mm": 0.05,
                "max_depth_mm": 1.5, "shear_depth_stride": 1, "shear_steps": 10}
 
@@ -204,3 +209,32 @@ def test_the_cli_reports_a_bad_axis_in_one_line(tmp_path: Path) -> None:
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "axis_mm [40.0, 4.0] lies outside the height map" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_ground_truth_maps_of_a_recording_follow_the_indenters_yaw(rig: RigConfig, tmp_path: Path) -> None:
+    """`generate` turns the labels by the indenter's yaw minus the registered gel yaw."""
+    from labrig.groundtruth import generate
+    from labrig.sim.live import record_live
+    from labrig.sim.motion import probing_path
+
+    square = load_indenter("square")
+    recording = tmp_path / "square.h5"
+    tool = probing_path(rig, square, location_mm=(1.0, -1.0), depth_mm=0.6, shear_mm=0.0, normal_speed_mm_s=3.0,
+                        wait_s=0.05)
+    record_live(recording, rig, square, tool, realtime=False)
+    (tmp_path / "indenters.toml").write_text(
+        '[square]\nkind = "square"\nside_mm = 5.0\nfillet_mm = 0.3\nyaw_deg = 30.6\ntool_offset_mm = [0.0, 0.0, -40.0]\n'
+        "max_normal_force_n = 22.0\nmax_shear_force_n = 5.0\nmax_depth_mm = 1.5\n"
+    )
+    options = {"spacing_mm": 0.2, "size_mm": 12.0, "cache_dir": str(tmp_path)}
+    turns = []
+    for indenters in (None, tmp_path / "indenters.toml"):
+        gt = generate(recording, table_options=options, **({} if indenters is None else {"indenters_path": indenters}))
+        deepest = int(np.argmax(gt.indentation_mm))
+        mask = gt.contact_mask[deepest].astype(bool)
+        offset = gt.grid_gel_mm[..., :2] - gt.anchor_gel_mm[deepest]
+        z = (offset[..., 0] + 1j * offset[..., 1])[mask]
+        turns.append(float(np.degrees(np.angle(-np.sum(np.abs(z) ** 4 * np.exp(4j * np.angle(z))))) / 4))
+        assert mask.sum() > 300
+    assert turns[0] == pytest.approx(-0.6, abs=1.5)  # the registered gel yaw, 0.6 deg
+    assert turns[1] == pytest.approx(30.0, abs=1.5)
