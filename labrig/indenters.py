@@ -247,7 +247,7 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
 def _axis_mm(
     where: str, value: object, heightmap: npt.NDArray[np.float64] | None, spacing_mm: float
 ) -> tuple[float, float] | None:
-    """A height map's ``axis_mm`` = [x, y] (mm from its first sample), checked to lie on its surface."""
+    """A height map's ``axis_mm`` = [x, y] (mm from its first sample), checked to lie inside the map."""
     if value is None:
         return None
     assert heightmap is not None

@@ -18,7 +18,6 @@ from labrig.groundtruth.turned import TurnedModel, lab_footprint_yaw_deg, turned
 from labrig.indenters import Indenter, IndenterError, load_indenter, load_indenters
 from labrig.physics.mechanics import ContactTable
 from labrig.physics.mechanics.table_cache import table_key, table_spec
-from labrig.physics.mechanics.tables import rig_footprint_yaw_deg
 
 #: A small, coarse table: enough to see a footprint's shape, seconds to build.
 SMALL = {"spacing_mm": 0.2, "size_mm": 12.0, "max_depth_mm": 0.3, "shear_steps": 2}
@@ -84,6 +83,10 @@ def test_the_ground_truth_turns_the_square_as_the_sim_does(
     assert overlap > 0.9 and overlap > np.sum(unturned & sim.contact_mask) / np.sum(unturned | sim.contact_mask) + 0.1
     # An unturned indenter keeps the plain model.
     assert turned_model(table, load_indenter("square"), gel_pose) is table
+
+
+def rig_footprint_yaw_deg(indenter: Indenter, rig: RigConfig) -> float:
+    return indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg)
 
 
 def test_footprint_yaw_is_the_indenters_yaw_minus_the_gels_reduced_by_symmetry(rig: RigConfig) -> None:

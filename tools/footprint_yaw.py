@@ -22,7 +22,6 @@ import numpy as np
 from labrig.config import load_rig
 from labrig.indenters import load_indenters
 from labrig.physics.mechanics import ContactTable
-from labrig.physics.mechanics.tables import rig_footprint_yaw_deg
 
 #: Below this normal force a relative difference is noise of the first touching cells, N.
 FORCE_FLOOR_N = 0.5
@@ -31,7 +30,7 @@ FORCE_FLOOR_N = 0.5
 def compare(name: str, yaw_deg: float | None) -> dict[str, float]:
     rig = load_rig()
     indenter = load_indenters()[name]
-    turn = rig_footprint_yaw_deg(indenter, rig) if yaw_deg is None else indenter.reduced_turn_deg(yaw_deg)
+    turn = indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg) if yaw_deg is None else indenter.reduced_turn_deg(yaw_deg)
     out: dict[str, float] = {"yaw_deg": turn}
     normal_rel, shear_rel, depth_max_um, depth_rms_um, flipped = 0.0, 0.0, 0.0, 0.0, 0.0
     for direction in (0.0, 90.0):

@@ -178,9 +178,9 @@ class ContactTable:
     @classmethod
     def from_rig(cls, indenter: Indenter, rig: RigConfig, **options: Any) -> ContactTable:
         """:meth:`build` with the virtual rig's true gel (``rig.sim.gel``), mode, grid spacing and stiffening,
-        and the footprint turned by the indenter's yaw relative to the true gel (:func:`rig_footprint_yaw_deg`)."""
+        and the footprint turned by the indenter's yaw relative to the true gel (``[sim.rig_pose] gel_yaw_deg``)."""
         mechanics = rig.sim.mechanics
-        options.setdefault("yaw_deg", rig_footprint_yaw_deg(indenter, rig))
+        options.setdefault("yaw_deg", indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg))
         options.setdefault("mode", mechanics.mode)
         options.setdefault("spacing_mm", mechanics.grid_spacing_mm)
         options.setdefault("stiffening", mechanics.stiffening)
@@ -381,13 +381,6 @@ class ContactTable:
         out = np.zeros((*box_field.shape[:-2], *self.grid.shape), dtype=box_field.dtype)
         out[(..., *self.box.slices)] = box_field
         return out
-
-
-def rig_footprint_yaw_deg(indenter: Indenter, rig: RigConfig) -> float:
-    """The turn (deg) of ``indenter``'s footprint relative to the virtual rig's true gel: its ``yaw_deg``
-    in the CNC frame minus ``[sim.rig_pose] gel_yaw_deg``, reduced by its symmetry; 0 for an axisymmetric
-    indenter."""
-    return indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg)
 
 
 def table_direction_deg(shear_direction_deg: float) -> float:
