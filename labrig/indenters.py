@@ -2,8 +2,13 @@
 
 An indenter's shape is a **height map**: ``height_mm(x_mm, y_mm)`` is how far the
 indenter surface lies above its tip at horizontal offset (x, y) from the tip,
-in the indenter frame (aligned with the gel frame at zero yaw); ``inf`` where
-the indenter has no surface (outside its footprint). The virtual rig, the
+in the indenter frame; ``inf`` where the indenter has no surface (outside its
+footprint). The indenter frame is turned by ``yaw_deg`` about the CNC's z axis
+from the machine axes (a file key, default 0): relative to a gel yawed by
+``gel_yaw_deg`` in the machine it is turned by ``yaw_deg - gel_yaw_deg``, and
+:meth:`Indenter.height_in_gel_mm` gives its surface at gel-frame offsets. A
+height map's tool axis is ``axis_mm`` (mm from its first sample, x along its
+columns, y along its rows; default: its lowest sample). The virtual rig, the
 protocol runner and the ground-truth generator all read indenters from here.
 """
 
@@ -29,6 +34,10 @@ GEOMETRY_KEYS: dict[str, tuple[str, ...]] = {
     "heightmap": ("file", "spacing_mm"),
 }
 COMMON_KEYS = ("kind", "tool_offset_mm", "max_normal_force_n", "max_shear_force_n", "max_depth_mm")
+#: Keys that may be left out (their defaults: no yaw in the CNC frame; a height map's lowest sample as its axis).
+OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"common": ("yaw_deg",), "heightmap": ("axis_mm",)}
+#: The turn (deg) that maps each non-axisymmetric shape onto itself.
+SYMMETRY_DEG = {"square": 90.0, "ridge": 180.0, "heightmap": 360.0}
 
 
 class IndenterError(LabrigError):
@@ -37,7 +46,12 @@ class IndenterError(LabrigError):
 
 @dataclass(frozen=True)
 class Indenter:
-    """One indenter. Lengths in mm, forces in N."""
+    """One indenter. Lengths in mm, forces in N, angles in deg.
+
+    ``yaw_deg``: the indenter frame's turn about the CNC's z axis from the machine
+    axes. ``axis_mm``: a height map's tool axis (mm from its first sample, x along
+    columns, y along rows); None = its lowest sample.
+    """
 
     name: str
     kind: str
@@ -47,10 +61,45 @@ class Indenter:
     max_shear_force_n: float
     max_depth_mm: float
     _heightmap: npt.NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
+    yaw_deg: float = 0.0
+    axis_mm: tuple[float, float] | None = None
 
     @property
     def axisymmetric(self) -> bool:
         return self.kind in ("sphere", "cylinder")
+
+    def footprint_yaw_deg(self, gel_yaw_deg: float) -> float:
+        """The footprint's turn relative to a gel yawed by ``gel_yaw_deg`` in the machine, deg
+        (``yaw_deg - gel_yaw_deg``, see :meth:`reduced_turn_deg`)."""
+        return self.reduced_turn_deg(self.yaw_deg - gel_yaw_deg)
+
+    def reduced_turn_deg(self, turn_deg: float) -> float:
+        """A turn of this indenter reduced by its symmetry, deg: in (-s/2, s/2] for a shape that maps
+        onto itself when turned by s (square 90, ridge 180, height map 360); 0 when axisymmetric."""
+        if self.axisymmetric:
+            return 0.0
+        period = SYMMETRY_DEG[self.kind]
+        turn = period / 2 - (period / 2 - float(turn_deg)) % period
+        return 0.0 if abs(turn) < 1e-9 else float(round(turn, 9))
+
+    def height_in_gel_mm(self, x_mm: npt.ArrayLike, y_mm: npt.ArrayLike, yaw_deg: float = 0.0) -> npt.NDArray[np.float64]:
+        """:meth:`height_mm` at gel-frame offsets (x, y) from the tip, the indenter turned by ``yaw_deg``
+        relative to the gel (see :meth:`footprint_yaw_deg`); inf outside."""
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64)
+        if yaw_deg == 0.0 or self.axisymmetric:
+            return self.height_mm(x, y)
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        return self.height_mm(c * x + s * y, -s * x + c * y)
+
+    def axis_sample(self) -> tuple[float, float]:
+        """A height map's tool axis as (column, row) sample coordinates (fractional)."""
+        assert self._heightmap is not None
+        if self.axis_mm is None:
+            row, col = np.unravel_index(np.argmin(self._heightmap), self._heightmap.shape)
+            return float(col), float(row)
+        spacing = float(self.geometry["spacing_mm"])
+        return self.axis_mm[0] / spacing, self.axis_mm[1] / spacing
 
     @property
     def footprint_radius_mm(self) -> float:
@@ -66,7 +115,8 @@ class Indenter:
             return float(g["length_mm"]) / 2
         assert self._heightmap is not None
         ny, nx = self._heightmap.shape
-        return float(np.hypot(nx, ny) * g["spacing_mm"] / 2)
+        col, row = self.axis_sample()
+        return float(np.hypot(max(col, nx - 1 - col), max(row, ny - 1 - row)) * g["spacing_mm"])
 
     def height_mm(self, x_mm: npt.ArrayLike, y_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Height of the indenter surface above its tip at (x, y) from the tip; inf outside."""
@@ -94,18 +144,17 @@ class Indenter:
         h = self._heightmap
         spacing = float(self.geometry["spacing_mm"])
         ny, nx = h.shape
-        tip_row, tip_col = np.unravel_index(np.argmin(h), h.shape)
+        tip_col, tip_row = self.axis_sample()
         col = x / spacing + tip_col
         row = y / spacing + tip_row
         inside = (col >= 0) & (col <= nx - 1) & (row >= 0) & (row <= ny - 1)
         c0 = np.clip(np.floor(col).astype(int), 0, nx - 2)
         r0 = np.clip(np.floor(row).astype(int), 0, ny - 2)
         fc, fr = np.clip(col - c0, 0, 1), np.clip(row - r0, 0, 1)
-        value = (
-            h[r0, c0] * (1 - fc) * (1 - fr) + h[r0, c0 + 1] * fc * (1 - fr)
-            + h[r0 + 1, c0] * (1 - fc) * fr + h[r0 + 1, c0 + 1] * fc * fr
-        ) - h.min()
-        return np.where(inside & np.isfinite(value), value, np.inf)
+        value = np.zeros(np.broadcast(x, y).shape)
+        for dr, dc, weight in ((0, 0, (1 - fc) * (1 - fr)), (0, 1, fc * (1 - fr)), (1, 0, (1 - fc) * fr), (1, 1, fc * fr)):
+            value += np.where(weight > 0, h[r0 + dr, c0 + dc], 0.0) * weight  # inf (no surface) only where it weighs
+        return np.where(inside & np.isfinite(value), value - h.min(), np.inf)
 
 
 def _round_cap(r: npt.NDArray[np.float64], radius: float) -> npt.NDArray[np.float64]:
@@ -151,7 +200,7 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
     kind = entry.get("kind")
     if kind not in GEOMETRY_KEYS:
         raise IndenterError(f"{where} kind must be one of {', '.join(GEOMETRY_KEYS)}, not {kind!r}")
-    allowed = set(COMMON_KEYS) | set(GEOMETRY_KEYS[kind])
+    allowed = set(COMMON_KEYS) | set(GEOMETRY_KEYS[kind]) | set(OPTIONAL_KEYS["common"]) | set(OPTIONAL_KEYS.get(kind, ()))
     unknown = sorted(set(entry) - allowed)
     if unknown:
         raise IndenterError(f"{where} unknown key {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
@@ -174,6 +223,13 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
             raise IndenterError(f"{where} cannot read height map {file}: {exc}") from None
         if heightmap.ndim != 2 or min(heightmap.shape) < 2:
             raise IndenterError(f"{where} height map must be a 2-D array of heights in mm")
+        heightmap = np.where(np.isnan(heightmap), np.inf, heightmap)  # NaN or inf: no surface there
+        if not np.isfinite(heightmap).any():
+            raise IndenterError(f"{where} height map {file} has no finite height")
+    yaw = entry.get("yaw_deg", 0.0)
+    if not isinstance(yaw, int | float) or isinstance(yaw, bool) or not np.isfinite(yaw):
+        raise IndenterError(f"{where} yaw_deg must be a number of degrees (the turn about the CNC z axis), not {yaw!r}")
+    axis = _axis_mm(where, entry.get("axis_mm"), heightmap, float(geometry.get("spacing_mm", 0.0)))
     return Indenter(
         name=name,
         kind=kind,
@@ -183,4 +239,26 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
         max_shear_force_n=float(entry["max_shear_force_n"]),
         max_depth_mm=float(entry["max_depth_mm"]),
         _heightmap=heightmap,
+        yaw_deg=float(yaw),
+        axis_mm=axis,
     )
+
+
+def _axis_mm(
+    where: str, value: object, heightmap: npt.NDArray[np.float64] | None, spacing_mm: float
+) -> tuple[float, float] | None:
+    """A height map's ``axis_mm`` = [x, y] (mm from its first sample), checked to lie inside the map."""
+    if value is None:
+        return None
+    assert heightmap is not None
+    if not (isinstance(value, list) and len(value) == 2
+            and all(isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v) for v in value)):
+        raise IndenterError(f"{where} axis_mm must be [x, y] in mm from the height map's first sample, not {value!r}")
+    ny, nx = heightmap.shape
+    x, y = float(value[0]), float(value[1])
+    if not (0 <= x <= (nx - 1) * spacing_mm and 0 <= y <= (ny - 1) * spacing_mm):
+        raise IndenterError(
+            f"{where} axis_mm {value!r} lies outside the height map (x 0 to {(nx - 1) * spacing_mm:g} mm, "
+            f"y 0 to {(ny - 1) * spacing_mm:g} mm)"
+        )
+    return x, y

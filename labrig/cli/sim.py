@@ -171,12 +171,14 @@ def sim_tables(
         t0 = time.perf_counter()
         with err_console.status(f"contact table for {name}"):
             table = ContactTable.from_rig(ind, rig)
-        rows.append({"indenter": name, "seconds": time.perf_counter() - t0, "max_depth_mm": float(table.depths_mm[-1])})
+        rows.append({"indenter": name, "seconds": time.perf_counter() - t0, "max_depth_mm": float(table.depths_mm[-1]),
+                     "footprint_yaw_deg": table.yaw_deg})
     if as_json:
         print_json({"cache_dir": str(table_cache_dir()), "tables": rows})
         return
     for row in rows:
-        console.print(f"{row['indenter']:>10}: up to {row['max_depth_mm']:.2f} mm in {row['seconds']:.1f} s")
+        turn = f", footprint turned {row['footprint_yaw_deg']:+.2f} deg from the gel" if row["footprint_yaw_deg"] else ""
+        console.print(f"{row['indenter']:>10}: up to {row['max_depth_mm']:.2f} mm in {row['seconds']:.1f} s{turn}")
     console.print(f"cache: {table_cache_dir()}")
 
 

@@ -9,6 +9,7 @@ never from a simulated recording's ``/truth`` streams. Written to a sidecar
   numerical solver (half-space or bonded layer).
 * :mod:`inputs` -- the lab's knowledge (calibration files or nominal values).
 * :mod:`generate` -- pose, indentation, maps on the network grid.
+* :mod:`turned` -- a non-axisymmetric indenter's field turned by its yaw relative to the gel.
 * :mod:`sidecar` -- the file and its reader (:func:`load_groundtruth`).
 * :mod:`batch` -- whether a sidecar is current; a plot of a few maps.
 """

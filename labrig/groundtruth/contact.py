@@ -288,6 +288,8 @@ class DepthTable:
         }
         if indenter._heightmap is not None:
             spec["indenter"]["heightmap_sha256"] = hashlib.sha256(np.ascontiguousarray(indenter._heightmap).tobytes()).hexdigest()
+        if indenter.axis_mm is not None:
+            spec["indenter"]["axis_mm"] = list(indenter.axis_mm)
         key = cache_key(spec)
         path = depth_table_dir(cache_dir) / f"{indenter.name}-{mode}-{key}.npz"
         if use_cache and path.exists():
@@ -405,7 +407,7 @@ _TABLES: dict[tuple[Any, ...], DepthTable] = {}
 
 def _cached_table(indenter: Indenter, gel: GelConfig, mode: str, options: dict[str, Any]) -> DepthTable:
     """Tables stay in memory per process (a campaign reuses one per indenter)."""
-    key = (indenter.name, json.dumps(indenter.geometry, sort_keys=True, default=str), gel, mode,
+    key = (indenter.name, json.dumps(indenter.geometry, sort_keys=True, default=str), indenter.axis_mm, gel, mode,
            json.dumps(options, sort_keys=True, default=str))
     if key not in _TABLES:
         if len(_TABLES) >= 16:

@@ -20,7 +20,8 @@ Pipeline (docs/groundtruth.md):
 3. **Maps** on the network grid: the ROI of the sensor resized to 90 x 112
    cells; each cell's sensor pixel is back-projected through the camera
    calibration to the gel surface; the contact model (:mod:`contact`) gives uz
-   and the contact mask there.
+   and the contact mask there, a non-axisymmetric indenter's field turned by its yaw
+   relative to the gel (:mod:`turned`).
 4. **Normalisation**: one global scale ``scale_mm`` (mm per unit), depth_norm
    = clip(depth_mm / scale_mm, 0, 1); stored with the maps, depth_mm kept.
 """
@@ -40,6 +41,7 @@ from labrig import __version__
 from labrig.cache import sha256_of
 from labrig.groundtruth.contact import ContactModel, choose_model
 from labrig.groundtruth.inputs import GroundTruthError, LabInputs, lab_inputs, recording_rig
+from labrig.groundtruth.turned import turned_model
 from labrig.indenters import DEFAULT_INDENTERS, Indenter, load_indenters
 from labrig.physics.grid import GRID_SHAPE, network_grid_gel_mm, network_grid_pixels
 from labrig.recording import Phase, Recording
@@ -230,7 +232,7 @@ def generate(
         ft = rec.ft() if rec.rows("ft") else {}
     times = _output_times(ft.get("t_us"), cnc_t, rate_hz)
     options = dict(table_options or {})
-    model = choose_model(indenter, lab.gel, elastic, method, **options)
+    model = turned_model(choose_model(indenter, lab.gel, elastic, method, **options), indenter, lab.gel_pose)
     force_model = choose_model(indenter, lab.gel, "layer", "numerical", **options)
     t_contact = _phase_end(phases, "approach")
     contact_force = approach_force_n(ft, t_contact) if t_contact is not None else 0.0

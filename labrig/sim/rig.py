@@ -30,8 +30,10 @@ Contact kinematics
 See :mod:`labrig.sim.contact_track`: tool positions become contact states
 (depth, anchor, shear memory, net force) on a :class:`ContactTrack` that the
 F/T twin shares when the rig is served live; the rig turns the states it
-solves at into contact fields. Indenter yaw relative to the gel and the gel's
-tilt are ignored in the contact shape (both are below a degree).
+solves at into contact fields. A non-axisymmetric footprint is turned by the
+indenter's yaw relative to the true gel (the tables of
+:meth:`~labrig.physics.mechanics.ContactTable.from_rig`); the gel's tilt is
+ignored in the contact shape (below a degree).
 
 The markers are the printed ones (:mod:`labrig.sim.printed`); hot pixels
 (:class:`~labrig.sim.delivery.HotPixels`) add their events to the sensor's.

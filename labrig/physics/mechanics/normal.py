@@ -54,10 +54,12 @@ class NormalSolution:
         return Box.around(self.contact_mask)
 
 
-def indenter_height_mm(indenter: Indenter, grid: Grid) -> FloatArray:
-    """Height map of ``indenter`` on ``grid`` (tip at the grid centre), mm; inf outside it."""
+def indenter_height_mm(indenter: Indenter, grid: Grid, yaw_deg: float = 0.0) -> FloatArray:
+    """Height map of ``indenter`` on ``grid`` (tip at the grid centre), mm; inf outside it.
+
+    ``yaw_deg``: the indenter's turn relative to the grid's (gel) axes."""
     x, y = grid.mesh_mm()
-    return indenter.height_mm(x, y)
+    return indenter.height_in_gel_mm(x, y, yaw_deg)
 
 
 def solve_normal(

@@ -36,7 +36,7 @@ def compute_table(indenter: Indenter, gel: GelConfig, spec: dict[str, Any]) -> t
     """(meta, arrays) of a table described by ``spec`` (the cache-key dictionary of :meth:`ContactTable.build`)."""
     grid = Grid(spec["spacing_mm"], *spec["grid_shape"])
     kernels = SurfaceKernels(grid, gel, spec["mode"])
-    height = indenter_height_mm(indenter, grid)
+    height = indenter_height_mm(indenter, grid, spec.get("yaw_deg", 0.0))
     step = spec["depth_step_mm"]
     depths = step * np.arange(int(np.ceil(spec["max_depth_mm"] / step - 1e-9)) + 1)
     normals = _normal_solutions(kernels, height, depths)
@@ -78,6 +78,7 @@ def compute_table(indenter: Indenter, gel: GelConfig, spec: dict[str, Any]) -> t
         "grid_shape": list(grid.shape),
         "box": [box.y0, box.y1, box.x0, box.x1],
         "direction_deg": spec["direction_deg"],
+        "yaw_deg": spec.get("yaw_deg", 0.0),
         "normal_iterations": int(sum(n.iterations for n in normals)),
     }
     return meta, arrays

@@ -1,8 +1,11 @@
 """The disk cache of contact tables: the key of every input, the cache folder, the ``.npz`` files.
 
 A table is keyed by a SHA-256 of its full spec (indenter geometry, gel,
-mode, grid, direction, depth and shear sampling, :data:`TABLE_VERSION`);
-stiffening is applied at lookup and is not part of the key. Files live under
+mode, grid, direction, footprint yaw, depth and shear sampling,
+:data:`TABLE_VERSION`); stiffening is applied at lookup and is not part of the
+key. The footprint yaw (and a height map's ``axis_mm``) enter the spec only
+when set, so the tables of an unturned indenter keep the keys they had before
+either existed. Files live under
 ``$LABRIG_CACHE`` (default ``~/.cache/labrig``)/contact_tables and are
 written atomically (a temporary file renamed into place).
 """
@@ -40,13 +43,17 @@ def table_spec(
     spacing_mm: float,
     size_mm: float,
     direction_deg: float,
+    yaw_deg: float = 0.0,
     depth_step_mm: float,
     max_depth_mm: float,
     shear_depth_stride: int,
     shear_steps: int,
 ) -> dict[str, Any]:
-    """Every input that determines a table's contents (lengths mm, angles deg), as JSON-able data."""
-    return {
+    """Every input that determines a table's contents (lengths mm, angles deg), as JSON-able data.
+
+    ``yaw_deg``: the footprint's turn relative to the gel (:meth:`Indenter.footprint_yaw_deg`);
+    ignored for axisymmetric indenters and left out of the spec when 0."""
+    spec: dict[str, Any] = {
         "version": TABLE_VERSION,
         "indenter": _indenter_spec(indenter),
         "gel": {k: getattr(gel, k) for k in ("thickness_mm", "youngs_modulus_mpa", "poisson_ratio", "friction")},
@@ -59,6 +66,9 @@ def table_spec(
         "shear_depth_stride": int(shear_depth_stride),
         "shear_steps": int(shear_steps),
     }
+    if not indenter.axisymmetric and float(yaw_deg) != 0.0:
+        spec["yaw_deg"] = float(yaw_deg)
+    return spec
 
 
 def table_key(spec: dict[str, Any]) -> str:
@@ -102,4 +112,6 @@ def _indenter_spec(indenter: Indenter) -> dict[str, Any]:
     spec.update({k: v for k, v in indenter.geometry.items() if k != "file"})
     if indenter._heightmap is not None:
         spec["heightmap_sha256"] = hashlib.sha256(np.ascontiguousarray(indenter._heightmap).tobytes()).hexdigest()
+    if indenter.axis_mm is not None:
+        spec["axis_mm"] = list(indenter.axis_mm)
     return spec

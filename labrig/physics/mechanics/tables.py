@@ -29,8 +29,10 @@ part of the cached data. Interpolating between depths blurs the contact edge
 by the edge's motion over one depth step (fields there are a blend of two
 contact sizes); forces match direct solves to < 1 %.
 
-The grid is local: centred on the indenter tip, aligned with the gel axes
-(no indenter yaw), ``size_mm`` wide; the gel is treated as laterally infinite
+The grid is local: centred on the indenter tip, aligned with the gel axes,
+``size_mm`` wide; a non-axisymmetric footprint is solved turned by its yaw
+relative to the gel (``yaw_deg``; :meth:`ContactTable.from_rig` takes it from the
+indenter's ``yaw_deg`` and the rig's true gel yaw); the gel is treated as laterally infinite
 (its edges are not modelled). Fields are float32; forces are from float64
 sums. Tables are cached on disk, keyed by a hash of every input
 (:mod:`table_cache`).
@@ -135,6 +137,7 @@ class ContactTable:
         spacing_mm: float = 0.1,
         size_mm: float = 24.0,
         direction_deg: float = 0.0,
+        yaw_deg: float = 0.0,
         depth_step_mm: float = 0.05,
         max_depth_mm: float | None = None,
         shear_depth_stride: int = 1,
@@ -147,11 +150,14 @@ class ContactTable:
 
         ``direction_deg`` is the shear direction in the gel frame (ignored for
         axisymmetric indenters, whose tables are rotated at lookup).
+        ``yaw_deg`` is the footprint's turn relative to the gel
+        (:meth:`~labrig.indenters.Indenter.footprint_yaw_deg`; ignored for axisymmetric indenters).
         ``stiffening`` is applied at lookup and is not part of the cache key.
         """
         check_mode(mode)
         max_depth = indenter.max_depth_mm if max_depth_mm is None else float(max_depth_mm)
         spec = table_spec(indenter, gel, mode=mode, spacing_mm=spacing_mm, size_mm=size_mm, direction_deg=direction_deg,
+                          yaw_deg=indenter.reduced_turn_deg(yaw_deg),
                           depth_step_mm=depth_step_mm, max_depth_mm=max_depth, shear_depth_stride=shear_depth_stride,
                           shear_steps=shear_steps)
         key = table_key(spec)
@@ -171,8 +177,10 @@ class ContactTable:
 
     @classmethod
     def from_rig(cls, indenter: Indenter, rig: RigConfig, **options: Any) -> ContactTable:
-        """:meth:`build` with the virtual rig's true gel (``rig.sim.gel``), mode, grid spacing and stiffening."""
+        """:meth:`build` with the virtual rig's true gel (``rig.sim.gel``), mode, grid spacing and stiffening,
+        and the footprint turned by the indenter's yaw relative to the true gel (``[sim.rig_pose] gel_yaw_deg``)."""
         mechanics = rig.sim.mechanics
+        options.setdefault("yaw_deg", indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg))
         options.setdefault("mode", mechanics.mode)
         options.setdefault("spacing_mm", mechanics.grid_spacing_mm)
         options.setdefault("stiffening", mechanics.stiffening)
@@ -197,6 +205,11 @@ class ContactTable:
     @property
     def axisymmetric(self) -> bool:
         return bool(self.meta["spec"]["indenter"]["axisymmetric"])
+
+    @property
+    def yaw_deg(self) -> float:
+        """The footprint's turn relative to the gel, deg (0 for axisymmetric indenters)."""
+        return float(self.meta["spec"].get("yaw_deg", 0.0))
 
     @property
     def friction(self) -> float:
