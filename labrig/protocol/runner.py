@@ -35,11 +35,19 @@ from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter
 from labrig.protocol.plan import ProbePlan
-from labrig.protocol.safety import SafetyError, StopRequest, check_location, check_targets
+from labrig.protocol.safety import (
+    SafetyError,
+    StopRequest,
+    check_location,
+    check_targets,
+    deepest_press_mm,
+    depth_problem,
+)
 from labrig.protocol.session import NS_PER_US, RigSession
 from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
 from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
+from labrig.sim.faults import RigFault
 
 F64 = npt.NDArray[np.float64]
 
@@ -113,6 +121,7 @@ class ProbeRunner:
         self._plan: ProbePlan | None = None
         self._contact: F64 | None = None
         self._last_report = (0.0, 0)
+        self._rig_faults_from_us = 0  # host us: the virtual rig's faults from then on abort the run
 
     @classmethod
     def for_session(cls, session: RigSession, *, stop: StopRequest | None = None,
@@ -137,9 +146,10 @@ class ProbeRunner:
             raise SafetyError(f"the run needs the {spec.indenter} indenter but {self.indenter.name} is mounted")
         check_location(spec.location_mm, (self.rig.gel.size_x_mm, self.rig.gel.size_y_mm),
                        self.indenter.footprint_radius_mm, self.limits.gel_margin_mm)
-        if spec.depth_mm is not None and spec.depth_mm > self.indenter.max_depth_mm:
-            raise SafetyError(f"depth {spec.depth_mm} mm is beyond the {self.indenter.name} indenter's "
-                              f"max_depth_mm {self.indenter.max_depth_mm}")
+        for value in (spec.depth_mm, spec.max_depth_mm):
+            problem = None if value is None else depth_problem(value, self.indenter.name, self.indenter.max_depth_mm)
+            if problem is not None:
+                raise SafetyError(f"depth {problem}")
         if spec.force_n is not None and spec.force_n > self.limits.max_normal_force_n:
             raise SafetyError(f"force target {spec.force_n} N is over the normal force limit {self.limits.max_normal_force_n} N")
         plan = ProbePlan.build(spec, self.gel_in_machine, self.indenter, self.limits.clearance_mm)
@@ -155,6 +165,7 @@ class ProbeRunner:
         if out.exists() and not overwrite:
             raise SafetyError(f"{out} exists; choose another name or allow overwriting")
         t_start = time.perf_counter()
+        self._rig_faults_from_us = self.session.clock.now_ns() // NS_PER_US
         self._travel_to_start(plan)
         self.session.tare()
         writer = self._open_writer(out, spec, protocol_toml, extra)
@@ -234,7 +245,8 @@ class ProbeRunner:
             self._move(plan.bottom_mm(contact), spec.normal_speed_mm_s)
             return plan.bottom_mm(contact)
         assert spec.force_n is not None
-        max_depth = min(spec.max_depth_mm or self.indenter.max_depth_mm, self.indenter.max_depth_mm)
+        cap = deepest_press_mm(self.indenter.max_depth_mm)
+        max_depth = min(spec.max_depth_mm or cap, cap)
         deepest = plan.max_bottom_mm(contact, max_depth)
         # Fast to most of the force, then slowly: the jog's deceleration overshoots by
         # stiffness * v^2 / (2 a), about 1 N at 1.5 mm/s on this gel, 0.03 N at FINE_SPEED_MM_S.
@@ -303,6 +315,15 @@ class ProbeRunner:
             raise _Abort(f"camera lost: {session.camera.error}", hold=True)
         if session.world is not None and session.world.error is not None:
             raise _Abort(f"virtual rig failed: {session.world.error!r}", hold=True)
+        fault = self._new_rig_fault()
+        if fault is not None:
+            self._rig_faults_from_us = fault.t_host_us + 1
+            raise _Abort(f"the virtual rig refused a request: {fault.message}", hold=True)
+
+    def _new_rig_fault(self) -> RigFault | None:
+        """The first request the virtual rig refused during this run (it stays up; see LiveWorld.faults)."""
+        faults: list[RigFault] = getattr(self.session.world, "faults", [])
+        return next((f for f in faults if f.t_host_us >= self._rig_faults_from_us), None)
 
     def _report(self) -> None:
         if self.progress is None or not self._phases:

@@ -19,9 +19,12 @@ import os
 import select
 import threading
 import tty
+from collections.abc import Callable
+from functools import partial
 from typing import Protocol
 
 from labrig.clock import HostClock, MonotonicClock
+from labrig.sim.faults import RigFault
 
 
 class SerialTwin(Protocol):
@@ -88,6 +91,9 @@ class TwinServer:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="labrig-twins", daemon=True)
         self.error: BaseException | None = None
+        #: What a twin raised on a request (the thread goes on serving; the owner reports them).
+        self.faults: list[RigFault] = []
+        self._failing: dict[str, str] = {}
         #: Twins whose port was pulled by :meth:`unplug`.
         self.unplugged: set[str] = set()
         self._unplug_lock = threading.Lock()
@@ -141,6 +147,20 @@ class TwinServer:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def _serve(self, label: str, request: Callable[[], bytes | None]) -> bytes | None:
+        """One twin request; what it raises is kept in :attr:`faults` (once per kind of error in a
+        row) and the thread goes on serving the twins: a bad request must not take the rig down."""
+        try:
+            reply = request()
+        except Exception as exc:
+            kind = f"{label}: {type(exc).__name__}"
+            if self._failing.get(label) != kind:
+                self.faults.append(RigFault(self.now_us(), f"{kind}: {exc}"))
+            self._failing[label] = kind
+            return None
+        self._failing.pop(label, None)
+        return reply
+
     def _run(self) -> None:
         masters = {port.master: name for name, port in self.ports.items()}
         try:
@@ -158,11 +178,11 @@ class TwinServer:
                     name = masters[fd]
                     data = self.ports[name].read()
                     if data:
-                        self.twins[name].receive(data, now)
+                        self._serve(f"{name} receive", partial(self.twins[name].receive, data, now))
                 for name, twin in self.twins.items():
                     if name in self.unplugged:
                         continue
-                    out = twin.transmit(self.now_us())
+                    out = self._serve(f"{name} transmit", partial(twin.transmit, self.now_us()))
                     if out:
                         self.ports[name].write(out)
         except BaseException as exc:  # surfaced to the owner; the thread must not die silently
