@@ -190,3 +190,5 @@ def test_a_press_beyond_the_gel_model_aborts_the_run_and_the_rig_stays_up(rig: R
             assert world.error is None and world.server.error is None
             again = runner.run(replace(QUICK, depth_mm=0.3), tmp_path / "again.h5")
             assert again.exit_status == "complete", again.reason
+    with Recording(again.path) as rec:  # it carries its indenter's definition
+        assert rec.attrs["indenter_definition"].startswith("[sphere]\nkind = \"sphere\"")

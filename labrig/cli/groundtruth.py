@@ -16,7 +16,7 @@ from rich.markup import escape
 from rich.progress import MofNCompleteColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from labrig.cli.console import JsonOption, console, print_json, progress_bar
+from labrig.cli.console import JsonOption, console, err_console, print_json, progress_bar
 from labrig.errors import LabrigError
 
 
@@ -30,6 +30,9 @@ def groundtruth(
     calibration: Annotated[Path | None, typer.Option(
         help="Folder with gel.toml, rig-registration.toml, intrinsics.toml, extrinsics.toml (default: calibration/).")] = None,
     rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
+    indenters_path: Annotated[Path | None, typer.Option("--indenters", help=(
+        "Indenter TOML for recordings that do not carry their indenter's definition (default: "
+        "protocols/indenters.toml); recordings that carry one use it."))] = None,
     overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
     plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
     as_json: JsonOption = False,
@@ -38,6 +41,7 @@ def groundtruth(
     from labrig.dataset import DatasetRecording, open_data
     from labrig.groundtruth import ELASTIC_MODELS, generate, write_sidecar
     from labrig.groundtruth.batch import is_current, plot_groundtruth
+    from labrig.indenters import DEFAULT_INDENTERS
 
     if model not in ELASTIC_MODELS:
         raise LabrigError(f"--model must be one of {', '.join(ELASTIC_MODELS)}, not {model!r}")
@@ -68,7 +72,7 @@ def groundtruth(
             bar.update(maps, description=f"maps {job.path.name}", completed=0, total=None)
             try:
                 gt = generate(job.path, elastic=model, method=method, rate_hz=rate_hz, scale_mm=scale_mm,
-                              calibration_dir=calibration, rig_path=rig_path,
+                              calibration_dir=calibration, rig_path=rig_path, indenters_path=indenters_path or DEFAULT_INDENTERS,
                               progress=lambda done, total: bar.update(maps, completed=done, total=total))
                 side = write_sidecar(gt, job.sidecar)
             except LabrigError as exc:
@@ -114,8 +118,12 @@ def groundtruth(
         summary["plot"] = str(plot_groundtruth(first["recording"], first["sidecar"], plot))
     if as_json:
         print_json(summary)
-        return
-    _print_summary(summary)
+    else:
+        _print_summary(summary)
+    if summary["failed"]:
+        err_console.print(f"[red]{summary['failed']} of {len(jobs)} recordings failed[/]: their reasons are above; "
+                          "fix the cause and rerun (sidecars already written are kept)")
+        raise typer.Exit(1)
 
 
 def _print_summary(s: dict[str, Any]) -> None:

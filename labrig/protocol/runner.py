@@ -33,7 +33,7 @@ from labrig.config import RigConfig
 from labrig.devices.grbl import Grbl, GrblAlarm, GrblError, GrblTimeout
 from labrig.errors import LabrigError
 from labrig.frames import Pose
-from labrig.indenters import Indenter
+from labrig.indenters import Indenter, indenter_toml
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.safety import (
     SafetyError,
@@ -429,7 +429,7 @@ class ProbeRunner:
         info = {"virtual_rig": self.session.virtual, "seed": self.session.seed, "location_mm": list(spec.location_mm),
                 "tare_n_nm": list(self.session.tare_n), "calibration": _calibration_files(self.rig), **(extra or {})}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
-                                     extra=info)
+                                     indenter_toml=indenter_toml(self.indenter), extra=info)
         streams = truth_streams(len(self.rig.markers.rest_positions_mm())) if self.session.virtual else ()
         if out.exists():
             out.unlink()

@@ -80,6 +80,8 @@ class RecordingMetadata:
     protocol_toml: str = ""
     rig_toml: str = ""
     gel_toml: str = ""
+    #: The mounted indenter's own definition (:func:`labrig.indenters.indenter_toml`, height maps inline).
+    indenter_toml: str = ""
     calibration: dict[str, str] = field(default_factory=dict)
     extra: dict[str, str | int | float | bool] = field(default_factory=dict)
 
@@ -543,6 +545,7 @@ class RecordingWriter:
             "time_base": "t_host_us: host microseconds since t0_host_ns",
             "t0_host_ns": np.int64(self.t0_host_ns),
             "indenter": md.indenter,
+            "indenter_definition": md.indenter_toml,
             "protocol": md.protocol_toml,
             "rig": md.rig_toml,
             "gel": md.gel_toml,
