@@ -106,5 +106,5 @@ def test_an_indenter_definition_round_trips_through_its_own_toml(tmp_path: Path)
                                             original.max_normal_force_n, original.max_shear_force_n)
         np.testing.assert_array_equal(copy.height_mm(xs, ys), original.height_mm(xs, ys))
         assert copy.footprint_radius_mm == original.footprint_radius_mm
-    with pytest.raises(IndenterError, match="run.h5: an indenter definition holds one indenter"):
+    with pytest.raises(IndenterError, match=r"run\.h5: an indenter definition holds one indenter"):
         indenter_from_toml(indenter_toml(lab["cone"]) + "[b]\n", "run.h5")
