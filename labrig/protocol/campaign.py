@@ -15,10 +15,12 @@ parallel, each in its own processes; hardware campaigns are sequential.
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import queue
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing.managers import SyncManager
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +34,7 @@ from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import Campaign, RecordingPlan
 from labrig.recording.layout import partial_path
+from labrig.sim.parent_watch import exit_with_parent
 
 
 @dataclass(frozen=True)
@@ -161,10 +164,12 @@ def _worker(job: CampaignJob, outcomes: Any) -> None:
 def run_parallel(jobs: list[CampaignJob], workers: int) -> Iterator[Outcome]:
     """Run jobs on ``workers`` processes (virtual rigs only); yields outcomes as they come."""
     ctx = mp.get_context("spawn")
-    manager = ctx.Manager()
+    manager = SyncManager(ctx=ctx)
+    manager.start(exit_with_parent, (os.getpid(), False))  # none of our processes outlives a killed campaign
     outcomes = manager.Queue()
     try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=exit_with_parent,
+                                 initargs=(os.getpid(), False)) as pool:
             futures: list[Future[None]] = [pool.submit(_worker, job, outcomes) for job in jobs]
             while True:
                 try:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import os
 import queue
 import threading
 from collections.abc import Iterable
@@ -26,6 +27,7 @@ from labrig.physics.mechanics import ContactTable
 from labrig.physics.mechanics.tables import table_direction_deg
 from labrig.sim.faults import RigFault
 from labrig.sim.live import TruthRows
+from labrig.sim.parent_watch import exit_with_parent, started_from_main_thread
 
 #: Truth chunks waiting in the pipe at most (about 10 s of rendering); more are dropped and counted.
 TRUTH_QUEUE_CHUNKS = 1000
@@ -46,7 +48,7 @@ class WorldProcess:
 
     def __init__(self, rig_path: str | Path, indenter: str, *, indenters_path: str | Path | None = None, seed: int = 0,
                  camera_socket: str | Path, truth: bool = True, homed: bool = True) -> None:
-        self.args = {"rig_path": str(rig_path), "indenter": indenter,
+        self.args: dict[str, Any] = {"rig_path": str(rig_path), "indenter": indenter,
                      "indenters_path": None if indenters_path is None else str(indenters_path),
                      "seed": seed, "camera_socket": str(camera_socket), "truth": truth, "homed": homed}
         ctx = mp.get_context("spawn")
@@ -65,6 +67,7 @@ class WorldProcess:
         self._conn_lock = threading.Lock()
 
     def start(self, timeout_s: float = 60.0) -> WorldProcess:
+        self.args.update(parent_pid=os.getpid(), death_signal=started_from_main_thread())
         self._process.start()
         if not self._conn.poll(timeout_s):
             self.stop()
@@ -138,7 +141,8 @@ class WorldProcess:
 
 
 def _serve(args: dict[str, Any], conn: Any, truth_queue: Any, progress: Any, stop: Any) -> None:
-    """Child process: build the world, report, forward truth until stopped."""
+    """Child process: build the world, report, forward truth until stopped (or the parent is gone)."""
+    exit_with_parent(args["parent_pid"], death_signal=args["death_signal"])
     try:
         from labrig.config import load_rig
         from labrig.indenters import DEFAULT_INDENTERS, load_indenters
