@@ -192,3 +192,24 @@ def test_a_press_beyond_the_gel_model_aborts_the_run_and_the_rig_stays_up(rig: R
             assert again.exit_status == "complete", again.reason
     with Recording(again.path) as rec:  # it carries its indenter's definition
         assert rec.attrs["indenter_definition"].startswith("[sphere]\nkind = \"sphere\"")
+
+
+def test_a_twin_starved_for_seconds_answers_late_and_the_run_completes(rig: RigConfig, sphere: Indenter,
+                                                                        tmp_path: Path) -> None:
+    """Starvation without load: the virtual rig's process is stopped (SIGSTOP) for 2.5 s mid-run, so the
+    GRBL twin answers a line and its status queries seconds late. The run waits and completes."""
+    import os
+    import signal
+
+    with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere) as session:
+        runner = _runner(session, rig, sphere)
+        pid = session.world._process.pid  # type: ignore[union-attr]
+
+        def starve() -> None:
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(2.5)
+            os.kill(pid, signal.SIGCONT)
+
+        _when_phase(runner, "wait", starve)
+        result = runner.run(QUICK, tmp_path / "starved.h5")
+    assert result.exit_status == "complete", result.reason

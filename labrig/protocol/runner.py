@@ -43,7 +43,7 @@ from labrig.protocol.safety import (
     deepest_press_mm,
     depth_problem,
 )
-from labrig.protocol.session import NS_PER_US, RigSession
+from labrig.protocol.session import NS_PER_US, TWIN_PATIENCE_S, RigSession
 from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
 from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
@@ -121,6 +121,8 @@ class ProbeRunner:
         self._plan: ProbePlan | None = None
         self._contact: F64 | None = None
         self._last_report = (0.0, 0)
+        # A twin on a loaded host may stall for seconds; a real machine's moves keep their margin.
+        self._move_margin_s = MOVE_MARGIN_S + (TWIN_PATIENCE_S if session.virtual else 0.0)
         self._rig_faults_from_us = 0  # host us: the virtual rig's faults from then on abort the run
 
     @classmethod
@@ -271,7 +273,8 @@ class ProbeRunner:
         self._wait_motion(distance / speed_mm_s)
 
     def _wait_motion(self, nominal_s: float) -> None:
-        deadline = time.monotonic() + 1.5 * nominal_s + MOVE_MARGIN_S
+        allowed_s = 1.5 * nominal_s + self._move_margin_s
+        deadline = time.monotonic() + allowed_s
         while True:
             self._check_faults()
             try:
@@ -280,7 +283,7 @@ class ProbeRunner:
                 return
             except GrblTimeout:
                 if time.monotonic() > deadline:
-                    raise _Abort(f"the move did not finish within {1.5 * nominal_s + MOVE_MARGIN_S:.1f} s "
+                    raise _Abort(f"the move did not finish within {allowed_s:.1f} s "
                                  f"(GRBL {self.grbl.state})", hold=True) from None
             except GrblError as exc:
                 self._check_faults()
@@ -381,7 +384,7 @@ class ProbeRunner:
         try:
             for target in (up, plan.clearance_mm, plan.approach_start_mm):
                 self.grbl.move_to(*target.tolist(), feed_mm_min=speed * 60, machine=True)
-                self.grbl.wait_idle(timeout_s=float(np.linalg.norm(target - here)) / speed * 1.5 + MOVE_MARGIN_S)
+                self.grbl.wait_idle(timeout_s=float(np.linalg.norm(target - here)) / speed * 1.5 + self._move_margin_s)
                 here = target
         except GrblError as exc:
             raise SafetyError(f"travelling to the approach start failed: {exc}") from exc
@@ -419,7 +422,7 @@ class ProbeRunner:
         if rise > 0:
             above = here - rise * plan.down
             grbl.move_to(*above.tolist(), feed_mm_min=min(speed, plan.spec.normal_speed_mm_s * 2) * 60, machine=True)
-            grbl.wait_idle(timeout_s=rise / speed * 3 + MOVE_MARGIN_S)
+            grbl.wait_idle(timeout_s=rise / speed * 3 + self._move_margin_s)
         grbl.move_to(*plan.retract_mm.tolist(), feed_mm_min=speed * 60, machine=True)
         grbl.wait_idle(timeout_s=30)
 

@@ -47,6 +47,10 @@ from labrig.sim.live import put_truth_rows
 from labrig.sim.world_process import WorldProcess, prepare_contact_tables
 
 NS_PER_US = 1000
+#: The virtual rig's GRBL twin shares a host that may be loaded: starved of CPU it answers lines and
+#: status queries seconds late, which a real controller never does. Its driver waits this long (s)
+#: before calling a line or a report lost (hardware keeps GRBL's own deadlines).
+TWIN_PATIENCE_S = 10.0
 
 
 class RigSession:
@@ -107,8 +111,9 @@ class RigSession:
     def open(self) -> RigSession:
         try:
             paths = self._device_paths()
+            patience = {"response_timeout_s": TWIN_PATIENCE_S, "status_timeout_s": TWIN_PATIENCE_S} if self.virtual else {}
             self.grbl = Grbl(paths["grbl"], baudrate=self.devices.grbl_baud, clock=self.clock,
-                             on_sample=self._on_cnc, on_gcode=self._on_gcode,
+                             on_sample=self._on_cnc, on_gcode=self._on_gcode, **patience,
                              output_on=self.devices.output_on, output_off=self.devices.output_off)
             self.grbl.connect(reset="none" if self.virtual else "auto")
             self.ft = BotaSensor(paths["bota"], baudrate=self.devices.bota_baud, clock=self.clock,
