@@ -29,6 +29,7 @@ from labrig.config import load_rig
 from labrig.dataset import COMPLETE, Dataset, read_manifest, write_manifest
 from labrig.errors import LabrigError
 from labrig.indenters import load_indenters
+from labrig.protocol.rig_ready import ready_or_restarted
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
@@ -138,6 +139,7 @@ def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopReque
         for plan in job.plans:
             if stop is not None and stop.level >= 1:
                 return
+            ready_or_restarted(session)  # an earlier run's Alarm cleared (hardware that cannot be: SafetyError, stop)
             report(_record_one(runner, plan, out_dir, job.protocol_toml))
 
 

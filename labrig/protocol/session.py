@@ -109,6 +109,8 @@ class RigSession:
     # -- lifecycle --------------------------------------------------------------------------
 
     def open(self) -> RigSession:
+        """Open the devices (again, after :meth:`close`: a restarted rig)."""
+        self._stop.clear()
         try:
             paths = self._device_paths()
             patience = {"response_timeout_s": TWIN_PATIENCE_S, "status_timeout_s": TWIN_PATIENCE_S} if self.virtual else {}
