@@ -17,6 +17,8 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue
+import signal
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
@@ -159,21 +161,56 @@ def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protoco
     return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
 
 
-def _worker(job: CampaignJob, outcomes: Any) -> None:
-    run_job(job, outcomes.put)
+def _worker(job: CampaignJob, outcomes: Any, stop_level: Any) -> None:
+    done = threading.Event()
+    try:
+        run_job(job, outcomes.put, _follow(stop_level, done))
+    finally:
+        done.set()
 
 
-def run_parallel(jobs: list[CampaignJob], workers: int) -> Iterator[Outcome]:
-    """Run jobs on ``workers`` processes (virtual rigs only); yields outcomes as they come."""
+def _init_worker(parent_pid: int) -> None:
+    """A campaign worker dies with the campaign, and leaves Ctrl-C to it (the campaign stops it)."""
+    exit_with_parent(parent_pid, False)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _follow(shared_level: Any, done: threading.Event) -> StopRequest:
+    """A worker's stop request, raised to the campaign's level (a shared int) as it rises until
+    ``done``, and to 2 by a SIGTERM sent to the worker itself."""
+    stop = StopRequest()
+
+    def raise_to(level: int) -> None:
+        while stop.level < level:
+            stop.request()
+
+    def follow() -> None:
+        while stop.level < 2 and not done.wait(0.1):
+            raise_to(int(shared_level.value))
+
+    signal.signal(signal.SIGTERM, lambda signum, frame: raise_to(2))
+    threading.Thread(target=follow, name="labrig-campaign-stop", daemon=True).start()
+    return stop
+
+
+def run_parallel(jobs: list[CampaignJob], workers: int, stop: StopRequest | None = None) -> Iterator[Outcome]:
+    """Run jobs on ``workers`` processes (virtual rigs only); yields outcomes as they come. ``stop``
+    (the campaign's Ctrl-C / SIGTERM) reaches every worker: jobs not started are cancelled, running
+    ones end their recording as a stop would (finalized, aborted) and return."""
     ctx = mp.get_context("spawn")
     manager = SyncManager(ctx=ctx)
     manager.start(exit_with_parent, (os.getpid(), False))  # none of our processes outlives a killed campaign
     outcomes = manager.Queue()
+    shared_level = manager.Value("i", 0)
     try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=exit_with_parent,
-                                 initargs=(os.getpid(), False)) as pool:
-            futures: list[Future[None]] = [pool.submit(_worker, job, outcomes) for job in jobs]
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(os.getpid(),)) as pool:
+            futures: list[Future[None]] = [pool.submit(_worker, job, outcomes, shared_level) for job in jobs]
             while True:
+                if stop is not None and stop.level > shared_level.value:
+                    shared_level.value = stop.level
+                    for future in futures:
+                        future.cancel()  # not started yet: stays pending in the manifest
                 try:
                     yield outcomes.get(timeout=0.2)
                     continue
@@ -187,7 +224,7 @@ def run_parallel(jobs: list[CampaignJob], workers: int) -> Iterator[Outcome]:
                 except queue.Empty:
                     break
             for f in futures:
-                error = f.exception()
+                error = None if f.cancelled() else f.exception()
                 if error is not None:
                     raise LabrigError(f"a campaign worker failed: {error}") from error
     finally:

@@ -15,6 +15,7 @@ import contextlib
 import multiprocessing as mp
 import os
 import queue
+import signal
 import threading
 from collections.abc import Iterable
 from pathlib import Path
@@ -143,6 +144,7 @@ class WorldProcess:
 def _serve(args: dict[str, Any], conn: Any, truth_queue: Any, progress: Any, stop: Any) -> None:
     """Child process: build the world, report, forward truth until stopped (or the parent is gone)."""
     exit_with_parent(args["parent_pid"], death_signal=args["death_signal"])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the parent's to handle: it stops us
     try:
         from labrig.config import load_rig
         from labrig.indenters import DEFAULT_INDENTERS, load_indenters
