@@ -213,3 +213,7 @@ def test_a_twin_starved_for_seconds_answers_late_and_the_run_completes(rig: RigC
         _when_phase(runner, "wait", starve)
         result = runner.run(QUICK, tmp_path / "starved.h5")
     assert result.exit_status == "complete", result.reason
+    # ... but short of F/T data while the twin was stopped: marked, never silently kept.
+    assert result.shortfall.fell_behind and result.shortfall.ft_max_gap_s > 1.5
+    with Recording(result.path) as rec:
+        assert "F/T frames missing" in rec.attrs["fell_behind"] and rec.attrs["ft_max_gap_s"] > 1.5

@@ -142,7 +142,7 @@ def campaign(
         err_console.print(f"no hardware configured: {todo} recordings on the virtual rig ({workers} in parallel)")
     nominal = {p.id: p.spec.nominal_duration_s() + 3.0 for j in jobs for p in j.plans}
     t0 = time.monotonic()
-    counts = {"complete": 0, "aborted": 0, "failed": 0}
+    counts = {"complete": 0, "aborted": 0, "failed": 0, "short": 0}
     stop = StopRequest()
     count = TextColumn("{task.completed:.0f}/{task.fields[n]}")
     with progress_bar(count, TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
@@ -179,6 +179,7 @@ def campaign(
     summary = {
         "campaign": plan.name, "out": str(out), "manifest": str(manifest.path), "recordings": len(plan.plans),
         "skipped_complete": skipped, "recorded": counts["complete"], "aborted": counts["aborted"], "failed": counts["failed"],
+        "short": counts["short"],
         "pending": sum(1 for r in manifest.rows.values() if r["status"] not in ("complete",)),
         "workers": workers, "wall_s": round(wall, 2),
         "recordings_per_min": round(60 * done / wall, 3) if done and wall > 0 else 0.0,

@@ -14,6 +14,7 @@ parallel, each in its own processes; hardware campaigns are sequential.
 
 from __future__ import annotations
 
+import functools
 import multiprocessing as mp
 import os
 import queue
@@ -31,6 +32,7 @@ from labrig.config import load_rig
 from labrig.dataset import COMPLETE, Dataset, read_manifest, write_manifest
 from labrig.errors import LabrigError
 from labrig.indenters import load_indenters
+from labrig.protocol.realtime import record_in_real_time
 from labrig.protocol.rig_ready import ready_or_restarted
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
@@ -50,6 +52,8 @@ class Outcome:
     file: str
     sha256: str
     duration_s: float
+    #: What fell behind real time, by how much ("" when the run kept up; see protocol.realtime).
+    fell_behind: str = ""
 
 
 class Manifest:
@@ -63,7 +67,7 @@ class Manifest:
             row = _plan_row(plan)
             before = old.get(plan.id)
             if before is not None and all(before.get(k) == row[k] for k in ("indenter", "x_mm", "y_mm", "split")):
-                row.update({k: before.get(k, "") for k in ("status", "reason", "file", "sha256", "duration_s")})
+                row.update({k: before.get(k, "") for k in ("status", "reason", "file", "sha256", "duration_s", "fell_behind")})
             self.rows[plan.id] = row
 
     def done(self, plan: RecordingPlan, out_dir: Path) -> bool:
@@ -76,7 +80,8 @@ class Manifest:
 
     def record(self, outcome: Outcome) -> None:
         self.rows[outcome.plan_id].update(status=outcome.status, reason=outcome.reason, file=outcome.file,
-                                          sha256=outcome.sha256, duration_s=f"{outcome.duration_s:.3f}")
+                                          sha256=outcome.sha256, duration_s=f"{outcome.duration_s:.3f}",
+                                          fell_behind=outcome.fell_behind)
         self.save()
 
     def save(self) -> None:
@@ -92,6 +97,7 @@ def _plan_row(plan: RecordingPlan) -> dict[str, str]:
         "shear_direction_deg": f"{s.shear_direction_deg:g}", "shear_mm": f"{s.shear_mm:g}",
         "shear_speed_mm_s": f"{s.shear_speed_mm_s:g}", "wait_s": f"{s.wait_s:g}", "repetition": str(plan.repetition),
         "split": plan.split, "status": "pending", "reason": "", "file": "", "sha256": "", "duration_s": "",
+        "fell_behind": "",
     }
 
 
@@ -141,8 +147,8 @@ def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopReque
         for plan in job.plans:
             if stop is not None and stop.level >= 1:
                 return
-            ready_or_restarted(session)  # an earlier run's Alarm cleared (hardware that cannot be: SafetyError, stop)
-            report(_record_one(runner, plan, out_dir, job.protocol_toml))
+            record = functools.partial(_record_one, runner, plan, out_dir, job.protocol_toml)
+            report(record_in_real_time(record, functools.partial(ready_or_restarted, session), stop))
 
 
 def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protocol_toml: str) -> Outcome:
@@ -158,7 +164,8 @@ def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protoco
         result: RunResult = runner.run(plan.spec, path, protocol_toml=protocol_toml, extra=extra, overwrite=True)
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
-    return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
+    return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s,
+                   result.shortfall.describe())
 
 
 def _worker(job: CampaignJob, outcomes: Any, stop_level: Any) -> None:

@@ -35,6 +35,7 @@ from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter, indenter_toml
 from labrig.protocol.plan import ProbePlan
+from labrig.protocol.realtime import CAMERA_BEHIND_LIMIT_S, Shortfall
 from labrig.protocol.safety import (
     SafetyError,
     StopRequest,
@@ -53,7 +54,7 @@ F64 = npt.NDArray[np.float64]
 
 #: Extra time allowed on top of a move's nominal duration, s.
 MOVE_MARGIN_S = 5.0
-CAMERA_SHORTFALL_US = 50_000  # a camera stream ending this much before the run's end is reported
+CAMERA_SHORTFALL_US = round(CAMERA_BEHIND_LIMIT_S * 1e6)  # a camera stream ending this much before the run's end is reported
 #: A force target is approached at the normal speed up to this fraction, then at FINE_SPEED_MM_S.
 APPROACH_FRACTION = 0.7
 FINE_SPEED_MM_S = 0.3
@@ -86,6 +87,8 @@ class RunResult:
     contact_mm: tuple[float, float, float] | None = None
     peak_force_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
     wall_s: float = 0.0
+    #: What fell behind real time, by how much (stored in the recording too).
+    shortfall: Shortfall = field(default_factory=Shortfall)
 
 
 class _Abort(Exception):
@@ -188,8 +191,9 @@ class ProbeRunner:
                 result.reason = "; ".join(filter(None, [result.reason, (
                     f"the camera stream stops {behind_us / 1e6:.2f} s before the run's end (the camera fell "
                     "behind and stalled): the events after that are missing")]))
+            result.shortfall = Shortfall(behind_us / 1e6, self.session.ft_max_gap_us / 1e6)
             self._writer = None
-            recording = writer.close(result.exit_status, result.reason)
+            recording = writer.close(result.exit_status, result.reason, attrs=result.shortfall.attrs())
             result.path = recording.path
             result.phases = list(self._phases)
             result.peak_force_n = tuple(float(v) for v in self.session.monitor.peak_n)  # type: ignore[assignment]
