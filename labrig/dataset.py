@@ -31,7 +31,7 @@ MANIFEST_NAME = "manifest.csv"
 MANIFEST_COLUMNS: tuple[str, ...] = (
     "id", "index", "indenter", "x_mm", "y_mm", "depth_mm", "force_n", "normal_speed_mm_s", "shear_direction_deg",
     "shear_mm", "shear_speed_mm_s", "wait_s", "repetition", "split", "status", "reason", "file", "sha256", "duration_s",
-    "made_by")
+    "made_by", "fell_behind")
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 #: The ``split`` that selects every split.
 ALL_SPLITS = "all"

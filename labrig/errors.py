@@ -17,6 +17,14 @@ class ConfigError(LabrigError):
     """A bad rig configuration file."""
 
 
+class SomeInputsFailed(LabrigError):
+    """A command failed on some of its inputs and kept what the others gave; the message says how many.
+
+    Exit code 1: the command ran, its inputs were not all usable (2 is for a bad command line)."""
+
+    exit_code = 1
+
+
 class RecordingError(LabrigError):
     """A recording file cannot be opened or used."""
 

@@ -35,7 +35,7 @@ from typing import Any, Generic, Protocol, TypeVar
 import numpy as np
 
 from labrig.cache import cache_folder
-from labrig.errors import LabrigError
+from labrig.errors import LabrigError, SomeInputsFailed
 from labrig.result_cache import ResultCache
 
 Task = Mapping[str, Any] | Any  # a dict, or a frozen dataclass instance
@@ -84,7 +84,7 @@ class TaskResults(list[ResultT | None], Generic[ResultT]):
         return f"{len(self)} tasks: {self.hits} cached, {self.misses} computed{failed} in {self.seconds:.1f} s"
 
 
-class TasksFailed(LabrigError):
+class TasksFailed(SomeInputsFailed):
     """Some tasks raised; ``results`` holds every result (None for the failed ones), ``failures`` the details."""
 
     def __init__(self, results: TaskResults[Any]) -> None:

@@ -33,6 +33,8 @@ GEOMETRY_KEYS: dict[str, tuple[str, ...]] = {
     "ridge": ("width_mm", "length_mm"),
     "heightmap": ("file", "spacing_mm"),
 }
+#: A height map given inline (a recording's own copy of its indenter) instead of as a file.
+INLINE_HEIGHTMAP_KEY = "heights_mm"
 COMMON_KEYS = ("kind", "tool_offset_mm", "max_normal_force_n", "max_shear_force_n", "max_depth_mm")
 #: Keys that may be left out (their defaults: no yaw in the CNC frame; a height map's lowest sample as its axis).
 OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"common": ("yaw_deg",), "heightmap": ("axis_mm",)}
@@ -186,6 +188,40 @@ def load_indenters(path: str | Path = DEFAULT_INDENTERS) -> dict[str, Indenter]:
     return {name: _parse(path, name, entry) for name, entry in data.items()}
 
 
+def indenter_toml(indenter: Indenter) -> str:
+    """One indenter as a self-contained TOML document (``[name]`` and its keys): a recording
+    carries it, so later steps need no indenters file. A height map is written inline
+    (``heights_mm``, rows of mm) instead of naming its ``.npy`` file."""
+    lines = [f"[{indenter.name}]", f'kind = "{indenter.kind}"']
+    for key, value in indenter.geometry.items():
+        if key != "file":
+            lines.append(f"{key} = {float(value)!r}")
+    if indenter._heightmap is not None:
+        rows = ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in indenter._heightmap)
+        lines.append(f"{INLINE_HEIGHTMAP_KEY} = [{rows}]")
+    lines += [f"tool_offset_mm = [{', '.join(repr(v) for v in indenter.tool_offset_mm)}]",
+              f"max_normal_force_n = {indenter.max_normal_force_n!r}", f"max_shear_force_n = {indenter.max_shear_force_n!r}",
+              f"max_depth_mm = {indenter.max_depth_mm!r}"]
+    if indenter.yaw_deg != 0.0:
+        lines.append(f"yaw_deg = {float(indenter.yaw_deg)!r}")
+    if indenter.axis_mm is not None:
+        lines.append(f"axis_mm = [{float(indenter.axis_mm[0])!r}, {float(indenter.axis_mm[1])!r}]")
+    return "\n".join(lines) + "\n"
+
+
+def indenter_from_toml(text: str, source: str) -> Indenter:
+    """The one indenter of a document written by :func:`indenter_toml`; ``source`` names where it
+    came from in errors (e.g. the recording's path)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise IndenterError(f"{source}: the indenter definition is not valid TOML ({exc})") from None
+    if len(data) != 1:
+        raise IndenterError(f"{source}: an indenter definition holds one indenter, not {len(data)}")
+    (name, entry), = data.items()
+    return _parse(Path(source), name, entry)
+
+
 def load_indenter(name: str, path: str | Path = DEFAULT_INDENTERS) -> Indenter:
     indenters = load_indenters(path)
     if name not in indenters:
@@ -200,14 +236,18 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
     kind = entry.get("kind")
     if kind not in GEOMETRY_KEYS:
         raise IndenterError(f"{where} kind must be one of {', '.join(GEOMETRY_KEYS)}, not {kind!r}")
-    allowed = set(COMMON_KEYS) | set(GEOMETRY_KEYS[kind]) | set(OPTIONAL_KEYS["common"]) | set(OPTIONAL_KEYS.get(kind, ()))
+    geometry_keys = GEOMETRY_KEYS[kind]
+    if kind == "heightmap" and INLINE_HEIGHTMAP_KEY in entry:
+        geometry_keys = ("spacing_mm",)
+    allowed = (set(COMMON_KEYS) | set(geometry_keys) | set(OPTIONAL_KEYS["common"]) | set(OPTIONAL_KEYS.get(kind, ()))
+               | ({INLINE_HEIGHTMAP_KEY} if kind == "heightmap" else set()))
     unknown = sorted(set(entry) - allowed)
     if unknown:
         raise IndenterError(f"{where} unknown key {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
-    missing = [k for k in (*COMMON_KEYS, *GEOMETRY_KEYS[kind]) if k not in entry]
+    missing = [k for k in (*COMMON_KEYS, *geometry_keys) if k not in entry]
     if missing:
         raise IndenterError(f"{where} missing {missing[0]!r}")
-    geometry = {k: entry[k] for k in GEOMETRY_KEYS[kind]}
+    geometry = {k: entry[k] for k in geometry_keys}
     for key, value in geometry.items():
         if key != "file" and (not isinstance(value, int | float) or value < 0 or (value == 0 and key != "fillet_mm")):
             raise IndenterError(f"{where} {key} must be a positive number of mm, not {value!r}")
@@ -215,17 +255,23 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
     if not (isinstance(offset, list) and len(offset) == 3 and all(isinstance(v, int | float) for v in offset)):
         raise IndenterError(f"{where} tool_offset_mm must be [x, y, z] in mm")
     heightmap = None
-    if kind == "heightmap":
+    if kind == "heightmap" and INLINE_HEIGHTMAP_KEY in entry:
+        try:
+            heightmap = np.asarray(entry[INLINE_HEIGHTMAP_KEY], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise IndenterError(f"{where} {INLINE_HEIGHTMAP_KEY} must be rows of heights in mm") from None
+    elif kind == "heightmap":
         file = (path.parent / geometry["file"]).resolve()
         try:
             heightmap = np.load(file).astype(np.float64)
         except (OSError, ValueError) as exc:
             raise IndenterError(f"{where} cannot read height map {file}: {exc}") from None
+    if heightmap is not None:
         if heightmap.ndim != 2 or min(heightmap.shape) < 2:
             raise IndenterError(f"{where} height map must be a 2-D array of heights in mm")
         heightmap = np.where(np.isnan(heightmap), np.inf, heightmap)  # NaN or inf: no surface there
         if not np.isfinite(heightmap).any():
-            raise IndenterError(f"{where} height map {file} has no finite height")
+            raise IndenterError(f"{where} height map has no finite height")
     yaw = entry.get("yaw_deg", 0.0)
     if not isinstance(yaw, int | float) or isinstance(yaw, bool) or not np.isfinite(yaw):
         raise IndenterError(f"{where} yaw_deg must be a number of degrees (the turn about the CNC z axis), not {yaw!r}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -267,3 +268,33 @@ def test_cli_hdf5_that_is_not_a_recording_and_bad_options(tmp_path: Path) -> Non
     assert isinstance(result.exception, LabrigError) and "not a labrig recording" in str(result.exception)
     result = _run(str(other), "--model", "plate")
     assert isinstance(result.exception, LabrigError) and "--model" in str(result.exception)
+
+
+def test_cli_uses_the_indenter_a_recording_carries_and_counts_failures(probe: Path, tmp_path: Path) -> None:
+    """A lab's own height-map indenter needs no indenters file: the recording carries its definition.
+    A recording with neither a definition nor a known name fails, and the command says so and exits 1."""
+    import shutil
+
+    from labrig.indenters import indenter_toml
+
+    sphere = load_indenter("sphere")
+    y, x = np.mgrid[-60:61, -60:61] * 0.1
+    dome = dataclasses.replace(sphere, name="lab-dome", kind="heightmap", geometry={"file": "dome.npy", "spacing_mm": 0.1},
+                               _heightmap=np.asarray(sphere.height_mm(x, y)))
+    shutil.copy(probe, tmp_path / "dome.h5")
+    shutil.copy(probe, tmp_path / "orphan.h5")
+    with h5py.File(tmp_path / "dome.h5", "r+") as f:
+        f.attrs["indenter"] = "lab-dome"
+        f.attrs["indenter_definition"] = indenter_toml(dome)
+    with h5py.File(tmp_path / "orphan.h5", "r+") as f:
+        f.attrs["indenter"] = "lab-only"
+        del f.attrs["indenter_definition"]
+    (tmp_path / "manifest.csv").write_text("id,split,status,file,sha256\ndome,test,complete,dome.h5,\n"
+                                           "orphan,test,complete,orphan.h5,\n")
+    result = _run(str(tmp_path), "--json", "--rate-hz", "20", "--model", "halfspace")
+    assert result.exit_code == 1, result.output
+    summary = json.loads(result.stdout)
+    by_name = {Path(r["recording"]).name: r for r in summary["results"]}
+    assert by_name["dome.h5"]["status"] == "written" and by_name["dome.h5"]["contact_model"] == "numerical"
+    assert by_name["orphan.h5"]["status"] == "failed" and "--indenters" in by_name["orphan.h5"]["reason"]
+    assert summary["failed"] == 1 and "1 of 2 recordings failed" in result.stderr

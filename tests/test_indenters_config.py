@@ -83,3 +83,28 @@ def test_bad_rig_config_names_the_field(tmp_path: Path) -> None:
     (tmp_path / "rig.toml").write_text(load_rig().text.replace("[roi]", "[roi]\nzoom = 2"))
     with pytest.raises(ConfigError, match="unknown key 'zoom'"):
         load_rig(tmp_path / "rig.toml")
+
+
+def test_an_indenter_definition_round_trips_through_its_own_toml(tmp_path: Path) -> None:
+    """What a recording stores (indenter_toml) gives back the same shape and limits, a height map inline."""
+    from labrig.indenters import indenter_from_toml, indenter_toml
+
+    y, x = np.mgrid[-20:21, -25:26] * 0.1
+    heights = np.hypot(x, y) * 0.5
+    heights[0, 0] = np.inf  # no surface there
+    np.save(tmp_path / "cone.npy", heights)
+    (tmp_path / "indenters.toml").write_text(
+        '[cone]\nkind = "heightmap"\nfile = "cone.npy"\nspacing_mm = 0.1\ntool_offset_mm = [0, 0.5, -40]\n'
+        "max_normal_force_n = 10\nmax_shear_force_n = 2\nmax_depth_mm = 1\n"
+    )
+    lab = load_indenters(tmp_path / "indenters.toml")
+    xs, ys = np.meshgrid(np.linspace(-3, 3, 23), np.linspace(-3, 3, 19))
+    for original in (*load_indenters().values(), lab["cone"]):
+        copy = indenter_from_toml(indenter_toml(original), "run.h5")
+        assert (copy.name, copy.kind, copy.tool_offset_mm, copy.max_depth_mm, copy.max_normal_force_n,
+                copy.max_shear_force_n) == (original.name, original.kind, original.tool_offset_mm, original.max_depth_mm,
+                                            original.max_normal_force_n, original.max_shear_force_n)
+        np.testing.assert_array_equal(copy.height_mm(xs, ys), original.height_mm(xs, ys))
+        assert copy.footprint_radius_mm == original.footprint_radius_mm
+    with pytest.raises(IndenterError, match=r"run\.h5: an indenter definition holds one indenter"):
+        indenter_from_toml(indenter_toml(lab["cone"]) + "[b]\n", "run.h5")

@@ -356,3 +356,35 @@ def test_overrides_from_the_command_line(rig: RigConfig, indenters: dict[str, In
         apply_overrides(base, depth=3.0, rig=rig, indenters=indenters)
     with pytest.raises(ProtocolError, match="wait: no unit; give a unit: wait_s"):
         apply_overrides(base, wait=0.2)
+
+
+def test_a_depth_at_the_gel_models_max_depth_is_refused_before_any_move(tmp_path: Path, rig: RigConfig,
+                                                                        indenters: dict[str, Indenter]) -> None:
+    """Pressed exactly to max_depth_mm, a run ends beyond the gel model (the contact is found a little
+    into the gel): the checker refuses it and says how deep a press may go."""
+    path = _write(tmp_path, "edge.toml", """
+[campaign]
+name = "edge"
+
+[[group]]
+indenters = ["cylinder"]
+locations_mm = [[0, 0]]
+depth_mm = [1.5]
+
+[[group]]
+indenters = ["sphere"]
+locations_mm = [[0, 0]]
+force_n = [3]
+max_depth_mm = 2.5
+
+[[group]]
+indenters = ["sphere"]
+locations_mm = [[0, 0]]
+depth_mm = [2.45]
+""")
+    with pytest.raises(ProtocolError) as exc:
+        load_campaign(path, rig, indenters)
+    found = _problems(exc)
+    assert set(found) == {(7, "group[1].depth_mm"), (13, "group[2].max_depth_mm")}
+    assert "no headroom" in found[(7, "group[1].depth_mm")] and "use at most 1.45 mm" in found[(7, "group[1].depth_mm")]
+    assert "use at most 2.45 mm" in found[(13, "group[2].max_depth_mm")]

@@ -195,3 +195,48 @@ def test_ctrl_c_once_finishes_the_phase_then_stops(rig: RigConfig, sphere: Inden
         depth = rec.column("cnc", "position_mm")[:, 2].min()
     assert depth == pytest.approx(result.contact_mm[2] - QUICK.depth_mm, abs=0.05)  # type: ignore[index]
     assert np.isfinite(depth)
+
+
+def test_a_press_beyond_the_gel_model_aborts_the_run_and_the_rig_stays_up(rig: RigConfig, sphere: Indenter,
+                                                                          tmp_path: Path) -> None:
+    """The rig's gel model ends at 0.8 mm while the runner's indenter allows 2.5 mm: the press goes
+    beyond the model. The run aborts with a clear reason and retracts; the twins keep serving and
+    the next run on the same rig completes."""
+    shallow_model = replace(sphere, max_depth_mm=0.8)
+    with LiveWorld(rig, shallow_model, homed=True, camera_socket=tmp_path / "evk4.sock") as world:
+        with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere, world=world) as session:
+            runner = _runner(session, rig, sphere)
+            deep = runner.run(replace(QUICK, depth_mm=0.95, shear_mm=0.0), tmp_path / "deep.h5")
+            assert deep.exit_status == "aborted"
+            assert "refused a request" in deep.reason and "beyond the gel model" in deep.reason
+            assert "retract failed" not in deep.reason, deep.reason[-600:]
+            assert world.error is None and world.server.error is None
+            again = runner.run(replace(QUICK, depth_mm=0.3), tmp_path / "again.h5")
+            assert again.exit_status == "complete", again.reason
+    with Recording(again.path) as rec:  # it carries its indenter's definition
+        assert rec.attrs["indenter_definition"].startswith("[sphere]\nkind = \"sphere\"")
+
+
+def test_a_twin_starved_for_seconds_answers_late_and_the_run_completes(rig: RigConfig, sphere: Indenter,
+                                                                        tmp_path: Path) -> None:
+    """Starvation without load: the virtual rig's process is stopped (SIGSTOP) for 2.5 s mid-run, so the
+    GRBL twin answers a line and its status queries seconds late. The run waits and completes."""
+    import os
+    import signal
+
+    with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere) as session:
+        runner = _runner(session, rig, sphere)
+        pid = session.world._process.pid  # type: ignore[union-attr]
+
+        def starve() -> None:
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(2.5)
+            os.kill(pid, signal.SIGCONT)
+
+        _when_phase(runner, "wait", starve)
+        result = runner.run(QUICK, tmp_path / "starved.h5")
+    assert result.exit_status == "complete", result.reason
+    # ... but short of F/T data while the twin was stopped: marked, never silently kept.
+    assert result.shortfall.fell_behind and result.shortfall.ft_max_gap_s > 1.5
+    with Recording(result.path) as rec:
+        assert "F/T frames missing" in rec.attrs["fell_behind"] and rec.attrs["ft_max_gap_s"] > 1.5

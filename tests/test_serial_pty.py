@@ -169,3 +169,30 @@ def test_a_relay_exits_when_its_server_process_is_killed(tmp_path) -> None:  # t
         time.sleep(0.05)
     os.kill(relay_pid, signal.SIGKILL)
     pytest.fail("the relay outlived its server by 2 s")
+
+
+class Brittle(EchoUpper):
+    """Raises on a line that says 'boom' (a request the twin's model cannot serve), echoes the rest."""
+
+    def receive(self, data: bytes, now_us: int) -> None:
+        if b"boom" in data:
+            raise ValueError("cannot serve boom")
+        super().receive(data, now_us)
+
+
+def test_a_twin_that_raises_on_a_request_reports_it_and_keeps_serving() -> None:
+    with TwinServer({"brittle": Brittle(), "echo": EchoUpper()}) as server:
+        brittle = serial.Serial(server.paths["brittle"], 115200, timeout=1.0)
+        echo = serial.Serial(server.paths["echo"], 115200, timeout=1.0)
+        brittle.write(b"boom\n")
+        time.sleep(0.05)
+        brittle.write(b"boom again\n")
+        time.sleep(0.05)
+        brittle.write(b"still here\n")
+        assert brittle.readline() == b"STILL HERE\r\n"
+        echo.write(b"ping\n")
+        assert echo.readline() == b"PING\r\n"
+        assert server.error is None
+        assert [f.message for f in server.faults] == ["brittle receive: ValueError: cannot serve boom"]  # once a run
+        brittle.close()
+        echo.close()

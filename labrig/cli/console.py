@@ -84,6 +84,27 @@ def on_ctrl_c(action: Callable[[], str]) -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
+@contextmanager
+def on_terminate(stop: StopRequest) -> Iterator[None]:
+    """Within the block, SIGTERM asks ``stop`` to hold and retract at once (as a second Ctrl-C), so
+    the current recording is finalized as aborted and the command ends cleanly; off the main thread
+    SIGTERM keeps its default."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        while stop.request() < 2:
+            pass
+        err_console.print("[red]terminated: holding and retracting now, then stopping[/]")
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def stop_probing_run(stop: StopRequest) -> Callable[[], str]:
     """The Ctrl-C action of a probing run: first finish the phase and stop, then hold and retract at once."""
 

@@ -16,7 +16,7 @@ from rich.markup import escape
 from rich.progress import MofNCompleteColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from labrig.cli.console import JsonOption, console, print_json, progress_bar
+from labrig.cli.console import JsonOption, console, err_console, print_json, progress_bar
 from labrig.errors import LabrigError
 
 
@@ -32,6 +32,9 @@ def groundtruth(
     rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
     plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
+    indenters_path: Annotated[Path | None, typer.Option("--indenters", help=(
+        "Indenter TOML for recordings that do not carry their indenter's definition (default: "
+        "protocols/indenters.toml); recordings that carry one use it."))] = None,
     workers: Annotated[int, typer.Option(help="Recordings in parallel, local processes (1: in this process).")] = 1,
     scheduler: Annotated[str | None, typer.Option(help="A Dask scheduler (tcp://host:8786) instead of --workers.")] = None,
     as_json: JsonOption = False,
@@ -67,7 +70,8 @@ def groundtruth(
         else:
             tasks.append(SidecarTask(str(job.path), str(job.sidecar), job.split, model, method, float(rate_hz),
                                      float(scale_mm), None if calibration is None else str(calibration),
-                                     None if rig_path is None else str(rig_path)))
+                                     None if rig_path is None else str(rig_path),
+                                     None if indenters_path is None else str(indenters_path)))
     with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
         overall = bar.add_task("recordings", total=len(jobs), completed=len(results))
         done = run_tasks(write_sidecar_task, tasks, workers=workers, scheduler=scheduler, use_cache=False,
@@ -105,8 +109,12 @@ def groundtruth(
         summary["plot"] = str(plot_groundtruth(first["recording"], first["sidecar"], plot))
     if as_json:
         print_json(summary)
-        return
-    _print_summary(summary)
+    else:
+        _print_summary(summary)
+    if summary["failed"]:
+        err_console.print(f"[red]{summary['failed']} of {len(jobs)} recordings failed[/]: their reasons are above; "
+                          "fix the cause and rerun (sidecars already written are kept)")
+        raise typer.Exit(1)
 
 
 def _print_summary(s: dict[str, Any]) -> None:

@@ -22,6 +22,7 @@ from labrig.cli.console import (
     err_console,
     load_rig_and_indenters,
     on_ctrl_c,
+    on_terminate,
     print_json,
     progress_bar,
     stop_probing_run,
@@ -155,7 +156,7 @@ def campaign(
         err_console.print(f"no hardware configured: {todo} recordings on the virtual rig ({workers} in parallel)")
     nominal = {p.id: p.spec.nominal_duration_s() + 3.0 for j in jobs for p in j.plans}
     t0 = time.monotonic()
-    counts = {"complete": 0, "aborted": 0, "failed": 0}
+    counts = {"complete": 0, "aborted": 0, "failed": 0, "short": 0}
     stop = StopRequest()
     count = TextColumn("{task.completed:.0f}/{task.fields[n]}")
     with progress_bar(count, TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
@@ -178,28 +179,31 @@ def campaign(
                 typer.confirm(f"mount the {indenter} indenter, then continue?", abort=True)
                 bar.start()
 
-        with on_ctrl_c(stop_probing_run(stop)):
+        with on_ctrl_c(stop_probing_run(stop)), on_terminate(stop):
             if workers == 1:
                 for job in jobs:
                     if stop.level >= 1:
                         break
                     run_job(job, take, stop, before_session=ask)
             else:
-                for outcome in run_parallel(jobs, workers):
+                for outcome in run_parallel(jobs, workers, stop):
                     take(outcome)
     wall = time.monotonic() - t0
     recorded_s = sum(float(r["duration_s"] or 0) for r in manifest.rows.values())
     summary = {
         "campaign": plan.name, "out": str(out), "manifest": str(manifest.path), "recordings": len(plan.plans),
         "skipped_complete": skipped, "recorded": counts["complete"], "aborted": counts["aborted"], "failed": counts["failed"],
+        "short": counts["short"],
         "pending": sum(1 for r in manifest.rows.values() if r["status"] not in ("complete",)),
         "workers": workers, "wall_s": round(wall, 2),
         "recordings_per_min": round(60 * done / wall, 3) if done and wall > 0 else 0.0,
         "splits": {s: sum(1 for r in manifest.rows.values() if r["split"] == s) for s in SPLITS},
         "recorded_wall_s_total": round(recorded_s, 2),
     }
+    summary["stopped"] = stop.level >= 1
     if as_json:
         print_json(summary)
+        _exit_if_stopped(summary)
         return
     table = Table(title=f"campaign {plan.name}", title_justify="left")
     for column in ("recordings", "skipped", "recorded", "aborted", "failed", "pending", "per min"):
@@ -210,6 +214,15 @@ def campaign(
     console.print(f"manifest: {manifest.path}")
     if summary["pending"]:
         console.print("[yellow]some recordings are not complete: run the same command again to resume[/]")
+    _exit_if_stopped(summary)
+
+
+def _exit_if_stopped(summary: dict[str, Any]) -> None:
+    """A campaign stopped by Ctrl-C or SIGTERM exits 1 (its recordings finalized, the manifest resumable)."""
+    if summary["stopped"]:
+        err_console.print(f"[yellow]stopped[/]: {summary['pending']} recordings not complete; "
+                          "run the same command again to resume")
+        raise typer.Exit(1)
 
 
 def _virtual_campaign(plan: Any, manifest: Any, out: Path, rig_path: Path, indenters_path: Path, *, workers: int,

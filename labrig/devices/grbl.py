@@ -113,7 +113,9 @@ class Grbl:
     ``port``: an open serial-like object, or a port name/URL for ``serial.serial_for_url``
     (opened by :meth:`connect`, closed by :meth:`close`). ``poll_hz``: status polling rate (0: no
     automatic polling, responses then time out from sending). ``response_timeout_s``: see
-    :mod:`labrig.devices.grbl_waits`. ``output_on``/``output_off``: the lines :meth:`set_output` sends.
+    :mod:`labrig.devices.grbl_waits`; ``status_timeout_s``: how long :meth:`status` waits by default
+    (its ``?`` is resent every 0.5 s meanwhile); a twin on a loaded host needs more of both.
+    ``output_on``/``output_off``: the lines :meth:`set_output` sends.
     """
 
     def __init__(
@@ -125,6 +127,7 @@ class Grbl:
         time_base_ns: int = 0,
         poll_hz: float = 10.0,
         response_timeout_s: float = 2.0,
+        status_timeout_s: float = 1.0,
         on_sample: Callable[[StatusSample], None] | None = None,
         on_gcode: Callable[[int, int, bytes], None] | None = None,
         on_output: Callable[[OutputEdge], None] | None = None,
@@ -146,6 +149,7 @@ class Grbl:
         )  # fmt: skip
         self._pose = self._io.pose
         self._waits = GrblWaits(self._io, response_timeout_s)
+        self.status_timeout_s = float(status_timeout_s)
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -296,13 +300,13 @@ class Grbl:
         """
         return self._waits.stream(lines, mode=mode, progress=progress, timeout_s=timeout_s)
 
-    def status(self, timeout_s: float = 1.0) -> StatusSample:
+    def status(self, timeout_s: float | None = None) -> StatusSample:
         """A fresh status report (its ``?`` sent after this call began).
 
         Raises :class:`GrblAlarm` at once while a critical alarm locks the controller (it ignores
         ``?`` until :meth:`soft_reset`), :class:`GrblTimeout` when no report comes in ``timeout_s``.
         """
-        return self._waits.status(timeout_s)
+        return self._waits.status(self.status_timeout_s if timeout_s is None else timeout_s)
 
     def wait_idle(self, timeout_s: float = 60.0) -> StatusSample:
         """Wait until every line is answered and GRBL reports Idle (polling status).

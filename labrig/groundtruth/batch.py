@@ -15,6 +15,7 @@ from labrig.dataset import DatasetRecording
 from labrig.errors import LabrigError
 from labrig.groundtruth.inputs import GroundTruthError
 from labrig.groundtruth.sidecar import FORMAT, load_groundtruth
+from labrig.indenters import DEFAULT_INDENTERS
 from labrig.recording import Recording
 
 
@@ -103,6 +104,7 @@ class SidecarTask:
     scale_mm: float
     calibration_dir: str | None
     rig_path: str | None
+    indenters_path: str | None = None  # for recordings that do not carry their indenter's definition
 
 
 def write_sidecar_task(task: SidecarTask) -> dict[str, Any]:
@@ -114,7 +116,8 @@ def write_sidecar_task(task: SidecarTask) -> dict[str, Any]:
     entry: dict[str, Any] = {"recording": task.recording, "split": task.split}
     try:
         gt = generate(task.recording, elastic=task.elastic, method=task.method, rate_hz=task.rate_hz,
-                      scale_mm=task.scale_mm, calibration_dir=task.calibration_dir, rig_path=task.rig_path)
+                      scale_mm=task.scale_mm, calibration_dir=task.calibration_dir, rig_path=task.rig_path,
+                      indenters_path=task.indenters_path or DEFAULT_INDENTERS)
         side = write_sidecar(gt, task.sidecar)
     except LabrigError as exc:
         entry.update(status="failed", reason=str(exc))

@@ -42,7 +42,7 @@ from labrig.cache import sha256_of
 from labrig.groundtruth.contact import ContactModel, choose_model
 from labrig.groundtruth.inputs import GroundTruthError, LabInputs, lab_inputs, recording_rig
 from labrig.groundtruth.turned import turned_model
-from labrig.indenters import DEFAULT_INDENTERS, Indenter, load_indenters
+from labrig.indenters import DEFAULT_INDENTERS, Indenter, IndenterError, indenter_from_toml, load_indenters
 from labrig.physics.grid import GRID_SHAPE, network_grid_gel_mm, network_grid_pixels
 from labrig.recording import Phase, Recording
 
@@ -194,6 +194,21 @@ class GroundTruth:
         return np.clip(self.depth_mm / np.float32(self.scale_mm), 0.0, 1.0)
 
 
+def recording_indenter(path: Path, name: str, definition: str, indenters_path: str | Path = DEFAULT_INDENTERS) -> Indenter:
+    """The indenter a recording was made with: its own stored definition, else (recordings made
+    before they carried one) ``name`` in the indenters file."""
+    if definition:
+        try:
+            return indenter_from_toml(definition, str(path))
+        except IndenterError as exc:
+            raise GroundTruthError(str(exc)) from None
+    indenters = load_indenters(indenters_path)
+    if name not in indenters:
+        raise GroundTruthError(f"{path}: indenter {name!r} is not in {indenters_path} and the recording carries no "
+                               "definition of it; give the lab's indenters file with --indenters")
+    return indenters[name]
+
+
 def generate(
     recording: str | Path,
     *,
@@ -218,10 +233,7 @@ def generate(
         name = str(attrs.get("indenter", ""))
         if not name:
             raise GroundTruthError(f"{path} does not name its indenter (root attribute 'indenter')")
-        indenters = load_indenters(indenters_path)
-        if name not in indenters:
-            raise GroundTruthError(f"{path}: indenter {name!r} is not in {indenters_path}")
-        indenter = indenters[name]
+        indenter = recording_indenter(path, name, str(attrs.get("indenter_definition", "")), indenters_path)
         if lab is None:
             rig, rig_source = recording_rig(str(attrs.get("rig", "")), rig_path, str(path))
             lab = lab_inputs(rig, calibration_dir)

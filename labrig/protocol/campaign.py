@@ -14,11 +14,16 @@ parallel, each in its own processes; hardware campaigns are sequential.
 
 from __future__ import annotations
 
+import functools
 import multiprocessing as mp
+import os
 import queue
+import signal
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing.managers import SyncManager
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +32,14 @@ from labrig.config import load_rig
 from labrig.dataset import COMPLETE, Dataset, read_manifest, write_manifest
 from labrig.errors import LabrigError
 from labrig.indenters import load_indenters
+from labrig.protocol.realtime import record_in_real_time
+from labrig.protocol.rig_ready import ready_or_restarted
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import Campaign, RecordingPlan
 from labrig.recording.layout import partial_path
+from labrig.sim.parent_watch import exit_with_parent
 
 
 @dataclass(frozen=True)
@@ -44,6 +52,8 @@ class Outcome:
     file: str
     sha256: str
     duration_s: float
+    #: What fell behind real time, by how much ("" when the run kept up; see protocol.realtime).
+    fell_behind: str = ""
 
 
 class Manifest:
@@ -57,7 +67,8 @@ class Manifest:
             row = _plan_row(plan)
             before = old.get(plan.id)
             if before is not None and all(before.get(k) == row[k] for k in ("indenter", "x_mm", "y_mm", "split")):
-                row.update({k: before.get(k) or "" for k in ("status", "reason", "file", "sha256", "duration_s", "made_by")})
+                row.update({k: before.get(k) or "" for k in ("status", "reason", "file", "sha256", "duration_s", "made_by",
+                                                              "fell_behind")})
             self.rows[plan.id] = row
 
     def done(self, plan: RecordingPlan, out_dir: Path) -> bool:
@@ -71,7 +82,8 @@ class Manifest:
     def record(self, outcome: Outcome, made_by: str = "drivers") -> None:
         """Store an outcome; ``made_by``: the path that made the recording (``drivers`` or ``virtual-time``)."""
         self.rows[outcome.plan_id].update(status=outcome.status, reason=outcome.reason, file=outcome.file,
-                                          sha256=outcome.sha256, duration_s=f"{outcome.duration_s:.3f}", made_by=made_by)
+                                          sha256=outcome.sha256, duration_s=f"{outcome.duration_s:.3f}", made_by=made_by,
+                                          fell_behind=outcome.fell_behind)
         self.save()
 
     def save(self) -> None:
@@ -87,6 +99,7 @@ def _plan_row(plan: RecordingPlan) -> dict[str, str]:
         "shear_direction_deg": f"{s.shear_direction_deg:g}", "shear_mm": f"{s.shear_mm:g}",
         "shear_speed_mm_s": f"{s.shear_speed_mm_s:g}", "wait_s": f"{s.wait_s:g}", "repetition": str(plan.repetition),
         "split": plan.split, "status": "pending", "reason": "", "file": "", "sha256": "", "duration_s": "", "made_by": "",
+        "fell_behind": "",
     }
 
 
@@ -136,7 +149,8 @@ def run_job(job: CampaignJob, report: Callable[[Outcome], None], stop: StopReque
         for plan in job.plans:
             if stop is not None and stop.level >= 1:
                 return
-            report(_record_one(runner, plan, out_dir, job.protocol_toml))
+            record = functools.partial(_record_one, runner, plan, out_dir, job.protocol_toml)
+            report(record_in_real_time(record, functools.partial(ready_or_restarted, session), stop))
 
 
 def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protocol_toml: str) -> Outcome:
@@ -152,22 +166,60 @@ def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protoco
         result: RunResult = runner.run(plan.spec, path, protocol_toml=protocol_toml, extra=extra, overwrite=True)
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
-    return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
+    return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s,
+                   result.shortfall.describe())
 
 
-def _worker(job: CampaignJob, outcomes: Any) -> None:
-    run_job(job, outcomes.put)
-
-
-def run_parallel(jobs: list[CampaignJob], workers: int) -> Iterator[Outcome]:
-    """Run jobs on ``workers`` processes (virtual rigs only); yields outcomes as they come."""
-    ctx = mp.get_context("spawn")
-    manager = ctx.Manager()
-    outcomes = manager.Queue()
+def _worker(job: CampaignJob, outcomes: Any, stop_level: Any) -> None:
+    done = threading.Event()
     try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            futures: list[Future[None]] = [pool.submit(_worker, job, outcomes) for job in jobs]
+        run_job(job, outcomes.put, _follow(stop_level, done))
+    finally:
+        done.set()
+
+
+def _init_worker(parent_pid: int) -> None:
+    """A campaign worker dies with the campaign, and leaves Ctrl-C to it (the campaign stops it)."""
+    exit_with_parent(parent_pid, False)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _follow(shared_level: Any, done: threading.Event) -> StopRequest:
+    """A worker's stop request, raised to the campaign's level (a shared int) as it rises until
+    ``done``, and to 2 by a SIGTERM sent to the worker itself."""
+    stop = StopRequest()
+
+    def raise_to(level: int) -> None:
+        while stop.level < level:
+            stop.request()
+
+    def follow() -> None:
+        while stop.level < 2 and not done.wait(0.1):
+            raise_to(int(shared_level.value))
+
+    signal.signal(signal.SIGTERM, lambda signum, frame: raise_to(2))
+    threading.Thread(target=follow, name="labrig-campaign-stop", daemon=True).start()
+    return stop
+
+
+def run_parallel(jobs: list[CampaignJob], workers: int, stop: StopRequest | None = None) -> Iterator[Outcome]:
+    """Run jobs on ``workers`` processes (virtual rigs only); yields outcomes as they come. ``stop``
+    (the campaign's Ctrl-C / SIGTERM) reaches every worker: jobs not started are cancelled, running
+    ones end their recording as a stop would (finalized, aborted) and return."""
+    ctx = mp.get_context("spawn")
+    manager = SyncManager(ctx=ctx)
+    manager.start(exit_with_parent, (os.getpid(), False))  # none of our processes outlives a killed campaign
+    outcomes = manager.Queue()
+    shared_level = manager.Value("i", 0)
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(os.getpid(),)) as pool:
+            futures: list[Future[None]] = [pool.submit(_worker, job, outcomes, shared_level) for job in jobs]
             while True:
+                if stop is not None and stop.level > shared_level.value:
+                    shared_level.value = stop.level
+                    for future in futures:
+                        future.cancel()  # not started yet: stays pending in the manifest
                 try:
                     yield outcomes.get(timeout=0.2)
                     continue
@@ -181,7 +233,7 @@ def run_parallel(jobs: list[CampaignJob], workers: int) -> Iterator[Outcome]:
                 except queue.Empty:
                     break
             for f in futures:
-                error = f.exception()
+                error = None if f.cancelled() else f.exception()
                 if error is not None:
                     raise LabrigError(f"a campaign worker failed: {error}") from error
     finally:

@@ -26,6 +26,7 @@ from typing import Any
 from labrig.config import RigConfig
 from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
+from labrig.protocol.safety import depth_problem
 from labrig.protocol.spec import ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
 from labrig.protocol.split import PAPER_SPLIT, assign_splits, split_counts
 from labrig.protocol.variation import parse_variation
@@ -356,18 +357,10 @@ def check_spec(
         if indenter is None:
             out.append(("indenter", f"unknown indenter {spec.indenter!r}; known: {', '.join(indenters)}"))
     if indenter is not None:
-        if spec.depth_mm is not None and spec.depth_mm > indenter.max_depth_mm:
-            out.append((
-                "depth_mm",
-                f"{spec.depth_mm} mm is beyond the {indenter.name}'s max_depth_mm {indenter.max_depth_mm};"
-                f" use at most {indenter.max_depth_mm} mm",
-            ))
-        if spec.max_depth_mm is not None and spec.max_depth_mm > indenter.max_depth_mm:
-            out.append((
-                "max_depth_mm",
-                f"{spec.max_depth_mm} mm is beyond the {indenter.name}'s max_depth_mm {indenter.max_depth_mm};"
-                f" use at most {indenter.max_depth_mm} mm",
-            ))
+        for key, value in (("depth_mm", spec.depth_mm), ("max_depth_mm", spec.max_depth_mm)):
+            problem = None if value is None else depth_problem(value, indenter.name, indenter.max_depth_mm)
+            if problem is not None:
+                out.append((key, problem))
         if spec.force_n is not None and spec.force_n > indenter.max_normal_force_n:
             out.append((
                 "force_n",

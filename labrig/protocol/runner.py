@@ -34,19 +34,28 @@ from labrig.config import RigConfig
 from labrig.devices.grbl import Grbl, GrblAlarm, GrblError, GrblTimeout
 from labrig.errors import LabrigError
 from labrig.frames import Pose
-from labrig.indenters import Indenter
+from labrig.indenters import Indenter, indenter_toml
 from labrig.protocol.plan import ProbePlan
-from labrig.protocol.safety import SafetyError, StopRequest, check_location, check_targets
-from labrig.protocol.session import NS_PER_US, RigSession
+from labrig.protocol.realtime import CAMERA_BEHIND_LIMIT_S, Shortfall
+from labrig.protocol.safety import (
+    SafetyError,
+    StopRequest,
+    check_location,
+    check_targets,
+    deepest_press_mm,
+    depth_problem,
+)
+from labrig.protocol.session import NS_PER_US, TWIN_PATIENCE_S, RigSession
 from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
 from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
+from labrig.sim.faults import RigFault
 
 F64 = npt.NDArray[np.float64]
 
 #: Extra time allowed on top of a move's nominal duration, s.
 MOVE_MARGIN_S = 5.0
-CAMERA_SHORTFALL_US = 50_000  # a camera stream ending this much before the run's end is reported
+CAMERA_SHORTFALL_US = round(CAMERA_BEHIND_LIMIT_S * 1e6)  # a camera stream ending this much before the run's end is reported
 #: A force target is approached at the normal speed up to this fraction, then at FINE_SPEED_MM_S.
 APPROACH_FRACTION = 0.7
 FINE_SPEED_MM_S = 0.3
@@ -84,6 +93,8 @@ class RunResult:
     contact_mm: tuple[float, float, float] | None = None
     peak_force_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
     wall_s: float = 0.0
+    #: What fell behind real time, by how much (stored in the recording too).
+    shortfall: Shortfall = field(default_factory=Shortfall)
 
 
 class _Abort(Exception):
@@ -119,6 +130,9 @@ class ProbeRunner:
         self._plan: ProbePlan | None = None
         self._contact: F64 | None = None
         self._last_report = (0.0, 0)
+        # A twin on a loaded host may stall for seconds; a real machine's moves keep their margin.
+        self._move_margin_s = MOVE_MARGIN_S + (TWIN_PATIENCE_S if session.virtual else 0.0)
+        self._rig_faults_from_us = 0  # host us: the virtual rig's faults from then on abort the run
 
     @classmethod
     def for_session(cls, session: RigSession, *, stop: StopRequest | None = None,
@@ -143,9 +157,10 @@ class ProbeRunner:
             raise SafetyError(f"the run needs the {spec.indenter} indenter but {self.indenter.name} is mounted")
         check_location(spec.location_mm, (self.rig.gel.size_x_mm, self.rig.gel.size_y_mm),
                        self.indenter.footprint_radius_mm, self.limits.gel_margin_mm)
-        if spec.depth_mm is not None and spec.depth_mm > self.indenter.max_depth_mm:
-            raise SafetyError(f"depth {spec.depth_mm} mm is beyond the {self.indenter.name} indenter's "
-                              f"max_depth_mm {self.indenter.max_depth_mm}")
+        for value in (spec.depth_mm, spec.max_depth_mm):
+            problem = None if value is None else depth_problem(value, self.indenter.name, self.indenter.max_depth_mm)
+            if problem is not None:
+                raise SafetyError(f"depth {problem}")
         if spec.force_n is not None and spec.force_n > self.limits.max_normal_force_n:
             raise SafetyError(f"force target {spec.force_n} N is over the normal force limit {self.limits.max_normal_force_n} N")
         plan = ProbePlan.build(spec, self.gel_in_machine, self.indenter, self.limits.clearance_mm)
@@ -161,6 +176,7 @@ class ProbeRunner:
         if out.exists() and not overwrite:
             raise SafetyError(f"{out} exists; choose another name or allow overwriting")
         t_start = time.perf_counter()
+        self._rig_faults_from_us = self.session.clock.now_ns() // NS_PER_US
         self._travel_to_start(plan)
         self.session.tare()
         writer = self._open_writer(out, spec, protocol_toml, extra)
@@ -181,8 +197,9 @@ class ProbeRunner:
                 result.reason = "; ".join(filter(None, [result.reason, (
                     f"the camera stream stops {behind_us / 1e6:.2f} s before the run's end (the camera fell "
                     "behind and stalled): the events after that are missing")]))
+            result.shortfall = Shortfall(behind_us / 1e6, self.session.ft_max_gap_us / 1e6)
             self._writer = None
-            recording = writer.close(result.exit_status, result.reason)
+            recording = writer.close(result.exit_status, result.reason, attrs=result.shortfall.attrs())
             result.path = recording.path
             result.phases = list(self._phases)
             result.peak_force_n = tuple(float(v) for v in self.session.monitor.peak_n)  # type: ignore[assignment]
@@ -240,7 +257,8 @@ class ProbeRunner:
             self._move(plan.bottom_mm(contact), spec.normal_speed_mm_s)
             return plan.bottom_mm(contact)
         assert spec.force_n is not None
-        max_depth = min(spec.max_depth_mm or self.indenter.max_depth_mm, self.indenter.max_depth_mm)
+        cap = deepest_press_mm(self.indenter.max_depth_mm)
+        max_depth = min(spec.max_depth_mm or cap, cap)
         deepest = plan.max_bottom_mm(contact, max_depth)
         # Fast to most of the force, then slowly: the jog's deceleration overshoots by
         # stiffness * v^2 / (2 a), about 1 N at 1.5 mm/s on this gel, 0.03 N at FINE_SPEED_MM_S.
@@ -265,7 +283,8 @@ class ProbeRunner:
         self._wait_motion(distance / speed_mm_s)
 
     def _wait_motion(self, nominal_s: float) -> None:
-        deadline = time.monotonic() + 1.5 * nominal_s + MOVE_MARGIN_S
+        allowed_s = 1.5 * nominal_s + self._move_margin_s
+        deadline = time.monotonic() + allowed_s
         while True:
             self._check_faults()
             try:
@@ -274,7 +293,7 @@ class ProbeRunner:
                 return
             except GrblTimeout:
                 if time.monotonic() > deadline:
-                    raise _Abort(f"the move did not finish within {1.5 * nominal_s + MOVE_MARGIN_S:.1f} s "
+                    raise _Abort(f"the move did not finish within {allowed_s:.1f} s "
                                  f"(GRBL {self.grbl.state})", hold=True) from None
             except GrblError as exc:
                 self._check_faults()
@@ -319,6 +338,15 @@ class ProbeRunner:
             raise _Abort(f"camera lost: {session.camera.error}", hold=True)
         if session.world is not None and session.world.error is not None:
             raise _Abort(f"virtual rig failed: {session.world.error!r}", hold=True)
+        fault = self._new_rig_fault()
+        if fault is not None:
+            self._rig_faults_from_us = fault.t_host_us + 1
+            raise _Abort(f"the virtual rig refused a request: {fault.message}", hold=True)
+
+    def _new_rig_fault(self) -> RigFault | None:
+        """The first request the virtual rig refused during this run (it stays up; see LiveWorld.faults)."""
+        faults: list[RigFault] = getattr(self.session.world, "faults", [])
+        return next((f for f in faults if f.t_host_us >= self._rig_faults_from_us), None)
 
     def _report(self) -> None:
         if self.progress is None or not self._phases:
@@ -383,7 +411,7 @@ class ProbeRunner:
         try:
             for target in (up, plan.clearance_mm, plan.approach_start_mm):
                 self.grbl.move_to(*target.tolist(), feed_mm_min=speed * 60, machine=True)
-                self.grbl.wait_idle(timeout_s=float(np.linalg.norm(target - here)) / speed * 1.5 + MOVE_MARGIN_S)
+                self.grbl.wait_idle(timeout_s=float(np.linalg.norm(target - here)) / speed * 1.5 + self._move_margin_s)
                 here = target
         except GrblError as exc:
             raise SafetyError(f"travelling to the approach start failed: {exc}") from exc
@@ -421,7 +449,7 @@ class ProbeRunner:
         if rise > 0:
             above = here - rise * plan.down
             grbl.move_to(*above.tolist(), feed_mm_min=min(speed, plan.spec.normal_speed_mm_s * 2) * 60, machine=True)
-            grbl.wait_idle(timeout_s=rise / speed * 3 + MOVE_MARGIN_S)
+            grbl.wait_idle(timeout_s=rise / speed * 3 + self._move_margin_s)
         grbl.move_to(*plan.retract_mm.tolist(), feed_mm_min=speed * 60, machine=True)
         grbl.wait_idle(timeout_s=30)
 
@@ -432,7 +460,7 @@ class ProbeRunner:
                 "location_mm": list(spec.location_mm),
                 "tare_n_nm": list(self.session.tare_n), "calibration": _calibration_files(self.rig), **(extra or {})}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
-                                     extra=info)
+                                     indenter_toml=indenter_toml(self.indenter), extra=info)
         streams = truth_streams(len(self.rig.markers.rest_positions_mm())) if self.session.virtual else ()
         if out.exists():
             out.unlink()

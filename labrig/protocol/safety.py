@@ -29,6 +29,29 @@ class SafetyError(LabrigError):
     """A plan or a run that would break a safety limit."""
 
 
+#: A press stops at least this far above an indenter's ``max_depth_mm`` (the gel model's depth), mm:
+#: the contact is detected a few micrometres into the gel and the gel's tilt adds depth along a
+#: shear, so a depth exactly at the limit ends beyond it.
+DEPTH_HEADROOM_MM = 0.05
+
+
+def deepest_press_mm(max_depth_mm: float) -> float:
+    """The deepest depth below contact (mm) a run may ask for with an indenter of this ``max_depth_mm``."""
+    return round(max_depth_mm - DEPTH_HEADROOM_MM, 6)
+
+
+def depth_problem(depth_mm: float, indenter_name: str, max_depth_mm: float) -> str | None:
+    """What is wrong with pressing ``depth_mm`` below contact (None: nothing): beyond the indenter's
+    ``max_depth_mm`` or within :data:`DEPTH_HEADROOM_MM` of it."""
+    deepest = deepest_press_mm(max_depth_mm)
+    if depth_mm <= deepest:
+        return None
+    if depth_mm > max_depth_mm:
+        return f"{depth_mm} mm is beyond the {indenter_name}'s max_depth_mm {max_depth_mm}; use at most {deepest:g} mm"
+    return (f"{depth_mm} mm leaves no headroom below the {indenter_name}'s max_depth_mm {max_depth_mm} (the gel model's "
+            f"depth; contact is detected a little into the gel); use at most {deepest:g} mm")
+
+
 @dataclass(frozen=True)
 class SafetyLimits:
     """Machine-coordinate workspace (mm), gel margin (mm) and force limits (N, tared, sensor axes)."""

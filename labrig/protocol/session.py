@@ -47,6 +47,10 @@ from labrig.sim.live import put_truth_rows
 from labrig.sim.world_process import WorldProcess, prepare_contact_tables
 
 NS_PER_US = 1000
+#: The virtual rig's GRBL twin shares a host that may be loaded: starved of CPU it answers lines and
+#: status queries seconds late, which a real controller never does. Its driver waits this long (s)
+#: before calling a line or a report lost (hardware keeps GRBL's own deadlines).
+TWIN_PATIENCE_S = 10.0
 
 
 class RigSession:
@@ -80,6 +84,9 @@ class RigSession:
         self._pump: threading.Thread | None = None
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
         self.camera_events = 0
+        #: The longest gap between F/T samples (sensor us) in the current recording: frames lost.
+        self.ft_max_gap_us = 0
+        self._last_ft_device_us: int | None = None
         self.last_camera_ns = 0  # host time the newest chunk arrived
         self.last_camera_device_us = -1  # camera time of its newest event
         self._listeners: tuple[Callable[[EventChunk], None], ...] = ()
@@ -105,10 +112,13 @@ class RigSession:
     # -- lifecycle --------------------------------------------------------------------------
 
     def open(self) -> RigSession:
+        """Open the devices (again, after :meth:`close`: a restarted rig)."""
+        self._stop.clear()
         try:
             paths = self._device_paths()
+            patience = {"response_timeout_s": TWIN_PATIENCE_S, "status_timeout_s": TWIN_PATIENCE_S} if self.virtual else {}
             self.grbl = Grbl(paths["grbl"], baudrate=self.devices.grbl_baud, clock=self.clock,
-                             on_sample=self._on_cnc, on_gcode=self._on_gcode,
+                             on_sample=self._on_cnc, on_gcode=self._on_gcode, **patience,
                              output_on=self.devices.output_on, output_off=self.devices.output_off)
             self.grbl.connect(reset="none" if self.virtual else "auto")
             self.ft = BotaSensor(paths["bota"], baudrate=self.devices.bota_baud, clock=self.clock,
@@ -191,6 +201,8 @@ class RigSession:
     def begin(self, writer: RecordingWriter) -> None:
         with self._lock:
             self._writer = writer
+            self.ft_max_gap_us = 0
+            self._last_ft_device_us = None
 
     def end(self, end_host_ns: int, stall_s: float = 5.0, limit_s: float = 120.0) -> int:
         """Let late data (camera events up to ``end_host_ns``, the rig's truth) arrive, then stop routing.
@@ -255,6 +267,10 @@ class RigSession:
         writer = self._writer
         if writer is not None:
             put_ft(writer, sample)
+            if self._last_ft_device_us is not None:  # the sensor's 32-bit us counter wraps
+                gap_us = (sample.t_device_us - self._last_ft_device_us) & 0xFFFFFFFF
+                self.ft_max_gap_us = max(self.ft_max_gap_us, gap_us)
+            self._last_ft_device_us = sample.t_device_us
 
     def _on_cnc(self, sample: StatusSample) -> None:
         writer = self._writer

@@ -28,7 +28,7 @@ from labrig.devices.bota import BotaSensor
 from labrig.devices.grbl import Grbl, GrblTimeout
 from labrig.errors import CalibrationError, LabrigError
 from labrig.frames import Pose
-from labrig.indenters import Indenter
+from labrig.indenters import Indenter, indenter_toml
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.runner import DETECT_SAMPLES, MOVE_MARGIN_S, ProbeRunner
 from labrig.protocol.session import RigSession
@@ -157,7 +157,7 @@ def _open_recording(session: RigSession, rig: RigConfig, indenter: Indenter, spe
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.exists():
         path.unlink()
-    meta = RecordingMetadata(indenter=indenter.name, rig_toml=rig.text, extra={
+    meta = RecordingMetadata(indenter=indenter.name, rig_toml=rig.text, indenter_toml=indenter_toml(indenter), extra={
         "purpose": "calibration touch-off", "virtual_rig": bool(session.virtual), "seed": int(session.seed),
         "location_mm": json.dumps(list(spec.location_mm)), "depths_mm": json.dumps([float(d) for d in depths_mm])})
     writer = RecordingWriter(path, meta, clock=session.clock).open()

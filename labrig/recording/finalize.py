@@ -114,9 +114,12 @@ def finalize_file(
     reason: str,
     online_models: dict[str, ClockModel] | None = None,
     rows: dict[str, int] | None = None,
+    attrs: dict[str, str | int | float | bool] | None = None,
 ) -> dict[str, ClockModel]:
-    """Store the final clock models and exit status in a closed recording file."""
+    """Store the final clock models, exit status and ``attrs`` (root attributes) in a closed recording file."""
     with h5py.File(path, "r+") as f:
+        for key, value in (attrs or {}).items():
+            f.attrs[key] = value
         models = fit_clock_models(f, rows)
         for device, model in models.items():
             group = f["clock"].require_group(device)

@@ -80,6 +80,8 @@ class RecordingMetadata:
     protocol_toml: str = ""
     rig_toml: str = ""
     gel_toml: str = ""
+    #: The mounted indenter's own definition (:func:`labrig.indenters.indenter_toml`, height maps inline).
+    indenter_toml: str = ""
     calibration: dict[str, str] = field(default_factory=dict)
     extra: dict[str, str | int | float | bool] = field(default_factory=dict)
 
@@ -256,8 +258,10 @@ class RecordingWriter:
             reason = "interrupted by the user" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
             self.result = self.close(schema.EXIT_ABORTED, reason, raise_on_fault=False)
 
-    def close(self, exit_status: str = schema.EXIT_COMPLETE, reason: str = "", *, raise_on_fault: bool = True) -> RecordingResult:
-        """Stop the writer thread, write what is queued, finalize and rename.
+    def close(self, exit_status: str = schema.EXIT_COMPLETE, reason: str = "", *, raise_on_fault: bool = True,
+              attrs: dict[str, str | int | float | bool] | None = None) -> RecordingResult:
+        """Stop the writer thread, write what is queued, finalize (``attrs``: root attributes known only
+        at the end, e.g. how far a stream fell behind) and rename.
 
         On a fault (disk full, write failure) the data already flushed stays in
         ``NAME.partial`` and :class:`RecordingFault` says how to recover it.
@@ -281,7 +285,7 @@ class RecordingWriter:
             return result
         if self._fault_reason:  # stopped cleanly by the disk-space guard
             exit_status, reason = schema.EXIT_ABORTED, self._fault_reason
-        finalize_file(self.partial, exit_status, reason, online_models=self.online_models())
+        finalize_file(self.partial, exit_status, reason, online_models=self.online_models(), attrs=attrs)
         os.replace(self.partial, self.path)
         _fsync_dir(self.path.parent)
         return RecordingResult(self.path, exit_status, reason, rows, dropped)
@@ -543,6 +547,7 @@ class RecordingWriter:
             "time_base": "t_host_us: host microseconds since t0_host_ns",
             "t0_host_ns": np.int64(self.t0_host_ns),
             "indenter": md.indenter,
+            "indenter_definition": md.indenter_toml,
             "protocol": md.protocol_toml,
             "rig": md.rig_toml,
             "gel": md.gel_toml,

@@ -20,6 +20,11 @@ tangential shift, fed through a Masing :class:`ShearHistory` along one shear
 axis. In gross slip the anchor is dragged so the shift never exceeds the
 table's slip shift. Lifting off clears the anchor and the history (the
 residual traction after Shear and Shear Opposite stays until then).
+
+Beyond the gel model (deeper than the table's ``max_depth_mm``) the state is held at the
+table's deepest depth and the excursion is counted in :attr:`ContactKinematics.faults`: the
+twins keep answering (a request must never kill the rig), the owner reports the fault and the
+run that pressed too deep aborts and retracts.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from labrig.frames import Pose
 from labrig.physics.mechanics import ContactTable, ShearHistory
 from labrig.physics.mechanics.history import Term
 from labrig.physics.mechanics.tables import table_direction_deg
+from labrig.sim.faults import RigFault
 
 F64 = npt.NDArray[np.float64]
 ToolPath = Callable[[npt.ArrayLike], F64]
@@ -83,6 +89,9 @@ class ContactKinematics:
         self._history = ShearHistory()
         self._anchor: F64 | None = None
         self._shear_axis: F64 | None = None
+        #: One per excursion beyond the gel model's depth (appended when it starts; world us).
+        self.faults: list[RigFault] = []
+        self._beyond = False
 
     def step(self, t_us: int, tool_machine_mm: npt.ArrayLike) -> ContactState:
         tip = self.machine_to_gel.apply(np.asarray(tool_machine_mm, dtype=np.float64).reshape(3) + self.tool_offset_mm)
@@ -93,11 +102,16 @@ class ContactKinematics:
             self._active = self.table
             self._history.reset()
             return ContactState(int(t_us), tip, 0.0, None, (), 0.0, np.zeros(3), np.array([tip[0], tip[1], 0.0]))
-        if depth > self.table.depths_mm[-1]:
-            raise ValueError(
-                f"the indenter is {depth:.2f} mm deep, beyond the gel model's "
-                f"{self.table.depths_mm[-1]:.2f} mm (its max_depth_mm)"
-            )
+        deepest = float(self.table.depths_mm[-1])
+        if depth > deepest:
+            if not self._beyond:
+                self.faults.append(RigFault(int(t_us), (
+                    f"the indenter went {depth:.3f} mm deep, beyond the gel model's {deepest:.2f} mm "
+                    "(the indenter's max_depth_mm): its forces and fields are held at that depth")))
+            self._beyond = True
+            depth = deepest
+        else:
+            self._beyond = False
         if self._anchor is None:
             self._anchor = tip[:2].copy()
         shift = self._shear_shift(tip[:2] - self._anchor)

@@ -28,7 +28,7 @@ import numpy.typing as npt
 
 from labrig.clock import ClockModel, HostClock, MonotonicClock
 from labrig.config import RigConfig
-from labrig.indenters import Indenter
+from labrig.indenters import Indenter, indenter_toml
 from labrig.physics.grid import network_grid_gel_mm
 from labrig.recording import RecordingMetadata, RecordingResult, RecordingWriter
 from labrig.recording.finalize import store_clock_model
@@ -86,6 +86,7 @@ def record_live(
         indenter=indenter.name,
         protocol_toml="# scripted probing path on the virtual rig\n",
         rig_toml=rig.text,
+        indenter_toml=indenter_toml(indenter),
         extra={"virtual_rig": True, "seed": seed},
     )
     duration_us = int(tool_path.duration_us)

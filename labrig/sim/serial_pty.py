@@ -27,11 +27,14 @@ import subprocess
 import sys
 import threading
 import tty
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Protocol
 
 from labrig.clock import HostClock, MonotonicClock
 from labrig.sim import pty_relay
+from labrig.sim.faults import RigFault
 
 
 class SerialTwin(Protocol):
@@ -184,6 +187,9 @@ class TwinServer:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="labrig-twins", daemon=True)
         self.error: BaseException | None = None
+        #: What a twin raised on a request (the thread goes on serving; the owner reports them).
+        self.faults: list[RigFault] = []
+        self._failing: dict[str, str] = {}
         #: Twins whose port was pulled by :meth:`unplug`.
         self.unplugged: set[str] = set()
         self._unplug_lock = threading.Lock()
@@ -240,6 +246,20 @@ class TwinServer:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def _serve(self, label: str, request: Callable[[], bytes | None]) -> bytes | None:
+        """One twin request; what it raises is kept in :attr:`faults` (once per kind of error in a
+        row) and the thread goes on serving the twins: a bad request must not take the rig down."""
+        try:
+            reply = request()
+        except Exception as exc:
+            kind = f"{label}: {type(exc).__name__}"
+            if self._failing.get(label) != kind:
+                self.faults.append(RigFault(self.now_us(), f"{kind}: {exc}"))
+            self._failing[label] = kind
+            return None
+        self._failing.pop(label, None)
+        return reply
+
     def _run(self) -> None:
         masters = {port.fileno(): name for name, port in self.ports.items()}
         relayed = [name for name, port in self.ports.items() if isinstance(port, RelayedPort)]
@@ -259,11 +279,11 @@ class TwinServer:
                 # before the twins run on to ``now``, so that each acts on its bytes at their stamps.
                 for name in {*(masters[fd] for fd in readable), *relayed}:
                     for stamp_us, data in self.ports[name].receive(now):
-                        self.twins[name].receive(data, stamp_us)
+                        self._serve(f"{name} receive", partial(self.twins[name].receive, data, stamp_us))
                 for name, twin in self.twins.items():
                     if name in self.unplugged:
                         continue
-                    out = twin.transmit(now)
+                    out = self._serve(f"{name} transmit", partial(twin.transmit, now))
                     if out:
                         self.ports[name].write(out)
                 self.served_until_us = now

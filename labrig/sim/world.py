@@ -40,6 +40,7 @@ from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.contact_track import ContactTrack
 from labrig.sim.delivery import BurstSchedule
 from labrig.sim.evk4_twin import Evk4Twin
+from labrig.sim.faults import RigFault
 from labrig.sim.grbl_twin import GrblTwin
 from labrig.sim.motion import true_gel_in_machine
 from labrig.sim.rig import RigOutput, VirtualRig
@@ -169,6 +170,14 @@ class LiveWorld:
         """Host time (us, the clock's) of world time 0."""
         assert self._origin_us is not None, "the world has not started"
         return self._origin_us
+
+    @property
+    def faults(self) -> list[RigFault]:
+        """Requests the rig refused while it kept running (a twin's error, a press beyond the gel
+        model), by host time; a run that sees one from its own time aborts with it."""
+        origin = self._origin_us or 0
+        beyond = [RigFault(f.t_host_us + origin, f.message) for f in self.track.kinematics.faults]
+        return sorted([*self.server.faults, *beyond], key=lambda f: f.t_host_us)
 
     def now_world_us(self) -> int:
         assert self._origin_us is not None, "the world has not started"

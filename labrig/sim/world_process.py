@@ -13,7 +13,10 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import os
 import queue
+import signal
+import threading
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -23,7 +26,9 @@ from labrig.errors import LabrigError
 from labrig.indenters import Indenter
 from labrig.physics.mechanics import ContactTable
 from labrig.physics.mechanics.tables import table_direction_deg
+from labrig.sim.faults import RigFault
 from labrig.sim.live import TruthRows
+from labrig.sim.parent_watch import exit_with_parent, started_from_main_thread
 
 #: Truth chunks waiting in the pipe at most (about 10 s of rendering); more are dropped and counted.
 TRUTH_QUEUE_CHUNKS = 1000
@@ -44,7 +49,7 @@ class WorldProcess:
 
     def __init__(self, rig_path: str | Path, indenter: str, *, indenters_path: str | Path | None = None, seed: int = 0,
                  camera_socket: str | Path, truth: bool = True, homed: bool = True) -> None:
-        self.args = {"rig_path": str(rig_path), "indenter": indenter,
+        self.args: dict[str, Any] = {"rig_path": str(rig_path), "indenter": indenter,
                      "indenters_path": None if indenters_path is None else str(indenters_path),
                      "seed": seed, "camera_socket": str(camera_socket), "truth": truth, "homed": homed}
         ctx = mp.get_context("spawn")
@@ -59,8 +64,11 @@ class WorldProcess:
         self.origin_us = 0
         self.stats: dict[str, Any] = {}
         self.error: str | None = None
+        self._faults: list[RigFault] = []
+        self._conn_lock = threading.Lock()
 
     def start(self, timeout_s: float = 60.0) -> WorldProcess:
+        self.args.update(parent_pid=os.getpid(), death_signal=started_from_main_thread())
         self._process.start()
         if not self._conn.poll(timeout_s):
             self.stop()
@@ -85,10 +93,16 @@ class WorldProcess:
             self._poll_messages()
             return None
 
+    @property
+    def faults(self) -> list[RigFault]:
+        """Requests the rig refused while it kept running (see :attr:`LiveWorld.faults`)."""
+        self._poll_messages()
+        return list(self._faults)
+
     def stop(self, timeout_s: float = 10.0) -> None:
         self._stop.set()
         deadline_s = timeout_s
-        with contextlib.suppress(EOFError, OSError):
+        with contextlib.suppress(EOFError, OSError), self._conn_lock:
             while self._conn.poll(deadline_s):
                 kind, payload = self._conn.recv()
                 if kind == "stats":
@@ -96,6 +110,8 @@ class WorldProcess:
                     break
                 if kind == "error":
                     self.error = payload
+                elif kind == "fault":
+                    self._faults.append(payload)
         # Drain the queue so the child's feeder thread can exit.
         with contextlib.suppress(Exception):
             while True:
@@ -112,19 +128,23 @@ class WorldProcess:
         self.stop()
 
     def _poll_messages(self) -> None:
-        with contextlib.suppress(EOFError, OSError):
+        with contextlib.suppress(EOFError, OSError), self._conn_lock:
             while self._conn.poll(0):
                 kind, payload = self._conn.recv()
                 if kind == "error":
                     self.error = payload
                 elif kind == "stats":
                     self.stats = payload
+                elif kind == "fault":
+                    self._faults.append(payload)
         if self.error is None and not self._process.is_alive() and not self._stop.is_set():
             self.error = f"the virtual rig process exited (code {self._process.exitcode})"
 
 
 def _serve(args: dict[str, Any], conn: Any, truth_queue: Any, progress: Any, stop: Any) -> None:
-    """Child process: build the world, report, forward truth until stopped."""
+    """Child process: build the world, report, forward truth until stopped (or the parent is gone)."""
+    exit_with_parent(args["parent_pid"], death_signal=args["death_signal"])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the parent's to handle: it stops us
     try:
         from labrig.config import load_rig
         from labrig.indenters import DEFAULT_INDENTERS, load_indenters
@@ -149,11 +169,16 @@ def _serve(args: dict[str, Any], conn: Any, truth_queue: Any, progress: Any, sto
         state["grid"] = network_grid_gel_mm(rig, world.rig.camera)
         with world:
             conn.send(("ready", {"paths": world.paths, "origin_us": world.origin_us}))
+            sent: set[RigFault] = set()
             while not stop.wait(0.1):
                 error = world.error or world.server.error
                 if error is not None:
                     conn.send(("error", repr(error)))
                     break
+                for fault in world.faults:
+                    if fault not in sent:
+                        sent.add(fault)
+                        conn.send(("fault", fault))
         conn.send(("stats", {**world.stats.as_dict(), "truth_chunks_dropped": state["dropped"]}))
     except BaseException as exc:  # reported to the parent, which raises a clear error
         with contextlib.suppress(Exception):

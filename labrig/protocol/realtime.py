@@ -1,0 +1,86 @@
+"""Did a through-driver run keep real time? What fell behind, by how much.
+
+A run through the drivers lives in real time: a camera (the virtual rig's renderer) that
+cannot keep up stops short of the run's end, a device twin starved of CPU loses F/T frames.
+Either leaves a recording short of data. :class:`Shortfall` measures both for one run; the
+recording stores it (root attributes ``camera_behind_s``, ``ft_max_gap_s``, ``fell_behind``),
+the campaign's manifest too (``fell_behind``), and a campaign retries such a run a bounded
+number of times instead of keeping it silently short.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Protocol, TypeVar
+
+from labrig.dataset import COMPLETE
+from labrig.protocol.safety import StopRequest
+
+#: A camera stream ending this much before the run's end is short, s.
+CAMERA_BEHIND_LIMIT_S = 0.05
+#: F/T samples missing for this long (the sensor's 800 Hz: 80 frames) make the run short, s.
+FT_GAP_LIMIT_S = 0.1
+#: A run that fell behind is recorded again at most this many times.
+REALTIME_RETRIES = 2
+#: The manifest status of a run that fell behind in every try: kept, marked, redone by a rerun.
+SHORT = "short"
+
+
+@dataclass(frozen=True)
+class Shortfall:
+    """How far a run's streams fell behind real time, s (0: kept up)."""
+
+    camera_behind_s: float = 0.0
+    ft_max_gap_s: float = 0.0
+
+    @property
+    def fell_behind(self) -> bool:
+        return self.camera_behind_s > CAMERA_BEHIND_LIMIT_S or self.ft_max_gap_s > FT_GAP_LIMIT_S
+
+    def describe(self) -> str:
+        """One line for the manifest and the recording ("" when the run kept up)."""
+        parts = []
+        if self.camera_behind_s > CAMERA_BEHIND_LIMIT_S:
+            parts.append(f"camera stream ends {self.camera_behind_s:.2f} s early")
+        if self.ft_max_gap_s > FT_GAP_LIMIT_S:
+            parts.append(f"F/T frames missing for {self.ft_max_gap_s:.2f} s")
+        return "; ".join(parts)
+
+    def attrs(self) -> dict[str, str | float]:
+        """The recording's root attributes."""
+        return {"camera_behind_s": round(self.camera_behind_s, 6), "ft_max_gap_s": round(self.ft_max_gap_s, 6),
+                "fell_behind": self.describe()}
+
+
+class Attempt(Protocol):
+    """What :func:`record_in_real_time` needs of a run's outcome (a frozen dataclass)."""
+
+    @property
+    def status(self) -> str: ...
+    @property
+    def reason(self) -> str: ...
+    @property
+    def fell_behind(self) -> str: ...
+
+
+OutcomeT = TypeVar("OutcomeT", bound=Attempt)
+
+
+def record_in_real_time(record: Callable[[], OutcomeT], before_each: Callable[[], object],
+                        stop: StopRequest | None = None, retries: int = REALTIME_RETRIES) -> OutcomeT:
+    """Record (``before_each`` readies the rig first) until a complete run kept real time, at most
+    ``1 + retries`` times; a run that fell behind every time comes back with status :data:`SHORT`
+    and says so in its reason. Aborted and failed runs, and a stop, end the tries."""
+    tries = 0
+    while True:
+        before_each()
+        outcome = record()
+        tries += 1
+        if outcome.status != COMPLETE or not outcome.fell_behind or tries > retries or (stop is not None and stop.level):
+            break
+    if outcome.status == COMPLETE and outcome.fell_behind:
+        reason = (f"fell behind real time in {tries} of {tries} tries ({outcome.fell_behind}): the recording is kept but "
+                  "short; rerun the campaign on a quieter machine to record it again")
+        return replace(outcome, status=SHORT, reason=reason)  # type: ignore[type-var]
+    return outcome
