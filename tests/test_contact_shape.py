@@ -215,24 +215,24 @@ def test_the_cli_reports_a_bad_axis_in_one_line(tmp_path: Path) -> None:
 
 
 def test_ground_truth_maps_of_a_recording_follow_the_indenters_yaw(rig: RigConfig, tmp_path: Path) -> None:
-    """`generate` turns the labels by the indenter's yaw minus the registered gel yaw."""
+    """`generate` turns the labels by the indenter's yaw (as the recording carries it) minus the registered gel yaw."""
     from labrig.groundtruth import generate
+    from labrig.indenters import load_indenters
     from labrig.sim.live import record_live
     from labrig.sim.motion import probing_path
 
-    square = load_indenter("square")
-    recording = tmp_path / "square.h5"
-    tool = probing_path(rig, square, location_mm=(1.0, -1.0), depth_mm=0.6, shear_mm=0.0, normal_speed_mm_s=3.0,
-                        wait_s=0.05)
-    record_live(recording, rig, square, tool, realtime=False)
     (tmp_path / "indenters.toml").write_text(
         '[square]\nkind = "square"\nside_mm = 5.0\nfillet_mm = 0.3\nyaw_deg = 30.6\ntool_offset_mm = [0.0, 0.0, -40.0]\n'
         "max_normal_force_n = 22.0\nmax_shear_force_n = 5.0\nmax_depth_mm = 1.5\n"
     )
     options = {"spacing_mm": 0.2, "size_mm": 12.0, "cache_dir": str(tmp_path)}
     turns = []
-    for indenters in (None, tmp_path / "indenters.toml"):
-        gt = generate(recording, table_options=options, **({} if indenters is None else {"indenters_path": indenters}))
+    for square in (load_indenter("square"), load_indenters(tmp_path / "indenters.toml")["square"]):
+        recording = tmp_path / f"square-{square.yaw_deg}.h5"
+        tool = probing_path(rig, square, location_mm=(1.0, -1.0), depth_mm=0.6, shear_mm=0.0, normal_speed_mm_s=3.0,
+                            wait_s=0.05)
+        record_live(recording, rig, square, tool, realtime=False)
+        gt = generate(recording, table_options=options)
         deepest = int(np.argmax(gt.indentation_mm))
         mask = gt.contact_mask[deepest].astype(bool)
         offset = gt.grid_gel_mm[..., :2] - gt.anchor_gel_mm[deepest]
