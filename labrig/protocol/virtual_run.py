@@ -48,7 +48,10 @@ class _Abort(Exception):
 
 
 class _LimitsOnly:
-    """What :meth:`ProbeRunner.check` reads of a session: its limits (the checks are the runner's own)."""
+    """What :meth:`ProbeRunner.check` reads of a session: its limits (the checks are the runner's own),
+    and that it is the virtual rig."""
+
+    virtual = True
 
     def __init__(self, limits: SafetyLimits) -> None:
         self.limits = limits
