@@ -133,3 +133,18 @@ def test_layer_labels_beat_the_half_space_out_of_contact(probe: Path) -> None:
     assert layer.mae_noncontact_mm < 0.03 < 0.05 < halfspace.mae_noncontact_mm  # docs/groundtruth.md
     assert halfspace.mae_noncontact_mm > 5 * layer.mae_noncontact_mm
     assert layer.mae_contact_mm < 0.15 and layer.mask_iou > 0.5
+
+
+def test_force_truth_leaves_missing_markers_out_and_counts_them() -> None:
+    """A missing marker's column of the sim's field is NaN: the net force sums the others, the MAE averages them."""
+    from labrig.evaluation.forces import _truth
+
+    field = np.array([[[1.0, 0.0, 2.0], [np.nan] * 3, [0.0, 1.0, 4.0]]] * 2)  # (T=2, M=3, 3)
+    columns = {"t_host_us": np.array([0, 1000]), "force_n": field}
+    rec = SimpleNamespace(streams={"truth/marker_forces"}, rows=lambda name: 2,
+                          column=lambda name, col: columns[col])
+    predicted = np.array([[[1.0, 0.0, 1.0], [50.0, 50.0, 50.0], [0.0, 1.0, 4.0]]])  # the missing marker's guess: ignored
+    net, mae, missing = _truth(rec, np.array([900]), predicted)  # type: ignore[arg-type]
+    assert missing == 1
+    np.testing.assert_allclose(net, [[1.0, 1.0, 6.0]])
+    np.testing.assert_allclose(mae, [[0.0, 0.0, 0.5]])

@@ -161,6 +161,20 @@ def test_truth_helpers() -> None:
     assert missing.has_truth is False and missing.error_p95_px is None and missing.lost_by_truth is None
 
 
+def test_truth_errors_leave_missing_markers_out_and_count_them() -> None:
+    """A marker never printed has NaN truth: it is neither an error nor a lost track, only counted."""
+    t = np.array([0.0, 1000.0])
+    truth = np.array([[[0.0, 0.0], [np.nan, np.nan], [50.0, 0.0]], [[2.0, 0.0], [np.nan, np.nan], [50.0, 0.0]]])
+    track = np.array([[[0.0, 0.0], [90.0, 90.0], [50.0, 3.0]]])  # the missing marker's estimate is far off: ignored
+    errors = truth_errors(track, np.array([1000.0]), (t, truth), LOST_PX)
+    assert errors.markers_missing == 1 and errors.lost_by_truth == 0
+    assert errors.error_max_px == pytest.approx(3.0) and errors.error_median_px == pytest.approx(2.5)
+    assert np.isnan(errors.error_max_per_marker_px[1]) and errors.error_max_per_marker_px[2] == pytest.approx(3.0)
+    assert np.isfinite(errors.truth_end_offset_max_px) and errors.truth_end_offset_max_px == pytest.approx(2.0)
+    with pytest.raises(LabrigError, match="no marker with a finite position"):
+        truth_errors(track, np.array([1000.0]), (t, np.full_like(truth, np.nan)), LOST_PX)
+
+
 def test_settings_are_checked(presses: list[str]) -> None:
     with pytest.raises(LabrigError, match="tracker must be one of"):
         track_recording(TrackingTask(presses[0], tracker="kalman"))

@@ -156,3 +156,34 @@ def test_a_moving_dot_is_tracked() -> None:
         errors.append(np.linalg.norm(positions[0] - true))
     assert max(errors) < 3.0 and errors[-1] < 1.0  # px, against 42 px of travel
     assert moved.all()
+
+
+def test_missing_markers_are_skipped_and_follow_their_neighbours() -> None:
+    rest = [[100.0, 100.0], [160.0, 100.0], [220.0, 100.0]]
+    params = EvetacParams(marker_diameter_px=D, pitch_px=PITCH, grid_rows=1, grid_cols=3, ba_window_us=None)
+    on_middle = events([(172.0, 100.0)] * 12)  # in the middle dot's band only
+    full = EvetacTracker(rest, params)
+    assert full.update(on_middle)[1].tolist() == [False, True, False]
+    holed = EvetacTracker(rest, params, observed=[True, False, True])
+    after, moved = holed.update(on_middle)
+    assert not moved.any()  # a missing dot's events pull nobody
+    np.testing.assert_array_equal(after, rest)
+    after, moved = holed.update(events([(112.0, 100.0)] * 12))  # the first dot moves right
+    assert moved.tolist() == [True, False, False]
+    shift = after[0, 0] - 100.0
+    assert shift > 0
+    assert after[1] == pytest.approx([160.0 + shift / 2, 100.0])  # the mean of its observed neighbours' moves
+    with pytest.raises(ValueError, match="observed mask"):
+        EvetacTracker(rest, params, observed=[True, False])
+
+
+def test_the_pitch_and_springs_come_from_the_observed_dots() -> None:
+    r, c = np.divmod(np.arange(12), 4)
+    rest = np.stack([c * PITCH, r * PITCH], 1).astype(float) + 100
+    params = EvetacParams(marker_diameter_px=D, grid_rows=3, grid_cols=4, ba_window_us=None)
+    observed = np.ones(12, bool)
+    observed[5] = False
+    holed = EvetacTracker(rest, params, observed=observed)
+    assert holed.geometry.neighbour_cutoff_px == pytest.approx(105 / 61.5 * PITCH)
+    # 11 dots (marker 5 left out); 8-neighbourhood counts of a 3x4 grid, less one for each neighbour of the hole
+    assert (holed._neigh >= 0).sum(1).tolist() == [2, 4, 4, 3, 4, 7, 5, 2, 4, 4, 3]

@@ -15,8 +15,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from labrig.evaluation.executor import run_tasks
-
 from labrig.config import load_rig
 from labrig.evaluation.stress import run_stress, stress_summary
 from labrig.evaluation.stress_axes import AXES
@@ -28,6 +26,7 @@ from labrig.evaluation.tracking import (
     table_tasks,
     track_recording,
 )
+from labrig.executor import run_tasks
 from labrig.indenters import load_indenter
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path

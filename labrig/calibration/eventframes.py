@@ -455,7 +455,9 @@ def fit_discs(
         jtj = np.einsum("mpi,mp,mpj->mij", jac, w, jac)
         jtr = np.einsum("mpi,mp,mp->mi", jac, w, r)
         diag = np.einsum("mii->mi", jtj)
-        step = np.linalg.solve(jtj + (damping[:, None] * diag)[:, :, None] * np.eye(len(cols)), -jtr[:, :, None])[..., 0]
+        # A flat patch (no disc, no noise) has a zero Jacobian: a floor on the diagonal keeps its step 0, not singular.
+        step = np.linalg.solve(jtj + (damping[:, None] * np.maximum(diag, 1e-12))[:, :, None] * np.eye(len(cols)),
+                               -jtr[:, :, None])[..., 0]
         trial = p.copy()
         trial[:, cols] += step
         trial[:, 4] = np.clip(trial[:, 4], 0.5 * radius_px, 2.0 * radius_px) if free_r else trial[:, 4]

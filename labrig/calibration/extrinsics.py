@@ -12,9 +12,10 @@
    are undistorted with the intrinsics (so the grid is a homography image of
    the plane); pitch and lattice directions come from the nearest-neighbour
    vectors of the rows x cols strongest candidates (angle folded four times,
-   so both axes agree); integer lattice coordinates are rounded in that basis
+   so both axes agree; the pitch is the median of every link near it, not of
+   the nearest neighbour alone, which placement errors bias short); integer lattice coordinates are rounded in that basis
    from the most central of them, then a RANSAC homography from lattice to
-   image re-assigns them three times. Candidates further than a quarter pitch
+   image re-assigns them three times. Candidates further than 0.35 pitch
    from their lattice site are spurious, a site keeps its strongest candidate,
    and the rows x cols window (either way round) with the largest total
    strength is the grid.
@@ -26,7 +27,9 @@
    nominal gel-to-camera rotation is kept (``nominal_rotvec_rad``, the rig
    file's ``[camera] nominal_rotvec_rad``; the reference sensor's camera sits
    below the gel looking up, image x along gel x, image y along gel y).
-6. Markers without a candidate are fitted where that pose projects them;
+6. Markers without a candidate are fitted where that pose projects them, or at
+   the nearest blob no marker took if one lies within 0.45 pitch (a marker
+   printed that far off its site);
    ``cv2.solvePnPRefineLM`` refines the pose, markers off by more than
    max(3 x median, 1 px) are left out of it and it is refined again; the
    per-marker reprojection errors are reported.
@@ -76,6 +79,11 @@ from labrig.recording import Recording
 Array = npt.NDArray[np.float64]
 
 NOMINAL_ROTVEC_RAD = (0.0, 0.0, 0.0)
+#: A candidate further than this (in pitches) from its nearest lattice site is not associated: a third of
+#: the pitch keeps the rounding unambiguous and takes markers printed up to about 0.15 pitch (std) off their sites.
+ASSOCIATION_TOLERANCE = 0.35
+#: An unassociated blob this near an empty lattice site (in pitches) is where the guided fit of that site starts.
+FREE_CANDIDATE_PITCHES = 0.45
 
 
 @dataclass
@@ -147,6 +155,10 @@ def associate_grid(
     lengths = dist[:, 1:].ravel()
     pitch = float(np.median(dist[:, 1]))
     ok = (lengths > 0.7 * pitch) & (lengths < 1.4 * pitch)
+    # The nearest of four noisy neighbours is biased short (14 % at a placement error of a tenth of the
+    # pitch), which misrounds the lattice a few pitches out; every link in the band is not.
+    pitch = float(np.median(lengths[ok]))
+    ok = (lengths > 0.7 * pitch) & (lengths < 1.4 * pitch)
     angles = np.arctan2(vectors[ok, 1], vectors[ok, 0])
     theta = float(np.angle(np.mean(np.exp(4j * angles)))) / 4
     basis = np.array([[np.cos(theta), np.sin(theta)], [-np.sin(theta), np.cos(theta)]]) * pitch  # rows: a, b
@@ -154,12 +166,12 @@ def associate_grid(
     lattice = np.rint(np.linalg.solve(basis.T, (und - seed).T).T)
     inlier = core.copy()
     for _ in range(3):
-        h, _ = cv2.findHomography(lattice[inlier], und[inlier], cv2.RANSAC, 0.2 * pitch)
+        h, _ = cv2.findHomography(lattice[inlier], und[inlier], cv2.RANSAC, 0.3 * pitch)
         if h is None:
             return labels, 0
         back = cv2.perspectiveTransform(und.reshape(-1, 1, 2), np.linalg.inv(h)).reshape(-1, 2)
         lattice = np.rint(back)
-        inlier = np.linalg.norm(back - lattice, axis=1) < 0.25
+        inlier = np.linalg.norm(back - lattice, axis=1) < ASSOCIATION_TOLERANCE
     # One point per lattice site: the strongest, or the nearest.
     residual = np.linalg.norm(back - lattice, axis=1)
     order = np.argsort(residual) if strength is None else np.argsort(-weight, kind="stable")
@@ -269,6 +281,8 @@ def measure_markers(
     missing = np.flatnonzero(~np.isfinite(measured[:, 0]))
     if missing.size:
         predicted = cv2.projectPoints(rest[missing], rvec, tvec, intrinsics.matrix, dist)[0].reshape(-1, 2)
+        predicted = _nearest_free_candidates(predicted, candidates.xy, index >= 0,
+                                             _pitch_px(rest, rvec, tvec, intrinsics, markers.cols))
         guided = fit_discs(frame, predicted, radius, fixed_radius=radius, edge_px=edge, max_shift=2.0)
         typical = float(np.median(fixed.contrast[fixed.ok])) if fixed.ok.any() else 0.0
         keep = guided.ok & (guided.contrast >= 0.5 * typical)
@@ -284,6 +298,32 @@ def measure_markers(
             break
         in_pose[have[off]] = False
     return measured, in_pose, rvec, tvec
+
+
+def _pitch_px(rest: Array, rvec: Array, tvec: Array, intrinsics: Intrinsics, cols: int) -> float:
+    """The lattice pitch in the image (px): the median distance between projected row neighbours."""
+    px = cv2.projectPoints(rest, rvec, tvec, intrinsics.matrix, np.asarray(intrinsics.distortion))[0].reshape(-1, cols, 2)
+    return float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=2)))
+
+
+def _nearest_free_candidates(sites_px: Array, candidates_px: Array, taken: npt.NDArray[np.bool_], pitch_px: float) -> Array:
+    """Each empty site's start for the guided fit: the nearest candidate no site took, if within
+    ``FREE_CANDIDATE_PITCHES`` of the pitch (a marker printed well off its site, too far for the
+    association's tolerance), else the site itself. A candidate serves one site at most."""
+    out = np.array(sites_px, np.float64)
+    free = np.flatnonzero(~taken)
+    if not free.size:
+        return out
+    d = np.linalg.norm(out[:, None, :] - candidates_px[free][None, :, :], axis=2)
+    sites_done, cands_done = set(), set()
+    for site, cand in zip(*np.unravel_index(np.argsort(d, axis=None), d.shape)):
+        if d[site, cand] > FREE_CANDIDATE_PITCHES * pitch_px:
+            break
+        if site not in sites_done and cand not in cands_done:
+            out[site] = candidates_px[free[cand]]
+            sites_done.add(site)
+            cands_done.add(cand)
+    return out
 
 
 def calibrate_extrinsics(

@@ -46,7 +46,7 @@ def evaluate_command(
     sweep_recordings: Annotated[int, typer.Option(help="Recordings the sweep uses (spread over the split; 0: all).")] = 4,
     stress: Annotated[bool, typer.Option("--stress", help="Also push each method along stress axes on the virtual rig "
                                          "until it breaks (force range, speed, slip, noise, contrast, window, clock, "
-                                         "dead pixels).")] = False,
+                                         "dead pixels, marker placement, missing markers, USB bursts).")] = False,
     stress_grid: Annotated[str, typer.Option(help="The stress axes' values: full, or reduced (3 per axis).")] = "full",
     as_json: JsonOption = False,
 ) -> None:

@@ -7,6 +7,12 @@ the F/T sensor's force over the depth window (tared, rotated into the gel frame 
 registration, as the force on the gel), the depth map's centre of mass with the true contact
 centre (where the indenter touched, from the CNC pose), and, on the virtual rig, each marker's force with
 the sim's ``/truth/marker_forces``.
+
+Missing markers (never printed) have NaN rows in the sim's field: the net truth sums the
+printed markers' cells (which tile the marker area, so it is still the whole force) and
+the per-marker error is the mean over the markers with truth; the missing ones are counted
+(``markers_missing``), as are the markers the pipeline did not observe (``markers_unobserved``,
+the calibration's missing markers, whose forces the inverse FEM condenses out).
 """
 
 from __future__ import annotations
@@ -66,6 +72,8 @@ class ForceResult:
     ft_axes: str  # where the F/T axes in the gel frame came from
     depth_source: str  # "truth" or the network's name
     youngs_modulus_mpa: float  # the gel modulus the inverse FEM used
+    markers_missing: int = 0  # markers without truth (NaN in the sim's field), left out of ``marker_mae_n``
+    markers_unobserved: int = 0  # markers the pipeline skipped (missing in the calibration)
 
 
 def evaluate_forces(task: ForceTask) -> ForceResult:
@@ -89,7 +97,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         depth_window_us = source.window_us or task.depth_window_ms * 1000.0
         rotation, ft_source = ft_axes_in_gel(rec, task.calibration_dir)
         measured = measured_force_on_gel_n(rec, t1 - depth_window_us, t1, rotation)
-        truth_n, marker_mae = _truth(rec, t1, np.array([r.forces_n for r in rows]))
+        truth_n, marker_mae, missing = _truth(rec, t1, np.array([r.forces_n for r in rows]))
         probing = _in_phases(rec, t1)
     predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
     contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
@@ -109,26 +117,30 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         contact_error_px=contact_px - true_px, marker_mae_n=marker_mae, probing=probing, stage_ms=stage_ms,
         total_ms=float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
         drift_px=np.linalg.norm(final - setup.rest_px, axis=1), ft_axes=ft_source, depth_source=source.name,
-        youngs_modulus_mpa=setup.youngs_modulus_mpa)
+        youngs_modulus_mpa=setup.youngs_modulus_mpa, markers_missing=missing,
+        markers_unobserved=int((~setup.observed).sum()))
 
 
-evaluate_forces.cache_version = "7"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction
+evaluate_forces.cache_version = "8"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]
-           ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """The sim's net force and per-marker MAE (W, 3) at the solves nearest ``t_us``; nan without truth."""
+           ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], int]:
+    """The sim's net force and per-marker MAE (W, 3) at the solves nearest ``t_us``, nan without truth, and the
+    count of markers without truth (missing: NaN columns), which both leave out."""
     nan = np.full((len(t_us), 3), np.nan)
     if "truth/marker_forces" not in rec.streams or rec.rows("truth/marker_forces") == 0:
-        return nan, nan.copy()
+        return nan, nan.copy(), 0
     t_truth = rec.column("truth/marker_forces", "t_host_us")
     index = np.clip(np.searchsorted(t_truth, t_us), 0, len(t_truth) - 1)
     before = np.clip(index - 1, 0, len(t_truth) - 1)
     index = np.where(np.abs(t_truth[before] - t_us) <= np.abs(t_truth[index] - t_us), before, index)
-    field = rec.column("truth/marker_forces", "force_n")[index].astype(np.float64)
-    if forces_n.size == 0:
-        return nan, nan.copy()
-    return field.sum(1), np.abs(forces_n - field).mean(1)
+    field = rec.column("truth/marker_forces", "force_n")[index].astype(np.float64)  # (W, M, 3)
+    present = np.isfinite(field).all(axis=(0, 2))
+    if forces_n.size == 0 or not present.any():
+        return nan, nan.copy(), int((~present).sum())
+    return (field[:, present].sum(1), np.abs(forces_n[:, present] - field[:, present]).mean(1),
+            int((~present).sum()))
 
 
 def _in_phases(rec: Recording, t_us: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:

@@ -12,7 +12,14 @@ the virtual rig with one knob pushed; the methods are measured on it against the
   tracking and the inverse FEM), the same with the paper's linear gel instead of the
   calibrated stiffening ("forces-linear") and, given a network, with it ("forces-model"): the mean
   norm of the error against the F/T sensor over the probing phases, as a percentage of the
-  mean measured force (N in the results too), :func:`labrig.evaluation.forces.evaluate_forces`.
+  mean measured force (N in the results too), :func:`labrig.evaluation.forces.evaluate_forces`;
+* depth (the imperfect sensor's axes, given a network): the network's mean error over the
+  contact cells ("depth-model", mm), :func:`labrig.evaluation.depth.evaluate_depth`.
+
+On a scene whose gel is printed imperfectly (placement errors, missing markers) the methods
+do not see the sim's markers: the scene is calibrated first, as a lab would
+(:func:`labrig.evaluation.stress_calibration.calibrate_printed_markers`), and every method
+runs on that calibration; the scene's facts score it (missing markers found, rest error).
 
 A method breaks where its error reaches twice the error at the least-stressed value
 (:func:`labrig.evaluation.charts.breakdown_point`) or, for trackers, where more tracks are
@@ -27,7 +34,7 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,9 +44,11 @@ from matplotlib.lines import Line2D
 from labrig.config import DEFAULT_RIG
 from labrig.dataset import sidecar_path
 from labrig.evaluation import charts
+from labrig.evaluation.depth import DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.stress_axes import AXES, StressAxis
+from labrig.evaluation.stress_calibration import calibrate_printed_markers
 from labrig.evaluation.stress_scene import SceneFacts, StressScene, record_scene, stressed_rig
 from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
@@ -47,6 +56,7 @@ from labrig.executor import Run
 #: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
 TRACKERS = {"paper": 3.0, "paper-published": 1.0, "circle-fit": 1.0, "evetac": 1.0}  # evetac: scale unused
 FORCES_TRUTH, FORCES_LINEAR, FORCES_MODEL = "forces-truth", "forces-linear", "forces-model"
+DEPTH_MODEL = "depth-model"
 FACTOR = 2.0
 
 
@@ -58,8 +68,9 @@ class StressTask:
     windows_ms: tuple[float, ...] = (10.0,)
     trackers: tuple[str, ...] = tuple(TRACKERS)
     forces: bool = True
-    model: str | None = None  # a depth network (.onnx) for "forces-model"
+    model: str | None = None  # a depth network (.onnx) for "forces-model" and "depth-model"
     calibration_dir: str | None = "calibration"
+    depth: bool = False  # measure the network's depth error too (with ``model``)
 
 
 @dataclass(frozen=True)
@@ -84,30 +95,51 @@ class ForceStress:
 
 
 @dataclass(frozen=True)
+class DepthStress:
+    """The network's depth error on a stressed scene at one window length (:func:`labrig.evaluation.depth.evaluate_depth`)."""
+
+    contact_mm: float  # mean over the windows in contact of the error over the contact cells
+    total_mm: float  # mean over every window of the error over all cells
+    windows: int
+
+
+@dataclass(frozen=True)
 class SceneMeasurement:
     """What :func:`measure_scene` found: the scene's facts and each method's errors, by window key
-    (:func:`window_key` of the window in ms) and then by tracker or force method."""
+    (:func:`window_key` of the window in ms) and then by tracker, force or depth method."""
 
     scene: SceneFacts
     tracking: dict[str, dict[str, TrackerStress]]
     forces: dict[str, dict[str, ForceStress]]
+    depth: dict[str, dict[str, DepthStress]] = field(default_factory=dict)
 
 
 def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
-    """Record the task's scene in a temporary folder and measure every window and method on it."""
+    """Record the task's scene in a temporary folder and measure every window and method on it
+    (on an imperfectly printed gel, after calibrating it: module docstring)."""
     task = task if isinstance(task, StressTask) else StressTask(**task)
     scene = StressScene(**task.scene)
     by_tracker: dict[str, dict[str, TrackerStress]] = {}
     by_method: dict[str, dict[str, ForceStress]] = {}
+    by_depth: dict[str, dict[str, DepthStress]] = {}
+    calibration_dir = task.calibration_dir
     with tempfile.TemporaryDirectory(prefix="labrig-stress-") as folder:
         recording = str(Path(folder) / "stress.h5")
         facts = record_scene(scene, recording)
+        rig = stressed_rig(scene)
+        if not rig.sim.markers.ideal:
+            calibrated = calibrate_printed_markers(rig, task.calibration_dir, Path(folder) / "calibration", seed=scene.seed)
+            calibration_dir = calibrated.directory
+            found = set(calibrated.missing_found)
+            facts = replace(facts, markers_missing_found=len(found & set(calibrated.missing_true)),
+                            markers_missing_false=len(found - set(calibrated.missing_true)),
+                            rest_error_rms_px=calibrated.rest_error_rms_px)
         for window_ms in task.windows_ms:
             window_us = round(window_ms * 1000)
             tracking = {}
             for tracker in task.trackers:
                 tracked = track_recording(TrackingTask(recording, tracker=tracker, patch_scale=TRACKERS[tracker],
-                                                       refine=True, window_us=window_us, calibration_dir=task.calibration_dir))
+                                                       refine=True, window_us=window_us, calibration_dir=calibration_dir))
                 tracking[tracker] = TrackerStress(tracked.error_p95_px, tracked.error_median_px, tracked.lost_by_truth,
                                                   tracked.lost_tracks)
             by_tracker[window_key(window_ms)] = tracking
@@ -116,14 +148,21 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
             forces = {}
             for depth, method, stiffening in depths:
                 pipeline = evaluate_forces(ForceTask(recording, depth, window_events=None, window_us=window_us,
-                                                     calibration_dir=task.calibration_dir, stiffening=stiffening,
+                                                     calibration_dir=calibration_dir, stiffening=stiffening,
                                                      sidecar=str(sidecar_path(recording))))
                 forces[method] = force_errors(pipeline)
             by_method[window_key(window_ms)] = forces
-    return SceneMeasurement(facts, by_tracker, by_method)
+            if task.depth and task.model:
+                errors = evaluate_depth(DepthTask(recording, task.model, window_events=None, window_us=window_us,
+                                                  sidecar=str(sidecar_path(recording))))
+                contact = errors.contact_mm[np.isfinite(errors.contact_mm)]
+                by_depth[window_key(window_ms)] = {DEPTH_MODEL: DepthStress(
+                    float(contact.mean()) if contact.size else float("nan"), float(np.mean(errors.total_mm)),
+                    len(errors.total_mm))}
+    return SceneMeasurement(facts, by_tracker, by_method, by_depth)
 
 
-measure_scene.cache_version = "8"  # type: ignore[attr-defined]
+measure_scene.cache_version = "9"  # type: ignore[attr-defined]
 
 
 def window_key(window_ms: float) -> str:
@@ -215,7 +254,8 @@ def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | Non
     for scene, windows, points in scenes:
         metrics = {metric for axis, _ in points for metric in axis.metrics}
         tasks.append(StressTask(asdict(scene), tuple(windows), trackers=tuple(TRACKERS) if "tracking" in metrics else (),
-                                forces="forces" in metrics, model=model, calibration_dir=calibration_dir))
+                                forces="forces" in metrics, model=model, calibration_dir=calibration_dir,
+                                depth="depth" in metrics and model is not None))
     results = run("stress", measure_scene, tasks)
     measured: dict[tuple[str, float], tuple[SceneMeasurement | None, str]] = {}
     for (_, _, points), result in zip(scenes, results):
@@ -242,6 +282,8 @@ def rig_file(calibration_dir: str | None) -> str:
 def _methods(metric: str, model: str | None) -> list[str]:
     if metric == "tracking":
         return list(TRACKERS)
+    if metric == "depth":
+        return [DEPTH_MODEL] if model else []
     return [FORCES_TRUTH, FORCES_LINEAR] + ([FORCES_MODEL] if model else [])
 
 
@@ -260,6 +302,9 @@ def _curve(axis: StressAxis, metric: str, method: str, values: list[float],
             tracker = result.tracking.get(window, {}).get(method) if result is not None else None
             error.append(float(tracker.error_p95_px) if tracker and tracker.error_p95_px is not None else float("nan"))
             lost.append(int(tracker.lost_by_truth) if tracker and tracker.lost_by_truth is not None else -1)
+        elif metric == "depth":
+            depth = result.depth.get(window, {}).get(method) if result is not None else None
+            error.append(depth.contact_mm if depth else float("nan"))
         else:
             forces = result.forces.get(window, {}).get(method) if result is not None else None
             error.append(forces.error_pct if forces else float("nan"))
@@ -287,7 +332,8 @@ def breakdown_of(curve: StressCurve, factor: float = FACTOR, log_x: bool = False
 # -- report and summary ----------------------------------------------------------------------------
 
 
-METRIC_LABELS = {"tracking": ("p95 tracking error", "px"), "forces": ("force error", "% of the force")}
+METRIC_LABELS = {"tracking": ("p95 tracking error", "px"), "forces": ("force error", "% of the force"),
+                 "depth": ("depth error in contact", "mm")}
 
 
 def add_stress_to_report(report: Report, result: StressResult) -> None:
@@ -304,6 +350,8 @@ def add_stress_to_report(report: Report, result: StressResult) -> None:
     for axis in result.axes:
         for metric in axis.metrics:
             curves = [c for c in result.curves if c.axis == axis.key and c.metric == metric]
+            if not curves:  # depth without a network
+                continue
             name, unit = METRIC_LABELS[metric]
             lost = {c.method: c.lost for c in curves if c.lost}
             caption = "Tracks lost by the truth per value: " + "; ".join(

@@ -18,8 +18,11 @@ from labrig.evaluation.stress_scene import StressScene
 
 GRIDS = ("full", "reduced")
 DEFAULT_WINDOW_MS = 10.0
-#: What an axis can measure: marker tracking (p95 true error, px; tracks lost) and forces (error, % of the force).
-METRICS = ("tracking", "forces")
+#: What an axis can measure: marker tracking (p95 true error, px; tracks lost), forces (error, % of the force) and,
+#: given a network, depth (mean error over the contact cells, mm).
+METRICS = ("tracking", "forces", "depth")
+#: The imperfect sensor's axes (issue 19): the printed markers and the camera's USB delivery.
+SENSOR_AXES = ("marker_position", "missing_near", "missing_far", "usb_bursts")
 
 
 @dataclass(frozen=True)
@@ -93,6 +96,26 @@ AXES: tuple[StressAxis, ...] = (
         "dead_region", "Dead region of pixels", "dead square side", "mm", "mm", "dead_side_mm",
         full=(0.0, 2.0, 4.0, 6.0, 8.0, 12.0), reduced=(0.0, 4.0, 12.0), metrics=("tracking", "forces"),
         what="kills the sensor pixels of a square this wide on the gel, centred on the press"),
+    StressAxis(
+        "marker_position", "Marker placement error", "placement error (std per axis)", "mm", "mm", "position_error_mm",
+        full=(0.0, 0.025, 0.05, 0.1, 0.2, 0.3), reduced=(0.0, 0.1, 0.3), metrics=("tracking", "forces", "depth"),
+        what="prints each marker off its lattice site by a seeded normal error (std per gel axis); the pipeline takes "
+             "the rest positions from an extrinsic calibration of that gel"),
+    StressAxis(
+        "missing_near", "Missing markers at the contact", "markers missing", "% of the grid", "pct", "missing_near_pct",
+        full=(0.0, 2.0, 4.0, 6.0, 8.0, 10.0), reduced=(0.0, 4.0, 10.0), metrics=("tracking", "forces", "depth"),
+        what="leaves unprinted the markers nearest the press (2 % = 3 of 156 markers, 10 % = 16); the calibration "
+             "finds them, the trackers skip them and the inverse FEM condenses them"),
+    StressAxis(
+        "missing_far", "Missing markers away from the contact", "markers missing", "% of the grid", "pct",
+        "missing_far_pct", full=(0.0, 2.0, 4.0, 6.0, 8.0, 10.0), reduced=(0.0, 4.0, 10.0),
+        metrics=("tracking", "forces", "depth"),
+        what="leaves unprinted markers drawn at random more than 6 mm from the press, found as at the contact"),
+    StressAxis(
+        "usb_bursts", "USB burst delivery", "burst period", "ms", "ms", "burst_period_ms",
+        full=(0.0, 10.0, 20.0, 50.0, 100.0), reduced=(0.0, 20.0, 100.0), metrics=("tracking", "forces", "depth"),
+        what="hands the camera's data to the host in USB bursts this far apart (jitter 20 % of the period); the "
+             "recording's clock fit rests on the prompt pairs (lower envelope) and the trigger edges"),
 )
 
 

@@ -17,7 +17,16 @@ ground-truth sidecar. Each knob is the sim's own:
 * ``sync_age_min``: the camera clock is not resynced: the recording maps camera time with an
   offset-only sync made this many minutes before the run, so the camera's true drift
   (``[sim.camera_clock] drift_ppm``) skews every event by drift x (age + t)
-  (:func:`labrig.sim.live.record_live` ``camera_clock_model``). None: the recording's own fit.
+  (:func:`labrig.sim.live.record_live` ``camera_clock_model``). None: the recording's own fit;
+* the markers as printed (``[sim.markers]``, seed: the scene's): ``position_error_mm``, each
+  marker's placement error (std per gel axis, mm); ``missing_near_pct`` / ``missing_far_pct``:
+  that percentage of the grid never printed, the markers nearest the press (the contact's
+  own) or drawn at random among those more than :data:`FAR_FROM_PRESS_MM` from it
+  (:func:`missing_markers`). The pipeline learns of them as a lab would, from an extrinsic
+  calibration of that gel (:mod:`labrig.evaluation.stress_calibration`);
+* ``burst_period_ms``: the camera's data reaches the host in USB bursts this far apart, with
+  a jitter of :data:`BURST_JITTER` of the period (``[sim.camera_delivery]``); the recording's
+  clock fit must see through them.
 """
 
 from __future__ import annotations
@@ -29,11 +38,16 @@ import numpy as np
 
 from labrig.clock import ClockModel
 from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
+from labrig.config_sim import printed_markers
 from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
 from labrig.physics.camera import CameraModel
 
 US_PER_MIN = 60_000_000
+#: "Far" missing markers are drawn from those at least this far from the press (three pitches of the default gel), mm.
+FAR_FROM_PRESS_MM = 6.0
+#: USB burst jitter, as a fraction of the burst period.
+BURST_JITTER = 0.2
 
 
 @dataclass(frozen=True)
@@ -56,6 +70,10 @@ class StressScene:
     dead_side_mm: float = 0.0
     sync_age_min: float | None = None
     stiffening: float | None = None
+    position_error_mm: float = 0.0
+    missing_near_pct: float = 0.0
+    missing_far_pct: float = 0.0
+    burst_period_ms: float = 0.0
     seed: int = 3
 
     def check(self) -> None:
@@ -68,19 +86,52 @@ class StressScene:
             raise LabrigError("stress scene: dead_side_mm and sync_age_min must not be negative")
         if self.shot_noise_rate_hz is not None and self.shot_noise_rate_hz < 0:
             raise LabrigError(f"stress scene: shot_noise_rate_hz must not be negative, not {self.shot_noise_rate_hz}")
+        if min(self.position_error_mm, self.missing_near_pct, self.missing_far_pct, self.burst_period_ms) < 0:
+            raise LabrigError("stress scene: position_error_mm, missing_near_pct, missing_far_pct and burst_period_ms "
+                              "must not be negative")
+        if self.missing_near_pct + self.missing_far_pct > 50:
+            raise LabrigError("stress scene: at most 50 % of the markers missing (missing_near_pct + missing_far_pct)")
 
 
 def stressed_rig(scene: StressScene) -> RigConfig:
-    """The scene's rig: the rig file with the scene's noise rate, marker brightness and stiffening (its text says so)."""
+    """The scene's rig: the rig file with the scene's noise rate, marker brightness, stiffening, printed markers and
+    USB bursts (its text says so)."""
     rig = load_rig(scene.rig)
-    changes: dict[str, float] = {}
+    changes: dict[str, float | int | list[int]] = {}
     if scene.stiffening is not None:
         changes["sim.mechanics.stiffening"] = float(scene.stiffening)
     if scene.shot_noise_rate_hz is not None:
         changes["sim.events.shot_noise_rate_hz"] = float(scene.shot_noise_rate_hz)
     if scene.marker_dimming != 1.0:
         changes["sim.lighting.marker_level"] = rig.sim.lighting.marker_level / scene.marker_dimming
+    missing = sorted(set(missing_markers(rig, scene.missing_near_pct, near=True, seed=scene.seed))
+                     | set(missing_markers(rig, scene.missing_far_pct, near=False, seed=scene.seed)))
+    if scene.position_error_mm > 0 or missing:
+        changes["sim.markers.seed"] = int(scene.seed)
+        changes["sim.markers.position_error_mm"] = float(scene.position_error_mm)
+        changes["sim.markers.missing"] = missing
+    if scene.burst_period_ms > 0:
+        changes["sim.camera_delivery.burst_period_ms"] = float(scene.burst_period_ms)
+        changes["sim.camera_delivery.burst_jitter_ms"] = BURST_JITTER * float(scene.burst_period_ms)
     return rig_with(rig, changes) if changes else rig
+
+
+def missing_markers(rig: RigConfig, percent: float, *, near: bool, seed: int = 0,
+                    press_mm: tuple[float, float] = (0.0, 0.0)) -> list[int]:
+    """Lattice indices (row-major) of ``round(percent / 100 x markers)`` markers: those nearest the press at
+    ``press_mm`` (gel frame; ``near``), or drawn at random (``seed``) among those at least
+    :data:`FAR_FROM_PRESS_MM` from it."""
+    rest = rig.markers.rest_positions_mm()
+    count = round(percent / 100 * len(rest))
+    if count <= 0:
+        return []
+    distance = np.hypot(rest[:, 0] - press_mm[0], rest[:, 1] - press_mm[1])
+    if near:
+        return sorted(int(i) for i in np.argsort(distance, kind="stable")[:count])
+    far = np.flatnonzero(distance >= FAR_FROM_PRESS_MM)
+    if count > len(far):
+        raise LabrigError(f"stress scene: {count} far markers asked, only {len(far)} are {FAR_FROM_PRESS_MM} mm from the press")
+    return sorted(int(i) for i in np.random.default_rng([seed, 19]).choice(far, count, replace=False))
 
 
 def dead_region_px(rig: RigConfig, side_mm: float, centre_mm: tuple[float, float] = (0.0, 0.0)) -> Roi | None:
@@ -117,6 +168,10 @@ class SceneFacts:
     peak_normal_n: float
     slip_ratio_max: float  # largest |tangential| / (friction x normal) from the shear to the unloading: 1 is gross slip
     clock_skew_max_ms: float  # the unsynced clock's largest event time error; 0 when synced
+    markers_missing: int = 0  # markers never printed
+    markers_missing_found: int | None = None  # of those, how many the scene's extrinsic calibration found (None: none run)
+    markers_missing_false: int | None = None  # markers the calibration called missing that were printed
+    rest_error_rms_px: float | None = None  # calibrated rest positions against the printed markers (sim's camera), px
 
 
 def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
@@ -152,4 +207,6 @@ def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
                                                                    + path.duration_us) / 1e3
     return SceneFacts(duration_s=float(result.sim_duration_s), events=int(result.events),
                       peak_force_n=float(np.linalg.norm(force, axis=1).max()), peak_normal_n=float(normal.max()),
-                      slip_ratio_max=float(slip.max()), clock_skew_max_ms=float(skew_ms))
+                      slip_ratio_max=float(slip.max()), clock_skew_max_ms=float(skew_ms),
+                      markers_missing=len(printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(),
+                                                          rig.markers.diameter_mm).missing))

@@ -8,6 +8,13 @@ tracker's error is measured directly at each window's end, and a track counts as
 the truth when that error exceeds 15 px at any time (it may have recovered by the end,
 which the start-end proxy cannot see).
 
+Missing markers (never printed) are skipped by every tracker: the calibration says which
+(``observed``, :attr:`labrig.pipeline.run_setup.PipelineSetup.observed`; with ``rest="rig"``
+the rig's printed markers, as any calibration would find them). The sim's truth has NaN rows
+for them, so the true errors leave them out and count them (``markers_missing``); lost tracks
+are counted over the observed markers only (an unobserved marker's position is an estimate
+from its neighbours, not a track).
+
 :func:`track_recording` is a pure task for :func:`labrig.executor.run_tasks`;
 :func:`table_lost_tracks` turns its results into Table I rows (mean and std over recordings).
 
@@ -78,10 +85,11 @@ class TruthErrors:
     t1_us: npt.NDArray[np.int64] | None  # (W,) window ends, host us
     window_error_p95_px: Array | None  # (W,)
     truth_end_offset_max_px: float | None  # how far the true markers end from where they started
+    markers_missing: int | None = None  # markers without truth (never printed: NaN rows), left out of the above
 
     @classmethod
     def absent(cls) -> TruthErrors:
-        return cls(False, None, None, None, None, None, None, None, None)
+        return cls(False, None, None, None, None, None, None, None, None, None)
 
 
 @dataclass(frozen=True)
@@ -99,8 +107,9 @@ class TrackingResult:
     marker_diameter_px: float
     n_windows: int
     n_markers: int
+    markers_unobserved: int  # markers the tracker skipped (missing in the calibration)
     drift_px: Array  # (M,) |end - start| of each track, px
-    lost_tracks: int  # tracks with drift above ``lost_px``
+    lost_tracks: int  # observed tracks with drift above ``lost_px``
     drift_max_px: float
     track_ms_median: float  # the tracker's update per window, ms
     track_ms_p95: float
@@ -113,27 +122,29 @@ class TrackingResult:
     t1_us: npt.NDArray[np.int64] | None
     window_error_p95_px: Array | None
     truth_end_offset_max_px: float | None
+    markers_missing: int | None
 
 
-def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float) -> Any:
-    """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide."""
+def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed: npt.ArrayLike | None = None) -> Any:
+    """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide;
+    ``observed`` (M,): False for markers to skip (missing), None: all tracked."""
     from labrig.pipeline.evetac import EvetacParams, EvetacTracker
     from labrig.pipeline.tracking import CircleFitParams, CircleFitTracker, Tracker, TrackerParams
 
     if task.patch_scale <= 0:
         raise LabrigError(f"patch_scale must be positive (a multiple of the marker diameter), not {task.patch_scale}")
     if task.tracker == "evetac":
-        return EvetacTracker(rest_px, EvetacParams(marker_diameter_px=diameter_px, springs=bool(task.refine)))
+        return EvetacTracker(rest_px, EvetacParams(marker_diameter_px=diameter_px, springs=bool(task.refine)), observed)
     if task.tracker == "circle-fit":
         spring = CIRCLE_FIT_SPRING if task.refine else 0.0
         params = CircleFitParams(marker_diameter_px=diameter_px, outer_radius=float(task.patch_scale), spring=spring)
-        return CircleFitTracker(rest_px, params)
+        return CircleFitTracker(rest_px, params, observed)
     lam = PAPER_LAMBDA if task.refine else 0.0
     base = TrackerParams(marker_diameter_px=diameter_px, patch_scale=float(task.patch_scale), refine_lambda=lam)
     if task.tracker == "paper":
-        return Tracker(rest_px, base)
+        return Tracker(rest_px, base, observed)
     if task.tracker == "paper-published":
-        return Tracker(rest_px, replace(base, gate_diameters=None, min_each_polarity=0))
+        return Tracker(rest_px, replace(base, gate_diameters=None, min_each_polarity=0), observed)
     raise LabrigError(f"tracker must be one of {', '.join(TRACKERS)}, not {task.tracker!r}")
 
 
@@ -145,9 +156,9 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
 
     task = task if isinstance(task, TrackingTask) else TrackingTask(**task)
     with Recording(task.recording) as rec:
-        rig, rest_px, rest_source = rest_pixels(rec, task.rest, task.calibration_dir)
+        rig, rest_px, rest_source, observed = rest_pixels(rec, task.rest, task.calibration_dir)
         diameter = marker_diameter_px(rig)
-        tracker = tracker_for(task, rest_px, diameter)
+        tracker = tracker_for(task, rest_px, diameter, observed)
         ends, positions, seconds = [], [], []
         for _, t1, events in recording_windows(rec, window_us=task.window_us, window_events=task.window_events):
             tic = time.perf_counter()
@@ -166,27 +177,34 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         recording=str(task.recording), tracker=task.tracker, patch_scale=float(task.patch_scale), refine=bool(task.refine),
         window_us=task.window_us, window_events=task.window_events, rest_source=rest_source,
         marker_diameter_px=float(diameter), n_windows=len(track), n_markers=track.shape[1], drift_px=drift,
-        lost_tracks=int((drift > task.lost_px).sum()), drift_max_px=float(drift.max()),
+        markers_unobserved=int((~observed).sum()), lost_tracks=int((drift[observed] > task.lost_px).sum()),
+        drift_max_px=float(drift[observed].max()),
         track_ms_median=float(np.median(ms)), track_ms_p95=float(np.percentile(ms, 95)),
         **{f.name: getattr(truth_fields, f.name) for f in fields(TruthErrors)})
 
 
-track_recording.cache_version = "4"  # type: ignore[attr-defined]
+track_recording.cache_version = "5"  # type: ignore[attr-defined]
 
 
-def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str]:
-    """(rig, rest pixels (M, 2), where they came from) for an open recording; see :class:`TrackingTask`."""
+def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str, npt.NDArray[np.bool_]]:
+    """(rig, rest pixels (M, 2), where they came from, observed (M,)) for an open recording; see :class:`TrackingTask`.
+
+    ``observed``: the calibration's present markers ("calibration"), or the rig's printed ones
+    (``[sim.markers]``; "rig": what a calibration of that rig would find missing)."""
     from labrig.config import load_rig
+    from labrig.config_sim import printed_markers
     from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
     from labrig.pipeline.tracking import rest_positions_px
 
     if rest == "calibration":
         setup = setup_for_recording(rec, calibration_dir=calibration_dir)
-        return setup.rig, np.asarray(setup.rest_px, np.float64), setup.sources["camera"]
+        return setup.rig, np.asarray(setup.rest_px, np.float64), setup.sources["camera"], setup.observed
     if rest == "rig":
         carried = rig_from_recording(rec)
         rig = carried or load_rig()
-        return rig, rest_positions_px(rig), "rig camera (" + ("the recording's rig" if carried else str(rig.path)) + ")"
+        printed = printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm).printed
+        return (rig, rest_positions_px(rig), "rig camera (" + ("the recording's rig" if carried else str(rig.path)) + ")",
+                np.asarray(printed, bool))
     raise LabrigError(f"rest must be one of {', '.join(REST_SOURCES)}, not {rest!r}")
 
 
@@ -214,13 +232,19 @@ def truth_errors(track_px: Array, t1_us: Array, truth: tuple[Array, Array] | Non
     t_truth, truth_px = truth
     if truth_px.shape[1] != track_px.shape[1]:
         raise LabrigError(f"/truth/markers has {truth_px.shape[1]} markers, the tracker {track_px.shape[1]}")
-    error = np.linalg.norm(track_px - truth_at(t_truth, truth_px, t1_us), axis=2)  # (W, M)
-    per_marker = error.max(axis=0)
+    present = np.isfinite(truth_px).all(axis=(0, 2))  # (M,) markers with truth: a missing marker's rows are NaN
+    if not present.any():
+        raise LabrigError("/truth/markers has no marker with a finite position")
+    error = np.linalg.norm(track_px[:, present] - truth_at(t_truth, truth_px[:, present], t1_us), axis=2)  # (W, M')
+    per_marker = np.full(track_px.shape[1], np.nan)
+    per_marker[present] = error.max(axis=0)
     return TruthErrors(
         has_truth=True, error_median_px=float(np.median(error)), error_p95_px=float(np.percentile(error, 95)),
-        error_max_px=float(error.max()), error_max_per_marker_px=per_marker, lost_by_truth=int((per_marker > lost_px).sum()),
-        t1_us=t1_us.astype(np.int64), window_error_p95_px=np.percentile(error, 95, axis=1),
-        truth_end_offset_max_px=float(np.linalg.norm(truth_px[-1] - truth_px[0], axis=1).max()))
+        error_max_px=float(error.max()), error_max_per_marker_px=per_marker,
+        lost_by_truth=int((per_marker[present] > lost_px).sum()), t1_us=t1_us.astype(np.int64),
+        window_error_p95_px=np.percentile(error, 95, axis=1),
+        truth_end_offset_max_px=float(np.linalg.norm(truth_px[-1, present] - truth_px[0, present], axis=1).max()),
+        markers_missing=int((~present).sum()))
 
 
 # -- Table I ------------------------------------------------------------------------------------------

@@ -51,6 +51,13 @@ clock, so a window that ends inside a slice processes that slice's events so far
 next window processes the rest as a second, shorter slice (time windows that are whole
 multiples of the slice never split one). Positions are sensor pixels (x, y), in the rig's
 marker order; events must come in time order.
+
+**Missing markers** (``observed`` False: never printed, as the extrinsic calibration found)
+are skipped as :class:`~labrig.pipeline.tracking.CircleFitTracker` skips them: they have no
+band (their events pull nobody), no spring links to them (the pitch and the neighbour links
+come from the observed dots' rest positions, so a neighbour of a hole keeps its other
+links, reweighted by ``8 / n``), and their reported position follows the mean displacement
+of their observed grid neighbours (never ``moved``).
 """
 
 from __future__ import annotations
@@ -61,6 +68,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 from numba import njit
+
+from labrig.pipeline.tracking import follow_neighbours, grid_neighbours
 
 Array = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -224,16 +233,28 @@ def grid_pitch_px(rest_px: Array) -> float:
 
 
 class EvetacTracker:
-    """Evetac's tracker: ``update(events)`` per window -> (positions_px (M, 2), moved (M,): active in a slice)."""
+    """Evetac's tracker: ``update(events)`` per window -> (positions_px (M, 2), moved (M,): active in a slice).
 
-    def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams()) -> None:
+    ``observed`` (M,): False for missing markers, which are skipped (module docstring); None: all observed.
+    """
+
+    def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams(),
+                 observed: npt.ArrayLike | None = None) -> None:
         self.params = params
         self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
         if len(self.rest_px) != params.grid_rows * params.grid_cols:
             raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
-        pitch = params.pitch_px if params.pitch_px is not None else grid_pitch_px(self.rest_px)
+        self.observed = np.ones(len(self.rest_px), bool) if observed is None else np.array(observed, bool).reshape(-1)
+        if self.observed.shape != (len(self.rest_px),):
+            raise ValueError(f"observed mask of {self.observed.size} for {len(self.rest_px)} markers")
+        if not self.observed.any():
+            raise ValueError("no observed marker to track")
+        self._dots = np.flatnonzero(self.observed)  # the dots Evetac tracks, in marker order
+        self._follow = grid_neighbours(params.grid_rows, params.grid_cols, 8)
+        dots_rest = self.rest_px[self._dots]
+        pitch = params.pitch_px if params.pitch_px is not None else grid_pitch_px(dots_rest)
         self.geometry = Geometry.for_rig(params.marker_diameter_px, pitch)
-        self._neigh, self._rest_d2, self._correction = neighbour_links(self.rest_px, self.geometry.neighbour_cutoff_px)
+        self._neigh, self._rest_d2, self._correction = neighbour_links(dots_rest, self.geometry.neighbour_cutoff_px)
         self._cell = float(math.ceil(self.geometry.outer_px))
         shape = (int(params.height_px // self._cell) + 1, int(params.width_px // self._cell) + 1)
         self._cells = np.zeros((*shape, _CELL_CAPACITY), np.int32)
@@ -248,16 +269,16 @@ class EvetacTracker:
     def update(self, events: npt.NDArray) -> tuple[Array, BoolArray]:
         """Advance by one window of events (EVENT_DTYPE, time order), slice by slice; copies of positions and moved mask."""
         p, geo = self.params, self.geometry
-        moved = np.zeros(len(self.positions_px), np.bool_)
+        moved = np.zeros(len(self._dots), np.bool_)
         if len(events) == 0:
-            return self.positions_px.copy(), moved
+            return self.positions_px.copy(), np.zeros(len(self.positions_px), np.bool_)
         x, y, t = events["x"], events["y"], np.ascontiguousarray(events["t"], np.int64)
         keep = np.ones(len(events), np.bool_)
         if p.ba_window_us is not None:
             background_activity(x, y, t, self._surface, np.int64(p.ba_window_us), keep)
         slice_index = t // p.slice_us
         bounds = np.flatnonzero(np.diff(slice_index)) + 1
-        pos = self.positions_px
+        pos = self.positions_px[self._dots]
         pull, activity, springs = np.zeros_like(pos), np.zeros(len(pos), np.int64), np.zeros_like(pos)
         for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(events)]):
             pull[...] = 0.0
@@ -271,5 +292,11 @@ class EvetacTracker:
                 move += STEP * springs
             pos = pos + np.where(active[:, None], move, 0.0)
             moved |= active
-        self.positions_px = pos
-        return pos.copy(), moved
+        out = self.positions_px.copy()
+        out[self._dots] = pos
+        moved_all = np.zeros(len(out), np.bool_)
+        moved_all[self._dots] = moved
+        if len(self._dots) < len(out):
+            follow_neighbours(out, self.rest_px, self.observed, self._follow)
+        self.positions_px = out
+        return out.copy(), moved_all

@@ -1,0 +1,82 @@
+"""What a lab would calibrate before a stressed run: the extrinsics of an imperfectly printed gel.
+
+On a gel whose markers sit off their lattice sites or are missing, the pipeline must not be
+told by the sim where they are: it learns it as a lab does, from an extrinsic calibration of
+that gel. :func:`calibrate_printed_markers` records the LED ring blinking on the stressed
+virtual rig (:func:`labrig.sim.calibration_scenes.record_led_blink`), calibrates the
+extrinsics with the lab's intrinsics (:func:`labrig.calibration.extrinsics.calibrate_extrinsics`),
+and writes a calibration folder: the lab's other files (intrinsics, gel, rig registration)
+with this extrinsics.toml, whose marker map (measured rest positions, missing markers) the
+pipeline then reads like any other. The sim's truth only scores the calibration afterwards
+(:class:`MarkerCalibration`: missing markers found, rest error); nothing of it reaches the
+pipeline.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from labrig.config import RigConfig
+from labrig.config_sim import printed_markers
+from labrig.errors import LabrigError
+from labrig.physics.camera import CameraModel
+
+EXTRINSICS = "extrinsics.toml"
+
+
+@dataclass(frozen=True)
+class MarkerCalibration:
+    """A calibration folder for a stressed gel and how well its marker map matches the printed markers."""
+
+    directory: str  # the lab's calibration files with this gel's extrinsics.toml
+    missing_true: tuple[int, ...]  # markers never printed (the sim's truth, for scoring only)
+    missing_found: tuple[int, ...]  # markers the calibration found missing
+    rest_error_rms_px: float  # measured rest of the printed markers against their true image positions, px
+    residual_rms_mm: float  # the calibration's own report: measured less nominal on the gel, mm
+
+    @property
+    def found_all(self) -> bool:
+        """Every missing marker found, and no printed one called missing."""
+        return set(self.missing_true) == set(self.missing_found)
+
+
+def calibrate_printed_markers(rig: RigConfig, calibration_dir: str | Path | None, out_dir: str | Path,
+                              seed: int = 0) -> MarkerCalibration:
+    """Calibrate the extrinsics of ``rig``'s gel as printed into ``out_dir`` (module docstring).
+
+    ``calibration_dir`` supplies the intrinsics and the other files; every ``*.toml`` of it but
+    the extrinsics is copied. ``seed``: the LED-blink scene's.
+    """
+    from labrig.calibration.extrinsics import calibrate_extrinsics, write_extrinsics
+    from labrig.calibration.files import load_intrinsics
+    from labrig.sim.calibration_scenes import record_led_blink
+
+    source = Path(calibration_dir) if calibration_dir is not None else None
+    if source is None or not (source / "intrinsics.toml").exists():
+        raise LabrigError("the marker stress axes calibrate the printed gel as a lab would and need the camera's "
+                          f"intrinsics: {source or 'no calibration folder'} has no intrinsics.toml "
+                          "(run `labrig calibrate intrinsics`, or pass --calibration with one)")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for path in source.glob("*.toml"):
+        if path.name != EXTRINSICS:
+            shutil.copy2(path, out / path.name)
+    intrinsics = load_intrinsics(out / "intrinsics.toml")
+    recording = out / "led-blink.h5"
+    record_led_blink(recording, rig, seed=seed, overwrite=True)
+    result = calibrate_extrinsics(recording, intrinsics, rig.markers, nominal_rotvec_rad=rig.camera.nominal_rotvec_rad)
+    write_extrinsics(result, out / EXTRINSICS, intrinsics)
+    recording.unlink()
+    marker_map = result.marker_map
+    printed = printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm)
+    true_px = CameraModel.from_rig(rig).project(printed.rest_mm)
+    both = printed.printed & ~marker_map.missing
+    error = np.linalg.norm(marker_map.rest_px[both] - true_px[both], axis=1)
+    summary = marker_map.summary(0)
+    return MarkerCalibration(str(out), tuple(int(i) for i in printed.missing), tuple(marker_map.missing_indices),
+                             float(np.sqrt(np.mean(error**2))) if error.size else float("nan"),
+                             float(summary["residual_rms_mm"]))  # type: ignore[arg-type]
