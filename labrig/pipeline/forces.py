@@ -53,7 +53,7 @@ class SurfaceForces:
     rest) are projected once and the map is sampled bilinearly there (a sparse matrix), as the
     ground truth's maps are indexed by the surface point each cell saw at rest. ``observed`` (M,):
     markers with a tracked displacement; the in-plane displacements of the others (missing markers)
-    are condensed through the gel's stiffness (:func:`~labrig.pipeline.unobserved.in_plane_fill`).
+    are interpolated from their neighbours (:func:`~labrig.pipeline.unobserved.in_plane_fill`).
     """
 
     def __init__(self, operator: SurfaceOperator, camera: CameraModel, roi: Roi, grid_shape: tuple[int, int] = (90, 112),
