@@ -13,7 +13,8 @@ Sections named ``sim.*`` are the virtual rig's truth (the true camera, the true
 rig pose, the event model); everything else is what a lab knows about its rig.
 The sections of an imperfect sensor (``sim.gel``, ``sim.markers``,
 ``sim.camera_delivery``, ``sim.ft``, :mod:`labrig.config_sim`) may be left out:
-their defaults are the ideal sensor (the true gel is the nominal ``[gel]``).
+their defaults are the ideal sensor (the true gel is the nominal ``[gel]``); so may the
+virtual CNC's limits (``sim.grbl``: GRBL 1.1h's defaults).
 """
 
 from __future__ import annotations
@@ -22,17 +23,25 @@ import json
 import re
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config_sim import SimCameraDelivery, SimFt, SimMarkers, check_imperfections, parse_imperfections
+from labrig.config_sim import (
+    SimCameraDelivery,
+    SimFt,
+    SimGrbl,
+    SimMarkers,
+    check_imperfections,
+    parse_grbl,
+    parse_imperfections,
+)
 from labrig.errors import ConfigError
 
-__all__ = ["ConfigError", "SimCameraDelivery", "SimFt", "SimMarkers"]
+__all__ = ["ConfigError", "SimCameraDelivery", "SimFt", "SimGrbl", "SimMarkers"]
 
 DEFAULT_RIG = Path(__file__).resolve().parent.parent / "calibration" / "rig.toml"
 
@@ -162,6 +171,8 @@ class SimConfig:
     markers: SimMarkers
     camera_delivery: SimCameraDelivery
     ft: SimFt
+    #: The virtual CNC's max rates and accelerations (``[sim.grbl]``; left out: GRBL 1.1h's defaults).
+    grbl: SimGrbl = field(default_factory=SimGrbl)
 
 
 @dataclass(frozen=True)
@@ -213,6 +224,7 @@ def parse_rig(text: str, path: Path) -> RigConfig:
             markers=markers,
             camera_delivery=delivery,
             ft=ft,
+            grbl=parse_grbl(sim, path),
         ),
         text=text,
         path=path,
@@ -221,8 +233,8 @@ def parse_rig(text: str, path: Path) -> RigConfig:
     return config
 
 
-#: Sections a rig file may leave out (their defaults: the ideal sensor, the true gel = [gel]).
-OPTIONAL_SECTIONS = ("sim.gel", "sim.markers", "sim.camera_delivery", "sim.ft")
+#: Sections a rig file may leave out (their defaults: the ideal sensor, the true gel = [gel], GRBL's own limits).
+OPTIONAL_SECTIONS = ("sim.gel", "sim.markers", "sim.camera_delivery", "sim.ft", "sim.grbl")
 
 TomlValue = bool | int | float | str | tuple[float, ...] | tuple[int, ...] | tuple[tuple[float, float], ...]
 

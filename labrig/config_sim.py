@@ -25,6 +25,12 @@ fire at ``hot_pixel_rate_hz`` on top of their own events.
 
 ``[sim.ft]``: ``drop_probability``, the chance that one F/T sample never reaches the host.
 
+``[sim.grbl]``: the virtual CNC's machine limits, written into the GRBL twin's settings at
+power-on: ``max_rate_mm_min`` (``$110-$112``, mm/min) and ``acceleration_mm_s2``
+(``$120-$122``, mm/s**2), each a number (all axes) or ``[x, y, z]``. Defaults: GRBL 1.1h's
+(500 mm/min, 10 mm/s**2), so a protocol faster than 8.3 mm/s needs this section. A rate is
+refused if the axis' steps (``GRBL_STEPS_PER_MM``) would pass the stepper's ``GRBL_MAX_STEP_RATE_HZ``.
+
 Random draws are independent per knob (a knob's draws do not change when another
 knob is set) and depend only on the section's ``seed``: the same file prints the
 same gel.
@@ -42,6 +48,13 @@ import numpy.typing as npt
 from labrig.errors import ConfigError
 
 Offsets = tuple[tuple[float, float], ...]
+
+#: GRBL's stepper interrupt rate limit (Hz) and the twin's steps/mm ($100-$102): a max rate is capped by them.
+GRBL_MAX_STEP_RATE_HZ = 30_000.0
+GRBL_STEPS_PER_MM = 250.0
+#: GRBL 1.1h's defaults: $110-$112 (mm/min), $120-$122 (mm/s**2).
+GRBL_DEFAULT_MAX_RATE_MM_MIN = 500.0
+GRBL_DEFAULT_ACCELERATION_MM_S2 = 10.0
 
 #: A marker's diameter and contrast factors are kept at or above this (a variation cannot make them vanish).
 MIN_FACTOR = 0.05
@@ -81,6 +94,28 @@ class SimFt:
     """``[sim.ft]``: the F/T link (see the module docstring); drops follow the run's seed."""
 
     drop_probability: float = 0.0
+
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SimGrbl:
+    """``[sim.grbl]``: the virtual CNC's per-axis max rates (mm/min) and accelerations (mm/s**2), x, y, z."""
+
+    max_rate_mm_min: Vec3 = (GRBL_DEFAULT_MAX_RATE_MM_MIN,) * 3
+    acceleration_mm_s2: Vec3 = (GRBL_DEFAULT_ACCELERATION_MM_S2,) * 3
+
+    @property
+    def max_rate_mm_s(self) -> Vec3:
+        """The max rates in mm/s (x, y, z)."""
+        x, y, z = (v / 60.0 for v in self.max_rate_mm_min)
+        return (x, y, z)
+
+    def settings(self) -> dict[int, float]:
+        """The GRBL settings these limits are: ``{110: x, 111: y, 112: z, 120: ..., 122: ...}``."""
+        return {**{110 + i: v for i, v in enumerate(self.max_rate_mm_min)},
+                **{120 + i: v for i, v in enumerate(self.acceleration_mm_s2)}}
 
 
 @dataclass(frozen=True)
@@ -143,6 +178,41 @@ def parse_imperfections(sim: dict[str, Any], path: Path) -> tuple[SimMarkers, Si
     """The optional ``[sim.markers]``, ``[sim.camera_delivery]``, ``[sim.ft]`` sections (defaults where absent)."""
     return (_optional(SimMarkers, sim, "markers", path), _optional(SimCameraDelivery, sim, "camera_delivery", path),
             _optional(SimFt, sim, "ft", path))
+
+
+def parse_grbl(sim: dict[str, Any], path: Path) -> SimGrbl:
+    """The optional ``[sim.grbl]`` section, checked (defaults where absent: GRBL 1.1h's)."""
+    table = sim.get("grbl", {})
+    where = f"{path}: [sim.grbl]"
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table, e.g. [sim.grbl] on its own line")
+    names = [f.name for f in fields(SimGrbl)]
+    unknown = sorted(set(table) - set(names))
+    if unknown:
+        raise ConfigError(f"{where} unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
+    values = {key: _axes(key, table[key], where) for key in table}
+    for key, axes in values.items():
+        if min(axes) <= 0:
+            raise ConfigError(f"{where} {key} must be positive on every axis, not {_show(table[key])}")
+    grbl = SimGrbl(**values)
+    cap = GRBL_MAX_STEP_RATE_HZ / GRBL_STEPS_PER_MM * 60.0
+    for axis, rate in zip("xyz", grbl.max_rate_mm_min, strict=True):
+        if rate > cap:
+            raise ConfigError(f"{where} max_rate_mm_min {rate:g} on {axis} is beyond GRBL's step rate "
+                              f"({GRBL_MAX_STEP_RATE_HZ:g} Hz at {GRBL_STEPS_PER_MM:g} steps/mm): give at most {cap:g} mm/min")
+    return grbl
+
+
+def _axes(key: str, value: Any, where: str) -> Vec3:
+    if _is_number(value):
+        return (float(value),) * 3
+    if isinstance(value, list) and len(value) == 3 and all(_is_number(v) for v in value):
+        return (float(value[0]), float(value[1]), float(value[2]))
+    raise ConfigError(f"{where} {key} must be a number (all axes) or [x, y, z], not {_show(value)}")
+
+
+def _show(value: Any) -> str:
+    return repr(value) if not isinstance(value, list) else "[" + ", ".join(str(v) for v in value) + "]"
 
 
 def _optional(cls: type, sim: dict[str, Any], name: str, path: Path) -> Any:

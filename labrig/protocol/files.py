@@ -26,10 +26,11 @@ from typing import Any
 from labrig.config import RigConfig
 from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
-from labrig.protocol.safety import depth_problem
+from labrig.protocol.rigfile import device_config
+from labrig.protocol.safety import SpeedLimits, depth_problem
 from labrig.protocol.spec import ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
 from labrig.protocol.split import PAPER_SPLIT, assign_splits, split_counts
-from labrig.protocol.variation import parse_variation
+from labrig.protocol.variation import parse_variation, slowest_machine
 
 PROTOCOLS_DIR = Path(__file__).resolve().parent.parent.parent / "protocols"
 DEFAULT_PROTOCOL = PROTOCOLS_DIR / "probe.toml"
@@ -367,6 +368,8 @@ def check_spec(
                 f"{spec.force_n} N is beyond the {indenter.name}'s max_normal_force_n {indenter.max_normal_force_n};"
                 f" use at most {indenter.max_normal_force_n} N",
             ))
+    if rig is not None and device_config(rig).virtual:  # hardware: the runner checks the controller's $$
+        out.extend(SpeedLimits.of_rig(rig).problems(spec))
     if rig is not None:
         radius = indenter.footprint_radius_mm if indenter is not None else 0.0
         half_x = rig.gel.size_x_mm / 2 - radius
@@ -597,6 +600,19 @@ def load_campaign(
         except ProtocolError as exc:  # unreadable or not TOML: report with the rest
             problems.add(at("protocol"), "campaign.protocol", str(exc))
 
+    # Sensor variation: read first, so the groups' speeds are checked against the slowest virtual CNC it gives.
+    variation = None
+    vary = data.get("vary")
+    if vary is not None:
+        if not isinstance(vary, dict):
+            problems.add((file, loc.line("vary")), "[vary]", 'must be a table of "sim.key" = [low, high]')
+        else:
+            variation, refused = parse_variation(vary, rig)
+            for key, message in refused:
+                problems.add((file, loc.line("vary")), f"vary.{key}", message)
+    if rig is not None and variation is not None:
+        rig = slowest_machine(rig, variation)
+
     # Groups.
     groups = data.get("group")
     if isinstance(groups, dict):
@@ -647,15 +663,6 @@ def load_campaign(
                 )
             else:
                 counts = split_counts(n, fractions)
-    variation = None
-    vary = data.get("vary")
-    if vary is not None:
-        if not isinstance(vary, dict):
-            problems.add((file, loc.line("vary")), "[vary]", 'must be a table of "sim.key" = [low, high]')
-        else:
-            variation, refused = parse_variation(vary, rig)
-            for key, message in refused:
-                problems.add((file, loc.line("vary")), f"vary.{key}", message)
     problems.raise_if_any()
 
     splits = assign_splits([spec.indenter for _, _, spec in expanded], counts, seed)

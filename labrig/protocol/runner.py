@@ -4,7 +4,8 @@ Approach (search for contact), Normal Down (to a depth or a force), Wait,
 Shear, Wait, Shear Opposite, Wait, Normal Up, Retract. At each phase start the
 CNC output wired to the camera's trigger input toggles (M8/M9), so the
 recording carries hardware sync edges, and the phase is logged on the host
-clock. Before any move every target is checked against the workspace; during
+clock. Before any move every target is checked against the workspace and every
+speed against the controller's max rates (``$110-$112``); during
 the run the :class:`~labrig.protocol.safety.ForceMonitor` holds the machine
 within one F/T sample of a force over its limit, and every wait has a timeout.
 
@@ -39,6 +40,7 @@ from labrig.protocol.plan import ProbePlan
 from labrig.protocol.realtime import CAMERA_BEHIND_LIMIT_S, Shortfall
 from labrig.protocol.safety import (
     SafetyError,
+    SpeedLimits,
     StopRequest,
     check_location,
     check_targets,
@@ -167,11 +169,19 @@ class ProbeRunner:
         check_targets(plan.nominal_targets(self.indenter.max_depth_mm), self.limits)
         return plan
 
+    def _check_speeds(self, spec: ProbeSpec) -> None:
+        """The run's speeds against the controller's max rates (``$110-$112``, read at connect): a
+        faster speed would silently run at the max rate, so it is refused before moving."""
+        limits = SpeedLimits.of_grbl(self.grbl.settings)
+        if limits is not None:
+            limits.check(spec)
+
     def run(self, spec: ProbeSpec, out: str | Path, *, protocol_toml: str = "", extra: dict[str, Any] | None = None,
             overwrite: bool = False) -> RunResult:
         """Travel above the location, tare, record the sequence, retract. Raises before moving
         if the plan is unsafe; otherwise always returns a finalized recording."""
         plan = self.check(spec)
+        self._check_speeds(spec)
         out = Path(out)
         if out.exists() and not overwrite:
             raise SafetyError(f"{out} exists; choose another name or allow overwriting")

@@ -4,6 +4,9 @@
   margin, and per-axis force limits (the indenter's, capped by the rig's).
 * :func:`check_targets`: every planned target inside the workspace, refused
   before the first move with one line per problem.
+* :class:`SpeedLimits`: the CNC's max rates (``$110-$112``: the virtual rig's ``[sim.grbl]``,
+  or the connected controller's ``$$``); a protocol speed above them is refused before any
+  move, never silently run slower.
 * :class:`ForceMonitor`: sees every F/T sample (from the sensor's reader
   thread). Over a limit it calls ``on_trip`` at once (the runner wires a GRBL
   feed hold: the machine decelerates within one sample period of the
@@ -16,13 +19,15 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
+from labrig.config import RigConfig
 from labrig.errors import LabrigError
+from labrig.protocol.spec import ProbeSpec
 
 
 class SafetyError(LabrigError):
@@ -83,6 +88,66 @@ def check_targets(targets: Sequence[tuple[str, npt.ArrayLike]], limits: SafetyLi
     if problems:
         raise SafetyError("refused before moving:\n  " + "\n  ".join(problems)
                           + "\n  check the location, depth and the rig's [safety] workspace and gel pose")
+
+
+#: The speeds of a run and the machine axes each moves along: the normal moves (approach, press,
+#: retract) along Z, shears in the gel plane along X and Y (held to the slower of the two).
+SPEED_AXES: dict[str, tuple[int, ...]] = {"approach.speed_mm_s": (2,), "normal_speed_mm_s": (2,),
+                                          "shear_speed_mm_s": (0, 1), "retract_speed_mm_s": (2,)}
+
+#: Each speed field's key in a protocol file.
+SPEED_KEYS = {"approach.speed_mm_s": "approach.speed_mm_s", "normal_speed_mm_s": "normal.speed_mm_s",
+              "shear_speed_mm_s": "shear.speed_mm_s", "retract_speed_mm_s": "retract.speed_mm_s"}
+
+
+@dataclass(frozen=True)
+class SpeedLimits:
+    """A CNC's per-axis max rates (mm/min, x, y, z: GRBL's ``$110-$112``) and where they are set."""
+
+    max_rate_mm_min: tuple[float, float, float]
+    virtual: bool  # the virtual rig's [sim.grbl], else a connected controller's settings
+
+    @classmethod
+    def of_rig(cls, rig: RigConfig) -> SpeedLimits:
+        """The virtual CNC's: the rig file's ``[sim.grbl]`` (GRBL's defaults without one)."""
+        return cls(rig.sim.grbl.max_rate_mm_min, virtual=True)
+
+    @classmethod
+    def of_grbl(cls, settings: Mapping[int, float]) -> SpeedLimits | None:
+        """A connected controller's, from its ``$$`` settings; None if they lack ``$110-$112``."""
+        if not all(n in settings for n in (110, 111, 112)):
+            return None
+        return cls((float(settings[110]), float(settings[111]), float(settings[112])), virtual=False)
+
+    def problems(self, spec: ProbeSpec) -> list[tuple[str, str]]:
+        """(field, message) for each speed of ``spec`` above the max rate of an axis it moves along."""
+        out = []
+        for field, axes in SPEED_AXES.items():
+            if field == "shear_speed_mm_s" and not spec.has_shear:
+                continue
+            speed = spec.approach.speed_mm_s if field == "approach.speed_mm_s" else float(getattr(spec, field))
+            axis = min(axes, key=lambda i: self.max_rate_mm_min[i])
+            limit_mm_s = self.max_rate_mm_min[axis] / 60.0
+            if speed > limit_mm_s + 1e-9:
+                out.append((field, f"{speed:g} mm/s is above {self._limit_text(axis)}; {self._remedy(axis, limit_mm_s)}"))
+        return out
+
+    def check(self, spec: ProbeSpec) -> None:
+        """Raise :class:`SafetyError` (before any move) if a speed of ``spec`` is above the max rates."""
+        found = self.problems(spec)
+        if found:
+            raise SafetyError("refused before moving: " + "; ".join(f"{SPEED_KEYS[field]} {message}" for field, message in found))
+
+    def _limit_text(self, axis: int) -> str:
+        rate = self.max_rate_mm_min[axis]
+        where = (f"[sim.grbl] max_rate_mm_min = {rate:g} mm/min" if self.virtual else f"${110 + axis} = {rate:g} mm/min")
+        machine = "the virtual CNC" if self.virtual else "the connected GRBL"
+        return f"{machine}'s {'XYZ'[axis]} max rate {rate / 60:.3g} mm/s ({where})"
+
+    def _remedy(self, axis: int, limit_mm_s: float) -> str:
+        where = ("raise max_rate_mm_min in the rig file's [sim.grbl] (or a campaign's [vary])" if self.virtual
+                 else f"raise ${110 + axis} on the controller")
+        return f"{where}, or give at most {limit_mm_s:.3g} mm/s"
 
 
 def check_location(location_mm: tuple[float, float], size_mm: tuple[float, float], footprint_radius_mm: float,

@@ -8,11 +8,14 @@ A campaign file's ``[vary]`` section names virtual-rig keys (``sim.*``, as
     "sim.markers.position_error_mm" = [0.0, 0.08]
     "sim.markers.missing_count" = [0, 3]              # whole numbers: uniform over low..high
     "sim.markers.seed" = "recording"                  # the recording's own seed
+    "sim.grbl.max_rate_mm_min" = [3600, 3600]         # low = high: that value for every recording
 
 A recording's values come from its own seed (the campaign's seed and its index), so the same
 campaign gives the same sensors wherever it runs; the recording stores the rig text with the
 drawn values. Only the virtual rig's truth (``sim.*``) varies: what the lab knows of its sensor
-(``[gel]``, ``[camera]``, ...) comes from calibration and stays as the rig file says.
+(``[gel]``, ``[camera]``, ...) comes from calibration and stays as the rig file says. A
+campaign's speeds are checked against the slowest virtual CNC its ``sim.grbl`` keys give
+(:func:`slowest_machine`).
 """
 
 from __future__ import annotations
@@ -98,3 +101,11 @@ def parse_variation(table: Mapping[str, object], rig: RigConfig | None) -> tuple
                 continue
         keys.append(varied)
     return SensorVariation(tuple(keys)), problems
+
+
+def slowest_machine(rig: RigConfig, variation: SensorVariation) -> RigConfig:
+    """``rig`` with every varied ``sim.grbl`` key at the low end of its range: the slowest virtual
+    CNC any recording of the campaign gets (the campaign's speeds are checked against it)."""
+    low: dict[str, TomlValue] = {k.key: int(k.low) if k.integer else k.low for k in variation.keys
+                                 if k.key.startswith("sim.grbl.") and not k.recording_seed}
+    return rig_with(rig, low) if low else rig

@@ -28,7 +28,7 @@ from labrig.protocol.plan import ProbePlan
 from labrig.protocol.rigfile import safety_limits
 from labrig.protocol.routing import put_chunk, put_ft, put_gcode
 from labrig.protocol.runner import APPROACH_FRACTION, DETECT_SAMPLES, FINE_SPEED_MM_S, MOVE_MARGIN_S, ProbeRunner, RunResult
-from labrig.protocol.safety import ForceMonitor, SafetyLimits
+from labrig.protocol.safety import ForceMonitor, SafetyLimits, SpeedLimits
 from labrig.protocol.session import NS_PER_US, RigSession
 from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
@@ -65,6 +65,7 @@ def record_virtual(spec: ProbeSpec, out: str | Path, rig: RigConfig, indenter: I
     limits = safety_limits(rig)
     checker = ProbeRunner(cast(RigSession, _LimitsOnly(limits)), rig, indenter, gel_in_machine=gel_pose(rig))
     plan = checker.check(spec)
+    SpeedLimits.of_rig(rig).check(spec)
     run = _VirtualRun(plan, rig, indenter, checker.limits, seed)
     out = Path(out)
     if out.exists():

@@ -6,7 +6,8 @@ as long as the CPU needs and its content never depends on load or wall time:
 
 * GRBL: lines cost their bytes on the wire at the baud rate plus the parse time; motion runs on
   the GRBL planner (:class:`~labrig.devices.motion_profile.MotionTimeline`: trapezoids, junctions,
-  jog cancel, feed hold); status reports are polled at the driver's rate (10 Hz), stamped when
+  jog cancel, feed hold; max rates and accelerations from the rig file's ``[sim.grbl]``); status
+  reports are polled at the driver's rate (10 Hz), stamped when
   their last byte arrives, positions printed to 3 decimals; the conversation goes to ``on_gcode``.
 * Bota: the byte-level twin (:class:`~labrig.sim.bota_twin.BotaTwin`: noise, temperature-drifting
   bias, its own drifting clock, 800 Hz) decoded by the driver's receiver; the host reads the port
@@ -91,8 +92,9 @@ class OfflineRig:
                  sinks: OfflineSinks, clock: ManualClock | None = None) -> None:
         self.clock = clock or ManualClock(1_000_000_000_000)
         self.sinks = sinks
-        start = quantize_mm(np.asarray(start_tool_mm, dtype=np.float64).tolist(), self._limits().steps_per_mm)
-        self.timeline = MotionTimeline(self._limits(), start, self.now_us)
+        limits = machine_limits(rig)
+        start = quantize_mm(np.asarray(start_tool_mm, dtype=np.float64).tolist(), limits.steps_per_mm)
+        self.timeline = MotionTimeline(limits, start, self.now_us)
         self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=RENDER_LAG_US * 2 // 3)
         self.track = self.rig.bind(self._tool_world)
         self.bota = BotaTwin(BotaTwinParams(filter=FilterSetup(sinc_length=64), boot_delay_us=FT_BOOT_US,
@@ -108,10 +110,6 @@ class OfflineRig:
         self._next_poll_us = self.now_us
         self._tare_rows: list[npt.NDArray[np.float64]] | None = None
         self.bota.transmit(self.now_us)  # power on
-
-    @staticmethod
-    def _limits() -> MachineLimits:
-        return MachineLimits.from_settings(initial_settings())
 
     @property
     def now_us(self) -> int:
@@ -284,3 +282,8 @@ class OfflineRig:
             while self.rig.t_us < end:
                 self.clock.advance_ns(RENDER_CHUNK_US * 1000)
                 self.render_to(min(self.rig.t_us + RENDER_CHUNK_US, end))
+
+
+def machine_limits(rig: RigConfig) -> MachineLimits:
+    """The GRBL planner's limits of the virtual CNC: GRBL's defaults with the rig file's ``[sim.grbl]``."""
+    return MachineLimits.from_settings(initial_settings(rig.sim.grbl.settings()))

@@ -18,7 +18,8 @@
 World time is host microseconds since :meth:`LiveWorld.start`. The gel pose
 in ``rig.toml`` is in GRBL's homed frame (limit switches at the travel ends);
 the twin powers up with the tool above the gel centre, unhomed (MPos 0 there)
-or, with ``homed``, as if homed earlier in the session.
+or, with ``homed``, as if homed earlier in the session; its max rates and accelerations
+are the rig file's ``[sim.grbl]`` (GRBL's defaults without one).
 """
 
 from __future__ import annotations
@@ -112,7 +113,9 @@ class LiveWorld:
         # Solves must lie in the past when the renderer asks for them: within the lag.
         self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=min(50_000, self.render_lag_us * 2 // 3))
         self.track: ContactTrack = self.rig.bind(self._tool_world)
-        self.grbl = GrblTwin(grbl_settings, power_on_physical_mm=power_on_tool_mm(rig, indenter), on_output=self._on_output,
+        # The rig file's [sim.grbl] limits are the twin's EEPROM at power-on; explicit settings win.
+        settings = {**rig.sim.grbl.settings(), **(grbl_settings or {})}
+        self.grbl = GrblTwin(settings, power_on_physical_mm=power_on_tool_mm(rig, indenter), on_output=self._on_output,
                              homed=homed)
         self.bota = BotaTwin(
             bota_params or BotaTwinParams(clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM, seed=seed,
