@@ -252,3 +252,35 @@ def test_a_badly_printed_gel_calibrates_without_false_missing_markers(rig: RigCo
     assert markers.missing_indices == list(MISSING)
     found = ~markers.missing
     assert np.abs(markers.rest_px[found] - px[found]).max() < 0.5
+
+
+def test_the_in_plane_fill_reproduces_a_stuck_contact_and_follows_a_peak() -> None:
+    """Missing markers' in-plane displacement: a uniform shift (a stuck contact) and a linear field come
+    back exactly; a smooth peak is followed far better than by zero force or the neighbours' mean."""
+    from types import SimpleNamespace
+
+    from labrig.pipeline.unobserved import fill_in_plane, in_plane_fill
+
+    rows, cols = 12, 13
+    m = rows * cols
+    r, c = np.divmod(np.arange(m), cols)
+    # cells of a 12 x 13 lattice on a node grid one finer: neighbouring cells share their border nodes
+    nodes_r, nodes_c = np.divmod(np.arange((2 * rows + 1) * (2 * cols + 1)), 2 * cols + 1)
+    cells = ((np.abs(nodes_r[None, :] - (2 * r[:, None] + 1)) <= 1)
+             & (np.abs(nodes_c[None, :] - (2 * c[:, None] + 1)) <= 1)).astype(float)
+    operator = SimpleNamespace(n_markers=m, cells=cells)
+    d2 = (c - 6.2) ** 2 + (r - 5.4) ** 2
+    observed = np.ones(m, bool)
+    observed[np.argsort(d2)[:3]] = False
+    fill = in_plane_fill(operator, observed)  # type: ignore[arg-type]
+    for field in (np.full(m, 0.3), 0.01 * c - 0.02 * r):
+        u = np.stack([field, -field, np.zeros(m)], axis=1)
+        u[~observed, :2] = np.nan
+        done = fill_in_plane(fill, u)
+        assert np.allclose(done[:, 0], field) and np.allclose(done[:, 1], -field)
+    bump = np.exp(-d2 / (2 * 1.2**2))
+    u = np.stack([bump, np.zeros(m), np.zeros(m)], axis=1)
+    u[~observed, 0] = np.nan
+    lost = 1 - fill_in_plane(fill, u)[~observed, 0].sum() / bump[~observed].sum()
+    neighbours_mean = 0.47  # the harmonic fill's loss on this bump
+    assert 0 <= lost < 0.6 * neighbours_mean
