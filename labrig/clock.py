@@ -128,9 +128,8 @@ class ClockModel:
     lateness of a prompt edge, a scale for the offset's error (infinite without
     two such edges). ``n_trigger_pairs``: camera edges paired with a known host
     edge; ``n_triggers``: those the model was fitted on. ``offset_bound_us``: where the edges'
-    latest times are known too (their device's answer), the model lies midway between the
-    highest earliest and the lowest latest time, and its offset is off by at most this (half
-    the width left between them; infinite: no latest times).
+    latest times are known too (their device's answer), how far above the model the truth can
+    lie at most (the model rests on the earliest times; infinite: no latest times).
     """
 
     device_ref_us: float = 0.0

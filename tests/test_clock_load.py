@@ -154,9 +154,10 @@ def test_clock_models_of_older_files_read_with_unknown_quality(tmp_path: Path) -
         assert ClockModel.from_attrs(dict(f["camera"].attrs)) == model
 
 
-def test_latest_times_centre_the_trigger_line_and_bound_its_offset() -> None:
-    """Edges stamped before they happen (send + wire) and answered after: the model lies between the
-    bounds, nearer the truth than the earliest stamps alone, and its stated offset bound holds."""
+def test_latest_times_bound_the_offset_from_above_without_moving_the_line() -> None:
+    """Edges stamped before they happen (send + wire) and answered after: the line stays on the
+    earliest stamps (the answers' way back is slow and variable), and the truth lies between the
+    line and its stated bound above it."""
     rng = np.random.default_rng(4)
     n, drift_ppm = 40, 250.0
     true_host = np.sort(rng.uniform(0, 20e6, n))
@@ -164,16 +165,15 @@ def test_latest_times_centre_the_trigger_line_and_bound_its_offset() -> None:
     wake = rng.uniform(40, 90, n)  # every edge lags its stamp by the host's wake-up ...
     wake[rng.choice(n, 12, replace=False)] += rng.uniform(500, 8000, 12)  # ... some by much more
     earliest = true_host - wake
-    latest = true_host + rng.uniform(40, 90, n)  # the answer's way back
+    latest = true_host + rng.uniform(300, 3000, n)  # the answer's way back: slow and variable
     alone = fit_triggers(device, earliest)
-    centred = fit_triggers(device, earliest, latest_host_us=latest)
-    offset_alone = np.median(true_host - alone.to_host_us(device))
-    offset_centred = np.median(true_host - centred.to_host_us(device))
-    assert offset_alone > 30  # resting on the earliest stamps leaves the model early by the wake-up
-    assert abs(offset_centred) < 25 and abs(offset_centred) <= centred.offset_bound_us
-    assert centred.drift_ppm == alone.drift_ppm and np.isinf(alone.offset_bound_us)
+    bounded = fit_triggers(device, earliest, latest_host_us=latest)
+    offset = np.median(true_host - bounded.to_host_us(device))
+    assert bounded.host_ref_us == alone.host_ref_us and bounded.drift_ppm == alone.drift_ppm
+    assert 0 < offset < 100 and offset <= bounded.offset_bound_us < 400
+    assert np.isinf(alone.offset_bound_us)
     unknown = fit_triggers(device, earliest, latest_host_us=np.full(n, UNKNOWN_LATEST_US))
-    assert unknown.host_ref_us == alone.host_ref_us and np.isinf(unknown.offset_bound_us)
+    assert unknown == alone
 
 
 def test_a_file_without_latest_trigger_times_refits_as_before(tmp_path: Path) -> None:
