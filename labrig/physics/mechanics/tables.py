@@ -283,7 +283,10 @@ class ContactTable:
         shear_force = traction.sum(axis=(1, 2), dtype=np.float64) * area
         if angle:
             traction, shear_force = rotate_contact_traction(traction, bound, angle, shear_force, area)
-        u = self._tangential_convolver()(traction)
+        if traction.any():
+            u = self._tangential_convolver()(traction)
+        else:  # what the convolution of a zero traction gives, without it (normal contact)
+            u = np.zeros((2, *self.grid.shape), dtype=np.float32)
         factor = stiffening_factor(depth, self.meta["spec"]["gel"]["thickness_mm"], self.stiffening)
         magnitude = np.hypot(traction[0], traction[1])
         in_contact = pressure > 0
