@@ -91,6 +91,7 @@ class RigOutput:
     truth_t_us: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     truth_markers_mm: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
     truth_markers_px: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0, 2), np.float32))
+    #: Renderer calls (a step over an image at rest needs none; the event sensor still steps).
     renders: int = 0
 
 
@@ -327,7 +328,7 @@ class VirtualRig:
                 update = self.renderer.render(markers, self._depth_field)
                 self._rendered = (markers, self._depth_field)
                 chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
-            out.renders += 1
+                out.renders += 1
             self.t_us = t1
             if self._led_switches and self._led_switches[0][0] <= t1 < t_end_us:
                 # The LED switches within LED_SWITCH_US; the photoreceptors' low-pass spreads the events.
