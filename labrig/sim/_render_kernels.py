@@ -303,6 +303,48 @@ def crossings(
     return n, m
 
 
+@njit(cache=True, nogil=True)
+def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_filtered, last_event, refractory,
+               end_minus_start, start_minus_start, hi, lo, count_only, out_pix, out_t):  # type: ignore[no-untyped-def]
+    """Leak events due by ``t1`` of the quiet candidate pixels ``cand`` (EventSensor._quiet_leak's arithmetic).
+
+    A pixel leaks at ``t_start + (C_on + R - Lf) / k``; each leak moves R by C_on and
+    refreshes its band (``end_minus_start`` / ``start_minus_start``: the epoch's ends
+    minus ``t_start``, us); one that its refractory period keeps is written
+    (``out_pix``, ``out_t``) and updates ``last_event``. ``count_only``: change nothing,
+    return how many leaks are due (the room the writing pass needs). Returns the count
+    of leaks (``count_only``) or of events written.
+    """
+    n = 0
+    for i in range(cand.size):
+        p = cand[i]
+        c_on = c_on_all[p]
+        kk = k_all[p]
+        r = reference[p]
+        lf = log_filtered[p]
+        last = last_event[p]
+        while True:
+            t = t_start + (c_on + r - lf) / kk
+            if not t <= t1:
+                break
+            if count_only:
+                r += c_on
+                n += 1
+                continue
+            t_int = np.int64(np.floor(t + 1e-6))
+            r += c_on
+            reference[p] = r
+            hi[p] = r + c_on - kk * end_minus_start - 1e-9
+            lo[p] = r - c_off_all[p] - kk * start_minus_start + 1e-9
+            if t >= last + refractory:
+                last = t_int
+                last_event[p] = t_int
+                out_pix[n] = p
+                out_t[n] = t_int
+                n += 1
+    return n
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) both kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
@@ -320,6 +362,9 @@ def warm_up() -> None:
     crossings(0, 10, np.zeros(1, i8), 0 * one, one, 0 * one, 0.2 * one, 0.2 * one, 1e-9 * one, True, 0, 0.0, 10.0,
               one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
               np.zeros(1, i8))
+    for count_only in (True, False):
+        quiet_leak(np.zeros(1, i8), 0, 10, 0.2 * one, 0.2 * one, 1e-9 * one, 0 * one, one.copy(), np.zeros(1, i8), 300,
+                   1e5, 0.0, one.copy(), -one, count_only, np.zeros(1, i8), np.zeros(1, i8))
     rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
                0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
                np.zeros(16))

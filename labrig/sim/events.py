@@ -60,6 +60,7 @@ Index = npt.NDArray[np.int64]
 #: One CD event: sensor pixel x, y; polarity p (1 ON, 0 OFF); time t (us).
 
 _NEVER_US = -(2**62)
+_NO_INDEX = np.empty(0, dtype=np.int64)
 
 
 @dataclass(frozen=True)
@@ -392,26 +393,16 @@ class EventSensor:
         empty = (np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64))
         if p.leak_rate_hz <= 0 or self._leak_candidates.size == 0:
             return empty
-        out_pix, out_t = [], []
-        cand = self._leak_candidates
-        while True:
-            t = self._t_start_us + (self.c_on[cand] + self.reference[cand] - self.log_filtered[cand]) / self._k[cand]
-            due_at = t <= t1_us
-            if not due_at.any():
-                break
-            due, t = cand[due_at], t[due_at]
-            t_int = np.floor(t + 1e-6).astype(np.int64)
-            ok = t >= self.last_event_us[due] + self._refractory_us
-            self.reference[due] += self.c_on[due]
-            self._set_band(due)
-            self.last_event_us[due[ok]] = t_int[ok]
-            out_pix.append(due[ok])
-            out_t.append(t_int[ok])
-            cand = due
-        if not out_pix:
+        # One compiled pass per pixel (:func:`._render_kernels.quiet_leak`): a counting pass sizes the output.
+        args = (self._leak_candidates, self._t_start_us, t1_us, self.c_on, self.c_off, self._k, self.reference,
+                self.log_filtered, self.last_event_us, self._refractory_us, self._epoch_end_us - self._t_start_us,
+                self._epoch_start_us - self._t_start_us, self._hi, self._lo)
+        due = _k.quiet_leak(*args, True, _NO_INDEX, _NO_INDEX)
+        if due == 0:
             return empty
-        pix = np.concatenate(out_pix)
-        return pix, np.ones(pix.size, dtype=np.uint8), np.concatenate(out_t)
+        pix, t = np.empty(due, np.int64), np.empty(due, np.int64)
+        n = _k.quiet_leak(*args, False, pix, t)
+        return pix[:n], np.ones(n, dtype=np.uint8), t[:n]
 
     # -- shot noise --------------------------------------------------------------------------------
 
