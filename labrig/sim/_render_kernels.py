@@ -304,6 +304,29 @@ def crossings(
 
 
 @njit(cache=True, nogil=True)
+def epoch_bands(k, neg_end, neg_start, c_on_margin, c_off_margin, reference, log_filtered, hi, lo, leak,
+                candidates):  # type: ignore[no-untyped-def]
+    """Every pixel's no-crossing band for a new leak epoch, in one pass (EventSensor._start_epoch's arithmetic):
+    ``hi = k neg_end + C_on margin + R``, ``lo = k neg_start + C_off margin + R`` (``neg_*``: minus the epoch's
+    ends since ``t_start``, us); with ``leak``, the pixels already at or above ``hi`` go to ``candidates``.
+    Returns how many."""
+    m = 0
+    for i in range(k.size):
+        h = k[i] * neg_end
+        h += c_on_margin[i]
+        h += reference[i]
+        hi[i] = h
+        v = k[i] * neg_start
+        v += c_off_margin[i]
+        v += reference[i]
+        lo[i] = v
+        if leak and log_filtered[i] >= h:
+            candidates[m] = i
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
 def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_filtered, last_event, refractory,
                end_minus_start, start_minus_start, hi, lo, count_only, out_pix, out_t):  # type: ignore[no-untyped-def]
     """Leak events due by ``t1`` of the quiet candidate pixels ``cand`` (EventSensor._quiet_leak's arithmetic).
@@ -362,6 +385,7 @@ def warm_up() -> None:
     crossings(0, 10, np.zeros(1, i8), 0 * one, one, 0 * one, 0.2 * one, 0.2 * one, 1e-9 * one, True, 0, 0.0, 10.0,
               one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
               np.zeros(1, i8))
+    epoch_bands(one, -1.0, 0.0, one, -one, 0 * one, one.copy(), one.copy(), one.copy(), True, np.zeros(1, i8))
     for count_only in (True, False):
         quiet_leak(np.zeros(1, i8), 0, 10, 0.2 * one, 0.2 * one, 1e-9 * one, 0 * one, one.copy(), np.zeros(1, i8), 300,
                    1e5, 0.0, one.copy(), -one, count_only, np.zeros(1, i8), np.zeros(1, i8))

@@ -353,17 +353,16 @@ class EventSensor:
             return
         self._epoch_start_us = float(t0_us)
         self._epoch_end_us = float(max(t0_us + self.params.leak_epoch_us, t1_us))
-        # The whole band, in place (the same bounds as _set_band up to rounding, inside its margin).
-        np.multiply(self._k, -(self._epoch_end_us - self._t_start_us), out=self._hi)
-        self._hi += self._c_on_margin
-        self._hi += self.reference
-        np.multiply(self._k, -(self._epoch_start_us - self._t_start_us), out=self._lo)
-        self._lo += self._c_off_margin
-        self._lo += self.reference
+        # The whole band, in place (the same bounds as _set_band up to rounding, inside its margin), in one pass.
+        leak = self.params.leak_rate_hz > 0
+        candidates = self._scratch  # as many as pixels, free between steps
+        m = _k.epoch_bands(self._k, -(self._epoch_end_us - self._t_start_us), -(self._epoch_start_us - self._t_start_us),
+                           self._c_on_margin, self._c_off_margin, self.reference, self.log_filtered, self._hi, self._lo,
+                           leak, candidates)
         self._is_candidate[self._leak_candidates] = False
         self._leak_candidates = np.empty(0, dtype=np.int64)
-        if self.params.leak_rate_hz > 0:
-            self._add_leak_candidates(np.flatnonzero(self.log_filtered >= self._hi))
+        if leak:
+            self._add_leak_candidates(candidates[:m].copy())
 
     def _set_band(self, who: Index | slice, c_on: Array | None = None, c_off: Array | None = None) -> None:
         """Band of Lf with no crossing anywhere in the epoch: D = Lf - R + k (t - t_start) stays in (-C_off, C_on).
