@@ -327,6 +327,19 @@ def epoch_bands(k, neg_end, neg_start, c_on_margin, c_off_margin, reference, log
 
 
 @njit(cache=True, nogil=True)
+def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, out_due):  # type: ignore[no-untyped-def]
+    """The candidates whose next leak time is at or before ``t1`` (as :func:`quiet_leak` finds it), into
+    ``out_due``; returns how many."""
+    m = 0
+    for i in range(cand.size):
+        p = cand[i]
+        if t_start + (c_on_all[p] + reference[p] - log_filtered[p]) / k_all[p] <= t1:
+            out_due[m] = p
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
 def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_filtered, last_event, refractory,
                end_minus_start, start_minus_start, hi, lo, count_only, out_pix, out_t):  # type: ignore[no-untyped-def]
     """Leak events due by ``t1`` of the quiet candidate pixels ``cand`` (EventSensor._quiet_leak's arithmetic).
@@ -386,6 +399,7 @@ def warm_up() -> None:
               one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
               np.zeros(1, i8))
     epoch_bands(one, -1.0, 0.0, one, -one, 0 * one, one.copy(), one.copy(), one.copy(), True, np.zeros(1, i8))
+    leak_due(np.zeros(1, i8), 0, 10, 0.2 * one, 1e-9 * one, 0 * one, one, np.zeros(1, i8))
     for count_only in (True, False):
         quiet_leak(np.zeros(1, i8), 0, 10, 0.2 * one, 0.2 * one, 1e-9 * one, 0 * one, one.copy(), np.zeros(1, i8), 300,
                    1e5, 0.0, one.copy(), -one, count_only, np.zeros(1, i8), np.zeros(1, i8))

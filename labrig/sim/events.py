@@ -392,8 +392,15 @@ class EventSensor:
         empty = (np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64))
         if p.leak_rate_hz <= 0 or self._leak_candidates.size == 0:
             return empty
-        # One compiled pass per pixel (:func:`._render_kernels.quiet_leak`): a counting pass sizes the output.
-        args = (self._leak_candidates, self._t_start_us, t1_us, self.c_on, self.c_off, self._k, self.reference,
+        # Compiled passes (:mod:`._render_kernels`): the candidates due, then a counting pass over them sizes the
+        # output of the pass that leaks them.
+        cand = self._leak_candidates
+        due_buffer = np.empty(cand.size, np.int64)
+        n_due = _k.leak_due(cand, self._t_start_us, t1_us, self.c_on, self._k, self.reference, self.log_filtered,
+                            due_buffer)
+        if n_due == 0:
+            return empty
+        args = (due_buffer[:n_due], self._t_start_us, t1_us, self.c_on, self.c_off, self._k, self.reference,
                 self.log_filtered, self.last_event_us, self._refractory_us, self._epoch_end_us - self._t_start_us,
                 self._epoch_start_us - self._t_start_us, self._hi, self._lo)
         due = _k.quiet_leak(*args, True, _NO_INDEX, _NO_INDEX)
