@@ -41,6 +41,9 @@ from labrig.sim.truth import truth_streams
 F64 = npt.NDArray[np.float64]
 MADE_BY_VIRTUAL_TIME = "virtual-time"
 MADE_BY_DRIVERS = "drivers"
+#: The writer's flush interval, wall s: each flush re-compresses the open chunks (most of the writer's CPU), and a
+#: virtual-time recording whose process dies is made again from its seed, not resumed.
+WRITER_FLUSH_S = 2.0
 #: F/T samples gathered per writer put (~80 ms at 800 Hz; the rows are the same as one put each).
 FT_BATCH = 64
 US = 1_000_000
@@ -131,7 +134,7 @@ class _VirtualRun:
                 "location_mm": list(self.plan.spec.location_mm), "tare_n_nm": list(tare), **extra}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      extra=info)
-        writer = RecordingWriter(out, metadata, clock=d.clock,
+        writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S,
                                  extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))).open()
         self.writer = writer
         result = RunResult(out, EXIT_COMPLETE)
