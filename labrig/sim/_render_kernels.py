@@ -327,16 +327,24 @@ def epoch_bands(k, neg_end, neg_start, c_on_margin, c_off_margin, reference, log
 
 
 @njit(cache=True, nogil=True)
-def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, out_due):  # type: ignore[no-untyped-def]
+def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, is_candidate, out_due,
+             out_kept):  # type: ignore[no-untyped-def]
     """The candidates whose next leak time is at or before ``t1`` (as :func:`quiet_leak` finds it), into
-    ``out_due``; returns how many."""
+    ``out_due``; those still at or above their band's top ``hi`` (the only ones that may leak before the
+    epoch's end) into ``out_kept``, the others leave the candidates (``is_candidate``). Returns both counts."""
     m = 0
+    kept = 0
     for i in range(cand.size):
         p = cand[i]
         if t_start + (c_on_all[p] + reference[p] - log_filtered[p]) / k_all[p] <= t1:
             out_due[m] = p
             m += 1
-    return m
+        if log_filtered[p] >= hi[p]:
+            out_kept[kept] = p
+            kept += 1
+        else:
+            is_candidate[p] = False
+    return m, kept
 
 
 @njit(cache=True, nogil=True)
@@ -399,7 +407,8 @@ def warm_up() -> None:
               one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
               np.zeros(1, i8))
     epoch_bands(one, -1.0, 0.0, one, -one, 0 * one, one.copy(), one.copy(), one.copy(), True, np.zeros(1, i8))
-    leak_due(np.zeros(1, i8), 0, 10, 0.2 * one, 1e-9 * one, 0 * one, one, np.zeros(1, i8))
+    leak_due(np.zeros(1, i8), 0, 10, 0.2 * one, 1e-9 * one, 0 * one, one, one.copy(), np.ones(1, np.bool_),
+             np.zeros(1, i8), np.zeros(1, i8))
     for count_only in (True, False):
         quiet_leak(np.zeros(1, i8), 0, 10, 0.2 * one, 0.2 * one, 1e-9 * one, 0 * one, one.copy(), np.zeros(1, i8), 300,
                    1e5, 0.0, one.copy(), -one, count_only, np.zeros(1, i8), np.zeros(1, i8))

@@ -392,12 +392,15 @@ class EventSensor:
         empty = (np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64))
         if p.leak_rate_hz <= 0 or self._leak_candidates.size == 0:
             return empty
-        # Compiled passes (:mod:`._render_kernels`): the candidates due, then a counting pass over them sizes the
-        # output of the pass that leaks them.
+        # Compiled passes (:mod:`._render_kernels`): the candidates due (those that fell below their band since
+        # they became candidates cannot leak in this epoch and are dropped), then a counting pass over the due
+        # ones sizes the output of the pass that leaks them.
         cand = self._leak_candidates
-        due_buffer = np.empty(cand.size, np.int64)
-        n_due = _k.leak_due(cand, self._t_start_us, t1_us, self.c_on, self._k, self.reference, self.log_filtered,
-                            due_buffer)
+        due_buffer, kept = np.empty(cand.size, np.int64), np.empty(cand.size, np.int64)
+        n_due, n_kept = _k.leak_due(cand, self._t_start_us, t1_us, self.c_on, self._k, self.reference,
+                                    self.log_filtered, self._hi, self._is_candidate, due_buffer, kept)
+        if n_kept < cand.size:
+            self._leak_candidates = kept[:n_kept]
         if n_due == 0:
             return empty
         args = (due_buffer[:n_due], self._t_start_us, t1_us, self.c_on, self.c_off, self._k, self.reference,
