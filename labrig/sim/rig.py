@@ -149,6 +149,9 @@ class VirtualRig:
         self._trigger_lock = threading.Lock()
         self._led_switches: list[tuple[int, bool]] = []
         self._next_truth_us = 0
+        # The solve intervals _next_solve_time tries (us), for these min and max intervals.
+        self._solve_offsets = np.zeros(0, np.int64)
+        self._solve_offsets_key: tuple[int, int] | None = None
         # The last contact solved: (table, (depth, terms, angle, anchor), (fields, markers, marker forces)).
         self._solved: tuple[ContactTable, tuple[object, ...], tuple[ContactFields, npt.NDArray[np.float64],
                                                                     npt.NDArray[np.float64]]] | None = None
@@ -397,7 +400,10 @@ class VirtualRig:
         """The latest time, within [min, max] solve intervals, before the tool
         moves more than ``solve_step_mm`` (quasi-static solves as often as the
         motion needs)."""
-        candidates = prev.t_us + np.geomspace(self.min_solve_interval_us, self.max_solve_interval_us, 8).astype(np.int64)
+        if self._solve_offsets_key != (self.min_solve_interval_us, self.max_solve_interval_us):
+            self._solve_offsets = np.geomspace(self.min_solve_interval_us, self.max_solve_interval_us, 8).astype(np.int64)
+            self._solve_offsets_key = (self.min_solve_interval_us, self.max_solve_interval_us)
+        candidates = prev.t_us + self._solve_offsets
         moved = np.linalg.norm(tool_path(candidates) - tool_path(prev.t_us)[0], axis=1)
         ok = candidates[moved <= self.solve_step_mm]
         return int(ok[-1]) if ok.size else int(candidates[0])
