@@ -297,11 +297,31 @@ class SegmentTable:
 
     def positions_at(self, t_us: npt.ArrayLike, extra: Sequence[Segment] = ()) -> npt.NDArray[np.float64]:
         """Positions (N, 3) mm at ``t_us``, with ``extra`` segments (a live plan) after the table's."""
-        t = np.atleast_1d(np.asarray(t_us, dtype=np.float64))
         rows = self._array()
         if extra:
             more = np.asarray([(s.t_start_us, s.duration_us, *s.start_mm, *s.unit, s.v_start_mm_s, s.accel_mm_s2) for s in extra])
             rows = np.concatenate([rows, more]) if len(rows) else more
+        return self.positions_of_rows(rows, t_us)
+
+    def with_extra(self, extra: Sequence[Segment]) -> npt.NDArray[np.float64]:
+        """The table's rows (K, 10) followed by ``extra`` segments' rows (for :meth:`positions_of_rows`)."""
+        rows = self._array()
+        if not extra:
+            return rows
+        more = np.asarray([(s.t_start_us, s.duration_us, *s.start_mm, *s.unit, s.v_start_mm_s, s.accel_mm_s2) for s in extra])
+        return np.concatenate([rows, more]) if len(rows) else more
+
+    def positions_of_rows(self, rows: npt.NDArray[np.float64], t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Positions (N, 3) mm at ``t_us`` on segment rows from :meth:`with_extra` (``initial_mm`` before them)."""
+        t = np.atleast_1d(np.asarray(t_us, dtype=np.float64))
+        if t.size == 1 and len(rows):  # one time (kHz samplers): the same arithmetic on Python floats
+            i = int(np.searchsorted(rows[:, 0], t[0], side="right")) - 1
+            if i < 0:
+                return np.array([self.initial_mm])
+            t0, duration, x, y, z, ux, uy, uz, v0, accel = rows[i].tolist()
+            tau = min(max(float(t[0]) - t0, 0.0), duration) / US_PER_S
+            dist = v0 * tau + 0.5 * accel * tau * tau
+            return np.array([[x + ux * dist, y + uy * dist, z + uz * dist]])
         out = np.empty((t.size, 3), dtype=np.float64)
         out[:] = self.initial_mm
         if len(rows) == 0:
@@ -374,6 +394,9 @@ class MotionTimeline:
         self._state = "idle"
         self._flush_on_stop = False
         self._cycle_row = 0  # first history row of the motion since the last rest
+        # positions_at's rows (history + plan) and what they were made of (the history array, the plan's pieces).
+        self._rows = np.zeros((0, 10))
+        self._rows_key: tuple[npt.NDArray[np.float64], list[_Piece]] | None = None
 
     # -- queries -----------------------------------------------------------------
 
@@ -419,7 +442,14 @@ class MotionTimeline:
 
     def positions_at(self, t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Positions (N, 3) mm at ``t_us``: history, then the current plan (which later events may change)."""
-        return self._history.positions_at(t_us, [p.segment() for p in self._plan])
+        history = self._history._array()
+        key = self._rows_key
+        if key is None or key[0] is not history or len(key[1]) != len(self._plan) or any(
+                a is not b for a, b in zip(key[1], self._plan)):
+            # The rows change only with the history or the plan: kept between queries (kHz samplers).
+            self._rows = self._history.with_extra([p.segment() for p in self._plan])
+            self._rows_key = (history, list(self._plan))
+        return self._history.positions_of_rows(self._rows, t_us)
 
     # -- operations ----------------------------------------------------------------
 

@@ -37,6 +37,22 @@ def put_ft(writer: RecordingWriter, sample: FtSample) -> bool:
     )
 
 
+def put_ft_rows(writer: RecordingWriter, samples: list[FtSample]) -> bool:
+    """F/T samples into ``ft`` as one batch: the rows :func:`put_ft` would put one by one."""
+    if not samples:
+        return True
+    t0_us = writer.t0_host_ns
+    return writer.put(
+        "ft",
+        t_device_us=[s.t_device_us for s in samples],
+        t_host_us=[(s.t_host_ns - t0_us) // NS_PER_US for s in samples],
+        force_n=[s.force_n for s in samples],
+        torque_nm=[s.torque_nm for s in samples],
+        status=[s.status for s in samples],
+        temperature_c=[s.temperature_c for s in samples],
+    )
+
+
 def ft_sink(writer: RecordingWriter) -> Callable[[FtSample], None]:
     """An ``on_sample`` for :class:`~labrig.devices.bota.BotaSensor` that puts each sample into ``ft``.
 

@@ -22,11 +22,12 @@ import numpy.typing as npt
 
 from labrig.calibration.registration_file import gel_pose
 from labrig.config import RigConfig
+from labrig.devices.bota_stream import FtSample
 from labrig.indenters import Indenter
 from labrig.physics.grid import network_grid_gel_mm
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.rigfile import safety_limits
-from labrig.protocol.routing import put_chunk, put_ft, put_gcode
+from labrig.protocol.routing import put_chunk, put_ft_rows, put_gcode
 from labrig.protocol.runner import APPROACH_FRACTION, DETECT_SAMPLES, FINE_SPEED_MM_S, MOVE_MARGIN_S, ProbeRunner, RunResult
 from labrig.protocol.safety import ForceMonitor, SafetyLimits, SpeedLimits
 from labrig.protocol.session import NS_PER_US, RigSession
@@ -40,6 +41,11 @@ from labrig.sim.truth import truth_streams
 F64 = npt.NDArray[np.float64]
 MADE_BY_VIRTUAL_TIME = "virtual-time"
 MADE_BY_DRIVERS = "drivers"
+#: The writer's flush interval, wall s: each flush re-compresses the open chunks (most of the writer's CPU), and a
+#: virtual-time recording whose process dies is made again from its seed, not resumed.
+WRITER_FLUSH_S = 2.0
+#: F/T samples gathered per writer put (~80 ms at 800 Hz; the rows are the same as one put each).
+FT_BATCH = 64
 US = 1_000_000
 
 
@@ -85,13 +91,22 @@ class _VirtualRun:
         self.monitor = ForceMonitor(limits, on_trip=self.devices.feed_hold)
         self.level = 0
         self.phases: list[str] = []
+        self._ft_rows: list[FtSample] = []
 
     # -- routing (as RigSession routes the drivers' callbacks) -----------------------------------------
 
-    def _on_ft(self, sample: Any) -> None:
+    def _on_ft(self, sample: FtSample) -> None:
         self.monitor.on_sample(sample.t_host_ns, sample.force_n)
         if self.writer is not None:
-            put_ft(self.writer, sample)
+            self._ft_rows.append(sample)
+            if len(self._ft_rows) >= FT_BATCH:
+                self._flush_ft()
+
+    def _flush_ft(self) -> None:
+        """The F/T rows gathered so far into the writer, in one put (the same rows as one put each)."""
+        if self.writer is not None and self._ft_rows:
+            put_ft_rows(self.writer, self._ft_rows)
+        self._ft_rows = []
 
     def _on_cnc(self, status: Any) -> None:
         if self.writer is not None:
@@ -123,7 +138,7 @@ class _VirtualRun:
                 "location_mm": list(self.plan.spec.location_mm), "tare_n_nm": list(tare), **extra}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      extra=info)
-        writer = RecordingWriter(out, metadata, clock=d.clock,
+        writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S,
                                  extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))).open()
         self.writer = writer
         result = RunResult(out, EXIT_COMPLETE)
@@ -135,6 +150,7 @@ class _VirtualRun:
         finally:
             writer.phase_end(d.now_us - writer.t0_host_ns // NS_PER_US)
             d.finish()
+            self._flush_ft()
             self.writer = None
             recording = writer.close(result.exit_status, result.reason)
             result.path = recording.path

@@ -303,6 +303,92 @@ def crossings(
     return n, m
 
 
+@njit(cache=True, nogil=True)
+def epoch_bands(k, neg_end, neg_start, c_on_margin, c_off_margin, reference, log_filtered, hi, lo, leak,
+                candidates):  # type: ignore[no-untyped-def]
+    """Every pixel's no-crossing band for a new leak epoch, in one pass (EventSensor._start_epoch's arithmetic):
+    ``hi = k neg_end + C_on margin + R``, ``lo = k neg_start + C_off margin + R`` (``neg_*``: minus the epoch's
+    ends since ``t_start``, us); with ``leak``, the pixels already at or above ``hi`` go to ``candidates``.
+    Returns how many."""
+    m = 0
+    for i in range(k.size):
+        h = k[i] * neg_end
+        h += c_on_margin[i]
+        h += reference[i]
+        hi[i] = h
+        v = k[i] * neg_start
+        v += c_off_margin[i]
+        v += reference[i]
+        lo[i] = v
+        if leak and log_filtered[i] >= h:
+            candidates[m] = i
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, is_candidate, out_due,
+             out_kept):  # type: ignore[no-untyped-def]
+    """The candidates whose next leak time is at or before ``t1`` (as :func:`quiet_leak` finds it), into
+    ``out_due``; those still at or above their band's top ``hi`` (the only ones that may leak before the
+    epoch's end) into ``out_kept``, the others leave the candidates (``is_candidate``). Returns both counts."""
+    m = 0
+    kept = 0
+    for i in range(cand.size):
+        p = cand[i]
+        if t_start + (c_on_all[p] + reference[p] - log_filtered[p]) / k_all[p] <= t1:
+            out_due[m] = p
+            m += 1
+        if log_filtered[p] >= hi[p]:
+            out_kept[kept] = p
+            kept += 1
+        else:
+            is_candidate[p] = False
+    return m, kept
+
+
+@njit(cache=True, nogil=True)
+def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_filtered, last_event, refractory,
+               end_minus_start, start_minus_start, hi, lo, count_only, out_pix, out_t):  # type: ignore[no-untyped-def]
+    """Leak events due by ``t1`` of the quiet candidate pixels ``cand`` (EventSensor._quiet_leak's arithmetic).
+
+    A pixel leaks at ``t_start + (C_on + R - Lf) / k``; each leak moves R by C_on and
+    refreshes its band (``end_minus_start`` / ``start_minus_start``: the epoch's ends
+    minus ``t_start``, us); one that its refractory period keeps is written
+    (``out_pix``, ``out_t``) and updates ``last_event``. ``count_only``: change nothing,
+    return how many leaks are due (the room the writing pass needs). Returns the count
+    of leaks (``count_only``) or of events written.
+    """
+    n = 0
+    for i in range(cand.size):
+        p = cand[i]
+        c_on = c_on_all[p]
+        kk = k_all[p]
+        r = reference[p]
+        lf = log_filtered[p]
+        last = last_event[p]
+        while True:
+            t = t_start + (c_on + r - lf) / kk
+            if not t <= t1:
+                break
+            if count_only:
+                r += c_on
+                n += 1
+                continue
+            t_int = np.int64(np.floor(t + 1e-6))
+            r += c_on
+            reference[p] = r
+            hi[p] = r + c_on - kk * end_minus_start - 1e-9
+            lo[p] = r - c_off_all[p] - kk * start_minus_start + 1e-9
+            if t >= last + refractory:
+                last = t_int
+                last_event[p] = t_int
+                out_pix[n] = p
+                out_t[n] = t_int
+                n += 1
+    return n
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) both kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
@@ -320,6 +406,12 @@ def warm_up() -> None:
     crossings(0, 10, np.zeros(1, i8), 0 * one, one, 0 * one, 0.2 * one, 0.2 * one, 1e-9 * one, True, 0, 0.0, 10.0,
               one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
               np.zeros(1, i8))
+    epoch_bands(one, -1.0, 0.0, one, -one, 0 * one, one.copy(), one.copy(), one.copy(), True, np.zeros(1, i8))
+    leak_due(np.zeros(1, i8), 0, 10, 0.2 * one, 1e-9 * one, 0 * one, one, one.copy(), np.ones(1, np.bool_),
+             np.zeros(1, i8), np.zeros(1, i8))
+    for count_only in (True, False):
+        quiet_leak(np.zeros(1, i8), 0, 10, 0.2 * one, 0.2 * one, 1e-9 * one, 0 * one, one.copy(), np.zeros(1, i8), 300,
+                   1e5, 0.0, one.copy(), -one, count_only, np.zeros(1, i8), np.zeros(1, i8))
     rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
                0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
                np.zeros(16))

@@ -151,6 +151,7 @@ class BotaTwin:
         self._saved = (p.comm, p.filter, p.offsets, np.eye(6))
         self.comm, self.filter, self.offsets, self.matrix = p.comm, p.filter, p.offsets, np.eye(6)
         self._line_baud_code = p.comm.baud_code
+        self._byte_us_of_code: tuple[object, float] = (None, 0.0)
         # Time line.
         self._t0_us: float | None = None  # host time of power-on
         self.mode = "off"  # off -> booting -> run <-> config
@@ -263,7 +264,11 @@ class BotaTwin:
 
     @property
     def _byte_us(self) -> float:
-        return BITS_PER_BYTE * 1e6 / self.line_baud_rate
+        code, byte_us = self._byte_us_of_code
+        if code != self._line_baud_code:  # the baud code changes only at a boot: computed once per code
+            byte_us = BITS_PER_BYTE * 1e6 / self.line_baud_rate
+            self._byte_us_of_code = (self._line_baud_code, byte_us)
+        return byte_us
 
     def _advance(self, now_us: float) -> None:
         """Run every scheduled happening up to ``now_us``, in time order."""

@@ -60,6 +60,7 @@ Index = npt.NDArray[np.int64]
 #: One CD event: sensor pixel x, y; polarity p (1 ON, 0 OFF); time t (us).
 
 _NEVER_US = -(2**62)
+_NO_INDEX = np.empty(0, dtype=np.int64)
 
 
 @dataclass(frozen=True)
@@ -352,17 +353,16 @@ class EventSensor:
             return
         self._epoch_start_us = float(t0_us)
         self._epoch_end_us = float(max(t0_us + self.params.leak_epoch_us, t1_us))
-        # The whole band, in place (the same bounds as _set_band up to rounding, inside its margin).
-        np.multiply(self._k, -(self._epoch_end_us - self._t_start_us), out=self._hi)
-        self._hi += self._c_on_margin
-        self._hi += self.reference
-        np.multiply(self._k, -(self._epoch_start_us - self._t_start_us), out=self._lo)
-        self._lo += self._c_off_margin
-        self._lo += self.reference
+        # The whole band, in place (the same bounds as _set_band up to rounding, inside its margin), in one pass.
+        leak = self.params.leak_rate_hz > 0
+        candidates = self._scratch  # as many as pixels, free between steps
+        m = _k.epoch_bands(self._k, -(self._epoch_end_us - self._t_start_us), -(self._epoch_start_us - self._t_start_us),
+                           self._c_on_margin, self._c_off_margin, self.reference, self.log_filtered, self._hi, self._lo,
+                           leak, candidates)
         self._is_candidate[self._leak_candidates] = False
         self._leak_candidates = np.empty(0, dtype=np.int64)
-        if self.params.leak_rate_hz > 0:
-            self._add_leak_candidates(np.flatnonzero(self.log_filtered >= self._hi))
+        if leak:
+            self._add_leak_candidates(candidates[:m].copy())
 
     def _set_band(self, who: Index | slice, c_on: Array | None = None, c_off: Array | None = None) -> None:
         """Band of Lf with no crossing anywhere in the epoch: D = Lf - R + k (t - t_start) stays in (-C_off, C_on).
@@ -392,26 +392,26 @@ class EventSensor:
         empty = (np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64))
         if p.leak_rate_hz <= 0 or self._leak_candidates.size == 0:
             return empty
-        out_pix, out_t = [], []
+        # Compiled passes (:mod:`._render_kernels`): the candidates due (those that fell below their band since
+        # they became candidates cannot leak in this epoch and are dropped), then a counting pass over the due
+        # ones sizes the output of the pass that leaks them.
         cand = self._leak_candidates
-        while True:
-            t = self._t_start_us + (self.c_on[cand] + self.reference[cand] - self.log_filtered[cand]) / self._k[cand]
-            due_at = t <= t1_us
-            if not due_at.any():
-                break
-            due, t = cand[due_at], t[due_at]
-            t_int = np.floor(t + 1e-6).astype(np.int64)
-            ok = t >= self.last_event_us[due] + self._refractory_us
-            self.reference[due] += self.c_on[due]
-            self._set_band(due)
-            self.last_event_us[due[ok]] = t_int[ok]
-            out_pix.append(due[ok])
-            out_t.append(t_int[ok])
-            cand = due
-        if not out_pix:
+        due_buffer, kept = np.empty(cand.size, np.int64), np.empty(cand.size, np.int64)
+        n_due, n_kept = _k.leak_due(cand, self._t_start_us, t1_us, self.c_on, self._k, self.reference,
+                                    self.log_filtered, self._hi, self._is_candidate, due_buffer, kept)
+        if n_kept < cand.size:
+            self._leak_candidates = kept[:n_kept]
+        if n_due == 0:
             return empty
-        pix = np.concatenate(out_pix)
-        return pix, np.ones(pix.size, dtype=np.uint8), np.concatenate(out_t)
+        args = (due_buffer[:n_due], self._t_start_us, t1_us, self.c_on, self.c_off, self._k, self.reference,
+                self.log_filtered, self.last_event_us, self._refractory_us, self._epoch_end_us - self._t_start_us,
+                self._epoch_start_us - self._t_start_us, self._hi, self._lo)
+        due = _k.quiet_leak(*args, True, _NO_INDEX, _NO_INDEX)
+        if due == 0:
+            return empty
+        pix, t = np.empty(due, np.int64), np.empty(due, np.int64)
+        n = _k.quiet_leak(*args, False, pix, t)
+        return pix[:n], np.ones(n, dtype=np.uint8), t[:n]
 
     # -- shot noise --------------------------------------------------------------------------------
 

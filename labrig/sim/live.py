@@ -250,17 +250,32 @@ def publish_truth(
     put_truth_rows(writer, truth_rows(out, grid_gel), offset_us)
 
 
+#: Per contact anchor and network grid: the grid points on the contact fields (flat index) and their nodes (row, col).
+_Nodes = tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.int64]]
+_NODE_INDEX: dict[tuple[float | int, ...], tuple[npt.NDArray[np.float64], _Nodes]] = {}
+
+
 def _depth_on_grid(solve: Solve, grid_gel: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8]]:
     shape = grid_gel.shape[:2]
     if solve.fields is None or solve.anchor_mm is None:
         return np.zeros(shape, np.float32), np.zeros(shape, np.uint8)
     f = solve.fields
-    local = grid_gel.reshape(-1, 2) - solve.anchor_mm
-    col = np.rint((local[:, 0] - f.x_mm[0]) / (f.x_mm[1] - f.x_mm[0])).astype(int)
-    row = np.rint((local[:, 1] - f.y_mm[0]) / (f.y_mm[1] - f.y_mm[0])).astype(int)
-    inside = (col >= 0) & (col < len(f.x_mm)) & (row >= 0) & (row < len(f.y_mm))
-    depth = np.zeros(local.shape[0], np.float32)
-    mask = np.zeros(local.shape[0], np.uint8)
-    depth[inside] = f.depth_mm[row[inside], col[inside]]
-    mask[inside] = f.contact_mask[row[inside], col[inside]]
+    key = (float(solve.anchor_mm[0]), float(solve.anchor_mm[1]), float(f.x_mm[0]), float(f.x_mm[1]), len(f.x_mm),
+           float(f.y_mm[0]), float(f.y_mm[1]), len(f.y_mm), id(grid_gel))
+    cached = _NODE_INDEX.get(key)
+    if cached is not None and cached[0] is grid_gel:  # the same anchor on the same grid: the same nodes
+        at, row, col = cached[1]
+    else:
+        local = grid_gel.reshape(-1, 2) - solve.anchor_mm
+        col = np.rint((local[:, 0] - f.x_mm[0]) / (f.x_mm[1] - f.x_mm[0])).astype(int)
+        row = np.rint((local[:, 1] - f.y_mm[0]) / (f.y_mm[1] - f.y_mm[0])).astype(int)
+        inside = (col >= 0) & (col < len(f.x_mm)) & (row >= 0) & (row < len(f.y_mm))
+        if len(_NODE_INDEX) >= 16:
+            _NODE_INDEX.clear()
+        at, row, col = np.flatnonzero(inside), row[inside], col[inside]
+        _NODE_INDEX[key] = (grid_gel, (at, row, col))
+    depth = np.zeros(grid_gel.shape[0] * grid_gel.shape[1], np.float32)
+    mask = np.zeros(depth.size, np.uint8)
+    depth[at] = f.depth_mm[row, col]
+    mask[at] = f.contact_mask[row, col]
     return depth.reshape(shape), mask.reshape(shape)

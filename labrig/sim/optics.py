@@ -43,7 +43,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, Roi
 from labrig.physics.camera import CameraModel
 from labrig.sim import _render_kernels as _k
 from labrig.sim.discs import ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
@@ -102,6 +102,10 @@ class RenderUpdate:
 
     def __len__(self) -> int:
         return int(self.pixels.size + (0 if self.block is None else np.count_nonzero(self.block.changed)))
+
+
+#: Rest back-projections of the ROI pixels per (camera, ROI), shared by renderers in a process.
+_GEL_XY: dict[tuple[CameraModel, Roi], Array] = {}
 
 
 class Renderer:
@@ -364,9 +368,17 @@ class Renderer:
     def _gel_xy(self) -> Array:
         """Rest back-projection (H*W, 2) of every ROI pixel onto the gel surface z = 0 (mm), cached."""
         if self._pixel_gel_xy is None:
-            ys, xs = np.mgrid[self.roi.y0_px : self.roi.y1_px, self.roi.x0_px : self.roi.x1_px]
-            xy = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
-            self._pixel_gel_xy = self.camera.backproject_to_plane(xy)[:, :2].copy()
+            key = (self.camera, self.roi)
+            cached = _GEL_XY.get(key)
+            if cached is None:  # the same for every renderer of this camera and ROI (each recording of a campaign)
+                ys, xs = np.mgrid[self.roi.y0_px : self.roi.y1_px, self.roi.x0_px : self.roi.x1_px]
+                xy = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
+                cached = self.camera.backproject_to_plane(xy)[:, :2].copy()
+                cached.flags.writeable = False
+                if len(_GEL_XY) >= 4:
+                    _GEL_XY.clear()
+                _GEL_XY[key] = cached
+            self._pixel_gel_xy = cached
         return self._pixel_gel_xy
 
     def _grid_lookup(self, depth: DepthField) -> GridLookup:

@@ -69,6 +69,9 @@ LED_SWITCH_US = 20
 #: Interval of the true-marker samples, us (>= 1 kHz).
 TRUTH_MARKER_INTERVAL_US = 1000
 
+_NO_PIXELS = np.zeros(0, np.int64)
+_NO_VALUES = np.zeros(0, np.float64)
+
 
 @dataclass(frozen=True)
 class Solve:
@@ -95,6 +98,7 @@ class RigOutput:
     truth_t_us: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     truth_markers_mm: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
     truth_markers_px: npt.NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 0, 2), np.float32))
+    #: Renderer calls (a step over an image at rest needs none; the event sensor still steps).
     renders: int = 0
 
 
@@ -155,6 +159,14 @@ class VirtualRig:
         self._trigger_lock = threading.Lock()
         self._led_switches: list[tuple[int, bool]] = []
         self._next_truth_us = 0
+        # The solve intervals _next_solve_time tries (us), for these min and max intervals.
+        self._solve_offsets = np.zeros(0, np.int64)
+        self._solve_offsets_key: tuple[int, int] | None = None
+        # The last contact solved: (table, (depth, terms, angle, anchor), (fields, markers, marker forces)).
+        self._solved: tuple[ContactTable, tuple[object, ...], tuple[ContactFields, npt.NDArray[np.float64],
+                                                                    npt.NDArray[np.float64]]] | None = None
+        # The markers and depth field of the last render (None: unknown, render again).
+        self._rendered: tuple[npt.NDArray[np.float64], DepthField | None] | None = None
         # Per solve pair: the markers' image positions at both solves and the render step they allow.
         self._prev_px: npt.NDArray[np.float64] | None = None
         self._next_px: npt.NDArray[np.float64] | None = None
@@ -205,11 +217,17 @@ class VirtualRig:
                          state.centre_of_pressure_mm, self.printed.mask_truth(np.zeros((len(self.rest_mm), 3))), None, None)
         assert state.anchor_mm is not None
         table = state.table or self.table
-        fields = table.fields_for_terms(state.depth_mm, state.terms, state.angle_rad)
-        markers = self._displaced_markers(fields, state.anchor_mm)
+        key = (state.depth_mm, state.terms, state.angle_rad, float(state.anchor_mm[0]), float(state.anchor_mm[1]))
+        if self._solved is not None and self._solved[0] is table and self._solved[1] == key:
+            # The same contact as the last solve (a wait, a stop): the same fields, markers and forces.
+            fields, markers, forces = self._solved[2]
+        else:
+            fields = table.fields_for_terms(state.depth_mm, state.terms, state.angle_rad)
+            markers = self._displaced_markers(fields, state.anchor_mm)
+            forces = self._marker_forces(fields, state.anchor_mm)
+            self._solved = (table, key, (fields, markers, forces))
         return Solve(state.t_us, state.tip_gel_mm, state.depth_mm, markers, state.force_on_gel_n,
-                     state.centre_of_pressure_mm, self._marker_forces(fields, state.anchor_mm), fields,
-                     state.anchor_mm.copy())
+                     state.centre_of_pressure_mm, forces, fields, state.anchor_mm.copy())
 
     def _displaced_markers(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         key = (float(anchor[0]), float(anchor[1]), float(fields.x_mm[0]), float(fields.y_mm[0]),
@@ -304,32 +322,35 @@ class VirtualRig:
         while self.t_us < t_end_us:
             assert self._prev is not None
             if self._next is None or self.t_us >= self._next.t_us:
-                if self._next is not None:
-                    self._prev, self._prev_px = self._next, self._next_px
-                t_next = self._next_solve_time(self._prev, tool_path)
-                self._next = self.solve(self.track.first_after(self._prev.t_us, t_next))
-                self.track.hold(self._prev.t_us)
-                out.solves.append(self._next)
-                self._depth_field = self._shading_field(self._prev)
-                self._step = self._step_us()
+                self._next_pair(out, tool_path)
+            assert self._next is not None
             t1 = min(self.t_us + self._step, self._next.t_us, t_end_us)
+            # At rest (a pair of solves that leaves the image as it is), a render step need not end at the
+            # solve: the pairs roll on while at rest (fewer, longer sensor steps over the same image).
+            while t1 == self._next.t_us < min(self.t_us + self._step, t_end_us) and self._at_rest():
+                self._truth_to(t1, truth_t, truth_mm)
+                self._next_pair(out, tool_path)
+                if not self._at_rest():
+                    break
+                t1 = min(self.t_us + self._step, self._next.t_us, t_end_us)
             if self._led_switches:
                 t1 = min(t1, max(self._led_switches[0][0], self.t_us + 1))
             markers = self._markers_at(t1)
-            if self._next_truth_us <= t1:
-                times = np.arange(self._next_truth_us, t1 + 1, TRUTH_MARKER_INTERVAL_US, dtype=np.int64)
-                truth_t.extend(times.tolist())
-                truth_mm.extend(self._markers_at_times(times))
-                self._next_truth_us = int(times[-1]) + TRUTH_MARKER_INTERVAL_US
-            update = self.renderer.render(self.printed.drawn(markers), self._depth_field)
-            chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
-            out.renders += 1
+            self._truth_to(t1, truth_t, truth_mm)
+            if self._unchanged_image(markers):
+                chunks.append(self.sensor.step(self.t_us, t1, _NO_PIXELS, _NO_VALUES))
+            else:
+                update = self.renderer.render(self.printed.drawn(markers), self._depth_field)
+                self._rendered = (markers, self._depth_field)
+                chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
+                out.renders += 1
             self.t_us = t1
             if self._led_switches and self._led_switches[0][0] <= t1 < t_end_us:
                 # The LED switches within LED_SWITCH_US; the photoreceptors' low-pass spreads the events.
                 _, on = self._led_switches.pop(0)
                 t1 = min(t1 + LED_SWITCH_US, t_end_us)
                 update = self.renderer.render(self.printed.drawn(self._markers_at(t1)), self._depth_field, led_on=on)
+                self._rendered = None
                 chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
                 out.renders += 1
                 self.t_us = t1
@@ -349,11 +370,55 @@ class VirtualRig:
                 self.camera.project(mm.reshape(-1, 3)).reshape(len(truth_t), -1, 2).astype(np.float32), axis=1)
         return out
 
+    def _next_pair(self, out: RigOutput, tool_path: ToolPath) -> None:
+        """The next solve pair: the later solve becomes the earlier, a new solve follows it."""
+        assert self._prev is not None and self.track is not None
+        if self._next is not None:
+            self._prev, self._prev_px = self._next, self._next_px
+        t_next = self._next_solve_time(self._prev, tool_path)
+        self._next = self.solve(self.track.first_after(self._prev.t_us, t_next))
+        self.track.hold(self._prev.t_us)
+        out.solves.append(self._next)
+        self._depth_field = self._shading_field(self._prev)
+        self._step = self._step_us()
+
+    def _at_rest(self) -> bool:
+        """Whether the current solve pair leaves the image as it is (the same markers and contact fields)."""
+        prev, nxt = self._prev, self._next
+        assert prev is not None and nxt is not None
+        if prev.fields is not nxt.fields or (prev.anchor_mm is None) != (nxt.anchor_mm is None):
+            return False
+        if prev.anchor_mm is not None and not np.array_equal(prev.anchor_mm, nxt.anchor_mm):
+            return False
+        return bool(np.array_equal(prev.markers_mm, nxt.markers_mm))
+
+    def _unchanged_image(self, markers: npt.NDArray[np.float64]) -> bool:
+        """Whether rendering ``markers`` on the current depth field would change no pixel (the last render's
+        scene, at rest): the renderer's own test would find no moved marker and the same field."""
+        if self._rendered is None or not self._at_rest():
+            return False
+        last_markers, last_depth = self._rendered
+        depth = self._depth_field
+        if depth is not last_depth and (depth is None or not depth.same_as(last_depth)):
+            return False
+        return bool(np.array_equal(markers, last_markers))
+
+    def _truth_to(self, t1: int, truth_t: list[int], truth_mm: list[npt.NDArray[np.float64]]) -> None:
+        """True marker samples due up to ``t1`` (us), from the current solve pair."""
+        if self._next_truth_us <= t1:
+            times = np.arange(self._next_truth_us, t1 + 1, TRUTH_MARKER_INTERVAL_US, dtype=np.int64)
+            truth_t.extend(times.tolist())
+            truth_mm.extend(self._markers_at_times(times))
+            self._next_truth_us = int(times[-1]) + TRUTH_MARKER_INTERVAL_US
+
     def _next_solve_time(self, prev: Solve, tool_path: ToolPath) -> int:
         """The latest time, within [min, max] solve intervals, before the tool
         moves more than ``solve_step_mm`` (quasi-static solves as often as the
         motion needs)."""
-        candidates = prev.t_us + np.geomspace(self.min_solve_interval_us, self.max_solve_interval_us, 8).astype(np.int64)
+        if self._solve_offsets_key != (self.min_solve_interval_us, self.max_solve_interval_us):
+            self._solve_offsets = np.geomspace(self.min_solve_interval_us, self.max_solve_interval_us, 8).astype(np.int64)
+            self._solve_offsets_key = (self.min_solve_interval_us, self.max_solve_interval_us)
+        candidates = prev.t_us + self._solve_offsets
         moved = np.linalg.norm(tool_path(candidates) - tool_path(prev.t_us)[0], axis=1)
         ok = candidates[moved <= self.solve_step_mm]
         return int(ok[-1]) if ok.size else int(candidates[0])

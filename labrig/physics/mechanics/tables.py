@@ -296,7 +296,8 @@ class ContactTable:
         shear_force = traction.sum(axis=(1, 2), dtype=np.float64) * area
         if angle:
             traction, shear_force = rotate_contact_traction(traction, bound, angle, shear_force, area)
-        u = self._tangential_convolver()(traction)
+        # A zero traction (normal contact) displaces nothing: its convolution is skipped.
+        u = self._tangential_convolver()(traction) if traction.any() else np.zeros((2, *self.grid.shape), np.float32)
         factor = stiffening_factor(depth, self.meta["spec"]["gel"]["thickness_mm"], self.stiffening)
         magnitude = np.hypot(traction[0], traction[1])
         in_contact = pressure > 0
@@ -407,7 +408,7 @@ def _bracket(axis: npt.NDArray[np.floating], value: float) -> tuple[int, float]:
         return 0, 0.0
     if value >= axis[-1]:
         return len(axis) - 1, 0.0
-    i = int(np.searchsorted(axis, value, side="right")) - 1
+    i = int(axis.searchsorted(value, side="right")) - 1
     return i, float((value - axis[i]) / (axis[i + 1] - axis[i]))
 
 

@@ -1,0 +1,174 @@
+"""The virtual rig's fast paths give what the plain paths give: compiled sensor passes, cached timeline
+rows, the one-wrench cross product, batched F/T rows, reused contact solves and steps over a still image."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from labrig.config import RigConfig
+from labrig.devices.bota_stream import FtSample
+from labrig.devices.motion_profile import Segment, SegmentTable
+from labrig.frames import wrench_about
+from labrig.indenters import Indenter
+from labrig.physics.mechanics import ContactTable
+from labrig.protocol.routing import put_ft, put_ft_rows
+from labrig.recording import Recording, RecordingMetadata, RecordingWriter
+from labrig.sim import _render_kernels as _k
+from labrig.sim.events import EventParams, EventSensor
+from labrig.sim.motion import PiecewiseLinearPath, probing_path
+from labrig.sim.rig import VirtualRig
+
+finite = st.floats(-1e4, 1e4, allow_nan=False)
+
+
+def _leak_reference(s: EventSensor, cand: np.ndarray, t1: int) -> tuple[np.ndarray, np.ndarray]:
+    """The leak of quiet pixels as numpy rounds over all candidates (the model of EventSensor._quiet_leak)."""
+    out_pix, out_t = [], []
+    while True:
+        t = s._t_start_us + (s.c_on[cand] + s.reference[cand] - s.log_filtered[cand]) / s._k[cand]
+        due_at = t <= t1
+        if not due_at.any():
+            break
+        due, t = cand[due_at], t[due_at]
+        t_int = np.floor(t + 1e-6).astype(np.int64)
+        ok = t >= s.last_event_us[due] + s._refractory_us
+        s.reference[due] += s.c_on[due]
+        s._set_band(due)
+        s.last_event_us[due[ok]] = t_int[ok]
+        out_pix.append(due[ok])
+        out_t.append(t_int[ok])
+        cand = due
+    if not out_pix:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    return np.concatenate(out_pix), np.concatenate(out_t)
+
+
+def _sensor(seed: int, leak_hz: float = 40.0) -> EventSensor:
+    rng = np.random.default_rng(seed)
+    params = EventParams(leak_rate_hz=leak_hz, shot_noise_rate_hz=0.0)
+    s = EventSensor(params, 40, 30, rng.random(1200), seed=seed)
+    s._start_epoch(0, 1000)
+    s.log_filtered += rng.normal(0, 0.05, s.size)  # some pixels pushed towards their threshold
+    s.last_event_us[rng.random(s.size) < 0.3] = 20_000  # some within their refractory period
+    return s
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_quiet_leak_gives_the_numpy_rounds_events_and_state(seed: int) -> None:
+    fast, slow = _sensor(seed), _sensor(seed)
+    cand = np.flatnonzero(np.random.default_rng(seed + 100).random(fast.size) < 0.5)
+    fast._leak_candidates = cand.copy()
+    t1 = 60_000  # long enough for some pixels to leak twice
+    pix, pol, t = fast._quiet_leak(t1)
+    ref_pix, ref_t = _leak_reference(slow, cand, t1)
+    assert pix.size > 10 and np.all(pol == 1)
+    got = sorted(zip(pix.tolist(), t.tolist()))
+    assert got == sorted(zip(ref_pix.tolist(), ref_t.tolist()))
+    for name in ("reference", "last_event_us", "_hi", "_lo"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+
+
+@pytest.mark.parametrize("leak_hz", [0.0, 0.05, 30.0])
+def test_compiled_epoch_bands_match_the_numpy_passes(leak_hz: float) -> None:
+    s = _sensor(3, leak_hz)
+    end, start = s._epoch_end_us + 1e5, s._epoch_start_us + 1e5
+    hi = s._k * -(end - s._t_start_us) + s._c_on_margin + s.reference
+    lo = s._k * -(start - s._t_start_us) + s._c_off_margin + s.reference
+    expected = np.flatnonzero(s.log_filtered >= hi) if leak_hz > 0 else np.empty(0, np.int64)
+    out_hi, out_lo, cand = np.empty(s.size), np.empty(s.size), np.empty(s.size, np.int64)
+    m = _k.epoch_bands(s._k, -(end - s._t_start_us), -(start - s._t_start_us), s._c_on_margin, s._c_off_margin,
+                       s.reference, s.log_filtered, out_hi, out_lo, leak_hz > 0, cand)
+    np.testing.assert_array_equal(out_hi, hi)
+    np.testing.assert_array_equal(out_lo, lo)
+    np.testing.assert_array_equal(cand[:m], expected)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 5e5), st.floats(0, 2e6), finite, finite, st.floats(0, 50), st.floats(-500, 500)),
+                min_size=1, max_size=12),
+       st.lists(st.floats(-1e6, 1e7), min_size=1, max_size=20))
+def test_one_time_on_the_timeline_is_the_vectorised_position(rows: list[tuple[float, ...]], times: list[float]) -> None:
+    table, t = SegmentTable((0.5, -1.0, 2.0)), 0.0
+    for gap, duration, x, z, v0, accel in rows:
+        t += gap
+        table.append(Segment(t, duration, (x, 1.0, z), (0.6, 0.0, -0.8), v0, accel))
+        t += duration
+    segments = table.with_extra([])
+    vectorised = table.positions_of_rows(segments, np.array(times))
+    for i, time_us in enumerate(times):
+        np.testing.assert_array_equal(table.positions_of_rows(segments, time_us)[0], vectorised[i])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.tuples(finite, finite, finite), st.tuples(finite, finite, finite), st.tuples(finite, finite, finite))
+def test_one_wrench_is_numpys_cross_product(force: tuple[float, ...], point: tuple[float, ...],
+                                            origin: tuple[float, ...]) -> None:
+    lever = (np.asarray(point) - np.asarray(origin)) * 1e-3
+    np.testing.assert_array_equal(wrench_about(force, point, origin), np.cross(lever, np.asarray(force)))
+
+
+def test_batched_ft_rows_are_the_rows_put_one_by_one(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(5)
+    samples = [FtSample(int(i * 1250) % (1 << 32), 10**12 + i * 1_250_000 + int(rng.integers(0, 999)),
+                        tuple(rng.normal(size=3).tolist()), tuple(rng.normal(size=3).tolist()), int(i % 3),
+                        24.0 + float(rng.random())) for i in range(150)]  # type: ignore[arg-type]
+    paths = []
+    for name, batched in (("one.h5", False), ("batched.h5", True)):
+        writer = RecordingWriter(tmp_path / name, RecordingMetadata(indenter="sphere")).open()
+        writer.t0_host_ns = 10**12
+        if batched:
+            assert put_ft_rows(writer, samples[:64]) and put_ft_rows(writer, samples[64:]) and put_ft_rows(writer, [])
+        else:
+            assert all(put_ft(writer, s) for s in samples)
+        paths.append(writer.close().path)
+    with Recording(paths[0]) as one, Recording(paths[1]) as batched:
+        a, b = one.stream("ft"), batched.stream("ft")
+        assert len(a["t_host_us"]) == 150
+        for column in a:
+            np.testing.assert_array_equal(a[column], b[column], err_msg=column)
+
+
+def test_a_contact_solved_again_reuses_its_fields(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
+    vr = VirtualRig(rig, sphere, seed=2, table=table)
+    path = probing_path(rig, sphere, depth_mm=1.0, shear_mm=0.5)
+    vr.advance(int(path.phases[1][2]), path)  # to the end of normal down
+    state = vr.track.sample(vr.t_us) if vr.track is not None else None
+    assert state is not None and state.in_contact
+    first, again = vr.solve(state), vr.solve(state)
+    assert again.fields is first.fields and again.markers_mm is first.markers_mm
+    fresh = VirtualRig(rig, sphere, seed=2, table=table).solve(state)  # nothing cached
+    np.testing.assert_array_equal(fresh.markers_mm, first.markers_mm)
+    np.testing.assert_array_equal(fresh.marker_forces_n, first.marker_forces_n)
+
+
+def test_zero_traction_fields_are_what_the_convolution_gives(table: ContactTable) -> None:
+    fields = table.fields_for_terms(1.0, ((1.0, 0.0),))
+    convolved = table._tangential_convolver()(np.zeros((2, *table.box.shape), np.float32))
+    assert fields.ux_mm.dtype == convolved.dtype
+    np.testing.assert_array_equal(fields.ux_mm, convolved[0])
+    np.testing.assert_array_equal(fields.uy_mm, convolved[1])
+
+
+def test_a_still_image_takes_one_sensor_step_per_chunk_and_no_render(rig: RigConfig, sphere: Indenter,
+                                                                     table: ContactTable) -> None:
+    vr = VirtualRig(rig, sphere, seed=4, table=table, max_solve_interval_us=15_000)
+    hold = probing_path(rig, sphere).position_mm[:1]  # above the gel
+    still = PiecewiseLinearPath(np.array([0.0, 1.0]), np.repeat(hold, 2, axis=0))
+    steps: list[tuple[int, int]] = []
+    step = vr.sensor.step
+
+    def counted(t0: int, t1: int, *args: object, **kwargs: object) -> np.ndarray:
+        steps.append((t0, t1))
+        return step(t0, t1, *args, **kwargs)  # type: ignore[arg-type]
+
+    vr.sensor.step = counted  # type: ignore[method-assign]
+    outs = [vr.advance(t, still) for t in range(10_000, 400_001, 10_000)]
+    assert len(steps) == 40  # the solves every 15 ms do not split the 10 ms chunks
+    assert sum(o.renders for o in outs) == 1  # the first render; the image never changes after it
+    assert sum(len(o.solves) for o in outs) >= 20  # the contact is still solved (the truth's rows)
+    assert sum(o.events.size for o in outs) > 0  # shot noise and leak go on
+    t = np.concatenate([o.truth_t_us for o in outs])
+    np.testing.assert_array_equal(t, np.arange(t.size) * 1000)

@@ -1,0 +1,219 @@
+"""Virtual-time recordings per stage: CPU seconds per simulated second, this tree against a baseline, side by side.
+
+Each run records one recording of the paper campaign (``protocols/paper.toml``: by default the
+first recording of each of its four indenter groups) in virtual time
+(:func:`labrig.protocol.virtual_run.record_virtual`) in a fresh process, and times it by
+stage, in thread CPU time of the recording's main thread (each stage exclusive of the stages it
+calls):
+
+* ``contact``: contact mechanics, the contact track's kinematics (every F/T sample and solve)
+  and the rig's solves (contact fields, displaced markers, marker forces);
+* ``render``: the camera, ``OfflineRig.render_to`` less its solves: renderer, event sensor,
+  true markers, the chunk into the writer;
+* ``ft``: the Bota twin (UART, noise, frames), the driver's receiver, the tare, the force
+  monitor and the F/T rows into the writer, less the contact track it samples;
+* ``other``: the rest of the main thread (the GRBL model, the run's sequence, rig set-up);
+* ``writer``: the writer thread (process CPU less the main thread's: compression, HDF5).
+
+Process start, imports, the contact table's load and the compiled kernels' load are left out
+(warmed before timing): they are paid once per worker process, not per recording (the campaign
+benchmark, bench_virtual_campaign.py, measures whole CLI runs with them). With ``--baseline DIR``
+(a labrig checkout, e.g. ``git archive <commit> | tar -x -C DIR``) every recording is made by both
+trees, alternately, and the ratios baseline / this tree are reported. Reported: simulated
+seconds per CPU second (the real-time factor per core; the target is >= 3) and CPU seconds per
+simulated second per stage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from _common import bench_main, emit
+
+ROOT = Path(__file__).resolve().parents[2]
+STAGES = ("contact", "render", "ft", "other", "writer")
+#: Wrapped callables per stage: (module, class, method).
+TIMED = {
+    "contact": [("labrig.sim.contact_track", "ContactTrack", "sample"),
+                ("labrig.sim.contact_track", "ContactTrack", "first_after"),
+                ("labrig.sim.contact_track", "ContactTrack", "wrench_state"), ("labrig.sim.rig", "VirtualRig", "solve")],
+    "render": [("labrig.sim.offline", "OfflineRig", "render_to")],
+    "ft": [("labrig.sim.bota_twin", "BotaTwin", "transmit"), ("labrig.devices.bota_protocol", "BotaReceiver", "feed"),
+           ("labrig.sim.offline", "OfflineRig", "_on_frame")],
+}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--baseline", type=Path, default=None, help="a labrig checkout to compare with (its repository root)")
+    ap.add_argument("--recordings", default="", help="comma-separated indices into the paper campaign "
+                                                     "(default: the first of each indenter group)")
+    ap.add_argument("--repeat", type=int, default=1, help="runs per recording and tree (the median is kept)")
+    ap.add_argument("--probe", default=None, help=argparse.SUPPRESS)  # internal: one timed recording, JSON out
+    ap.add_argument("--json", action="store_true", help="print the figures as JSON")
+    return ap.parse_args(argv)
+
+
+class _StageClock:
+    """Exclusive thread-CPU time per stage of wrapped callables on one thread (nested stages pause their callers)."""
+
+    def __init__(self) -> None:
+        self.seconds = dict.fromkeys(STAGES, 0.0)
+        self._stack: list[str] = []
+        self._since = 0.0
+        self.thread = threading.get_ident()
+
+    def wrap(self, stage: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            if threading.get_ident() != self.thread:
+                return fn(*args, **kwargs)
+            now = time.thread_time()
+            if self._stack:
+                self.seconds[self._stack[-1]] += now - self._since
+            self._stack.append(stage)
+            self._since = now
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                now = time.thread_time()
+                self.seconds[self._stack.pop()] += now - self._since
+                self._since = now
+
+        return timed
+
+
+def probe(index: int) -> dict[str, Any]:
+    """Record the paper campaign's recording ``index`` in virtual time in this process; its figures."""
+    import importlib
+
+    from labrig.config import load_rig
+    from labrig.indenters import load_indenters
+    from labrig.protocol.files import load_campaign
+    from labrig.protocol.virtual_campaign import recording_seed
+    from labrig.protocol.virtual_run import record_virtual
+    from labrig.recording import Recording
+    from labrig.sim import _render_kernels
+    from labrig.sim.world_process import prepare_contact_tables
+
+    rig, indenters = load_rig(), load_indenters()
+    campaign = load_campaign(ROOT / "protocols" / "paper.toml", rig, indenters)
+    plan = campaign.plans[index]
+    indenter = indenters[plan.spec.indenter]
+    prepare_contact_tables(rig, indenter, [plan.spec.shear_direction_deg])
+    _render_kernels.warm_up()
+    clock = _StageClock()
+    for stage, targets in TIMED.items():
+        for module, cls_name, method in targets:
+            cls = getattr(importlib.import_module(module), cls_name)
+            setattr(cls, method, clock.wrap(stage, getattr(cls, method)))
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "probe.h5"
+        cpu0, main0 = time.process_time(), time.thread_time()
+        clock.wrap("other", lambda: record_virtual(plan.spec, out, rig, indenter, seed=recording_seed(campaign, plan)))()
+        cpu, main = time.process_time() - cpu0, time.thread_time() - main0
+        with Recording(out) as rec:
+            phases = rec.phases()
+            sim_s = (phases[-1].t_end_us - phases[0].t_start_us) / 1e6
+    stages = dict(clock.seconds, writer=cpu - main)
+    return {"index": index, "indenter": plan.spec.indenter, "sim_s": sim_s, "cpu_s": cpu, "stages_cpu_s": stages}
+
+
+def _run_probe(tree: Path, index: int) -> dict[str, Any]:
+    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--probe", str(index)], env=env,
+                          capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"recording {index} with {tree} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _default_indices() -> list[int]:
+    from labrig.config import load_rig
+    from labrig.indenters import load_indenters
+    from labrig.protocol.files import load_campaign
+
+    plans = load_campaign(ROOT / "protocols" / "paper.toml", load_rig(), load_indenters()).plans
+    first: dict[str, int] = {}
+    for i, plan in enumerate(plans):
+        first.setdefault(plan.spec.indenter, i)
+    return sorted(first.values())
+
+
+def _median(values: list[float]) -> float:
+    v = sorted(values)
+    return v[len(v) // 2] if len(v) % 2 else (v[len(v) // 2 - 1] + v[len(v) // 2]) / 2
+
+
+def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Totals over the recordings (per recording: the median run)."""
+    by_index: dict[int, list[dict[str, Any]]] = {}
+    for r in runs:
+        by_index.setdefault(r["index"], []).append(r)
+    sim = sum(rs[0]["sim_s"] for rs in by_index.values())
+    cpu = sum(_median([r["cpu_s"] for r in rs]) for rs in by_index.values())
+    stages = {s: sum(_median([r["stages_cpu_s"][s] for r in rs]) for rs in by_index.values()) for s in STAGES}
+    return {"recordings": len(by_index), "sim_s": sim, "cpu_s": cpu, "sim_s_per_cpu_s": sim / cpu,
+            "cpu_s_per_sim_s": {s: v / sim for s, v in stages.items()}}
+
+
+def run(baseline: Path | None = None, recordings: str = "", repeat: int = 1, probe: str | None = None,
+        progress: bool = True) -> dict[str, Any]:
+    indices = [int(i) for i in recordings.split(",") if i.strip()] or _default_indices()
+    trees = {"this_tree": ROOT}
+    if baseline is not None:
+        if not (baseline / "labrig" / "__init__.py").exists():
+            raise SystemExit(f"--baseline {baseline} is not a labrig checkout (no labrig/__init__.py there)")
+        trees["baseline"] = baseline.resolve()
+    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in trees}
+    for _ in range(max(1, repeat)):
+        for index in indices:
+            for name, tree in trees.items():  # alternately, so load on the machine falls on both alike
+                runs[name].append(_run_probe(tree, index))
+                if progress:
+                    last = runs[name][-1]
+                    print(f"  {name}: recording {index} ({last['indenter']}) {last['sim_s']:.1f} s simulated, "
+                          f"{last['cpu_s']:.1f} s CPU", file=sys.stderr)
+    figures: dict[str, Any] = {name: _summary(rs) for name, rs in runs.items()}
+    figures["indices"] = indices
+    if "baseline" in figures:
+        base, this = figures["baseline"], figures["this_tree"]
+        figures["speedup"] = {"total": this["sim_s_per_cpu_s"] / base["sim_s_per_cpu_s"],
+                              **{s: base["cpu_s_per_sim_s"][s] / max(this["cpu_s_per_sim_s"][s], 1e-9) for s in STAGES}}
+    return figures
+
+
+def render(f: dict[str, Any]) -> None:
+    names = [n for n in ("baseline", "this_tree") if n in f]
+    columns = ["figure", *[n.replace("_", " ") for n in names]] + (["speed-up"] if "speedup" in f else [])
+    rows = [["sim s / CPU s (per core)", *[f"{f[n]['sim_s_per_cpu_s']:.2f}" for n in names]]
+            + ([f"{f['speedup']['total']:.2f}x"] if "speedup" in f else [])]
+    for s in STAGES:
+        rows.append([f"{s}: CPU s / sim s", *[f"{f[n]['cpu_s_per_sim_s'][s]:.3f}" for n in names]]
+                    + ([f"{f['speedup'][s]:.2f}x"] if "speedup" in f else []))
+    first = f[names[0]]
+    notes = [f"{first['recordings']} recordings of protocols/paper.toml (indices {f['indices']}), "
+             f"{first['sim_s']:.1f} s simulated; thread CPU of the recording, imports and warm-up left out",
+             "target: >= 3 simulated seconds per CPU second"]
+    emit("virtual time by stage", columns, rows, notes)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    if args.probe is not None:
+        print(json.dumps(probe(int(args.probe))))
+        return
+    bench_main(parse_args, run, render, argv)
+
+
+if __name__ == "__main__":
+    main()
