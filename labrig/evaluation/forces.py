@@ -11,9 +11,8 @@ the sim's ``/truth/marker_forces``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -66,6 +65,10 @@ class ForceResult:
     ft_axes: str  # where the F/T axes in the gel frame came from
     depth_source: str  # "truth" or the network's name
     youngs_modulus_mpa: float  # the gel modulus the inverse FEM used
+    # The pipeline's own depth maps (its state carried window to window) against the ground truth nearest
+    # in time: mean |error| over the grid and over the true contact cells, mm; nan without a sidecar or contact.
+    depth_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
+    depth_contact_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
 
 
 def evaluate_forces(task: ForceTask) -> ForceResult:
@@ -79,7 +82,8 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
     with Recording(path) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir,
                                               youngs_modulus_mpa=task.youngs_modulus_mpa, stiffening=task.stiffening)
-        source: Any = depth_sources.TruthDepth(rec) if task.depth == "truth" else depth_sources.ModelDepth(task.depth)
+        source = depth_sources.depth_source("truth" if task.depth == "truth" else "model", setup, rec,
+                                            None if task.depth == "truth" else task.depth)
         params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,
@@ -94,11 +98,18 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
     predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
     contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
     side = Path(task.sidecar) if task.sidecar else sidecar_path(path)
+    depth_mae, depth_contact = np.full(len(t1), np.nan), np.full(len(t1), np.nan)
     if side.exists():
         gt = load_groundtruth(side)
         true_px = contact_centre_px(gt, t1, setup.camera)
-        touching = np.atleast_1d(gt.contact_mask[np.atleast_1d(gt.nearest_index(t1))].reshape(len(t1), -1).any(1))
+        nearest = np.atleast_1d(gt.nearest_index(t1))
+        touching = np.atleast_1d(gt.contact_mask[nearest].reshape(len(t1), -1).any(1))
         true_px[~touching] = np.nan
+        for k, (r, i) in enumerate(zip(rows, nearest)):
+            error = np.abs(r.depth_mm - gt.depth_mm[i])
+            mask = gt.contact_mask[i].astype(bool)
+            depth_mae[k] = float(error.mean())
+            depth_contact[k] = float(error[mask].mean()) if mask.any() else np.nan
     else:
         true_px = np.full((len(t1), 2), np.nan)
     stage_ms = {stage: float(np.median([r.seconds.get(stage, 0.0) for r in rows]) * 1e3) if rows else float("nan")
@@ -109,10 +120,10 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         contact_error_px=contact_px - true_px, marker_mae_n=marker_mae, probing=probing, stage_ms=stage_ms,
         total_ms=float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
         drift_px=np.linalg.norm(final - setup.rest_px, axis=1), ft_axes=ft_source, depth_source=source.name,
-        youngs_modulus_mpa=setup.youngs_modulus_mpa)
+        youngs_modulus_mpa=setup.youngs_modulus_mpa, depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact)
 
 
-evaluate_forces.cache_version = "7"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction
+evaluate_forces.cache_version = "8"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: the rest gate, depth errors
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]
