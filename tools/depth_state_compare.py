@@ -122,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recordings", type=int, default=0, help="measure only the first N of the split (0: all)")
     ap.add_argument("--window-events", type=int, default=20_000, help="evaluation windows (default 20000, the paper's)")
     ap.add_argument("--calibration", type=Path, default=Path("calibration"))
+    ap.add_argument("--no-hold-rows", action="store_true",
+                    help="also measure each stateful network with the quiet hold off (fed every window)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = ap.parse_args(argv)
     console = Console(stderr=args.json)
@@ -163,14 +165,17 @@ def compare(args: argparse.Namespace, console: Console) -> list[VariantRow]:
             train(args.data, config, stem, resume=paths["checkpoint"].exists(),
                   command="tools/depth_state_compare.py " + " ".join(sys.argv[1:]), show_progress=not args.json)
         card = json.loads(paths["card"].read_text())
-        results, released = [], []
-        for k, path in enumerate(recordings):
-            console.print(f"[bold]{variant}[/]: pipeline on {path.name} ({k + 1}/{len(recordings)})")
-            result = evaluate_forces(ForceTask(str(path), str(paths["onnx"]), window_events=args.window_events,
-                                               calibration_dir=str(args.calibration)))
-            results.append(result)
-            released.append(after_release(result, released_at[path]))
-        rows.append(summarise(variant, results, released, card))
+        holds = (True, False) if args.no_hold_rows and variant != "sae" else (True,)
+        for hold in holds:
+            name = variant if hold else f"{variant} (no hold)"
+            results, released = [], []
+            for k, path in enumerate(recordings):
+                console.print(f"[bold]{name}[/]: pipeline on {path.name} ({k + 1}/{len(recordings)})")
+                result = evaluate_forces(ForceTask(str(path), str(paths["onnx"]), window_events=args.window_events,
+                                                   calibration_dir=str(args.calibration), quiet_hold=hold))
+                results.append(result)
+                released.append(after_release(result, released_at[path]))
+            rows.append(summarise(name, results, released, card))
     return rows
 
 

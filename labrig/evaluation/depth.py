@@ -64,6 +64,11 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
     from labrig.recording import Recording
 
     model = DepthModel(task.model, threads=1)
+    if model.inputs.stateful:
+        from labrig.errors import LabrigError
+
+        raise LabrigError(f"{model.name} takes the gel's state ({', '.join(model.inputs.kinds)}), so its depth is "
+                          "measured through the pipeline run, not on lone windows: use tools/depth_state_compare.py")
     gt = load_groundtruth(Path(task.sidecar) if task.sidecar else sidecar_path(task.recording))
     roi = Roi(*(int(v) for v in gt.attrs["roi_px"]))
     scale = np.float32(gt.scale_mm)

@@ -42,6 +42,7 @@ class ForceTask:
     surface_refinement: int = 2
     depth_window_ms: float = 10.0  # for depth="truth": the F/T averaging window
     sidecar: str = ""  # the ground truth for the indenter's position (default NAME.gt.h5 beside the recording)
+    quiet_hold: bool = True  # the network's quiet-window hold (labrig.pipeline.quiet); False feeds it every window
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,8 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir,
                                               youngs_modulus_mpa=task.youngs_modulus_mpa, stiffening=task.stiffening)
         source = depth_sources.depth_source("truth" if task.depth == "truth" else "model", setup, rec,
-                                            None if task.depth == "truth" else task.depth)
+                                            None if task.depth == "truth" else task.depth,
+                                            quiet="auto" if task.quiet_hold else None)
         params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,
