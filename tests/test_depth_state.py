@@ -113,6 +113,8 @@ def test_the_previous_map_is_perturbed_not_copied() -> None:
     assert not any(np.array_equal(d, previous) for d in kept)
     peaks = np.array([d[38:52, 48:62].mean() for d in kept])
     assert peaks.std() > 0.01  # scaled differently each time
+    lags = [PreviousAugment(p_stale=0.5, max_lag_windows=5).lag_windows(rng) for _ in range(400)]
+    assert set(lags) == {1, 2, 3, 4, 5} and 150 <= lags.count(1) <= 250  # a stale map half the time
     shifted = PreviousAugment(p_zero=0.0, scale=0.0, shift_cells=2, noise=0.0)
     moved = [shifted(previous, rng) for _ in range(50)]
     assert any(not np.array_equal(m, previous) for m in moved) and all(m.sum() == pytest.approx(previous.sum()) for m in moved)

@@ -151,7 +151,7 @@ class Source:
         ``noise``: extra events in the window (augmentation); they do not move the ground
         truth's time, which follows the recording's own last event. ``state``: the state
         channels (:mod:`labrig.training.state_data`) appended to the SAE; their previous map is
-        the one nearest the previous window's last event, perturbed with ``rng``.
+        the one nearest the previous window's last event (or one further back), perturbed with ``rng``.
         """
         events = self.rec.events_between(t0_us, t0_us + window_us)
         t_last = float(events["t"].max()) if len(events) else t0_us + window_us
@@ -163,8 +163,10 @@ class Source:
         depth = self.gt["depth_mm"][i]
         target = np.clip(depth / np.float32(self.scale_mm), 0.0, 1.0).astype(np.float32)
         if state is not None:
-            previous = np.clip(self.gt["depth_mm"][self.nearest(t_last - window_us)] / np.float32(self.scale_mm),
-                               0.0, 1.0).astype(np.float32)
+            def previous(lag_windows: int) -> npt.NDArray[np.float32]:
+                k = self.nearest(t_last - lag_windows * window_us)
+                return np.clip(self.gt["depth_mm"][k] / np.float32(self.scale_mm), 0.0, 1.0).astype(np.float32)
+
             sae = np.concatenate([sae, state(t0_us + window_us, previous, rng or np.random.default_rng())])
         return Sample(sae, target, self.gt["contact_mask"][i].astype(np.uint8), t_last,
                       float(self.t_gt[i]) - t_last, index)

@@ -12,14 +12,15 @@ and rasterised with the same :class:`~labrig.pipeline.depth_inputs.DisplacementR
 depth source uses.
 
 **Previous map.** The ground truth nearest the previous window's last event (one window
-earlier), perturbed so that the network does not trust it blindly and its own errors do
-not compound at run time (:class:`PreviousAugment`): zeroed for a share of the windows (the
-start of a stream, the rest gate), otherwise scaled, shifted by whole grid cells and given
-Gaussian noise.
+earlier; for a share of the windows up to 30 windows earlier), perturbed so that the network
+does not trust it blindly and its own errors do not compound at run time
+(:class:`PreviousAugment`): zeroed for a share of the windows (the start of a stream, the
+rest gate), otherwise scaled, shifted by whole grid cells and given Gaussian noise.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,14 +41,26 @@ TRACKS_VERSION = 1
 
 @dataclass(frozen=True)
 class PreviousAugment:
-    """How the previous map is perturbed: zeroed with ``p_zero``, else scaled by a factor in
-    ``[1 - scale, 1 + scale]``, shifted up to ``shift_cells`` cells per axis, plus noise of
-    ``noise`` (normalised depth units) standard deviation; clipped to [0, 1]."""
+    """How the previous map is chosen and perturbed.
 
-    p_zero: float = 0.15
-    scale: float = 0.3
+    With ``p_stale`` it is the truth from 2 to ``max_lag_windows`` windows earlier instead of one
+    (a map that may show another state: the dent before a release, nothing before a press), so
+    the network checks it against the SAE and the displacement rather than copying it. Then it
+    is zeroed with ``p_zero``, else scaled by a factor in ``[1 - scale, 1 + scale]``, shifted up
+    to ``shift_cells`` cells per axis and given noise of ``noise`` (normalised depth units)
+    standard deviation; clipped to [0, 1].
+    """
+
+    p_zero: float = 0.25
+    scale: float = 0.4
     shift_cells: int = 2
     noise: float = 0.02
+    p_stale: float = 0.3
+    max_lag_windows: int = 30
+
+    def lag_windows(self, rng: np.random.Generator) -> int:
+        """How many windows back the previous map is taken from."""
+        return int(rng.integers(2, self.max_lag_windows + 1)) if rng.uniform() < self.p_stale else 1
 
     def __call__(self, previous: F32, rng: np.random.Generator) -> F32:
         if rng.uniform() < self.p_zero:
@@ -59,7 +72,8 @@ class PreviousAugment:
         return np.clip(out, 0.0, 1.0).astype(np.float32)
 
     def describe(self) -> dict[str, float]:
-        return {"p_zero": self.p_zero, "scale": self.scale, "shift_cells": self.shift_cells, "noise": self.noise}
+        return {"p_zero": self.p_zero, "scale": self.scale, "shift_cells": self.shift_cells, "noise": self.noise,
+                "p_stale": self.p_stale, "max_lag_windows": self.max_lag_windows}
 
 
 def _shift(a: F32, dr: int, dc: int) -> F32:
@@ -148,13 +162,15 @@ class StateChannels:
             self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
             self.tracks = track_recording(recording, calibration_dir, cache_root)
 
-    def __call__(self, t_end_us: float, previous_norm: F32 | None, rng: np.random.Generator) -> F32:
-        """(channels - 2, 96, 112): the displacement field at ``t_end_us`` and the perturbed previous map."""
+    def __call__(self, t_end_us: float, previous_at: Callable[[float], F32] | None, rng: np.random.Generator) -> F32:
+        """(channels - 2, 96, 112): the displacement field at ``t_end_us`` and the perturbed previous map.
+
+        ``previous_at(lag_windows)``: the normalised true map that many windows before this one."""
         field = None
         if self.raster is not None and self.tracks is not None:
             field = self.raster(gel_plane_displacement_mm(self.camera, self.tracks.at(t_end_us), self.tracks.rest_px))
         previous = None
         if "previous" in self.spec.kinds:
-            assert previous_norm is not None
-            previous = self.augment(previous_norm, rng)
+            assert previous_at is not None
+            previous = self.augment(previous_at(self.augment.lag_windows(rng)), rng)
         return network_input(self.spec, np.zeros((2, *UNET_SHAPE), np.float32), field, previous)[2:]
