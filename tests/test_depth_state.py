@@ -265,3 +265,26 @@ def test_the_comparison_row_pools_probing_windows_and_the_force_left_after_relea
     assert row.position_mae_px == pytest.approx(5.0) and row.fz_after_release_n == pytest.approx(1.25)
     assert row.depth_ms == 1.5 and row.pipeline_ms == 4.0 and row.windows == 4 and row.train_steps == 7
     assert tool.main(["/nonexistent-campaign", "--variants", "sae,lstm"]) == 2
+
+
+def test_self_feed_replaces_only_the_previous_channel_with_the_networks_own_padded_answer() -> None:
+    import torch
+
+    from labrig.pipeline.depthnet import UNetConfig, build_unet
+    from labrig.pipeline.sae import crop_from_unet
+    from labrig.training.trainer import self_feed
+
+    spec = InputSpec.named("sae+disp+prev")
+    assert (spec.channel_of("sae"), spec.channel_of("displacement"), spec.channel_of("previous")) == (0, 2, 4)
+    assert InputSpec().channel_of("previous") is None
+    torch.manual_seed(0)
+    model = build_unet(UNetConfig(width=2, pools=2, in_channels=5))
+    x = torch.rand(3, 5, *UNET_SHAPE)
+    assert self_feed(model, x, 4, 0) is x
+    fed = self_feed(model, x, 4, 1)
+    assert torch.equal(fed[:, :4], x[:, :4]) and not torch.equal(fed[:, 4], x[:, 4])
+    assert not fed[:, 4, :3].any() and not fed[:, 4, 93:].any()  # the padding rows stay empty, as at run time
+    with torch.no_grad():
+        own = crop_from_unet(model(x)[:, 0]).clamp(0.0, 1.0)
+    torch.testing.assert_close(fed[:, 4, 3:93], own)
+    assert float(fed[:, 4].min()) >= 0.0 and float(fed[:, 4].max()) <= 1.0

@@ -91,6 +91,12 @@ class InputSpec:
         return next(n for n, kinds in INPUT_SETS.items() if kinds == self.kinds) if self.kinds in INPUT_SETS.values() \
             else "+".join(self.kinds)
 
+    def channel_of(self, kind: str) -> int | None:
+        """Index of the first channel of ``kind`` in the stacked input, None when the spec lacks it."""
+        if kind not in self.kinds:
+            return None
+        return sum(CHANNELS[k] for k in self.kinds[:self.kinds.index(kind)])
+
     @property
     def stateful(self) -> bool:
         """Takes more than the SAE (needs the tracker's markers or its own last map)."""

@@ -35,6 +35,8 @@ RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", 
                "inputs")
 #: Resume keys a checkpoint may predate, with the value it then had.
 RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae"}
+#: The most times a batch's previous-map channel is replaced by the network's own answer (:func:`self_feed`).
+SELF_FEED_MAX = 2
 #: Lowest extra noise rate of the augmentation (Hz per pixel): below the sensor's own.
 NOISE_MIN_HZ = 0.02
 
@@ -164,6 +166,7 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
         val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET, spec,
                         config.calibration_dir) if val_sources else None
         loss_fn = loss_function(config.loss, config.lambda_c)
+        previous_channel = spec.channel_of("previous")
         scale = data.scale_mm
         step, elapsed_s, samples_s, history, val_history = 0, 0.0, 0.0, [], []
         if resume:
@@ -212,6 +215,8 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
                 x = torch.from_numpy(sae).to(device)
                 y = torch.from_numpy(target).to(device)
                 c = torch.from_numpy(contact).to(device)
+                if previous_channel is not None:
+                    x = self_feed(model, x, previous_channel, int(torch.randint(0, SELF_FEED_MAX + 1, (1,))))
                 pred = crop_from_unet(model(x)[:, 0])
                 loss = loss_fn(pred, y, c)
                 optimizer.zero_grad(set_to_none=True)
@@ -280,6 +285,27 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
         data.close()
 
 
+def self_feed(model: Any, x: Any, channel: int, steps: int) -> Any:
+    """``x`` with its previous-map channel replaced ``steps`` times by the network's own answer (no gradient).
+
+    At run time the previous map is the network's own last estimate, errors included; fed only
+    the (perturbed) truth, a network learns to trust it and its errors compound in closed loop
+    (measured: the depth ran to the top of the scale within a press). Fed its own answer, it
+    learns to correct it. The answer stands in for the previous window's (10 ms earlier)."""
+    import torch
+    import torch.nn.functional as functional
+
+    if steps == 0:
+        return x
+    x = x.clone()
+    with torch.no_grad():
+        for _ in range(steps):
+            own = crop_from_unet(model(x)[:, 0]).clamp(0.0, 1.0)
+            rows = x.shape[-2] - own.shape[-2]
+            x[:, channel] = functional.pad(own, (0, 0, rows // 2, rows - rows // 2))
+    return x
+
+
 def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
     """The card's augmentation section: background noise, the previous map's perturbation, the tracker's tracks."""
     from labrig.training.state_data import PreviousAugment
@@ -289,7 +315,8 @@ def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
         out["background_noise"] = config.noise.describe()
     if "previous" in config.input_spec.kinds:
         out["previous_map"] = {**PreviousAugment().describe(), "source": "ground truth nearest the previous window's "
-                               "last event"}
+                               "last event", "self_feed_steps": f"0-{SELF_FEED_MAX}, uniform per batch: the channel "
+                               "replaced by the network's own answer (trainer.self_feed)"}
     if "displacement" in config.input_spec.kinds:
         out["displacement"] = {"source": "the pipeline's tracker over each recording (10 ms windows, cached)",
                                "calibration": config.calibration_dir}
