@@ -148,11 +148,16 @@ def _pitch(rc: F64) -> float:
     return float(np.median(np.sqrt(d2.min(axis=1))))
 
 
-def gel_plane_displacement_mm(camera: CameraModel, positions_px: npt.ArrayLike, rest_px: npt.ArrayLike) -> F64:
-    """(M, 2) in-plane displacement on the gel plane z = 0 (gel frame, mm): tracked minus rest, both back-projected."""
-    now = camera.backproject_to_plane(np.asarray(positions_px, np.float64).reshape(-1, 2), 0.0)
-    rest = camera.backproject_to_plane(np.asarray(rest_px, np.float64).reshape(-1, 2), 0.0)
-    return (now - rest)[:, :2]
+def gel_plane_mm(camera: CameraModel, pixels: npt.ArrayLike) -> F64:
+    """(M, 2) where the pixels (M, 2) see the gel plane z = 0 (gel frame, mm)."""
+    return camera.backproject_to_plane(np.asarray(pixels, np.float64).reshape(-1, 2), 0.0)[:, :2]
+
+
+def gel_plane_displacement_mm(camera: CameraModel, positions_px: npt.ArrayLike, rest_px: npt.ArrayLike,
+                              rest_mm: F64 | None = None) -> F64:
+    """(M, 2) in-plane displacement on the gel plane z = 0 (gel frame, mm): tracked minus rest, both back-projected
+    (``rest_mm``: the rest's :func:`gel_plane_mm`, when already known)."""
+    return gel_plane_mm(camera, positions_px) - (gel_plane_mm(camera, rest_px) if rest_mm is None else rest_mm)
 
 
 def network_input(spec: InputSpec, sae: npt.ArrayLike, displacement: npt.ArrayLike | None = None,

@@ -22,7 +22,7 @@ import numpy.typing as npt
 from labrig import models
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
-from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, network_input
+from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
 from labrig.pipeline.depthnet import DepthModel
 from labrig.pipeline.quiet import QuietHold, QuietParams
 from labrig.pipeline.rest_gate import RestGate, RestGateParams
@@ -119,6 +119,8 @@ class ModelDepth:
         self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
         self._positions_px: npt.NDArray[np.float64] | None = None
         self._rest_px: npt.NDArray[np.float64] | None = None
+        self._rest_seen: npt.NDArray[np.float64] | None = None
+        self._rest_mm: npt.NDArray[np.float64] | None = None
         self.at_rest = False
 
     def markers(self, positions_px: npt.NDArray[np.float64], rest_px: npt.NDArray[np.float64]) -> None:
@@ -149,7 +151,9 @@ class ModelDepth:
             if self._positions_px is None or self._rest_px is None or self.camera is None:
                 raise LabrigError(f"{self.model.name} takes the markers' displacement: the pipeline must call "
                                   "markers() before depth_mm()")
-            field = self.raster(gel_plane_displacement_mm(self.camera, self._positions_px, self._rest_px))
+            if self._rest_px is not self._rest_seen:  # the rest changes only while the stream's first windows refine it
+                self._rest_seen, self._rest_mm = self._rest_px, gel_plane_mm(self.camera, self._rest_px)
+            field = self.raster(gel_plane_displacement_mm(self.camera, self._positions_px, self._rest_px, self._rest_mm))
         return network_input(self.inputs, sae_grid, field, self.previous_norm)
 
     def reset(self) -> None:
