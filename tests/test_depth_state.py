@@ -272,7 +272,7 @@ def test_self_feed_replaces_only_the_previous_channel_with_the_networks_own_padd
 
     from labrig.pipeline.depthnet import UNetConfig, build_unet
     from labrig.pipeline.sae import crop_from_unet
-    from labrig.training.trainer import self_feed
+    from labrig.training.state_data import self_feed
 
     spec = InputSpec.named("sae+disp+prev")
     assert (spec.channel_of("sae"), spec.channel_of("displacement"), spec.channel_of("previous")) == (0, 2, 4)

@@ -15,7 +15,9 @@ depth source uses.
 earlier; for a share of the windows up to 30 windows earlier), perturbed so that the network
 does not trust it blindly and its own errors do not compound at run time
 (:class:`PreviousAugment`): zeroed for a share of the windows (the start of a stream, the
-rest gate), otherwise scaled, shifted by whole grid cells and given Gaussian noise.
+rest gate), otherwise scaled, shifted by whole grid cells and given Gaussian noise. Fed only
+the truth, a network learns to copy the channel and its errors compound in closed loop, so the
+trainer also feeds it its own answers (:func:`self_feed`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -30,13 +33,15 @@ import numpy.typing as npt
 from labrig.cache import cache_folder, cache_key, sha256_of
 from labrig.errors import LabrigError
 from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
-from labrig.pipeline.sae import UNET_SHAPE
+from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 #: The tracker's windows over a recording (us).
 TRACK_WINDOW_US = 10_000
 TRACKS_VERSION = 1
+#: The most times a batch's previous-map channel is replaced by the network's own answer (:func:`self_feed`).
+SELF_FEED_MAX = 2
 
 
 @dataclass(frozen=True)
@@ -174,3 +179,24 @@ class StateChannels:
             assert previous_at is not None
             previous = self.augment(previous_at(self.augment.lag_windows(rng)), rng)
         return network_input(self.spec, np.zeros((2, *UNET_SHAPE), np.float32), field, previous)[2:]
+
+
+def self_feed(model: Any, x: Any, channel: int, steps: int) -> Any:
+    """``x`` with its previous-map channel replaced ``steps`` times by the network's own answer (no gradient).
+
+    At run time the previous map is the network's own last estimate, errors included; fed only
+    the (perturbed) truth, a network learns to trust it and its errors compound in closed loop
+    (measured: the depth ran to the top of the scale within a press). Fed its own answer, it
+    learns to correct it. The answer stands in for the previous window's (10 ms earlier)."""
+    import torch
+    import torch.nn.functional as functional
+
+    if steps == 0:
+        return x
+    x = x.clone()
+    with torch.no_grad():
+        for _ in range(steps):
+            own = crop_from_unet(model(x)[:, 0]).clamp(0.0, 1.0)
+            rows = x.shape[-2] - own.shape[-2]
+            x[:, channel] = functional.pad(own, (0, 0, rows // 2, rows - rows // 2))
+    return x

@@ -27,6 +27,7 @@ from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import crop_from_unet
 from labrig.training.data import NoiseAugment
 from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
+from labrig.training.state_data import SELF_FEED_MAX, self_feed
 
 DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
@@ -35,8 +36,6 @@ RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", 
                "inputs")
 #: Resume keys a checkpoint may predate, with the value it then had.
 RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae"}
-#: The most times a batch's previous-map channel is replaced by the network's own answer (:func:`self_feed`).
-SELF_FEED_MAX = 2
 #: Lowest extra noise rate of the augmentation (Hz per pixel): below the sensor's own.
 NOISE_MIN_HZ = 0.02
 
@@ -285,27 +284,6 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
         data.close()
 
 
-def self_feed(model: Any, x: Any, channel: int, steps: int) -> Any:
-    """``x`` with its previous-map channel replaced ``steps`` times by the network's own answer (no gradient).
-
-    At run time the previous map is the network's own last estimate, errors included; fed only
-    the (perturbed) truth, a network learns to trust it and its errors compound in closed loop
-    (measured: the depth ran to the top of the scale within a press). Fed its own answer, it
-    learns to correct it. The answer stands in for the previous window's (10 ms earlier)."""
-    import torch
-    import torch.nn.functional as functional
-
-    if steps == 0:
-        return x
-    x = x.clone()
-    with torch.no_grad():
-        for _ in range(steps):
-            own = crop_from_unet(model(x)[:, 0]).clamp(0.0, 1.0)
-            rows = x.shape[-2] - own.shape[-2]
-            x[:, channel] = functional.pad(own, (0, 0, rows // 2, rows - rows // 2))
-    return x
-
-
 def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
     """The card's augmentation section: background noise, the previous map's perturbation, the tracker's tracks."""
     from labrig.training.state_data import PreviousAugment
@@ -316,7 +294,7 @@ def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
     if "previous" in config.input_spec.kinds:
         out["previous_map"] = {**PreviousAugment().describe(), "source": "ground truth nearest the previous window's "
                                "last event", "self_feed_steps": f"0-{SELF_FEED_MAX}, uniform per batch: the channel "
-                               "replaced by the network's own answer (trainer.self_feed)"}
+                               "replaced by the network's own answer (state_data.self_feed)"}
     if "displacement" in config.input_spec.kinds:
         out["displacement"] = {"source": "the pipeline's tracker over each recording (10 ms windows, cached)",
                                "calibration": config.calibration_dir}
