@@ -309,3 +309,8 @@ def test_state_inputs_train_export_and_run_in_the_pipeline(campaign: Path, tmp_p
         source = depth_sources.depth_source("model", setup, rec, tmp_path / "s.onnx")
         results = list(runtime.Pipeline(setup, source).run(rec, window_us=10_000, concurrent=False))
     assert results and all(np.isfinite(r.net_force_n).all() and r.depth_mm.shape == (90, 112) for r in results)
+    from labrig.evaluation.depth import DepthTask, evaluate_depth
+
+    depth = evaluate_depth(DepthTask(str(campaign / "a.h5"), str(tmp_path / "s.onnx"), window_events=None,
+                                     window_us=10_000))  # through the pipeline, window after window
+    assert len(depth.t_us) == len(results) and np.isfinite(depth.total_mm).all()
