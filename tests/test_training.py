@@ -268,3 +268,49 @@ def test_the_card_and_the_reproduce_line_name_the_augmentation(campaign: Path, t
     torch.save(ckpt, ckpt_path)
     resumed = train(campaign, TrainConfig(steps=3, **cfg), tmp_path / "old", resume=True, show_progress=False)
     assert resumed["training"]["steps"] == 3 and resumed["augmentation"] is None
+
+
+# ----------------------------------------------------------------------------------------- inputs with state
+
+
+def test_state_inputs_train_export_and_run_in_the_pipeline(campaign: Path, tmp_path: Path, rig: RigConfig,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """sae+disp+prev: the tracker's tracks are cached, windows carry 5 channels, the card names them, and the
+    exported network runs through the depth-source builder (and refuses to run without the setup)."""
+    from labrig.pipeline import depth_sources, run_setup, runtime
+    from labrig.pipeline.depth_inputs import InputSpec
+    from labrig.pipeline.depthnet import DepthModel
+    from labrig.recording import Recording
+
+    monkeypatch.setenv("LABRIG_CACHE", str(tmp_path / "cache"))
+    data = open_campaign(campaign)
+    try:
+        spec = InputSpec.named("sae+disp+prev")
+        sampler = WindowSampler(data.sources["train"], 10_000.0, seed=1, inputs=spec)
+        x, target, _ = sampler.batch(8)
+        assert x.shape == (8, 5, 96, 112) and target.shape == (8, 90, 112)
+        assert len(list((tmp_path / "cache" / "tracks").glob("*.npz"))) == 1  # the tracker ran once, cached
+        previous = x[:, 4, 3:93]
+        assert previous.min() >= 0.0 and previous.max() <= 1.0
+        assert np.abs(x[:, 2:4]).max() > 0.0  # the probe moved the markers somewhere in these windows
+    finally:
+        data.close()
+    card = train(campaign, TrainConfig(steps=4, val_every=0, checkpoint_every=4, inputs="sae+disp+prev", **TINY),
+                 tmp_path / "s", command="test", show_progress=False)
+    assert card["inputs"]["kinds"] == ["sae", "displacement", "previous"] and card["architecture"]["in_channels"] == 5
+    assert "--inputs sae+disp+prev" in card["reproduce"] and card["augmentation"]["previous_map"]["p_zero"] > 0
+    assert DepthModel(tmp_path / "s.onnx").inputs == spec
+    with pytest.raises(LabrigError, match="setup"):
+        depth_sources.ModelDepth(tmp_path / "s.onnx")
+    with pytest.raises(LabrigError, match="--resume: inputs was 'sae\\+disp\\+prev'"):
+        train(campaign, TrainConfig(steps=5, val_every=0, **TINY), tmp_path / "s", resume=True, show_progress=False)
+    with Recording(campaign / "a.h5") as rec:
+        setup = run_setup.setup_for_recording(rec)
+        source = depth_sources.depth_source("model", setup, rec, tmp_path / "s.onnx")
+        results = list(runtime.Pipeline(setup, source).run(rec, window_us=10_000, concurrent=False))
+    assert results and all(np.isfinite(r.net_force_n).all() and r.depth_mm.shape == (90, 112) for r in results)
+    from labrig.evaluation.depth import DepthTask, evaluate_depth
+
+    depth = evaluate_depth(DepthTask(str(campaign / "a.h5"), str(tmp_path / "s.onnx"), window_events=None,
+                                     window_us=10_000))  # through the pipeline, window after window
+    assert len(depth.t_us) == len(results) and np.isfinite(depth.total_mm).all()

@@ -93,7 +93,7 @@ def run(
             rec, rig=load_rig(rig_path) if rig_path else None,
             calibration_dir=calibration if calibration is not None else Path("calibration"),
             youngs_modulus_mpa=youngs_modulus_mpa)
-        source = depth_sources.depth_source(depth, rec, model)
+        source = depth_sources.depth_source(depth, setup, rec, model)
         pipe = runtime.Pipeline(setup, source, keep_sae=view is not None)
         attrs = {"recording": str(recording), "depth_source": source.name, "window_us": window_us or 0,
                  "window_events": window_events or 0, "youngs_modulus_mpa": setup.youngs_modulus_mpa,

@@ -87,10 +87,11 @@ def run_live(o: LiveOptions) -> None:
         raise LabrigError(f"--seconds: {where}, which lasts its protocol (shorten it there), or Ctrl-C to stop it")
     if not probing:
         live_rig.check_camera(devices)
-    depth = depth_sources.ModelDepth(o.model or _default_model())
-    window_us, window_events = _windows(o, depth.model.window_ms)
     calibration_dir = o.calibration if o.calibration is not None else rig.path.parent
     setup = run_setup.setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=o.youngs_modulus_mpa)
+    depth = depth_sources.depth_source("model", setup, model_path=o.model or _default_model())
+    assert isinstance(depth, depth_sources.ModelDepth)
+    window_us, window_events = _windows(o, depth.model.window_ms)
     pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None)
     source = "virtual rig (embedded)" if devices.virtual else f"camera {live_rig.describe_camera(devices)}"
     sink = _Sink(o, len(setup.rest_px), {

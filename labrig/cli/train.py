@@ -44,6 +44,12 @@ def train_command(
     noise_hz: Annotated[float, typer.Option(
         help="Background-noise augmentation: half the windows get extra noise events up to this rate "
              "(Hz per pixel, log-uniform from 0.02); 0: off.")] = 0.0,
+    inputs: Annotated[str, typer.Option(
+        help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
+             "sae+disp+prev (+ the previous depth map); docs/depthnet.md.")] = "sae",
+    calibration: Annotated[Path, typer.Option(
+        help="Calibration folder (camera, marker map) for the tracker behind the displacement channels.")] = Path(
+        "calibration"),
     as_json: Annotated[bool, typer.Option("--json", help="Print the model card as JSON.")] = False,
 ) -> None:
     """Train the depth U-Net on a campaign's train split; validate on its val split; export ONNX + model card."""
@@ -52,7 +58,8 @@ def train_command(
     config = TrainConfig(width=width, pools=pools, window_ms=window_ms, loss=loss, lambda_c=lambda_c, steps=steps,
                          time_budget_min=time_budget_min, batch_size=batch_size, lr=lr, seed=seed,
                          checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows,
-                         phases=phases, device=device, threads=threads, noise_hz=noise_hz)
+                         phases=phases, device=device, threads=threads, noise_hz=noise_hz, inputs=inputs,
+                         calibration_dir=str(calibration))
     config.check()
     if out is None:
         out = Path("models") / f"depth-w{width}-{loss}-{window_ms:g}ms"
@@ -74,6 +81,7 @@ def _print_card(c: dict[str, Any]) -> None:
                              f"{c['parameters']:,} parameters")
     table.add_row("data", f"{d['campaign']}: {d['split_counts']['train']} train / {d['split_counts']['val']} val / "
                           f"{d['split_counts']['test']} test recordings; scale {d['scale_mm']} mm per unit")
+    table.add_row("inputs", ", ".join((c.get("inputs") or {}).get("kinds", ["sae"])))
     table.add_row("window, loss", f"{c['window_ms']:g} ms, {c['loss']['name']}"
                                   + (f" (lambda_c {c['loss']['lambda_c']})" if c["loss"]["lambda_c"] is not None else ""))
     table.add_row("training", f"{t['steps']} steps x {t['batch_size']} = {t['samples']:,} windows in {t['seconds']:.0f} s "

@@ -32,6 +32,7 @@ class DepthTask:
     window_us: int | None = None
     max_windows: int | None = None  # evenly thinned when there are more
     sidecar: str = ""  # the ground truth (default NAME.gt.h5 beside the recording); named so caches see it change
+    calibration_dir: str | None = "calibration"  # a stateful network's camera and markers (its pipeline run)
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,9 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
             t_last[k] = float(events["t"].max()) if len(events) else float(end)
     pred = np.zeros((t1.size, *GRID_SHAPE), np.float32)
     seconds = []
-    for start in range(0, t1.size, BATCH):
+    if model.inputs.stateful:  # the state comes from the windows before: the whole pipeline, every window, in order
+        pred, seconds = _pipeline_depth(task, t1)
+    for start in range(0, t1.size if not model.inputs.stateful else 0, BATCH):
         tic = time.perf_counter()
         pred[start:start + BATCH] = model.depth_mm(saes[start:start + BATCH])
         seconds.append((time.perf_counter() - tic) / max(1, min(BATCH, t1.size - start)))
@@ -95,7 +98,22 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
         window_ms=model.window_ms, model=model.name, infer_ms=float(np.median(seconds) * 1e3) if seconds else float("nan"))
 
 
-evaluate_depth.cache_version = "1"  # type: ignore[attr-defined]
+evaluate_depth.cache_version = "2"  # type: ignore[attr-defined]  # 2: stateful networks through the pipeline
+
+
+def _pipeline_depth(task: DepthTask, t1_us: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.float32], list[float]]:
+    """A stateful network's maps (W, 90, 112) at the window ends ``t1_us`` (a subset of the recording's windows):
+    the pipeline (tracker, the depth source from the one builder) over every window, and its depth seconds."""
+    from labrig.pipeline import depth_sources, run_setup, runtime
+    from labrig.recording import Recording
+
+    with Recording(task.recording) as rec:
+        setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir)
+        pipe = runtime.Pipeline(setup, depth_sources.depth_source("model", setup, rec, task.model))
+        maps = {int(r.t1_us): (r.depth_mm, r.seconds.get("depth", 0.0))
+                for r in pipe.run(rec, window_us=task.window_us, window_events=task.window_events, concurrent=False)}
+    pred = np.stack([maps[int(t)][0] for t in t1_us]) if len(t1_us) else np.zeros((0, *GRID_SHAPE), np.float32)
+    return pred.astype(np.float32), [maps[int(t)][1] for t in t1_us]
 
 
 def per_map_errors_mm(pred_mm: npt.NDArray[np.floating], true_mm: npt.NDArray[np.floating],

@@ -172,7 +172,8 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
     ev.forces = run("forces", evaluate_forces, [ForceTask(p, str(model), calibration_dir=calibration,
                                                           sidecar=str(sidecar_path(p)), **windows) for p in paths])
     depth_models = [str(model), *sorted({m for m in ev.table2_models.values() if m and m != str(model)})]
-    depth_tasks = [DepthTask(p, m, sidecar=str(sidecar_path(p)), **windows) for m in depth_models for p in paths]
+    depth_tasks = [DepthTask(p, m, sidecar=str(sidecar_path(p)), calibration_dir=calibration, **windows)
+                   for m in depth_models for p in paths]
     results = run("depth", evaluate_depth, depth_tasks)
     for m in depth_models:
         ev.depth[m] = [r for t, r in zip(depth_tasks, results) if t.model == m]

@@ -17,9 +17,8 @@ the calibration's missing markers, whose forces the inverse FEM condenses out).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -49,6 +48,7 @@ class ForceTask:
     surface_refinement: int = 2
     depth_window_ms: float = 10.0  # for depth="truth": the F/T averaging window
     sidecar: str = ""  # the ground truth for the indenter's position (default NAME.gt.h5 beside the recording)
+    quiet_hold: bool = True  # the network's quiet-window hold (labrig.pipeline.quiet); False feeds it every window
 
 
 @dataclass(frozen=True)
@@ -74,6 +74,10 @@ class ForceResult:
     youngs_modulus_mpa: float  # the gel modulus the inverse FEM used
     markers_missing: int = 0  # markers without truth (NaN in the sim's field), left out of ``marker_mae_n``
     markers_unobserved: int = 0  # markers the pipeline skipped (missing in the calibration)
+    # The pipeline's own depth maps (its state carried window to window) against the ground truth nearest
+    # in time: mean |error| over the grid and over the true contact cells, mm; nan without a sidecar or contact.
+    depth_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
+    depth_contact_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
 
 
 def evaluate_forces(task: ForceTask) -> ForceResult:
@@ -87,7 +91,9 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
     with Recording(path) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir,
                                               youngs_modulus_mpa=task.youngs_modulus_mpa, stiffening=task.stiffening)
-        source: Any = depth_sources.TruthDepth(rec) if task.depth == "truth" else depth_sources.ModelDepth(task.depth)
+        source = depth_sources.depth_source("truth" if task.depth == "truth" else "model", setup, rec,
+                                            None if task.depth == "truth" else task.depth,
+                                            quiet="auto" if task.quiet_hold else None)
         params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,
@@ -102,11 +108,18 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
     predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
     contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
     side = Path(task.sidecar) if task.sidecar else sidecar_path(path)
+    depth_mae, depth_contact = np.full(len(t1), np.nan), np.full(len(t1), np.nan)
     if side.exists():
         gt = load_groundtruth(side)
         true_px = contact_centre_px(gt, t1, setup.camera)
-        touching = np.atleast_1d(gt.contact_mask[np.atleast_1d(gt.nearest_index(t1))].reshape(len(t1), -1).any(1))
+        nearest = np.atleast_1d(gt.nearest_index(t1))
+        touching = np.atleast_1d(gt.contact_mask[nearest].reshape(len(t1), -1).any(1))
         true_px[~touching] = np.nan
+        for k, (r, i) in enumerate(zip(rows, nearest)):
+            error = np.abs(r.depth_mm - gt.depth_mm[i])
+            mask = gt.contact_mask[i].astype(bool)
+            depth_mae[k] = float(error.mean())
+            depth_contact[k] = float(error[mask].mean()) if mask.any() else np.nan
     else:
         true_px = np.full((len(t1), 2), np.nan)
     stage_ms = {stage: float(np.median([r.seconds.get(stage, 0.0) for r in rows]) * 1e3) if rows else float("nan")
@@ -118,10 +131,10 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         total_ms=float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
         drift_px=np.linalg.norm(final - setup.rest_px, axis=1), ft_axes=ft_source, depth_source=source.name,
         youngs_modulus_mpa=setup.youngs_modulus_mpa, markers_missing=missing,
-        markers_unobserved=int((~setup.observed).sum()))
+        markers_unobserved=int((~setup.observed).sum()), depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact)
 
 
-evaluate_forces.cache_version = "8"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction
+evaluate_forces.cache_version = "9"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

@@ -2,8 +2,12 @@
 
 * :class:`TruthDepth`: the recording's ``/truth/depth`` nearest in time (virtual-rig recordings only);
 * :class:`ModelDepth`: the ONNX depth network (:mod:`labrig.pipeline.depthnet`) on the SAE of the
-  span it was trained on, ending at the window's end, with the quiet-window hold of
-  :mod:`labrig.pipeline.quiet`.
+  span it was trained on, ending at the window's end, and the state channels its card names
+  (:mod:`labrig.pipeline.depth_inputs`), with the quiet-window hold of
+  :mod:`labrig.pipeline.quiet` and the rest gate of :mod:`labrig.pipeline.rest_gate`.
+
+:func:`depth_source` is the one place a run's source is built (``labrig run``, ``run --live``
+and ``evaluate``).
 """
 
 from __future__ import annotations
@@ -18,11 +22,15 @@ import numpy.typing as npt
 from labrig import models
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
 from labrig.pipeline.depthnet import DepthModel
 from labrig.pipeline.quiet import QuietHold, QuietParams
+from labrig.pipeline.rest_gate import RestGate, RestGateParams
+from labrig.pipeline.run_setup import PipelineSetup
 from labrig.recording import Recording
 
 DEFAULT_QUIET = QuietParams()
+DEFAULT_REST_GATE = RestGateParams()
 #: Tiles (rows x columns over the SAE grid) watched for motion with a noise-trained network.
 NOISE_TILES = (6, 7)
 
@@ -71,34 +79,88 @@ class TruthDepth:
 
 class ModelDepth:
     """The depth network (:class:`labrig.pipeline.depthnet.DepthModel`, ONNX) on the SAE of the
-    window it was trained on (model card ``window_ms``) ending at each pipeline window's end.
+    window it was trained on (model card ``window_ms``) ending at each pipeline window's end,
+    with the state channels its card names (:mod:`labrig.pipeline.depth_inputs`).
 
     ``path``: an ``.onnx`` with its card, or a bundled network's name (``default``,
-    ``noise-robust``). ``quiet``: windows at the noise floor keep the last active map
-    (:mod:`labrig.pipeline.quiet`); ``"auto"`` also watches each SAE tile for motion when the
-    network was trained with background-noise augmentation (:func:`quiet_params_for`); None
-    feeds every window to the network.
+    ``noise-robust``). ``setup``: the run's camera, ROI and markers (needed by a network that
+    takes the displacement field). ``quiet``: windows at the noise floor keep the last active
+    map (:mod:`labrig.pipeline.quiet`); ``"auto"`` also watches each SAE tile for motion when
+    the network was trained with background-noise augmentation (:func:`quiet_params_for`);
+    None feeds every window to the network. ``rest``: the rest gate
+    (:mod:`labrig.pipeline.rest_gate`): once the tracked markers are back at rest the depth
+    is exactly zero, the held map and the previous estimate are cleared; None turns it off.
+
+    The pipeline calls :meth:`markers` with each window's tracked positions before
+    :meth:`depth_mm` (``needs_markers``).
     """
 
     needs_sae = True
+    needs_markers = True
 
-    def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | str | None = "auto") -> None:
+    def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | str | None = "auto", *,
+                 setup: PipelineSetup | None = None, rest: RestGateParams | None = DEFAULT_REST_GATE) -> None:
         self.model = DepthModel(models.model_path(path), threads=threads)
         self.name = f"model:{self.model.name}"
         self.window_us: float | None = self.model.window_ms * 1000.0
+        self.inputs = self.model.inputs
         if quiet == "auto":
             quiet = quiet_params_for(self.model.card)
         assert not isinstance(quiet, str), f"quiet must be QuietParams, None or 'auto', not {quiet!r}"
         self.hold = QuietHold(GRID_SHAPE, quiet) if quiet is not None else None
+        self.gate = RestGate(setup.observed if setup is not None else None, rest) if rest is not None else None
+        self.raster: DisplacementRaster | None = None
+        if "displacement" in self.inputs.kinds:
+            if setup is None:
+                raise LabrigError(f"{self.model.path} takes the markers' displacement field: build it with "
+                                  "depth_sources.depth_source(..., setup=...)")
+            self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
+        self.camera = setup.camera if setup is not None else None
+        self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
+        self._positions_px: npt.NDArray[np.float64] | None = None
+        self._rest_px: npt.NDArray[np.float64] | None = None
+        self._rest_seen: npt.NDArray[np.float64] | None = None
+        self._rest_mm: npt.NDArray[np.float64] | None = None
+        self.at_rest = False
+
+    def markers(self, positions_px: npt.NDArray[np.float64], rest_px: npt.NDArray[np.float64]) -> None:
+        """This window's tracked marker positions (M, 2) px and the rest they are measured from."""
+        self._positions_px, self._rest_px = positions_px, rest_px
+        self.at_rest = self.gate(positions_px, rest_px) if self.gate is not None else False
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]:
         assert sae_grid is not None
-        if self.hold is None:
-            return self.model.depth_mm(sae_grid)
-        if self.hold(n_events, t1_us - t0_us, sae_grid):
+        quiet = self.hold(n_events, t1_us - t0_us, sae_grid) if self.hold is not None else False  # every window feeds the floors
+        if self.at_rest:
+            self.reset()
+            return np.zeros(GRID_SHAPE, np.float32)
+        if quiet:
+            assert self.hold is not None
             return self.hold.held_mm
-        return self.hold.update(self.model.depth_mm(sae_grid))
+        depth = self.model.depth_mm(self.network_input(sae_grid))
+        self.previous_norm = depth / np.float32(self.model.scale_mm)
+        return self.hold.update(depth) if self.hold is not None else depth
+
+    def network_input(self, sae_grid: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """The channels the card names for this window: the SAE, then the state."""
+        if not self.inputs.stateful:
+            return sae_grid
+        field = None
+        if self.raster is not None:
+            if self._positions_px is None or self._rest_px is None or self.camera is None:
+                raise LabrigError(f"{self.model.name} takes the markers' displacement: the pipeline must call "
+                                  "markers() before depth_mm()")
+            if self._rest_px is not self._rest_seen:  # the rest changes only while the stream's first windows refine it
+                self._rest_seen, self._rest_mm = self._rest_px, gel_plane_mm(self.camera, self._rest_px)
+            field = self.raster(gel_plane_displacement_mm(self.camera, self._positions_px, self._rest_px, self._rest_mm))
+        return network_input(self.inputs, sae_grid, field, self.previous_norm)
+
+    def reset(self) -> None:
+        """Forget the held map and the previous estimate (the gel is at rest)."""
+        self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
+        if self.hold is not None:
+            self.hold.update(np.zeros(GRID_SHAPE, np.float32))
 
 
 def quiet_params_for(card: dict[str, Any]) -> QuietParams:
@@ -116,10 +178,19 @@ def default_model_path(folder: str | Path = "models") -> Path:
     return candidates[-1] if candidates else models.bundled_model_path()
 
 
-def depth_source(kind: str, recording: Recording, model_path: str | Path | None = None, threads: int = 1) -> DepthSource:
-    """"truth" (the recording's /truth/depth) or "model" (the ONNX network, newest in models/ by default)."""
+def depth_source(kind: str, setup: PipelineSetup, recording: Recording | None = None,
+                 model_path: str | Path | None = None, threads: int = 1, quiet: QuietParams | str | None = "auto",
+                 rest: RestGateParams | None = DEFAULT_REST_GATE) -> DepthSource:
+    """The one builder of a run's depth source, for ``labrig run``, ``run --live`` and ``evaluate``.
+
+    ``kind``: "truth" (the recording's /truth/depth; needs ``recording``) or "model" (the ONNX
+    network ``model_path``, else the newest in models/, else the bundled one) with the run's
+    ``setup``, the quiet hold and the rest gate.
+    """
     if kind == "truth":
+        if recording is None:
+            raise LabrigError("--depth truth needs a virtual-rig recording; a live camera has no true depth")
         return TruthDepth(recording)
     if kind == "model":
-        return ModelDepth(model_path or default_model_path(), threads=threads)
+        return ModelDepth(model_path or default_model_path(), threads=threads, quiet=quiet, setup=setup, rest=rest)
     raise LabrigError(f"depth source must be 'truth' or 'model', not {kind!r}")

@@ -1,7 +1,9 @@
 """The depth network: a plain U-Net from a polarity-separated SAE to a normal-deformation map.
 
-Input (B, 2, 96, 112): the SAE on the network grid (:func:`labrig.pipeline.sae.sae_grid`)
-zero-padded by :func:`labrig.pipeline.sae.pad_for_unet`. Output (B, 1, 96, 112): depth
+Input (B, C, 96, 112): the SAE on the network grid (:func:`labrig.pipeline.sae.sae_grid`)
+zero-padded by :func:`labrig.pipeline.sae.pad_for_unet` (C = 2), followed by the state channels
+the model card's ``inputs`` names (:mod:`labrig.pipeline.depth_inputs`: the markers'
+displacement field, the previous estimate). Output (B, 1, 96, 112): depth
 normalised to [0, 1] with the ground truth's global scale (``scale_mm`` mm per unit); crop
 it back to 90 x 112 with :func:`labrig.pipeline.sae.crop_from_unet`.
 
@@ -30,11 +32,13 @@ import numpy.typing as npt
 
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet, pad_for_unet
 
 CARD_FORMAT = "labrig.depthnet"
 CARD_VERSION = 1
-INPUT_NAME = "sae"
+INPUT_NAME = "sae"  # the SAE-only network's input; a network with state channels takes STATE_INPUT_NAME
+STATE_INPUT_NAME = "inputs"
 OUTPUT_NAME = "depth"
 
 
@@ -114,12 +118,13 @@ def export_onnx(model: Any, path: str | Path, card: dict[str, Any] | None = None
     cpu = next(model.parameters()).device.type != "cpu"
     exported = model.to("cpu") if cpu else model
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    name = INPUT_NAME if exported.config.in_channels == 2 else STATE_INPUT_NAME
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             torch.onnx.export(exported, (torch.zeros(1, exported.config.in_channels, *UNET_SHAPE),), str(tmp),
-                              input_names=[INPUT_NAME], output_names=[OUTPUT_NAME], opset_version=opset,
-                              dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}}, dynamo=False)
+                              input_names=[name], output_names=[OUTPUT_NAME], opset_version=opset,
+                              dynamic_axes={name: {0: "batch"}, OUTPUT_NAME: {0: "batch"}}, dynamo=False)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -157,10 +162,11 @@ def read_card(path: str | Path) -> dict[str, Any]:
 
 
 class DepthModel:
-    """A trained depth network run with onnxruntime: SAE in, depth in mm on the 90 x 112 grid out.
+    """A trained depth network run with onnxruntime: SAE (and state channels) in, depth in mm on the 90 x 112 grid out.
 
     ``DepthModel("models/depth-w8.onnx", threads=1)``; the model card (``.json`` beside it)
-    gives the scale (mm per normalised unit) and the window the network was trained on.
+    gives the scale (mm per normalised unit), the window the network was trained on and its
+    inputs (:attr:`inputs`, a :class:`~labrig.pipeline.depth_inputs.InputSpec`).
     """
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
@@ -174,6 +180,7 @@ class DepthModel:
         self.card = read_card(card_path(self.path))
         self.scale_mm = float(self.card["scale_mm"])
         self.window_ms = float(self.card.get("window_ms", 10.0))
+        self.inputs = InputSpec.from_card(self.card)
         options = ort.SessionOptions()
         options.intra_op_num_threads = max(1, int(threads))
         options.inter_op_num_threads = 1
@@ -184,20 +191,28 @@ class DepthModel:
         except Exception as exc:  # onnxruntime raises its own exception types
             raise LabrigError(f"{self.path} cannot be loaded by onnxruntime ({str(exc).splitlines()[0]})") from None
         self.threads = options.intra_op_num_threads
+        self.input_name = self.session.get_inputs()[0].name
+        declared = self.session.get_inputs()[0].shape
+        if len(declared) == 4 and isinstance(declared[1], int) and declared[1] != self.inputs.channels:
+            raise LabrigError(f"{self.path} takes {declared[1]} channels but its card names {self.inputs.channels} "
+                              f"({', '.join(self.inputs.kinds)}); export it again with `labrig train`")
 
     @property
     def name(self) -> str:
         return self.path.stem
 
     def normalised(self, sae: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-        """Raw network output in normalised units on the padded grid: (..., 96, 112) for (..., 2, 90|96, 112)."""
+        """Raw network output in normalised units on the padded grid: (..., 96, 112) for (..., C, 90|96, 112),
+        C the card's channels (2 for the SAE alone; see :func:`labrig.pipeline.depth_inputs.network_input`)."""
         x = np.asarray(sae, dtype=np.float32)
         if x.shape[-2:] == GRID_SHAPE:
             x = pad_for_unet(x)
-        if x.shape[-3:] != (2, *UNET_SHAPE):
-            raise LabrigError(f"the depth network takes (2, 90 or 96, 112) SAEs, not {x.shape}")
+        c = self.inputs.channels
+        if x.shape[-3:] != (c, *UNET_SHAPE):
+            raise LabrigError(f"the depth network {self.name} takes ({c}, 90 or 96, 112) inputs "
+                              f"({', '.join(self.inputs.kinds)}), not {x.shape}")
         single = x.ndim == 3
-        out = self.session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(x[None] if single else x)})[0]
+        out = self.session.run([OUTPUT_NAME], {self.input_name: np.ascontiguousarray(x[None] if single else x)})[0]
         return out[0, 0] if single else out[:, 0]
 
     def depth_mm(self, sae: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
@@ -232,7 +247,7 @@ def benchmark_ms(path: str | Path, threads: int = 1, repeats: int = 50, warmup: 
     import time
 
     model = DepthModel(path, threads=threads)
-    x = np.random.default_rng(0).random((2, *UNET_SHAPE), dtype=np.float32)
+    x = np.random.default_rng(0).random((model.inputs.channels, *UNET_SHAPE), dtype=np.float32)
     for _ in range(warmup):
         model.normalised(x)
     times = []

@@ -140,10 +140,12 @@ class Pipeline:
         """Depth, displacements, forces, net force and contact location."""
         seconds = dict(tracked.seconds)
         start = time.perf_counter()
+        rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
+        if getattr(self.depth, "needs_markers", False):  # the rest gate and the displacement channels
+            self.depth.markers(tracked.positions_px, rest_px)  # type: ignore[attr-defined]
         depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
         seconds["depth"] = time.perf_counter() - start
         start = time.perf_counter()
-        rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
         u = displacement.displacements_mm(tracked.positions_px, depth, self.setup.camera, self._rest_points(rest_px),
                                           self.setup.rig.roi, sample_px=rest_px)
         seconds["displacement"] = time.perf_counter() - start

@@ -37,8 +37,11 @@ from labrig.config import Roi
 from labrig.dataset import SPLITS, Dataset, require_groundtruth
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import pad_for_unet, sae_grid
+from labrig.training.state_data import StateChannels
 
+SAE_ONLY = InputSpec()
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
 #: Margin around the probing phases (s): windows of the gel at rest, no contact, few events.
 PHASE_MARGIN_S = 0.3
@@ -89,7 +92,7 @@ def background_noise(roi: Roi, t0_us: float, t1_us: float, rate_hz: float,
 class Sample:
     """One training example: network input, normalised target, contact mask (all numpy)."""
 
-    sae: npt.NDArray[np.float32]      # (2, 96, 112), padded
+    sae: npt.NDArray[np.float32]      # (C, 96, 112), padded: the SAE, then the state channels the inputs name
     target: npt.NDArray[np.float32]   # (90, 112), depth / scale_mm clipped to [0, 1]
     contact: npt.NDArray[np.uint8]    # (90, 112)
     t_last_us: float
@@ -141,11 +144,14 @@ class Source:
         return i
 
     def window(self, t0_us: float, window_us: float, index: int = -1,
-               noise: npt.NDArray | None = None) -> Sample:
+               noise: npt.NDArray | None = None, state: StateChannels | None = None,
+               rng: np.random.Generator | None = None) -> Sample:
         """The SAE of ``[t0, t0 + window)`` and the map nearest to its last event (window end if none).
 
         ``noise``: extra events in the window (augmentation); they do not move the ground
-        truth's time, which follows the recording's own last event.
+        truth's time, which follows the recording's own last event. ``state``: the state
+        channels (:mod:`labrig.training.state_data`) appended to the SAE; their previous map is
+        the one nearest the previous window's last event (or one further back), perturbed with ``rng``.
         """
         events = self.rec.events_between(t0_us, t0_us + window_us)
         t_last = float(events["t"].max()) if len(events) else t0_us + window_us
@@ -156,6 +162,12 @@ class Source:
         i = self.nearest(t_last)
         depth = self.gt["depth_mm"][i]
         target = np.clip(depth / np.float32(self.scale_mm), 0.0, 1.0).astype(np.float32)
+        if state is not None:
+            def previous(lag_windows: int) -> npt.NDArray[np.float32]:
+                k = self.nearest(t_last - lag_windows * window_us)
+                return np.clip(self.gt["depth_mm"][k] / np.float32(self.scale_mm), 0.0, 1.0).astype(np.float32)
+
+            sae = np.concatenate([sae, state(t0_us + window_us, previous, rng or np.random.default_rng())])
         return Sample(sae, target, self.gt["contact_mask"][i].astype(np.uint8), t_last,
                       float(self.t_gt[i]) - t_last, index)
 
@@ -228,13 +240,25 @@ class WindowSampler:
     arrays; :meth:`state` / :meth:`set_state` capture the generator for resume.
     """
 
-    def __init__(self, sources: list[Source], window_us: float, seed: int, noise: NoiseAugment | None = None) -> None:
+    def __init__(self, sources: list[Source], window_us: float, seed: int, noise: NoiseAugment | None = None,
+                 inputs: InputSpec = SAE_ONLY, calibration_dir: str | Path | None = "calibration") -> None:
         if not sources:
             raise LabrigError("no recordings to sample from")
         self.sources = sources
         self.window_us = float(window_us)
         self.noise = noise
         self.rng = np.random.default_rng(seed)
+        self.inputs = inputs
+        self.calibration_dir = calibration_dir
+        self._state: dict[int, StateChannels] = {}
+
+    def state_channels(self, k: int) -> StateChannels | None:
+        """Source ``k``'s state channels (built, and its tracks cached, on first use); None for the SAE alone."""
+        if not self.inputs.stateful:
+            return None
+        if k not in self._state:
+            self._state[k] = StateChannels(self.sources[k].path, self.inputs, self.calibration_dir)
+        return self._state[k]
 
     def sample(self) -> Sample:
         k = int(self.rng.integers(len(self.sources)))
@@ -245,7 +269,7 @@ class WindowSampler:
         if self.noise is not None:
             rate_hz = self.noise.draw_hz(self.rng)
             extra = background_noise(src.roi, start, start + self.window_us, rate_hz, self.rng) if rate_hz else None
-        return src.window(start, self.window_us, k, extra)
+        return src.window(start, self.window_us, k, extra, self.state_channels(k), self.rng)
 
     def __iter__(self) -> Iterator[Sample]:
         while True:
@@ -276,6 +300,7 @@ def torch_dataset(sampler: WindowSampler) -> Any:
     return Windows()
 
 
-def fixed_set(sources: list[Source], window_us: float, n: int, seed: int) -> tuple[npt.NDArray, ...]:
-    """``n`` windows drawn once with their own seed (validation): arrays sae, target, contact."""
-    return WindowSampler(sources, window_us, seed).batch(n)
+def fixed_set(sources: list[Source], window_us: float, n: int, seed: int, inputs: InputSpec = SAE_ONLY,
+              calibration_dir: str | Path | None = "calibration") -> tuple[npt.NDArray, ...]:
+    """``n`` windows drawn once with their own seed (validation): arrays input (SAE and state channels), target, contact."""
+    return WindowSampler(sources, window_us, seed, inputs=inputs, calibration_dir=calibration_dir).batch(n)

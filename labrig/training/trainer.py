@@ -23,16 +23,19 @@ from typing import Any
 import numpy as np
 
 from labrig.errors import LabrigError
+from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import crop_from_unet
 from labrig.training.data import NoiseAugment
 from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
+from labrig.training.state_data import SELF_FEED_MAX, self_feed
 
 DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
 #: Settings that must match for a resume.
-RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases", "noise_hz")
+RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases", "noise_hz",
+               "inputs")
 #: Resume keys a checkpoint may predate, with the value it then had.
-RESUME_DEFAULTS = {"noise_hz": 0.0}
+RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae"}
 #: Lowest extra noise rate of the augmentation (Hz per pixel): below the sensor's own.
 NOISE_MIN_HZ = 0.02
 
@@ -56,6 +59,8 @@ class TrainConfig:
     device: str = "auto"
     threads: int | None = None
     noise_hz: float = 0.0  # background-noise augmentation: up to this rate (Hz per pixel) on half the windows; 0: off
+    inputs: str = "sae"  # the network's inputs (labrig.pipeline.depth_inputs.INPUT_SETS): sae, sae+disp, sae+disp+prev
+    calibration_dir: str | None = "calibration"  # the camera and markers the tracker's displacement channels need
 
     def check(self) -> None:
         if self.loss not in LOSSES:
@@ -74,6 +79,12 @@ class TrainConfig:
             raise LabrigError("--phases must be probing or all")
         if self.noise_hz < 0:
             raise LabrigError("--noise-hz must be 0 (off) or a positive rate in Hz per pixel")
+        self.input_spec  # noqa: B018  (checks --inputs)
+
+    @property
+    def input_spec(self) -> InputSpec:
+        """The network's input channels (:class:`~labrig.pipeline.depth_inputs.InputSpec`)."""
+        return InputSpec.named(self.inputs)
 
     @property
     def noise(self) -> NoiseAugment | None:
@@ -145,12 +156,16 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
     try:
         window_us = config.window_ms * 1000.0
         torch.manual_seed(config.seed)
-        model = build_unet(UNetConfig(width=config.width, pools=config.pools)).to(device)
+        spec = config.input_spec
+        unet = UNetConfig(width=config.width, pools=config.pools, in_channels=spec.channels)
+        model = build_unet(unet).to(device)
         optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-        sampler = WindowSampler(data.sources["train"], window_us, config.seed, config.noise)
+        sampler = WindowSampler(data.sources["train"], window_us, config.seed, config.noise, spec, config.calibration_dir)
         val_sources = data.sources.get("val", [])
-        val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET) if val_sources else None
+        val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET, spec,
+                        config.calibration_dir) if val_sources else None
         loss_fn = loss_function(config.loss, config.lambda_c)
+        previous_channel = spec.channel_of("previous")
         scale = data.scale_mm
         step, elapsed_s, samples_s, history, val_history = 0, 0.0, 0.0, [], []
         if resume:
@@ -199,6 +214,8 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
                 x = torch.from_numpy(sae).to(device)
                 y = torch.from_numpy(target).to(device)
                 c = torch.from_numpy(contact).to(device)
+                if previous_channel is not None:
+                    x = self_feed(model, x, previous_channel, int(torch.randint(0, SELF_FEED_MAX + 1, (1,))))
                 pred = crop_from_unet(model(x)[:, 0])
                 loss = loss_fn(pred, y, c)
                 optimizer.zero_grad(set_to_none=True)
@@ -224,18 +241,20 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
         n_samples = step * config.batch_size
         card = {
             "name": paths["onnx"].stem,
-            "architecture": UNetConfig(width=config.width, pools=config.pools).to_dict(),
+            "architecture": unet.to_dict(),
             "parameters": parameter_count(model),
             "scale_mm": scale,
             "normalisation": "depth_norm = clip(depth_mm / scale_mm, 0, 1); network output clipped to [0, 1]",
             "window_ms": config.window_ms,
             "input": "polarity-separated SAE on the 90 x 112 grid (labrig.pipeline.sae.sae_grid), zero-padded to "
-                     "96 x 112; channel 0 OFF, 1 ON; latest event per cell, (t - t0) / window",
+                     "96 x 112; channel 0 OFF, 1 ON; latest event per cell, (t - t0) / window; then the channels "
+                     "of 'inputs' (labrig.pipeline.depth_inputs)",
+            "inputs": spec.to_card(),
             "loss": {"name": config.loss, "lambda_c": config.lambda_c if config.loss == "contact" else None},
             "training_data": data.describe(),
             "sampling": f"uniform recording, uniform start time within its {config.phases} phases; ground truth "
                         "nearest to the window's last event",
-            "augmentation": {"background_noise": config.noise.describe()} if config.noise else None,
+            "augmentation": _augmentation(config),
             "training": {"steps": step, "batch_size": config.batch_size, "samples": n_samples, "optimizer": "Adam",
                          "lr": config.lr, "seed": config.seed, "seconds": round(elapsed_s, 1),
                          "samples_per_s": round(n_samples / elapsed_s, 1) if elapsed_s > 0 else None,
@@ -265,6 +284,23 @@ def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume:
         data.close()
 
 
+def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
+    """The card's augmentation section: background noise, the previous map's perturbation, the tracker's tracks."""
+    from labrig.training.state_data import PreviousAugment
+
+    out: dict[str, Any] = {}
+    if config.noise:
+        out["background_noise"] = config.noise.describe()
+    if "previous" in config.input_spec.kinds:
+        out["previous_map"] = {**PreviousAugment().describe(), "source": "ground truth nearest the previous window's "
+                               "last event", "self_feed_steps": f"0-{SELF_FEED_MAX}, uniform per batch: the channel "
+                               "replaced by the network's own answer (state_data.self_feed)"}
+    if "displacement" in config.input_spec.kinds:
+        out["displacement"] = {"source": "the pipeline's tracker over each recording (10 ms windows, cached)",
+                               "calibration": config.calibration_dir}
+    return out or None
+
+
 def _smooth(history: list[tuple[int, float]], n: int = 20) -> float | None:
     if not history:
         return None
@@ -284,6 +320,10 @@ def _reproduce(data_dir: str | Path, c: TrainConfig, out: Path, steps: int) -> s
         parts += ["--phases", c.phases]
     if c.noise_hz > 0:
         parts += ["--noise-hz", f"{c.noise_hz:g}"]
+    if c.inputs != "sae":
+        parts += ["--inputs", c.inputs]
+        if c.calibration_dir not in (None, "calibration") and "disp" in c.inputs:
+            parts += ["--calibration", str(c.calibration_dir)]
     if c.val_every != 200 or c.val_windows != 128:
         parts += ["--val-every", str(c.val_every), "--val-windows", str(c.val_windows)]
     return " ".join(parts)
@@ -346,7 +386,7 @@ def split_errors(onnx_path: str | Path, data_dir: str | Path, split: str = "test
         sources = data.sources.get(split, [])
         if not sources:
             return None
-        sae, target, contact = fixed_set(sources, model.window_ms * 1000.0, windows, seed)
+        sae, target, contact = fixed_set(sources, model.window_ms * 1000.0, windows, seed, model.inputs)
         pred = np.concatenate([model.depth_mm(sae[i:i + 32]) for i in range(0, len(sae), 32)])
         return depth_errors_mm(pred, target * model.scale_mm, contact)
     finally:

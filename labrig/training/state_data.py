@@ -1,0 +1,202 @@
+"""Training inputs that carry the gel's state: the tracker's displacement field and a perturbed previous map.
+
+**Displacement field.** The channels come from running the pipeline's own tracker
+(:class:`labrig.pipeline.tracking.Tracker` with the rest refinement of
+:class:`labrig.pipeline.rest.RestRefiner`, 10 ms windows, the recording's calibration) over
+the whole recording once, cached under ``$LABRIG_CACHE/tracks`` (:mod:`labrig.cache`), not
+from the virtual rig's ``/truth/markers``: a real recording has no true markers, and the
+tracker's errors (lag in fast motion, drift that survives a shear, markers that slip) are
+not Gaussian noise; the network must learn to read what it will be given. A window's field
+is the tracked positions interpolated at the window's end, back-projected to the gel plane
+and rasterised with the same :class:`~labrig.pipeline.depth_inputs.DisplacementRaster` the
+depth source uses.
+
+**Previous map.** The ground truth nearest the previous window's last event (one window
+earlier; for a share of the windows up to 30 windows earlier), perturbed so that the network
+does not trust it blindly and its own errors do not compound at run time
+(:class:`PreviousAugment`): zeroed for a share of the windows (the start of a stream, the
+rest gate), otherwise scaled, shifted by whole grid cells and given Gaussian noise. Fed only
+the truth, a network learns to copy the channel and its errors compound in closed loop, so the
+trainer also feeds it its own answers (:func:`self_feed`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.cache import cache_folder, cache_key, sha256_of
+from labrig.errors import LabrigError
+from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
+from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+#: The tracker's windows over a recording (us).
+TRACK_WINDOW_US = 10_000
+TRACKS_VERSION = 1
+#: The most times a batch's previous-map channel is replaced by the network's own answer (:func:`self_feed`).
+SELF_FEED_MAX = 2
+
+
+@dataclass(frozen=True)
+class PreviousAugment:
+    """How the previous map is chosen and perturbed.
+
+    With ``p_stale`` it is the truth from 2 to ``max_lag_windows`` windows earlier instead of one
+    (a map that may show another state: the dent before a release, nothing before a press), so
+    the network checks it against the SAE and the displacement rather than copying it. Then it
+    is zeroed with ``p_zero``, else scaled by a factor in ``[1 - scale, 1 + scale]``, shifted up
+    to ``shift_cells`` cells per axis and given noise of ``noise`` (normalised depth units)
+    standard deviation; clipped to [0, 1].
+    """
+
+    p_zero: float = 0.25
+    scale: float = 0.4
+    shift_cells: int = 2
+    noise: float = 0.02
+    p_stale: float = 0.3
+    max_lag_windows: int = 30
+
+    def lag_windows(self, rng: np.random.Generator) -> int:
+        """How many windows back the previous map is taken from."""
+        return int(rng.integers(2, self.max_lag_windows + 1)) if rng.uniform() < self.p_stale else 1
+
+    def __call__(self, previous: F32, rng: np.random.Generator) -> F32:
+        if rng.uniform() < self.p_zero:
+            return np.zeros_like(previous)
+        out = previous * np.float32(rng.uniform(1.0 - self.scale, 1.0 + self.scale))
+        dr, dc = (int(v) for v in rng.integers(-self.shift_cells, self.shift_cells + 1, 2))
+        out = _shift(out, dr, dc)
+        out = out + rng.normal(0.0, self.noise, out.shape).astype(np.float32)
+        return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+    def describe(self) -> dict[str, float]:
+        return {"p_zero": self.p_zero, "scale": self.scale, "shift_cells": self.shift_cells, "noise": self.noise,
+                "p_stale": self.p_stale, "max_lag_windows": self.max_lag_windows}
+
+
+def _shift(a: F32, dr: int, dc: int) -> F32:
+    """``a`` moved by (dr, dc) cells, zeros where it came from outside."""
+    out = np.zeros_like(a)
+    rows, cols = a.shape
+    out[max(dr, 0):rows + min(dr, 0), max(dc, 0):cols + min(dc, 0)] = \
+        a[max(-dr, 0):rows + min(-dr, 0), max(-dc, 0):cols + min(-dc, 0)]
+    return out
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """The tracker over one recording: window ends (N,) host us, positions (N, M, 2) px, the rest (M, 2) px."""
+
+    t_us: npt.NDArray[np.int64]
+    positions_px: F64
+    rest_px: F64
+
+    def at(self, t_us: float) -> F64:
+        """(M, 2) positions linearly interpolated at ``t_us`` (the rest before the first window)."""
+        k = int(np.searchsorted(self.t_us, t_us))
+        if k == 0:
+            return self.rest_px
+        if k >= len(self.t_us):
+            return self.positions_px[-1]
+        a, b = self.t_us[k - 1], self.t_us[k]
+        w = (t_us - a) / max(float(b - a), 1.0)
+        return (1.0 - w) * self.positions_px[k - 1] + w * self.positions_px[k]
+
+
+def track_recording(path: str | Path, calibration_dir: str | Path | None, cache_root: str | Path | None = None) -> Tracks:
+    """The pipeline's tracker over the whole recording (10 ms windows), cached by the file's SHA-256 and the setup."""
+    from labrig.pipeline import run_setup, tracking
+    from labrig.pipeline.rest import RestParams, RestRefiner
+    from labrig.pipeline.windows import recording_windows
+    from labrig.recording import Recording
+
+    path = Path(path)
+    with Recording(path) as rec:
+        setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
+        params = tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig))
+        key = cache_key({"recording": sha256_of(path), "rest_px": np.round(setup.rest_px, 4).tolist(),
+                         "observed": setup.observed.tolist(), "tracker": repr(params), "window_us": TRACK_WINDOW_US,
+                         "rest": repr(RestParams()), "version": TRACKS_VERSION})
+        cached = cache_folder("tracks", cache_root) / f"{key}.npz"
+        if cached.exists():
+            with np.load(cached) as data:
+                return Tracks(data["t_us"], data["positions_px"], data["rest_px"])
+        tracker = tracking.Tracker(setup.rest_px, params, observed=setup.observed)
+        rest = RestRefiner(setup.rest_px, setup.observed, RestParams())
+        ends, positions = [], []
+        for t0, t1, events in recording_windows(rec, window_us=TRACK_WINDOW_US):
+            p, _ = tracker.update(events)
+            if not rest.frozen:
+                rest.add(p, len(events), t1 - t0)
+                tracker.rest_px = rest.rest_px
+            ends.append(t1)
+            positions.append(p.copy())
+    if not ends:
+        raise LabrigError(f"{path}: no camera windows to track")
+    tracks = Tracks(np.asarray(ends, np.int64), np.asarray(positions, np.float64), np.asarray(rest.rest_px, np.float64))
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cached.with_name(f".{cached.stem}.tmp.npz")
+    np.savez(tmp, t_us=tracks.t_us, positions_px=tracks.positions_px, rest_px=tracks.rest_px)
+    tmp.replace(cached)
+    return tracks
+
+
+class StateChannels:
+    """The state channels of one recording's training windows (after the SAE, in the spec's order)."""
+
+    def __init__(self, recording: str | Path, spec: InputSpec, calibration_dir: str | Path | None,
+                 augment: PreviousAugment | None = None, cache_root: str | Path | None = None) -> None:
+        self.spec = spec
+        self.augment = augment or PreviousAugment()
+        self.tracks: Tracks | None = None
+        self.raster: DisplacementRaster | None = None
+        if "displacement" in spec.kinds:
+            from labrig.pipeline import run_setup
+            from labrig.recording import Recording
+
+            with Recording(recording) as rec:
+                setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
+            self.camera = setup.camera
+            self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
+            self.tracks = track_recording(recording, calibration_dir, cache_root)
+
+    def __call__(self, t_end_us: float, previous_at: Callable[[float], F32] | None, rng: np.random.Generator) -> F32:
+        """(channels - 2, 96, 112): the displacement field at ``t_end_us`` and the perturbed previous map.
+
+        ``previous_at(lag_windows)``: the normalised true map that many windows before this one."""
+        field = None
+        if self.raster is not None and self.tracks is not None:
+            field = self.raster(gel_plane_displacement_mm(self.camera, self.tracks.at(t_end_us), self.tracks.rest_px))
+        previous = None
+        if "previous" in self.spec.kinds:
+            assert previous_at is not None
+            previous = self.augment(previous_at(self.augment.lag_windows(rng)), rng)
+        return network_input(self.spec, np.zeros((2, *UNET_SHAPE), np.float32), field, previous)[2:]
+
+
+def self_feed(model: Any, x: Any, channel: int, steps: int) -> Any:
+    """``x`` with its previous-map channel replaced ``steps`` times by the network's own answer (no gradient).
+
+    At run time the previous map is the network's own last estimate, errors included; fed only
+    the (perturbed) truth, a network learns to trust it and its errors compound in closed loop
+    (measured: the depth ran to the top of the scale within a press). Fed its own answer, it
+    learns to correct it. The answer stands in for the previous window's (10 ms earlier)."""
+    import torch
+    import torch.nn.functional as functional
+
+    if steps == 0:
+        return x
+    x = x.clone()
+    with torch.no_grad():
+        for _ in range(steps):
+            own = crop_from_unet(model(x)[:, 0]).clamp(0.0, 1.0)
+            rows = x.shape[-2] - own.shape[-2]
+            x[:, channel] = functional.pad(own, (0, 0, rows // 2, rows - rows // 2))
+    return x
