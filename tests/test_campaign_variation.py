@@ -122,3 +122,12 @@ def test_the_cli_records_each_sensor_in_virtual_time_and_refuses_vary_through_th
     rig = parse_rig(str(rig_text), recording)
     campaign_seed_3_index_0 = 3 * 100_003
     assert rig.sim.markers.seed == campaign_seed_3_index_0
+
+
+def test_an_error_line_keeps_its_brackets(tmp_path: Path) -> None:
+    """Section names in error lines ([campaign], [vary]) are printed as written, not taken for markup."""
+    path = tmp_path / "not-a-campaign.toml"
+    path.write_text('[probe]\nindenter = "sphere"\n')
+    done = subprocess.run([sys.executable, "-m", "labrig.cli", "campaign", str(path), "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "[campaign]: missing; start the file with [campaign]" in done.stderr
