@@ -69,7 +69,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from labrig.pipeline.tracking import follow_neighbours, grid_neighbours
+from labrig.pipeline.tracking import follow_neighbours, grid_markers, grid_neighbours
 
 Array = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -241,12 +241,7 @@ class EvetacTracker:
     def __init__(self, rest_px: npt.ArrayLike, params: EvetacParams = EvetacParams(),
                  observed: npt.ArrayLike | None = None) -> None:
         self.params = params
-        self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
-        if len(self.rest_px) != params.grid_rows * params.grid_cols:
-            raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
-        self.observed = np.ones(len(self.rest_px), bool) if observed is None else np.array(observed, bool).reshape(-1)
-        if self.observed.shape != (len(self.rest_px),):
-            raise ValueError(f"observed mask of {self.observed.size} for {len(self.rest_px)} markers")
+        self.rest_px, self.observed = grid_markers(rest_px, observed, params.grid_rows, params.grid_cols)
         if not self.observed.any():
             raise ValueError("no observed marker to track")
         self._dots = np.flatnonzero(self.observed)  # the dots Evetac tracks, in marker order

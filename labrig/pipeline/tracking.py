@@ -59,6 +59,19 @@ def marker_diameter_px(rig: RigConfig) -> float:
     return float(rig.markers.diameter_mm * scale.mean())
 
 
+def grid_markers(rest_px: npt.ArrayLike, observed: npt.ArrayLike | None, rows: int,
+                 cols: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
+    """A tracker's markers checked: rest positions (M, 2) px for a ``rows`` x ``cols`` grid and the
+    observed mask (M,) (None: all observed)."""
+    rest = np.array(rest_px, np.float64).reshape(-1, 2)
+    if len(rest) != rows * cols:
+        raise ValueError(f"{len(rest)} rest positions for a {rows}x{cols} grid")
+    seen = np.ones(len(rest), bool) if observed is None else np.array(observed, bool).reshape(-1)
+    if seen.shape != (len(rest),):
+        raise ValueError(f"observed mask of {seen.size} for {len(rest)} markers")
+    return rest, seen
+
+
 def grid_neighbours(rows: int, cols: int, connectivity: int = 4) -> npt.NDArray[np.int64]:
     """(M, 4 or 8) neighbour indices in a row-major grid, -1 where there is none."""
     if connectivity not in (4, 8):
@@ -261,12 +274,7 @@ class _PatchTracker:
     def __init__(self, rest_px: npt.ArrayLike, params: TrackerParams | CircleFitParams,
                  observed: npt.ArrayLike | None = None) -> None:
         self.params = params
-        self.rest_px = np.array(rest_px, np.float64).reshape(-1, 2)
-        if len(self.rest_px) != params.grid_rows * params.grid_cols:
-            raise ValueError(f"{len(self.rest_px)} rest positions for a {params.grid_rows}x{params.grid_cols} grid")
-        self.observed = np.ones(len(self.rest_px), bool) if observed is None else np.array(observed, bool).reshape(-1)
-        if self.observed.shape != (len(self.rest_px),):
-            raise ValueError(f"observed mask of {self.observed.size} for {len(self.rest_px)} markers")
+        self.rest_px, self.observed = grid_markers(rest_px, observed, params.grid_rows, params.grid_cols)
         self._neigh4 = grid_neighbours(params.grid_rows, params.grid_cols, 4)
         self._follow = grid_neighbours(params.grid_rows, params.grid_cols, 8)
 
