@@ -1,4 +1,4 @@
-"""``labrig train DATA``: train the depth network on a campaign and export it with its model card.
+"""``labrig train DATA [DATA ...]``: train the depth network on a campaign and export it with its model card.
 
 Mount on the main app with :func:`add_train_commands`. User errors (no
 manifest, missing sidecars, bad options, a checkpoint in the way) are
@@ -19,7 +19,8 @@ from labrig.cli.console import console, print_json
 
 
 def train_command(
-    data: Annotated[Path, typer.Argument(help="Campaign output folder: manifest.csv, recordings and NAME.gt.h5 sidecars.")],
+    data: Annotated[list[Path], typer.Argument(
+        help="Campaign output folder(s): manifest.csv, recordings and NAME.gt.h5 sidecars; several pool their splits.")],
     width: Annotated[int, typer.Option(help="U-Net base width (channels at full resolution; 32 = the paper's 7.8 M).")] = 8,
     pools: Annotated[int, typer.Option(help="Number of 2x2 poolings (96 x 112 allows up to 4).")] = 4,
     window_ms: Annotated[float, typer.Option(help="Event window accumulated into the SAE (ms).")] = 10.0,
@@ -46,7 +47,8 @@ def train_command(
              "(Hz per pixel, log-uniform from 0.02); 0: off.")] = 0.0,
     inputs: Annotated[str, typer.Option(
         help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
-             "sae+disp+prev (+ the previous depth map); docs/depthnet.md.")] = "sae",
+             "sae+disp+prev (+ the previous depth map), sae+bright (+ the brightness change since rest, the events' "
+             "polarities integrated), sae+bright+disp; docs/depthnet.md.")] = "sae",
     calibration: Annotated[Path, typer.Option(
         help="Calibration folder (camera, marker map) for the tracker behind the displacement channels.")] = Path(
         "calibration"),
@@ -64,7 +66,8 @@ def train_command(
     if out is None:
         out = Path("models") / f"depth-w{width}-{loss}-{window_ms:g}ms"
     command = "labrig " + shlex.join(sys.argv[1:]) if sys.argv and "train" in sys.argv else ""
-    card = train(data, config, out, resume=resume, command=command, show_progress=not as_json)
+    card = train(data[0] if len(data) == 1 else data, config, out, resume=resume, command=command,
+                 show_progress=not as_json)
     if as_json:
         print_json(card)
         return

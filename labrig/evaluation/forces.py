@@ -49,6 +49,7 @@ class ForceTask:
     depth_window_ms: float = 10.0  # for depth="truth": the F/T averaging window
     sidecar: str = ""  # the ground truth for the indenter's position (default NAME.gt.h5 beside the recording)
     quiet_hold: bool = True  # the network's quiet-window hold (labrig.pipeline.quiet); False feeds it every window
+    rest_gate: bool = True  # the rest gate as the network's card asks (labrig.pipeline.depth_sources.rest_params_for); False: off
 
 
 @dataclass(frozen=True)
@@ -93,7 +94,8 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
                                               youngs_modulus_mpa=task.youngs_modulus_mpa, stiffening=task.stiffening)
         source = depth_sources.depth_source("truth" if task.depth == "truth" else "model", setup, rec,
                                             None if task.depth == "truth" else task.depth,
-                                            quiet="auto" if task.quiet_hold else None)
+                                            quiet="auto" if task.quiet_hold else None,
+                                            rest="auto" if task.rest_gate else None)
         params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,
@@ -134,7 +136,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         markers_unobserved=int((~setup.observed).sum()), depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact)
 
 
-evaluate_forces.cache_version = "9"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors
+evaluate_forces.cache_version = "10"  # type: ignore[attr-defined]  # 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

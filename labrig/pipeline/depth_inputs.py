@@ -11,7 +11,10 @@ network may take, beside the SAE, channels that carry the state. The model card'
   in units of ``displacement_scale_mm``, rasterised onto the 90 x 112 network grid by
   :class:`DisplacementRaster`;
 * ``previous`` (1 channel): the source's previous depth estimate, normalised by the card's
-  ``scale_mm`` (zeros at the start of a stream and at rest).
+  ``scale_mm`` (zeros at the start of a stream and at rest);
+* ``brightness`` (1 channel): the membrane's brightness change since rest, the events'
+  polarities integrated per grid cell (:mod:`labrig.pipeline.brightness`; the card's
+  ``inputs.brightness`` holds its leak, unit and clip).
 
 Every channel is zero-padded to 96 x 112 like the SAE (:func:`labrig.pipeline.sae.pad_for_unet`).
 Training and inference build the channels with the same functions here.
@@ -29,6 +32,7 @@ from labrig.config import Roi
 from labrig.errors import LabrigError
 from labrig.physics.camera import CameraModel
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.brightness import BrightnessParams
 from labrig.pipeline.displacement import grid_coordinates
 from labrig.pipeline.sae import pad_for_unet
 
@@ -36,19 +40,21 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 
 #: Each input kind and its channels.
-CHANNELS = {"sae": 2, "displacement": 2, "previous": 1}
-#: The named input sets (``labrig train --inputs``), the comparison's three variants.
-INPUT_SETS = {"sae": ("sae",), "sae+disp": ("sae", "displacement"), "sae+disp+prev": ("sae", "displacement", "previous")}
+CHANNELS = {"sae": 2, "displacement": 2, "previous": 1, "brightness": 1}
+#: The named input sets (``labrig train --inputs``), the comparison's variants.
+INPUT_SETS = {"sae": ("sae",), "sae+disp": ("sae", "displacement"), "sae+disp+prev": ("sae", "displacement", "previous"),
+              "sae+bright": ("sae", "brightness"), "sae+bright+disp": ("sae", "brightness", "displacement")}
 #: Gel-plane displacement (mm) that makes one unit of a displacement channel.
 DEFAULT_DISPLACEMENT_SCALE_MM = 1.0
 
 
 @dataclass(frozen=True)
 class InputSpec:
-    """The channels a depth network takes, in order, and the displacement channels' unit (mm)."""
+    """The channels a depth network takes, in order, the displacement channels' unit (mm) and the brightness channel's settings."""
 
     kinds: tuple[str, ...] = ("sae",)
     displacement_scale_mm: float = DEFAULT_DISPLACEMENT_SCALE_MM
+    brightness: BrightnessParams = BrightnessParams()
 
     def __post_init__(self) -> None:
         unknown = [k for k in self.kinds if k not in CHANNELS]
@@ -74,13 +80,19 @@ class InputSpec:
         if not isinstance(inputs, dict) or not isinstance(inputs.get("kinds"), list):
             raise LabrigError(f"model card {card.get('name', '?')}: 'inputs' must hold a list of 'kinds'")
         return cls(tuple(str(k) for k in inputs["kinds"]),
-                   float(inputs.get("displacement_scale_mm", DEFAULT_DISPLACEMENT_SCALE_MM)))
+                   float(inputs.get("displacement_scale_mm", DEFAULT_DISPLACEMENT_SCALE_MM)),
+                   BrightnessParams.from_card(inputs.get("brightness")))
 
     def to_card(self) -> dict[str, Any]:
-        return {"kinds": list(self.kinds), "channels": self.channels,
-                "displacement_scale_mm": self.displacement_scale_mm,
-                "description": "sae: OFF, ON; displacement: markers' gel-plane dx, dy since rest / "
-                               "displacement_scale_mm, rasterised on the grid; previous: last estimate / scale_mm"}
+        card: dict[str, Any] = {"kinds": list(self.kinds), "channels": self.channels,
+                                "displacement_scale_mm": self.displacement_scale_mm,
+                                "description": "sae: OFF, ON; displacement: markers' gel-plane dx, dy since rest / "
+                                               "displacement_scale_mm, rasterised on the grid; previous: last estimate / "
+                                               "scale_mm; brightness: signed events per pixel since rest, leaky, less "
+                                               "the median, / scale_events_per_px, clipped"}
+        if "brightness" in self.kinds:
+            card["brightness"] = self.brightness.to_card()
+        return card
 
     @property
     def channels(self) -> int:
@@ -161,11 +173,12 @@ def gel_plane_displacement_mm(camera: CameraModel, positions_px: npt.ArrayLike, 
 
 
 def network_input(spec: InputSpec, sae: npt.ArrayLike, displacement: npt.ArrayLike | None = None,
-                  previous_norm: npt.ArrayLike | None = None) -> F32:
+                  previous_norm: npt.ArrayLike | None = None, brightness: npt.ArrayLike | None = None) -> F32:
     """The stacked, padded input (channels, 96, 112) for ``spec`` from its parts on the 90 x 112 grid.
 
     ``displacement``: (2, 90, 112) in mm (divided here by the spec's scale); ``previous_norm``:
-    (90, 112) normalised depth. A part the spec names must be given.
+    (90, 112) normalised depth; ``brightness``: (90, 112) the channel of
+    :func:`labrig.pipeline.brightness.brightness_channel`. A part the spec names must be given.
     """
     parts: list[F32] = []
     for kind in spec.kinds:
@@ -175,6 +188,10 @@ def network_input(spec: InputSpec, sae: npt.ArrayLike, displacement: npt.ArrayLi
             if displacement is None:
                 raise LabrigError("this depth network takes the markers' displacement field; none was given")
             part = np.asarray(displacement, np.float32) / np.float32(spec.displacement_scale_mm)
+        elif kind == "brightness":
+            if brightness is None:
+                raise LabrigError("this depth network takes the brightness change since rest; none was given")
+            part = np.asarray(brightness, np.float32)[None]
         else:
             if previous_norm is None:
                 raise LabrigError("this depth network takes its previous depth map; none was given")

@@ -22,6 +22,7 @@ import numpy.typing as npt
 from labrig import models
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.brightness import BrightnessIntegrator
 from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
 from labrig.pipeline.depthnet import DepthModel
 from labrig.pipeline.quiet import QuietHold, QuietParams
@@ -83,31 +84,39 @@ class ModelDepth:
     with the state channels its card names (:mod:`labrig.pipeline.depth_inputs`).
 
     ``path``: an ``.onnx`` with its card, or a bundled network's name (``default``,
-    ``noise-robust``). ``setup``: the run's camera, ROI and markers (needed by a network that
+    ``sae-only``). ``setup``: the run's camera, ROI and markers (needed by a network that
     takes the displacement field). ``quiet``: windows at the noise floor keep the last active
     map (:mod:`labrig.pipeline.quiet`); ``"auto"`` also watches each SAE tile for motion when
     the network was trained with background-noise augmentation (:func:`quiet_params_for`);
     None feeds every window to the network. ``rest``: the rest gate
     (:mod:`labrig.pipeline.rest_gate`): once the tracked markers are back at rest the depth
-    is exactly zero, the held map and the previous estimate are cleared; None turns it off.
+    is exactly zero, the held map and the previous estimate are cleared; None turns it off;
+    ``"auto"`` (:func:`rest_params_for`) keeps it for the networks that need it.
 
     The pipeline calls :meth:`markers` with each window's tracked positions before
-    :meth:`depth_mm` (``needs_markers``).
+    :meth:`depth_mm` (``needs_markers``), and, for a network that takes the brightness change
+    since rest (``needs_counts``), :meth:`counts` with each window's signed event counts.
+    Such a network sees the gel's state in every window, so it answers every window: the
+    quiet hold, which keeps an SAE-only network's last map through still windows, is off.
     """
 
     needs_sae = True
     needs_markers = True
 
     def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | str | None = "auto", *,
-                 setup: PipelineSetup | None = None, rest: RestGateParams | None = DEFAULT_REST_GATE) -> None:
+                 setup: PipelineSetup | None = None, rest: RestGateParams | str | None = "auto") -> None:
         self.model = DepthModel(models.model_path(path), threads=threads)
         self.name = f"model:{self.model.name}"
         self.window_us: float | None = self.model.window_ms * 1000.0
         self.inputs = self.model.inputs
+        self.needs_counts = "brightness" in self.inputs.kinds
         if quiet == "auto":
             quiet = quiet_params_for(self.model.card)
         assert not isinstance(quiet, str), f"quiet must be QuietParams, None or 'auto', not {quiet!r}"
         self.hold = QuietHold(GRID_SHAPE, quiet) if quiet is not None else None
+        if rest == "auto":
+            rest = rest_params_for(self.model.card)
+        assert not isinstance(rest, str), f"rest must be RestGateParams, None or 'auto', not {rest!r}"
         self.gate = RestGate(setup.observed if setup is not None else None, rest) if rest is not None else None
         self.raster: DisplacementRaster | None = None
         if "displacement" in self.inputs.kinds:
@@ -115,6 +124,12 @@ class ModelDepth:
                 raise LabrigError(f"{self.model.path} takes the markers' displacement field: build it with "
                                   "depth_sources.depth_source(..., setup=...)")
             self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
+        self.integrator: BrightnessIntegrator | None = None
+        if self.needs_counts:
+            if setup is None:
+                raise LabrigError(f"{self.model.path} takes the brightness change since rest: build it with "
+                                  "depth_sources.depth_source(..., setup=...)")
+            self.integrator = BrightnessIntegrator(setup.rig.roi, self.inputs.brightness)
         self.camera = setup.camera if setup is not None else None
         self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
         self._positions_px: npt.NDArray[np.float64] | None = None
@@ -128,12 +143,17 @@ class ModelDepth:
         self._positions_px, self._rest_px = positions_px, rest_px
         self.at_rest = self.gate(positions_px, rest_px) if self.gate is not None else False
 
+    def counts(self, signed_counts: npt.NDArray[np.float32], t1_us: int) -> None:
+        """This window's ON minus OFF events per grid cell (:func:`labrig.pipeline.brightness.signed_counts`)."""
+        if self.integrator is not None:
+            self.integrator.add(signed_counts, t1_us)
+
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]:
         assert sae_grid is not None
         quiet = self.hold(n_events, t1_us - t0_us, sae_grid) if self.hold is not None else False  # every window feeds the floors
         if self.at_rest:
-            self.reset()
+            self.reset(t1_us)
             return np.zeros(GRID_SHAPE, np.float32)
         if quiet:
             assert self.hold is not None
@@ -146,6 +166,9 @@ class ModelDepth:
         """The channels the card names for this window: the SAE, then the state."""
         if not self.inputs.stateful:
             return sae_grid
+        bright = None
+        if self.integrator is not None:
+            bright = self.integrator.channel()
         field = None
         if self.raster is not None:
             if self._positions_px is None or self._rest_px is None or self.camera is None:
@@ -154,21 +177,39 @@ class ModelDepth:
             if self._rest_px is not self._rest_seen:  # the rest changes only while the stream's first windows refine it
                 self._rest_seen, self._rest_mm = self._rest_px, gel_plane_mm(self.camera, self._rest_px)
             field = self.raster(gel_plane_displacement_mm(self.camera, self._positions_px, self._rest_px, self._rest_mm))
-        return network_input(self.inputs, sae_grid, field, self.previous_norm)
+        return network_input(self.inputs, sae_grid, field, self.previous_norm, bright)
 
-    def reset(self) -> None:
-        """Forget the held map and the previous estimate (the gel is at rest)."""
+    def reset(self, t_us: int | None = None) -> None:
+        """Forget the held map, the previous estimate and the brightness change (the gel is at rest at ``t_us``)."""
         self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
+        if self.integrator is not None:
+            self.integrator.reset(t_us)
         if self.hold is not None:
             self.hold.update(np.zeros(GRID_SHAPE, np.float32))
 
 
-def quiet_params_for(card: dict[str, Any]) -> QuietParams:
+def quiet_params_for(card: dict[str, Any]) -> QuietParams | None:
     """The quiet-window gate for a network: the rate gate, plus per-tile activity when it was
     trained on noisy windows. A network trained clean draws dimples from a noisy SAE, so
-    the more sensitive tile test would hand it more of them (measured in docs/evaluation.md)."""
+    the more sensitive tile test would hand it more of them (measured in docs/evaluation.md).
+    None (no hold) for a network that sees the brightness change since rest: the state is in its input."""
+    if "brightness" in ((card.get("inputs") or {}).get("kinds") or []):
+        return None
     noise_trained = bool((card.get("augmentation") or {}).get("background_noise"))
     return replace(DEFAULT_QUIET, tiles=NOISE_TILES) if noise_trained else DEFAULT_QUIET
+
+
+def rest_params_for(card: dict[str, Any]) -> RestGateParams | None:
+    """The rest gate for a network: on for one that sees only the SAE (its quiet hold would keep a
+    stale dent), off for one that sees the brightness change since rest. The gate reads the gel's
+    rest from the markers alone, and a press at the gel's centre hardly moves them in the image
+    (parallax only): the gate would zero the first 0.2-0.5 mm of such a press, and a light one
+    whole. The brightness network's own input returns to rest with the gel; measured on the
+    paper campaign's test split, it is better without the gate on every figure
+    (docs/depthnet.md)."""
+    if "brightness" in ((card.get("inputs") or {}).get("kinds") or []):
+        return None
+    return DEFAULT_REST_GATE
 
 
 def default_model_path(folder: str | Path = "models") -> Path:
@@ -180,12 +221,12 @@ def default_model_path(folder: str | Path = "models") -> Path:
 
 def depth_source(kind: str, setup: PipelineSetup, recording: Recording | None = None,
                  model_path: str | Path | None = None, threads: int = 1, quiet: QuietParams | str | None = "auto",
-                 rest: RestGateParams | None = DEFAULT_REST_GATE) -> DepthSource:
+                 rest: RestGateParams | str | None = "auto") -> DepthSource:
     """The one builder of a run's depth source, for ``labrig run``, ``run --live`` and ``evaluate``.
 
     ``kind``: "truth" (the recording's /truth/depth; needs ``recording``) or "model" (the ONNX
     network ``model_path``, else the newest in models/, else the bundled one) with the run's
-    ``setup``, the quiet hold and the rest gate.
+    ``setup``, the quiet hold and the rest gate (each ``"auto"``: as the network's card asks).
     """
     if kind == "truth":
         if recording is None:

@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.physics.grid import GRID_SHAPE
-from labrig.pipeline import displacement, forces, ifem, sae, tracking
+from labrig.pipeline import brightness, displacement, forces, ifem, sae, tracking
 from labrig.pipeline.depth_sources import DepthSource
 from labrig.pipeline.front_thread import FrontThread, Handoff
 from labrig.pipeline.rest import RestParams, RestRefiner
@@ -66,6 +66,9 @@ class TrackedWindow:
     sae: npt.NDArray[np.float32] | None
     seconds: Mapping[str, float]  # the front stage's processing time: read, sae, track
     rest_px: Array | None = None  # (M, 2) the rest this window's displacements are measured from (None: the setup's)
+    # (90, 112) ON minus OFF events per grid cell over the whole window, for a source that integrates
+    # the brightness change (None unless it ``needs_counts``): every event counted once, in order.
+    counts: npt.NDArray[np.float32] | None = None
 
 
 @dataclass
@@ -124,6 +127,7 @@ class Pipeline:
         d0_us, d_events = self._depth_window(t0_us, t1_us, events)
         if self.depth.needs_sae or self.keep_sae:
             grid = sae.sae_grid(d_events, d0_us, t1_us, self.setup.rig.roi)
+        counts = brightness.signed_counts(events, self.setup.rig.roi) if getattr(self.depth, "needs_counts", False) else None
         seconds["sae"] = time.perf_counter() - start
         start = time.perf_counter()
         positions, updated = self.tracker.update(events)
@@ -132,7 +136,7 @@ class Pipeline:
             self.tracker.rest_px = self.rest.rest_px  # the neighbour prior's offsets
         seconds["track"] = time.perf_counter() - start
         tracked = TrackedWindow(self._index, t0_us, t1_us, len(events), positions.copy(), updated.copy(),
-                                d0_us, len(d_events), grid, seconds, self.rest.rest_px)
+                                d0_us, len(d_events), grid, seconds, self.rest.rest_px, counts)
         self._index += 1
         return tracked
 
@@ -143,6 +147,8 @@ class Pipeline:
         rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
         if getattr(self.depth, "needs_markers", False):  # the rest gate and the displacement channels
             self.depth.markers(tracked.positions_px, rest_px)  # type: ignore[attr-defined]
+        if tracked.counts is not None:  # the brightness change since rest
+            self.depth.counts(tracked.counts, tracked.t1_us)  # type: ignore[attr-defined]
         depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
         seconds["depth"] = time.perf_counter() - start
         start = time.perf_counter()

@@ -24,7 +24,7 @@ varies with the sensor, its biases, the light and the temperature.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -145,15 +145,17 @@ class Source:
 
     def window(self, t0_us: float, window_us: float, index: int = -1,
                noise: npt.NDArray | None = None, state: StateChannels | None = None,
-               rng: np.random.Generator | None = None) -> Sample:
+               rng: np.random.Generator | None = None, noise_hz: float = 0.0) -> Sample:
         """The SAE of ``[t0, t0 + window)`` and the map nearest to its last event (window end if none).
 
         ``noise``: extra events in the window (augmentation); they do not move the ground
-        truth's time, which follows the recording's own last event. ``state``: the state
+        truth's time, which follows the recording's own last event (``noise_hz``: their rate, which the
+        brightness channel's own noise follows). ``state``: the state
         channels (:mod:`labrig.training.state_data`) appended to the SAE; their previous map is
         the one nearest the previous window's last event (or one further back), perturbed with ``rng``.
         """
         events = self.rec.events_between(t0_us, t0_us + window_us)
+        own_events = events
         t_last = float(events["t"].max()) if len(events) else t0_us + window_us
         if noise is not None and len(noise):
             events = np.concatenate([events, noise.astype(events.dtype)])
@@ -167,7 +169,8 @@ class Source:
                 k = self.nearest(t_last - lag_windows * window_us)
                 return np.clip(self.gt["depth_mm"][k] / np.float32(self.scale_mm), 0.0, 1.0).astype(np.float32)
 
-            sae = np.concatenate([sae, state(t0_us + window_us, previous, rng or np.random.default_rng())])
+            sae = np.concatenate([sae, state(t0_us + window_us, previous, rng or np.random.default_rng(), own_events,
+                                             noise_hz)])
         return Sample(sae, target, self.gt["contact_mask"][i].astype(np.uint8), t_last,
                       float(self.t_gt[i]) - t_last, index)
 
@@ -178,11 +181,12 @@ class Source:
 
 @dataclass
 class CampaignData:
-    """The complete recordings of a campaign folder that have current sidecars, by split."""
+    """The complete recordings of one or more campaign folders that have current sidecars, by split."""
 
     folder: Path
     sources: dict[str, list[Source]] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
+    folders: list[Path] = field(default_factory=list)  # every folder, ``folder`` first
 
     @property
     def scale_mm(self) -> float:
@@ -198,8 +202,12 @@ class CampaignData:
     def describe(self) -> dict[str, Any]:
         """Training-data section of the model card."""
         models = sorted({s.elastic_model for g in self.sources.values() for s in g})
+        folders = self.folders or [self.folder]
         return {
             "campaign": str(self.folder), "campaign_name": self.folder.name, "split_counts": self.counts(),
+            "campaigns": [str(f) for f in folders],
+            "split_counts_by_campaign": {str(f): {k: sum(s.path.parent.resolve() == f.resolve() for s in self.sources.get(k, []))
+                                                 for k in SPLITS} for f in folders},
             "recordings": {k: [s.path.name for s in self.sources.get(k, [])] for k in SPLITS},
             "indenters": sorted({s.indenter for g in self.sources.values() for s in g}),
             "groundtruth_model": models, "scale_mm": self.scale_mm, "skipped": self.skipped,
@@ -211,22 +219,27 @@ class CampaignData:
                 s.close()
 
 
-def open_campaign(folder: str | Path, phases: str = "probing") -> CampaignData:
+def open_campaign(folder: str | Path | Sequence[str | Path], phases: str = "probing") -> CampaignData:
     """Pair each complete recording of a campaign folder's manifest with its ``NAME.gt.h5``, by split.
 
-    A recording without a split (or an unknown one) trains. A missing sidecar is an error that
-    says to run ``labrig groundtruth DATA/`` first; a recording that cannot be used is skipped.
+    Several folders (e.g. the paper campaign and a training campaign) pool their recordings
+    split by split; each keeps its own split assignment. A recording without a split (or an
+    unknown one) trains. A missing sidecar is an error that says to run ``labrig groundtruth
+    DATA/`` first; a recording that cannot be used is skipped.
     """
-    folder = Path(folder)
-    recordings = Dataset.open(folder).require()
-    require_groundtruth(recordings, folder)
-    data = CampaignData(folder)
-    for recording in recordings:
-        split = recording.split if recording.split in SPLITS else "train"
-        try:
-            data.sources.setdefault(split, []).append(Source(recording.path, recording.sidecar, split, phases))
-        except LabrigError as exc:
-            data.skipped.append(f"{recording.path.name}: {exc}")
+    folders = [Path(f) for f in ([folder] if isinstance(folder, (str, Path)) else folder)]
+    if not folders:
+        raise LabrigError("no campaign folder to train on")
+    data = CampaignData(folders[0], folders=folders)
+    for one in folders:
+        recordings = Dataset.open(one).require()
+        require_groundtruth(recordings, one)
+        for recording in recordings:
+            split = recording.split if recording.split in SPLITS else "train"
+            try:
+                data.sources.setdefault(split, []).append(Source(recording.path, recording.sidecar, split, phases))
+            except LabrigError as exc:
+                data.skipped.append(f"{recording.path.name}: {exc}")
     if not data.sources.get("train"):
         raise LabrigError(f"{folder}: no usable recording in the train split")
     data.scale_mm  # noqa: B018  (checks that all scales agree)
@@ -265,11 +278,11 @@ class WindowSampler:
         src = self.sources[k]
         t0, t1 = src.span_us
         start = float(self.rng.uniform(t0, max(t0, t1 - self.window_us)))
-        extra = None
+        extra, rate_hz = None, 0.0
         if self.noise is not None:
             rate_hz = self.noise.draw_hz(self.rng)
             extra = background_noise(src.roi, start, start + self.window_us, rate_hz, self.rng) if rate_hz else None
-        return src.window(start, self.window_us, k, extra, self.state_channels(k), self.rng)
+        return src.window(start, self.window_us, k, extra, self.state_channels(k), self.rng, rate_hz)
 
     def __iter__(self) -> Iterator[Sample]:
         while True:

@@ -18,10 +18,17 @@ does not trust it blindly and its own errors do not compound at run time
 rest gate), otherwise scaled, shifted by whole grid cells and given Gaussian noise. Fed only
 the truth, a network learns to copy the channel and its errors compound in closed loop, so the
 trainer also feeds it its own answers (:func:`self_feed`).
+
+**Brightness change since rest.** The events' polarities integrated per grid cell
+(:class:`~labrig.pipeline.brightness.BrightnessIntegrator`), stepped over the whole recording
+in 10 ms windows from its start, as a run steps it, and kept at every step
+(:class:`BrightnessTrack`, cached under ``$LABRIG_CACHE/brightness`` and memory-mapped); a
+window's channel is the step before its end plus the window's own events after that step.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +39,7 @@ import numpy.typing as npt
 
 from labrig.cache import cache_folder, cache_key, sha256_of
 from labrig.errors import LabrigError
+from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel, signed_counts
 from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
 
@@ -40,6 +48,7 @@ F64 = npt.NDArray[np.float64]
 #: The tracker's windows over a recording (us).
 TRACK_WINDOW_US = 10_000
 TRACKS_VERSION = 1
+BRIGHTNESS_VERSION = 1
 #: The most times a batch's previous-map channel is replaced by the network's own answer (:func:`self_feed`).
 SELF_FEED_MAX = 2
 
@@ -148,6 +157,94 @@ def track_recording(path: str | Path, calibration_dir: str | Path | None, cache_
     return tracks
 
 
+@dataclass(frozen=True)
+class BrightnessTrack:
+    """The integrated signed counts of one recording at every 10 ms step: step ends ``t_us`` (N,) host us,
+    ``counts`` (N, 90, 112) float16 (memory-mapped), the ROI and the integrator's settings."""
+
+    t_us: npt.NDArray[np.int64]
+    counts: npt.NDArray[np.float16]
+    roi: Any
+    params: BrightnessParams
+
+    def channel_at(self, t_end_us: float, events: npt.NDArray) -> F32:
+        """The brightness channel at ``t_end_us``: the last step at or before it plus ``events``
+        (the window's, host us) after that step."""
+        k = int(np.searchsorted(self.t_us, t_end_us, side="right")) - 1
+        integrator = BrightnessIntegrator(self.roi, self.params)
+        if k >= 0:
+            integrator.add(np.asarray(self.counts[k], np.float32), float(self.t_us[k]))
+            events = events[events["t"] >= self.t_us[k]] if len(events) else events
+        integrator.add(signed_counts(events, self.roi), t_end_us)
+        return brightness_channel(integrator.counts, integrator.pixels_per_cell, self.params)
+
+
+def brightness_recording(path: str | Path, params: BrightnessParams, calibration_dir: str | Path | None,
+                         cache_root: str | Path | None = None) -> BrightnessTrack:
+    """:class:`BrightnessTrack` of a recording, cached by the file's SHA-256, its ROI and the settings."""
+    from labrig.pipeline import run_setup
+    from labrig.recording import Recording
+
+    path = Path(path)
+    with Recording(path) as rec:
+        roi = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir).rig.roi
+        key = cache_key({"recording": sha256_of(path), "roi": [roi.x0_px, roi.y0_px, roi.x1_px, roi.y1_px],
+                         "params": repr(params), "window_us": TRACK_WINDOW_US, "version": BRIGHTNESS_VERSION})
+        folder = cache_folder("brightness", cache_root)
+        times, counts = folder / f"{key}.t.npy", folder / f"{key}.counts.npy"
+        if not (times.exists() and counts.exists()):
+            ends, steps = _integrated_steps(rec, roi, params)
+            folder.mkdir(parents=True, exist_ok=True)
+            for target, array in ((counts, steps), (times, ends)):
+                tmp = target.with_name(f".{target.stem}.{os.getpid()}.tmp.npy")
+                np.save(tmp, array)
+                tmp.replace(target)
+    return BrightnessTrack(np.load(times), np.load(counts, mmap_mode="r"), roi, params)
+
+
+def integrated_noise(track: BrightnessTrack, t_end_us: float, rate_hz: float, rng: np.random.Generator) -> F32:
+    """(90, 112) what background noise at ``rate_hz`` per pixel (half ON, half OFF, independent) adds to the
+    brightness channel by ``t_end_us``: per cell a leaky random walk, Gaussian with variance
+    ``rate P tau / 2 (1 - exp(-2 T / tau))`` events (P pixels per cell, T the time since the track's start),
+    in the channel's units. Its mean, zero, needs no median."""
+    from labrig.physics.grid import GRID_SHAPE
+
+    params = track.params
+    integrator = BrightnessIntegrator(track.roi, params)
+    elapsed_s = max(float(t_end_us - (track.t_us[0] - TRACK_WINDOW_US)), 0.0) * 1e-6
+    variance = rate_hz * integrator.pixels_per_cell * params.tau_s / 2.0 * (1.0 - np.exp(-2.0 * elapsed_s / params.tau_s))
+    std = np.sqrt(variance) / integrator.pixels_per_cell / params.scale_events_per_px
+    return (rng.normal(0.0, std, GRID_SHAPE)).astype(np.float32)
+
+
+def _integrated_steps(rec: Any, roi: Any, params: BrightnessParams) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float16]]:
+    """The integrator stepped over the recording's 10 ms windows (``recording_windows``' tiling from 0):
+    window ends (N,) and the integrated counts (N, 90, 112) float16 after each, from one read of
+    each 10 s slice of events rather than one read per window."""
+    from labrig.physics.grid import GRID_SHAPE
+
+    end = rec.end_us()
+    n = -(-end // TRACK_WINDOW_US)
+    if n <= 0:
+        raise LabrigError(f"{rec.path}: no camera windows to integrate")
+    ends = np.minimum((np.arange(n, dtype=np.int64) + 1) * TRACK_WINDOW_US, end)
+    integrator = BrightnessIntegrator(roi, params)
+    out = np.empty((n, *GRID_SHAPE), np.float16)
+    per_slice = 1000
+    for first in range(0, n, per_slice):
+        last = min(first + per_slice, n)
+        events = rec.events_between(first * TRACK_WINDOW_US, min(last * TRACK_WINDOW_US, end))
+        window = events["t"] // TRACK_WINDOW_US - first
+        if len(window) > 1 and (np.diff(window) < 0).any():  # device times may step back a little
+            order = np.argsort(window, kind="stable")
+            events, window = events[order], window[order]
+        bounds = np.searchsorted(window, np.arange(last - first + 1))
+        for k in range(last - first):
+            integrator.add(signed_counts(events[bounds[k]:bounds[k + 1]], roi), float(ends[first + k]))
+            out[first + k] = integrator.counts
+    return ends, out
+
+
 class StateChannels:
     """The state channels of one recording's training windows (after the SAE, in the spec's order)."""
 
@@ -157,6 +254,9 @@ class StateChannels:
         self.augment = augment or PreviousAugment()
         self.tracks: Tracks | None = None
         self.raster: DisplacementRaster | None = None
+        self.brightness: BrightnessTrack | None = None
+        if "brightness" in spec.kinds:
+            self.brightness = brightness_recording(recording, spec.brightness, calibration_dir, cache_root)
         if "displacement" in spec.kinds:
             from labrig.pipeline import run_setup
             from labrig.recording import Recording
@@ -167,8 +267,11 @@ class StateChannels:
             self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
             self.tracks = track_recording(recording, calibration_dir, cache_root)
 
-    def __call__(self, t_end_us: float, previous_at: Callable[[float], F32] | None, rng: np.random.Generator) -> F32:
-        """(channels - 2, 96, 112): the displacement field at ``t_end_us`` and the perturbed previous map.
+    def __call__(self, t_end_us: float, previous_at: Callable[[float], F32] | None, rng: np.random.Generator,
+                 events: npt.NDArray | None = None, noise_hz: float = 0.0) -> F32:
+        """(channels - 2, 96, 112): the displacement field at ``t_end_us``, the perturbed previous map and the
+        brightness change (``events``: the window's own, ending at ``t_end_us``; ``noise_hz``: the window's
+        background-noise augmentation, whose integrated count :func:`integrated_noise` adds).
 
         ``previous_at(lag_windows)``: the normalised true map that many windows before this one."""
         field = None
@@ -178,7 +281,13 @@ class StateChannels:
         if "previous" in self.spec.kinds:
             assert previous_at is not None
             previous = self.augment(previous_at(self.augment.lag_windows(rng)), rng)
-        return network_input(self.spec, np.zeros((2, *UNET_SHAPE), np.float32), field, previous)[2:]
+        bright = None
+        if self.brightness is not None:
+            assert events is not None, "the brightness channel needs the window's events"
+            bright = self.brightness.channel_at(t_end_us, events)
+            if noise_hz > 0:
+                bright = bright + integrated_noise(self.brightness, t_end_us, noise_hz, rng)
+        return network_input(self.spec, np.zeros((2, *UNET_SHAPE), np.float32), field, previous, bright)[2:]
 
 
 def self_feed(model: Any, x: Any, channel: int, steps: int) -> Any:

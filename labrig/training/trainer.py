@@ -14,7 +14,7 @@ import dataclasses
 import os
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -132,7 +132,7 @@ def predict_normalised(model: Any, sae: np.ndarray, device: Any, batch: int = 32
     return np.concatenate(out) if out else np.zeros((0, 90, 112), np.float32)
 
 
-def train(data_dir: str | Path, config: TrainConfig, out: str | Path, *, resume: bool = False,
+def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out: str | Path, *, resume: bool = False,
           command: str = "", show_progress: bool = True,
           on_step: Callable[[int, float], None] | None = None) -> dict[str, Any]:
     """Train, export and return the model card (also written beside the .onnx)."""
@@ -295,6 +295,10 @@ def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
         out["previous_map"] = {**PreviousAugment().describe(), "source": "ground truth nearest the previous window's "
                                "last event", "self_feed_steps": f"0-{SELF_FEED_MAX}, uniform per batch: the channel "
                                "replaced by the network's own answer (state_data.self_feed)"}
+    if "brightness" in config.input_spec.kinds:
+        out["brightness"] = {"source": "the recording's events integrated from its start in 10 ms steps (cached)",
+                             "noise": "with background noise, its integrated count (state_data.integrated_noise)"
+                             if config.noise else None}
     if "displacement" in config.input_spec.kinds:
         out["displacement"] = {"source": "the pipeline's tracker over each recording (10 ms windows, cached)",
                                "calibration": config.calibration_dir}
@@ -307,9 +311,10 @@ def _smooth(history: list[tuple[int, float]], n: int = 20) -> float | None:
     return round(float(np.mean([v for _, v in history[-n:]])), 6)
 
 
-def _reproduce(data_dir: str | Path, c: TrainConfig, out: Path, steps: int) -> str:
+def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out: Path, steps: int) -> str:
     """A command that gives this model again (deterministic on CPU): the step count reached, not the budget."""
-    parts = ["labrig", "train", str(data_dir), "--width", str(c.width), "--window-ms", f"{c.window_ms:g}",
+    folders = [str(data_dir)] if isinstance(data_dir, (str, Path)) else [str(d) for d in data_dir]
+    parts = ["labrig", "train", *folders, "--width", str(c.width), "--window-ms", f"{c.window_ms:g}",
              "--loss", c.loss, "--steps", str(steps), "--seed", str(c.seed), "--batch-size", str(c.batch_size),
              "--lr", f"{c.lr:g}", "--out", str(out)]
     if c.pools != 4:

@@ -1,0 +1,114 @@
+"""The membrane's brightness change since rest, integrated from the events' polarities: the gel's state.
+
+An event camera reports changes of log intensity: a pixel fires ON each time its log
+intensity rises by its contrast threshold C, OFF each time it falls by C. Summed over time,
+a pixel's signed event count (ON +1, OFF -1) is its log-intensity change since counting
+began, in units of C, to within one event. Under the LED ring a dented membrane is brighter
+where it slopes (the slope shading of :mod:`labrig.sim.shading`; a real gel does the same), and
+a marker that moved leaves an OFF patch where it was and an ON patch where it is. So the
+integrated count is the image's change since rest: a still dent, which a 10 ms SAE cannot
+see, stays in it.
+
+:class:`BrightnessIntegrator` keeps it on the network grid (:mod:`labrig.physics.grid`, the
+cells of :func:`labrig.pipeline.sae.sae_grid`), per window:
+
+    A(t1) = A(t_prev) exp(-(t1 - t_prev) / tau) + sum of the window's signed events per cell
+
+(the leak's decay within one window is neglected: windows are 3-400 ms, ``tau`` tens of
+seconds). The leak forgets what a pixel's threshold mismatch and background noise add up over
+minutes. :func:`brightness_channel` turns it into the network's channel: events per pixel
+(the count over the cell's pixel area) minus the map's median (the uniform drift of the
+sensor's leak events, which fire ON at a steady rate on every pixel), over
+``scale_events_per_px``, clipped (a hot pixel's count grows without bound).
+
+Training and run time build the channel with these functions (:mod:`labrig.training.state_data`,
+:mod:`labrig.pipeline.depth_sources`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig.config import Roi
+from labrig.errors import LabrigError
+from labrig.physics.grid import GRID_SHAPE
+
+F32 = npt.NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class BrightnessParams:
+    """The integrator's leak ``tau_s`` (s), the channel's unit ``scale_events_per_px`` (events per
+    pixel for one unit) and its clip ``clip`` (units, either sign)."""
+
+    tau_s: float = 30.0
+    scale_events_per_px: float = 2.0
+    clip: float = 4.0
+
+    def __post_init__(self) -> None:
+        if not (self.tau_s > 0 and self.scale_events_per_px > 0 and self.clip > 0):
+            raise LabrigError("the brightness channel's tau_s, scale_events_per_px and clip must be positive")
+
+    def to_card(self) -> dict[str, float]:
+        return {"tau_s": self.tau_s, "scale_events_per_px": self.scale_events_per_px, "clip": self.clip}
+
+    @classmethod
+    def from_card(cls, section: dict[str, float] | None) -> BrightnessParams:
+        return cls(**{k: float(v) for k, v in (section or {}).items() if k in ("tau_s", "scale_events_per_px", "clip")})
+
+
+def signed_counts(events: npt.NDArray, roi: Roi, grid_shape: tuple[int, int] = GRID_SHAPE) -> F32:
+    """(rows, cols) float32: ON minus OFF events per grid cell (the cells of ``sae_grid``); events outside the ROI are dropped."""
+    rows, cols = grid_shape
+    if len(events) == 0:
+        return np.zeros(grid_shape, np.float32)
+    x = events["x"].astype(np.int64) - roi.x0_px
+    y = events["y"].astype(np.int64) - roi.y0_px
+    c = ((x + 0.5) * (cols / roi.width_px)).astype(np.int64)
+    r = ((y + 0.5) * (rows / roi.height_px)).astype(np.int64)
+    keep = (x >= 0) & (y >= 0) & (c < cols) & (r < rows)
+    sign = np.where(events["p"][keep] > 0, 1.0, -1.0)
+    counts = np.bincount(r[keep] * cols + c[keep], weights=sign, minlength=rows * cols)
+    return counts.reshape(grid_shape).astype(np.float32)
+
+
+class BrightnessIntegrator:
+    """The leaky signed event count per grid cell (:func:`signed_counts`) since :meth:`reset`."""
+
+    def __init__(self, roi: Roi, params: BrightnessParams | None = None, grid_shape: tuple[int, int] = GRID_SHAPE) -> None:
+        self.roi = roi
+        self.params = params or BrightnessParams()
+        self.grid_shape = grid_shape
+        self.pixels_per_cell = roi.width_px * roi.height_px / float(grid_shape[0] * grid_shape[1])
+        self.counts = np.zeros(grid_shape, np.float32)
+        self.t_us: float | None = None
+
+    def add(self, counts: F32, t1_us: float) -> F32:
+        """Fold in one window's :func:`signed_counts` ending at ``t1_us``; returns the integrated counts."""
+        if self.t_us is not None and t1_us > self.t_us:
+            self.counts *= np.float32(math.exp(-(t1_us - self.t_us) * 1e-6 / self.params.tau_s))
+        self.counts += counts
+        self.t_us = t1_us if self.t_us is None else max(self.t_us, t1_us)
+        return self.counts
+
+    def add_events(self, events: npt.NDArray, t1_us: float) -> F32:
+        return self.add(signed_counts(events, self.roi, self.grid_shape), t1_us)
+
+    def reset(self, t_us: float | None = None) -> None:
+        """Forget the count (the gel is at rest)."""
+        self.counts[...] = 0.0
+        self.t_us = t_us
+
+    def channel(self) -> F32:
+        return brightness_channel(self.counts, self.pixels_per_cell, self.params)
+
+
+def brightness_channel(counts: F32, pixels_per_cell: float, params: BrightnessParams) -> F32:
+    """(rows, cols) float32: integrated counts per pixel less their median, in units of ``scale_events_per_px``, clipped."""
+    per_px = np.asarray(counts, np.float32) / np.float32(pixels_per_cell)
+    out = (per_px - np.float32(np.median(per_px))) / np.float32(params.scale_events_per_px)
+    return np.clip(out, -params.clip, params.clip).astype(np.float32)

@@ -1,0 +1,193 @@
+"""The brightness change since rest: signed counts on the network grid, the leaky integrator, the channel,
+its training track, and the depth source that feeds it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from labrig.config import RigConfig, Roi
+from labrig.errors import LabrigError
+from labrig.eventtypes import EVENT_DTYPE
+from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline import depth_sources, run_setup
+from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel, signed_counts
+from labrig.pipeline.depth_inputs import InputSpec, network_input
+from labrig.pipeline.sae import sae_grid
+
+ROI = Roi(276, 22, 1004, 694)
+
+
+def _events(x: list[int], y: list[int], p: list[int], t: list[int] | None = None) -> np.ndarray:
+    ev = np.zeros(len(x), EVENT_DTYPE)
+    ev["x"], ev["y"], ev["p"] = x, y, p
+    ev["t"] = t if t is not None else np.arange(1, len(x) + 1)  # after t0: the SAE scores an event at t0 as 0
+    return ev
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_signed_counts_use_the_sae_cells_and_count_on_minus_off(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    ev = _events(list(rng.integers(200, 1100, n)), list(rng.integers(0, 720, n)), list(rng.integers(0, 2, n)))
+    counts = signed_counts(ev, ROI)
+    inside = (ev["x"] >= ROI.x0_px) & (ev["x"] < ROI.x1_px) & (ev["y"] >= ROI.y0_px) & (ev["y"] < ROI.y1_px)
+    assert counts.shape == GRID_SHAPE and counts.dtype == np.float32
+    assert counts.sum() == (2 * ev["p"][inside].astype(int) - 1).sum()  # outside the ROI: dropped
+    on = ev[inside & (ev["p"] == 1)]
+    on_cells = sae_grid(on, 0, n + 2, ROI)[1] > 0  # the SAE's cells that saw an ON event
+    on_counts = signed_counts(on, ROI)
+    assert np.array_equal(on_cells, on_counts > 0)
+
+
+def test_a_marker_that_moves_and_comes_back_leaves_no_count() -> None:
+    integrator = BrightnessIntegrator(ROI)
+    away = _events([500, 500, 520, 520], [300, 301, 300, 301], [0, 0, 1, 1])  # dark where it was, bright where it is
+    back = _events([500, 500, 520, 520], [300, 301, 300, 301], [1, 1, 0, 0])
+    integrator.add_events(away, 10_000)
+    assert np.abs(integrator.counts).sum() == 4
+    integrator.add_events(back, 20_000)
+    assert np.allclose(integrator.counts, 0.0, atol=2e-3)  # what the 30 s leak took in 10 ms
+
+
+def test_the_integrator_leaks_with_its_time_constant_and_resets() -> None:
+    params = BrightnessParams(tau_s=2.0)
+    integrator = BrightnessIntegrator(ROI, params)
+    integrator.add_events(_events([600] * 10, [400] * 10, [1] * 10), 1_000_000)
+    integrator.add(np.zeros(GRID_SHAPE, np.float32), 3_000_000)  # 2 s later: one time constant
+    assert integrator.counts.max() == pytest.approx(10 * math.exp(-1.0), rel=1e-5)
+    integrator.reset(3_000_000)
+    assert not integrator.counts.any() and integrator.t_us == 3_000_000
+
+
+def test_the_channel_removes_the_uniform_leak_drift_and_clips() -> None:
+    params = BrightnessParams(scale_events_per_px=2.0, clip=3.0)
+    ppc = 50.0
+    counts = np.full(GRID_SHAPE, 0.5 * ppc, np.float32)  # every pixel's leak: half an ON event each
+    counts[40:45, 50:55] += 2.0 * ppc  # a dent's shading: two events per pixel more
+    counts[10, 10] += 1e4  # a hot pixel
+    channel = brightness_channel(counts, ppc, params)
+    assert np.allclose(channel[40:45, 50:55], 1.0) and abs(channel[0, 0]) < 1e-6
+    assert channel[10, 10] == 3.0
+
+
+def test_the_card_round_trips_the_brightness_settings() -> None:
+    spec = InputSpec(("sae", "brightness"), brightness=BrightnessParams(tau_s=12.0, scale_events_per_px=1.5, clip=2.0))
+    assert InputSpec.named("sae+bright").kinds == ("sae", "brightness") and spec.channels == 3 and spec.stateful
+    assert InputSpec.from_card({"inputs": spec.to_card()}) == spec
+    x = network_input(spec, np.zeros((2, *GRID_SHAPE), np.float32), brightness=np.full(GRID_SHAPE, 0.5, np.float32))
+    assert x.shape == (3, 96, 112) and np.allclose(x[2, 3:93], 0.5) and not x[2, :3].any()
+    with pytest.raises(LabrigError, match="brightness"):
+        network_input(spec, np.zeros((2, *GRID_SHAPE), np.float32))
+    with pytest.raises(LabrigError, match="positive"):
+        BrightnessParams(tau_s=0.0)
+
+
+def test_the_training_track_gives_the_run_time_channel(tmp_path, small_recording) -> None:  # type: ignore[no-untyped-def]
+    """The cached 10 ms steps plus a window's own events equal the integrator stepped over the recording."""
+    from labrig.pipeline.windows import recording_windows
+    from labrig.recording import Recording
+    from labrig.training.state_data import brightness_recording
+
+    params = BrightnessParams()
+    track = brightness_recording(small_recording, params, None, cache_root=tmp_path)
+    again = brightness_recording(small_recording, params, None, cache_root=tmp_path)  # from the cache
+    assert np.array_equal(np.asarray(track.counts), np.asarray(again.counts))
+    with Recording(small_recording) as rec:
+        integrator = BrightnessIntegrator(track.roi, params)
+        for k, (_t0, t1, events) in enumerate(recording_windows(rec, window_us=10_000)):
+            integrator.add_events(events, t1)
+            if k == 150:
+                break
+        t_mid = t1 + 4_000  # inside the next step: the track's step plus the window's own events
+        window = rec.events_between(t_mid - 10_000, t_mid)
+        integrator.add_events(rec.events_between(t1, t_mid), t_mid)
+    assert np.abs(integrator.counts).sum() > 0
+    expected = brightness_channel(integrator.counts, integrator.pixels_per_cell, params)
+    assert np.allclose(track.channel_at(t_mid, window), expected, atol=2e-2)  # float16 steps
+
+
+@pytest.fixture(scope="module")
+def setup(rig: RigConfig) -> run_setup.PipelineSetup:
+    return run_setup.setup_for_rig(rig, calibration_dir=None)
+
+
+def test_a_brightness_network_answers_every_window_and_forgets_at_rest(tmp_path, setup) -> None:  # type: ignore[no-untyped-def]
+    """No quiet hold and no rest gate by default (the state is in the input); a rest gate given clears the
+    integrated change too."""
+    from labrig.pipeline.rest_gate import RestGateParams
+    from labrig.models import bundled_model_path
+    from labrig.pipeline.depthnet import read_card, write_card
+
+    torch = pytest.importorskip("torch")
+    from labrig.pipeline.depthnet import UNetConfig, build_unet, export_onnx
+
+    spec = InputSpec.named("sae+bright")
+    torch.manual_seed(0)
+    net = build_unet(UNetConfig(width=4, in_channels=spec.channels)).eval()
+    onnx = tmp_path / "bright.onnx"
+    export_onnx(net, onnx)
+    card = read_card(bundled_model_path().with_suffix(".json"))
+    write_card({**card, "name": "bright", "inputs": spec.to_card()}, tmp_path / "bright.json")
+    with pytest.raises(LabrigError, match="brightness"):
+        depth_sources.ModelDepth(onnx)
+    default = depth_sources.depth_source("model", setup, model_path=onnx)
+    assert isinstance(default, depth_sources.ModelDepth) and default.hold is None and default.gate is None
+    source = depth_sources.depth_source("model", setup, model_path=onnx, rest=RestGateParams())
+    assert isinstance(source, depth_sources.ModelDepth) and source.hold is None and source.needs_counts
+    rest = setup.rest_px
+    source.counts(np.full(GRID_SHAPE, 40.0, np.float32), 10_000)
+    source.markers(rest + 3.0, rest)
+    source.depth_mm(np.zeros((2, *GRID_SHAPE), np.float32), 0, 10_000, 100)
+    assert source.integrator is not None and source.integrator.counts.any()
+    for k in range(5):  # back at rest: the gate fires after its windows and clears the count
+        source.markers(rest, rest)
+        depth = source.depth_mm(np.zeros((2, *GRID_SHAPE), np.float32), 0, 20_000 + k * 10_000, 100)
+    assert not depth.any() and not source.integrator.counts.any()
+
+
+#: How long after Normal Up's end the bundled network may still see a dent: the gel relaxes and the last events of the
+#: release arrive over a few windows.
+RELEASE_LAG_US = 100_000
+
+
+@pytest.fixture(scope="module")
+def virtual_press(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    """A sphere pressed 1 mm at the gel centre, sheared 0.5 mm and back, released, retracted 1 mm (virtual time, with its sidecar)."""
+    from labrig.evaluation.stress_scene import StressScene, record_scene
+
+    path = tmp_path_factory.mktemp("press") / "press.h5"
+    record_scene(StressScene(wait_s=0.3, approach_mm=1.0), path)  # a 0.33 s retract: windows after the release
+    return path
+
+
+def test_the_bundled_network_follows_a_press_and_returns_to_zero_after_normal_up(virtual_press) -> None:  # type: ignore[no-untyped-def]
+    """The bundled default (SAE + brightness since rest) through the whole pipeline on a virtual press: the normal
+    force follows the sim's while the gel is held still (where a 10 ms SAE shows nothing), and once the indenter
+    has left the gel the depth and the force are back at zero, with no rest gate to reset it."""
+    from labrig.evaluation.forces import ForceTask, evaluate_forces
+    from labrig.models import bundled_model_path
+    from labrig.recording import Recording
+
+    with Recording(virtual_press) as rec:
+        phases = rec.phases()
+    released_us = max(p.t_end_us for p in phases if p.name == "normal_up")
+    waits = [(p.t_start_us, p.t_end_us) for p in phases if p.name == "wait"]
+    result = evaluate_forces(ForceTask(str(virtual_press), str(bundled_model_path()), window_events=None,
+                                       window_us=10_000, calibration_dir="calibration"))
+    assert "bright" in result.depth_source
+    held = np.zeros(len(result.t1_us), bool)
+    for a, b in waits:
+        held |= (result.t1_us > a + 50_000) & (result.t1_us <= b)
+    assert held.sum() >= 20
+    fz_true = result.truth_n[held, 2]
+    assert np.all(np.abs(result.predicted_n[held, 2] - fz_true) < 0.2 * np.abs(fz_true) + 0.2)
+    after = result.t1_us > released_us + RELEASE_LAG_US
+    assert after.sum() >= 10
+    fz_after = np.abs(result.predicted_n[after, 2])  # the truth: 0; held 4.6 N; a stale SAE-only dent: 2-3 N
+    assert fz_after.mean() < 0.35 and fz_after.max() < 0.6, "a stale dent outlived the press"
