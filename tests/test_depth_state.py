@@ -164,8 +164,8 @@ def test_a_virtual_press_returns_to_zero_depth_and_force_after_normal_up(setup: 
     """Rest, press (markers move, events), hold (markers still displaced, no events), Normal Up (markers back,
     no events): the quiet hold keeps the dent while the gel is held, and the depth is exactly zero and Fz 0
     once every marker is back at rest; without the gate the stale dent and its force would stay."""
-    source = depth_sources.depth_source("model", setup, model_path=bundled_model_path())
-    stale = depth_sources.depth_source("model", setup, model_path=bundled_model_path(), rest=None)
+    source = depth_sources.depth_source("model", setup, model_path=bundled_model_path("sae-only"))
+    stale = depth_sources.depth_source("model", setup, model_path=bundled_model_path("sae-only"), rest=None)
     pipes = [runtime.Pipeline(setup, s) for s in (source, stale)]
     rest = setup.rest_px
     centre = setup.rest_px.mean(0)
@@ -200,8 +200,8 @@ def test_a_stateful_network_needs_the_setup(tmp_path: Path) -> None:
     from labrig.pipeline.depthnet import read_card, write_card
 
     onnx = tmp_path / "disp.onnx"
-    shutil.copy(bundled_model_path(), onnx)
-    card = read_card(bundled_model_path().with_suffix(".json"))
+    shutil.copy(bundled_model_path("sae-only"), onnx)
+    card = read_card(bundled_model_path("sae-only").with_suffix(".json"))
     write_card({**card, "inputs": InputSpec.named("sae+disp").to_card()}, tmp_path / "disp.json")
     with pytest.raises(LabrigError, match="takes 2 channels but its card names 4"):
         depth_sources.ModelDepth(onnx)
@@ -225,7 +225,11 @@ def test_the_builder_refuses_truth_without_a_recording(setup: run_setup.Pipeline
     with pytest.raises(LabrigError, match="'truth' or 'model'"):
         depth_sources.depth_source("sim", setup)
     source = depth_sources.depth_source("model", setup, model_path="default")
-    assert isinstance(source, depth_sources.ModelDepth) and source.gate is not None and source.hold is not None
+    assert isinstance(source, depth_sources.ModelDepth) and source.needs_counts
+    assert source.hold is None and source.gate is None  # the default sees the brightness change: no hold, no gate
+    baseline = depth_sources.depth_source("model", setup, model_path="sae-only")
+    assert isinstance(baseline, depth_sources.ModelDepth) and not baseline.needs_counts
+    assert baseline.hold is not None and baseline.gate is not None
 
 
 # ------------------------------------------------------------------------------------ the comparison harness

@@ -18,15 +18,23 @@ def test_each_bundled_network_ships_with_its_card(name: str) -> None:
     assert path.stat().st_size < 10_000_000
     assert card["window_ms"] == 10.0 and card["bundled"]["reason"]
     assert card["reproduce"].startswith("labrig train ")
-    assert ("--noise-hz" in card["reproduce"]) == (name == "noise-robust")
+    assert ("--inputs sae+bright" in card["reproduce"]) == (name == "default")
+
+
+def test_the_default_sees_the_gels_state_and_the_baseline_does_not() -> None:
+    from labrig.pipeline.depth_inputs import InputSpec
+
+    default = read_card(bundled_model_path().with_suffix(".json"))
+    assert InputSpec.from_card(default).kinds == ("sae", "brightness")
+    assert InputSpec.from_card(read_card(bundled_model_path("sae-only").with_suffix(".json"))).kinds == ("sae",)
 
 
 def test_model_names_and_paths(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    assert model_path("noise-robust") == bundled_model_path("noise-robust")
+    assert model_path("sae-only") == bundled_model_path("sae-only")
     assert model_path("default") == bundled_model_path()
     assert model_path(tmp_path / "mine.onnx") == tmp_path / "mine.onnx"
     monkeypatch.chdir(tmp_path)
     (tmp_path / "default").write_text("")  # a file of that name wins over the bundled name
     assert model_path("default") == Path("default")
-    with pytest.raises(LabrigError, match="the bundled ones are default, noise-robust"):
+    with pytest.raises(LabrigError, match="the bundled ones are default, sae-only"):
         bundled_model_path("huge")

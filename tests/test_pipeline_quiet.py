@@ -89,8 +89,8 @@ def test_the_depth_source_sees_its_own_window_ending_at_each_window_end(rig: Rig
 
 def test_the_network_holds_its_last_active_map_through_quiet_windows(rig: RigConfig,
                                                                      setup: run_setup.PipelineSetup) -> None:
-    network = depth_sources.ModelDepth(bundled_model_path())
-    unheld = depth_sources.ModelDepth(bundled_model_path(), quiet=None)
+    network = depth_sources.ModelDepth(bundled_model_path("sae-only"))
+    unheld = depth_sources.ModelDepth(bundled_model_path("sae-only"), quiet=None)
     held_pipe, raw_pipe = runtime.Pipeline(setup, network), runtime.Pipeline(setup, unheld)
     counts = [NOISE] * 20 + [MOTION] * 3 + [NOISE] * 10
     held, raw = [], []
@@ -182,9 +182,10 @@ def test_a_hot_pixel_raises_only_its_own_tile_floor(rig: RigConfig) -> None:
 
 
 def test_the_gate_follows_the_network_card() -> None:
-    assert depth_sources.ModelDepth("default").hold.tiles is None  # type: ignore[union-attr]
-    robust = depth_sources.ModelDepth("noise-robust")
-    assert robust.hold is not None and robust.hold.tiles is not None
-    assert robust.model.card["augmentation"]["background_noise"]["max_hz"] == 2.0
-    assert depth_sources.quiet_params_for({"augmentation": None}).tiles is None
-    assert depth_sources.ModelDepth("default", quiet=None).hold is None
+    assert depth_sources.ModelDepth("sae-only").hold.tiles is None  # type: ignore[union-attr]
+    noisy = depth_sources.quiet_params_for({"augmentation": {"background_noise": {"max_hz": 2.0}}})
+    assert noisy is not None and noisy.tiles is not None  # a noise-trained SAE network: the tiles too
+    assert depth_sources.quiet_params_for({"augmentation": None}).tiles is None  # type: ignore[union-attr]
+    bright = {"inputs": {"kinds": ["sae", "brightness"]}, "augmentation": {"background_noise": {"max_hz": 2.0}}}
+    assert depth_sources.quiet_params_for(bright) is None  # the state is in its input: no hold
+    assert depth_sources.ModelDepth("sae-only", quiet=None).hold is None

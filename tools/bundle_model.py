@@ -1,7 +1,7 @@
 """Ship a trained depth network as the bundled model (labrig/models/): the .onnx and its card, with provenance.
 
 Copies ``MODEL.onnx`` and its card to ``labrig/models/NAME.{onnx,json}`` (``--as``: the slot in
-``labrig.models.BUNDLED``, ``default`` or ``noise-robust``), adding to
+``labrig.models.BUNDLED``, ``default`` or ``sae-only``), adding to
 the card a ``bundled`` section: the sweep it was chosen from (``sweep.json`` beside it: each
 width's val/test errors and latency), why it was chosen, the campaign's manifest digest and
 the commands that rebuild it from nothing (campaign, ground truth, training).

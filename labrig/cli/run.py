@@ -40,7 +40,7 @@ def run(
     depth: Annotated[str | None, typer.Option(
         help="Depth source: truth (the recording's /truth/depth; the default for REC) or model (ONNX; live).")] = None,
     model: Annotated[Path | None, typer.Option(
-        help="Depth network: an .onnx with its card, or a bundled one (default, noise-robust); "
+        help="Depth network: an .onnx with its card, or a bundled one (default, sae-only); "
              "default: newest in models/, else bundled.")] = None,
     out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
     view: Annotated[Path | None, typer.Option(help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.")] = None,

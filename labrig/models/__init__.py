@@ -1,10 +1,13 @@
-"""The bundled depth networks: trained on a virtual-rig campaign, shipped with their model cards.
+"""The bundled depth networks: trained on virtual-rig campaigns, shipped with their model cards.
 
-``NAME.onnx`` + ``NAME.json`` (the card: architecture, training data, window, loss,
+``NAME.onnx`` + ``NAME.json`` (the card: architecture, inputs, training data, window, loss,
 augmentation, val and test errors, and the exact command that reproduces it).
-``labrig evaluate`` and ``labrig run --depth model`` use ``default`` unless given another model;
-``--model noise-robust`` picks the network trained with background-noise augmentation (the
-pipeline then also watches each tile of the SAE for motion, :mod:`labrig.pipeline.quiet`).
+``labrig evaluate`` and ``labrig run --depth model`` use ``default`` unless given another model:
+the SAE and the brightness change since rest (:mod:`labrig.pipeline.brightness`), the gel's
+state. ``--model sae-only`` picks the paper's network, the SAE alone, kept as the baseline it
+is compared with (it needs the quiet hold, :mod:`labrig.pipeline.quiet`). The noise-robust
+SAE-only network of earlier releases is retired: the default holds to more noise and is
+better on the clean sensor (docs/depthnet.md).
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from pathlib import Path
 from labrig.errors import LabrigError
 
 #: Bundled networks by the name ``--model`` accepts.
-BUNDLED = {"default": "depth-w4-contact-10ms", "noise-robust": "depth-w4-contact-10ms-noise"}
+BUNDLED = {"default": "depth-w4-bright-10ms", "sae-only": "depth-w4-contact-10ms"}
 BUNDLED_NAME = BUNDLED["default"]
 FOLDER = Path(__file__).resolve().parent
 
@@ -31,7 +34,7 @@ def bundled_model_path(name: str = "default") -> Path:
 
 
 def model_path(spec: str | Path) -> Path:
-    """``--model``'s value: a bundled network's name (``default``, ``noise-robust``) or an ``.onnx`` path."""
+    """``--model``'s value: a bundled network's name (``default``, ``sae-only``) or an ``.onnx`` path."""
     if str(spec) in BUNDLED and not Path(spec).exists():
         return bundled_model_path(str(spec))
     return Path(spec)
