@@ -3,8 +3,10 @@
 Setup (not timed): a simulated recording (6 mm sphere, 1 mm deep, 0.5 mm shear at 3 mm/s,
 the paper's probing sequence; about 1.6 s and 0.4 M events), the surface operator (from the
 disk cache, else built once: its build time is reported) and, for the network rows, depth
-networks: the newest trained one in ``models/`` if any, else untrained U-Nets of
-``--widths`` exported to ONNX in a temporary folder (the cost does not depend on the weights).
+networks: the default (the newest trained one in ``models/`` if any, else the bundled SAE +
+brightness network) and the bundled SAE-only baseline side by side, each built by the one
+builder (``depth_sources.depth_source``) afresh for every pass; untrained U-Nets of
+``--widths`` only where no network can be loaded (the cost does not depend on the weights).
 
 Measured, per depth source and execution mode (serial: stages in turn; threads: tracking
 of window k+1 while window k's depth and forces run): processing time per window, as a
@@ -51,7 +53,10 @@ def _peak_rss_mb() -> float:
 
 def _networks(folder: Path, widths: list[int]) -> list[tuple[str, Path]]:
     try:
-        return [("model:" + depth_sources.default_model_path().stem, depth_sources.default_model_path())]
+        from labrig.models import bundled_model_path
+
+        default = depth_sources.default_model_path()
+        return [("model:" + default.stem, default), ("model:sae-only", bundled_model_path("sae-only"))]
     except Exception:
         pass
     try:
@@ -67,11 +72,14 @@ def _networks(folder: Path, widths: list[int]) -> list[tuple[str, Path]]:
     return out
 
 
-def _measure(setup: run_setup.PipelineSetup, rec: Recording, depth: depth_sources.DepthSource, concurrent: bool,
+def _measure(setup: run_setup.PipelineSetup, rec: Recording, depth: str | Path, concurrent: bool,
              repeat: int, window_events: int | None = None) -> dict[str, Any]:
+    """``depth``: "truth" or a network's path; a fresh source each pass (a network may carry state)."""
     best: dict[str, Any] | None = None
     for _ in range(repeat):
-        pipe = runtime.Pipeline(setup, depth)
+        source = depth_sources.depth_source("truth" if depth == "truth" else "model", setup, rec,
+                                            None if depth == "truth" else depth, threads=1)
+        pipe = runtime.Pipeline(setup, source)
         start = time.perf_counter()
         results = list(pipe.run(rec, window_us=None if window_events else WINDOW_US, window_events=window_events,
                                 concurrent=concurrent))
@@ -119,8 +127,7 @@ def run(widths: str = "16,32", repeat: int = 2, progress: bool = True) -> dict[s
         with Recording(path) as rec:
             setup = run_setup.setup_for_recording(rec, calibration_dir=None)
             figures["events"] = rec.n_events
-            sources: list[tuple[str, Any]] = [("truth", depth_sources.TruthDepth(rec))]
-            sources += [(name, depth_sources.ModelDepth(p, threads=1)) for name, p in networks]
+            sources: list[tuple[str, str | Path]] = [("truth", "truth"), *networks]
             for name, source in sources:
                 for concurrent in (False, True):
                     key = f"{name} / {'threads' if concurrent else 'serial'}"
