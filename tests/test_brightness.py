@@ -191,3 +191,20 @@ def test_the_bundled_network_follows_a_press_and_returns_to_zero_after_normal_up
     assert after.sum() >= 10
     fz_after = np.abs(result.predicted_n[after, 2])  # the truth: 0; held 4.6 N; a stale SAE-only dent: 2-3 N
     assert fz_after.mean() < 0.35 and fz_after.max() < 0.6, "a stale dent outlived the press"
+
+
+def test_a_stateful_networks_depth_table_uses_the_force_evaluations_windows(virtual_press, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A recording made through the drivers has events before host time 0, so its count windows start there; the
+    depth table of a stateful network (run through the pipeline) must take the same windows, not the pipeline's
+    own from 0 (it failed with a KeyError on every `make demo` recording)."""
+    from labrig.evaluation import depth
+    from labrig.models import bundled_model_path
+    from labrig.pipeline import windows
+
+    def from_before_zero(rec, *, window_events=None, window_us=None):  # type: ignore[no-untyped-def]
+        t0, t1 = windows.window_ends_us(rec, window_events=window_events, window_us=window_us)
+        return t0 - 4_321, t1 - 4_321  # as if the first events came before host time 0
+
+    monkeypatch.setattr(depth, "window_ends_us", from_before_zero)
+    result = depth.evaluate_depth(depth.DepthTask(str(virtual_press), str(bundled_model_path()), window_events=20_000))
+    assert len(result.t_us) > 5 and np.isfinite(result.total_mm).all()

@@ -98,20 +98,24 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
         window_ms=model.window_ms, model=model.name, infer_ms=float(np.median(seconds) * 1e3) if seconds else float("nan"))
 
 
-evaluate_depth.cache_version = "3"  # type: ignore[attr-defined]  # 2: stateful networks through the pipeline; 3: brightness networks (no hold, no gate)
+evaluate_depth.cache_version = "4"  # type: ignore[attr-defined]  # 2: stateful networks through the pipeline; 3: brightness networks (no hold, no gate); 4: the force evaluation's windows
 
 
 def _pipeline_depth(task: DepthTask, t1_us: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.float32], list[float]]:
     """A stateful network's maps (W, 90, 112) at the window ends ``t1_us`` (a subset of the recording's windows):
-    the pipeline (tracker, the depth source from the one builder) over every window, and its depth seconds."""
+    the pipeline (tracker, the depth source from the one builder) over every window of :func:`window_ends_us`
+    (the windows of the force evaluation, from the first event, which precedes host time 0 in a recording made
+    through the drivers), and its depth seconds."""
     from labrig.pipeline import depth_sources, run_setup, runtime
     from labrig.recording import Recording
 
     with Recording(task.recording) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir)
         pipe = runtime.Pipeline(setup, depth_sources.depth_source("model", setup, rec, task.model))
-        maps = {int(r.t1_us): (r.depth_mm, r.seconds.get("depth", 0.0))
-                for r in pipe.run(rec, window_us=task.window_us, window_events=task.window_events, concurrent=False)}
+        maps = {}
+        for a, b in zip(*window_ends_us(rec, window_events=task.window_events, window_us=task.window_us)):
+            r = pipe.process(int(a), int(b), rec.events_between(a, b))
+            maps[int(b)] = (r.depth_mm, r.seconds.get("depth", 0.0))
     pred = np.stack([maps[int(t)][0] for t in t1_us]) if len(t1_us) else np.zeros((0, *GRID_SHAPE), np.float32)
     return pred.astype(np.float32), [maps[int(t)][1] for t in t1_us]
 
