@@ -208,3 +208,19 @@ def test_a_stateful_networks_depth_table_uses_the_force_evaluations_windows(virt
     monkeypatch.setattr(depth, "window_ends_us", from_before_zero)
     result = depth.evaluate_depth(depth.DepthTask(str(virtual_press), str(bundled_model_path()), window_events=20_000))
     assert len(result.t_us) > 5 and np.isfinite(result.total_mm).all()
+
+
+def test_the_noise_augmentation_adds_the_integrated_random_walk_of_that_noise() -> None:
+    """Noise at r Hz per pixel, half ON and half OFF, integrated with the leak: per cell a random walk whose
+    variance approaches r P tau / 2 events (P pixels per cell); zero mean, so no median is needed."""
+    from labrig.training.state_data import BrightnessTrack, integrated_noise
+
+    params = BrightnessParams(tau_s=30.0, scale_events_per_px=2.0)
+    track = BrightnessTrack(np.array([10_000], np.int64), np.zeros((1, *GRID_SHAPE), np.float16), ROI, params)
+    rng = np.random.default_rng(0)
+    at_start = integrated_noise(track, 0.0, 1.0, rng)
+    assert np.abs(at_start).max() < 1e-6  # nothing integrated yet
+    late = integrated_noise(track, 600e6, 1.0, rng)  # 10 minutes in: the leak's steady state
+    ppc = ROI.width_px * ROI.height_px / (GRID_SHAPE[0] * GRID_SHAPE[1])
+    expected = math.sqrt(1.0 * ppc * params.tau_s / 2.0) / ppc / params.scale_events_per_px
+    assert late.std() == pytest.approx(expected, rel=0.03) and abs(late.mean()) < 0.05 * expected

@@ -166,9 +166,7 @@ class ModelDepth:
         """The channels the card names for this window: the SAE, then the state."""
         if not self.inputs.stateful:
             return sae_grid
-        bright = None
-        if self.integrator is not None:
-            bright = self.integrator.channel()
+        bright = self.integrator.channel() if self.integrator is not None else None
         field = None
         if self.raster is not None:
             if self._positions_px is None or self._rest_px is None or self.camera is None:

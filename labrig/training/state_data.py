@@ -39,6 +39,7 @@ import numpy.typing as npt
 
 from labrig.cache import cache_folder, cache_key, sha256_of
 from labrig.errors import LabrigError
+from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel, signed_counts
 from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
@@ -207,8 +208,6 @@ def integrated_noise(track: BrightnessTrack, t_end_us: float, rate_hz: float, rn
     brightness channel by ``t_end_us``: per cell a leaky random walk, Gaussian with variance
     ``rate P tau / 2 (1 - exp(-2 T / tau))`` events (P pixels per cell, T the time since the track's start),
     in the channel's units. Its mean, zero, needs no median."""
-    from labrig.physics.grid import GRID_SHAPE
-
     params = track.params
     integrator = BrightnessIntegrator(track.roi, params)
     elapsed_s = max(float(t_end_us - (track.t_us[0] - TRACK_WINDOW_US)), 0.0) * 1e-6
@@ -221,8 +220,6 @@ def _integrated_steps(rec: Any, roi: Any, params: BrightnessParams) -> tuple[npt
     """The integrator stepped over the recording's 10 ms windows (``recording_windows``' tiling from 0):
     window ends (N,) and the integrated counts (N, 90, 112) float16 after each, from one read of
     each 10 s slice of events rather than one read per window."""
-    from labrig.physics.grid import GRID_SHAPE
-
     end = rec.end_us()
     n = -(-end // TRACK_WINDOW_US)
     if n <= 0:
