@@ -191,7 +191,7 @@ def quiet_params_for(card: dict[str, Any]) -> QuietParams | None:
     trained on noisy windows. A network trained clean draws dimples from a noisy SAE, so
     the more sensitive tile test would hand it more of them (measured in docs/evaluation.md).
     None (no hold) for a network that sees the brightness change since rest: the state is in its input."""
-    if "brightness" in ((card.get("inputs") or {}).get("kinds") or []):
+    if _sees_brightness(card):
         return None
     noise_trained = bool((card.get("augmentation") or {}).get("background_noise"))
     return replace(DEFAULT_QUIET, tiles=NOISE_TILES) if noise_trained else DEFAULT_QUIET
@@ -205,9 +205,14 @@ def rest_params_for(card: dict[str, Any]) -> RestGateParams | None:
     whole. The brightness network's own input returns to rest with the gel; measured on the
     paper campaign's test split, it is better without the gate on every figure
     (docs/depthnet.md)."""
-    if "brightness" in ((card.get("inputs") or {}).get("kinds") or []):
+    if _sees_brightness(card):
         return None
     return DEFAULT_REST_GATE
+
+
+def _sees_brightness(card: dict[str, Any]) -> bool:
+    """The card's network takes the brightness change since rest (its state is in its input)."""
+    return "brightness" in ((card.get("inputs") or {}).get("kinds") or [])
 
 
 def default_model_path(folder: str | Path = "models") -> Path:
