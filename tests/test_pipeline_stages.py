@@ -88,3 +88,16 @@ def test_forces_net_force_and_contact_location(rig: RigConfig) -> None:
     assert loc is not None
     assert np.allclose(loc.position_px, network_grid_pixels(rig)[31, 71])
     assert np.allclose(loc.position_mm, camera.backproject_to_plane(loc.position_px[None])[0, :2])
+
+
+def test_contact_location_is_the_dents_core_not_its_faint_residue(rig: RigConfig) -> None:
+    camera = CameraModel.from_rig(rig)
+    depth = np.zeros((90, 112))
+    depth[30:33, 70:73] = 1.0
+    depth[60:80, 10:30] = 0.1  # a faint, wide residue: 400 cells, more summed depth than the dent's 9
+    core = contact_location(depth, rig.roi, camera)
+    whole = contact_location(depth, rig.roi, camera, core_fraction=0.0)
+    assert core is not None and whole is not None
+    assert np.allclose(core.position_px, network_grid_pixels(rig)[31, 71])
+    assert np.linalg.norm(whole.position_px - core.position_px) > 100
+    assert core.weight_mm == pytest.approx(49.0)

