@@ -16,6 +16,7 @@ class Run:
     status: str
     reason: str = ""
     fell_behind: str = ""
+    late_twin: str = ""
 
 
 def _recorder(results: list[Run]) -> tuple[list[int], object, object]:
@@ -60,3 +61,33 @@ def test_a_shortfall_says_what_fell_behind_exactly_when_it_did(camera_s: float, 
     assert bool(text) == shortfall.fell_behind
     assert ("camera" in text) == (camera_s > 0.05) and ("F/T" in text) == (ft_s > 0.1)
     assert shortfall.attrs()["fell_behind"] == text
+
+
+def test_a_run_a_late_twin_ended_is_recorded_again_and_keeps_its_status_if_it_never_keeps_up() -> None:
+    late = Shortfall(late_twin="no status report within 10.0 s")
+    ended = Run("aborted", "GRBL: no status report within 10.0 s", late.describe(), late.late_twin)
+    calls, record, ready = _recorder([ended, Run("complete")])
+    assert record_in_real_time(record, ready) == Run("complete") and len(calls) == 2  # type: ignore[arg-type]
+    calls, record, ready = _recorder([Run("failed", "no status report", late.describe(), late.late_twin)])
+    outcome = record_in_real_time(record, ready)  # type: ignore[arg-type]
+    assert len(calls) == 1 + REALTIME_RETRIES and outcome.status == "failed"
+    assert outcome.reason.startswith("no status report") and f"in {1 + REALTIME_RETRIES} of" in outcome.reason
+    assert late.fell_behind and "answered late" in late.describe() and late.attrs()["late_twin"] == late.late_twin
+
+
+def test_a_grbl_timeout_before_the_recording_is_a_late_twin_only_on_the_virtual_rig(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from types import SimpleNamespace
+
+    from labrig.devices.grbl import GrblTimeout
+    from labrig.protocol.campaign import _record_one
+    from labrig.protocol.spec import ProbeSpec, RecordingPlan
+
+    def run(*args: object, **kwargs: object) -> None:
+        raise GrblTimeout("no status report within 10.0 s (last state Idle)")
+
+    plan = RecordingPlan(id="c-000", index=0, spec=ProbeSpec(indenter="sphere", depth_mm=1.0), split="train", repetition=0)
+    for virtual in (True, False):
+        runner = SimpleNamespace(session=SimpleNamespace(virtual=virtual), run=run)
+        outcome = _record_one(runner, plan, tmp_path, "")  # type: ignore[arg-type]
+        assert outcome.status == "failed" and "no status report" in outcome.reason
+        assert bool(outcome.late_twin) == virtual and bool(outcome.fell_behind) == virtual

@@ -56,6 +56,9 @@ def test_a_port_nobody_reads_does_not_stall_the_other_twins() -> None:
             port.write(b"ping\n")
             assert port.readline() == b"PING\r\n"
         port.close()
+        deadline = time.monotonic() + 2.0  # the pty and the port's host buffer fill first (about 80 KB)
+        while server.ports["chatty"].dropped_bytes == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert server.ports["chatty"].dropped_bytes > 0 and server.error is None
 
 
@@ -196,3 +199,26 @@ def test_a_twin_that_raises_on_a_request_reports_it_and_keeps_serving() -> None:
         assert [f.message for f in server.faults] == ["brittle receive: ValueError: cannot serve boom"]  # once a run
         brittle.close()
         echo.close()
+
+
+def test_a_late_reader_gets_every_byte_the_pty_could_not_take_in_order() -> None:
+    from labrig.sim.serial_pty import HOST_BUFFER_BYTES, PtyPort
+
+    port = PtyPort()
+    try:
+        reader = serial.Serial(port.path, 460800, timeout=0.2)  # opening flushes what the pty held
+        sent = bytes(range(256)) * 160  # 40 KiB: more than a pty takes (about 17 KB), less than a host port holds
+        for k in range(0, len(sent), 4096):  # a twin's burst after a stall, the reader late
+            port.write(sent[k:k + 4096])
+        assert port.pending_bytes > 0 and port.dropped_bytes == 0
+        got = bytearray()
+        deadline = time.monotonic() + 5.0
+        while len(got) < len(sent) and time.monotonic() < deadline:
+            got += reader.read(65536)
+            port.flush()  # the server's tick
+        reader.close()
+        assert bytes(got) == sent and port.pending_bytes == 0
+        port.write(b"z" * (HOST_BUFFER_BYTES + 50_000))  # nobody reads: beyond the pty and the host buffer, lost
+        assert port.pending_bytes <= HOST_BUFFER_BYTES and port.dropped_bytes > 0
+    finally:
+        port.close()

@@ -30,9 +30,11 @@ from typing import Any
 from labrig.cache import sha256_of
 from labrig.config import load_rig
 from labrig.dataset import COMPLETE, Dataset, read_manifest, write_manifest
+from labrig.devices.bota import BotaTimeout
+from labrig.devices.grbl import GrblTimeout
 from labrig.errors import LabrigError
 from labrig.indenters import load_indenters
-from labrig.protocol.realtime import record_in_real_time
+from labrig.protocol.realtime import Shortfall, record_in_real_time
 from labrig.protocol.rig_ready import ready_or_restarted
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
@@ -54,6 +56,8 @@ class Outcome:
     duration_s: float
     #: What fell behind real time, by how much ("" when the run kept up; see protocol.realtime).
     fell_behind: str = ""
+    #: The virtual rig's twin that missed a driver's deadline and so ended the run ("" when none).
+    late_twin: str = ""
 
 
 class Manifest:
@@ -164,10 +168,13 @@ def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protoco
     extra = {"campaign_id": plan.id, "split": plan.split, "repetition": plan.repetition}
     try:
         result: RunResult = runner.run(plan.spec, path, protocol_toml=protocol_toml, extra=extra, overwrite=True)
+    except (GrblTimeout, BotaTimeout) as exc:  # before the recording opened: travelling, taring
+        late = Shortfall(late_twin=str(exc)) if runner.session.virtual else Shortfall()
+        return Outcome(plan.id, "failed", str(exc), "", "", 0.0, late.describe(), late.late_twin)
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
     return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s,
-                   result.shortfall.describe())
+                   result.shortfall.describe(), result.shortfall.late_twin)
 
 
 def _worker(job: CampaignJob, outcomes: Any, stop_level: Any) -> None:

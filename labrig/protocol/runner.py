@@ -100,10 +100,13 @@ class RunResult:
 
 
 class _Abort(Exception):
-    def __init__(self, reason: str, hold: bool) -> None:
+    """Ends a run's sequence. ``late``: a device missed a deadline (on the virtual rig: its twin was starved)."""
+
+    def __init__(self, reason: str, hold: bool, late: bool = False) -> None:
         super().__init__(reason)
         self.reason = reason
         self.hold = hold
+        self.late = late
 
 
 class ProbeRunner:
@@ -191,10 +194,13 @@ class ProbeRunner:
         self.session.tare()
         writer = self._open_writer(out, spec, protocol_toml, extra)
         result = RunResult(out, EXIT_COMPLETE)
+        late_twin = ""
         try:
             result.contact_mm = self._sequence(plan, result)
         except _Abort as abort:
             result.exit_status, result.reason = EXIT_ABORTED, abort.reason
+            if abort.late and self.session.virtual:
+                late_twin = abort.reason
             try:
                 self._recover(plan, hold=abort.hold)
             except (GrblError, _Abort) as exc:
@@ -207,7 +213,7 @@ class ProbeRunner:
                 result.reason = "; ".join(filter(None, [result.reason, (
                     f"the camera stream stops {behind_us / 1e6:.2f} s before the run's end (the camera fell "
                     "behind and stalled): the events after that are missing")]))
-            result.shortfall = Shortfall(behind_us / 1e6, self.session.ft_max_gap_us / 1e6)
+            result.shortfall = Shortfall(behind_us / 1e6, self.session.ft_max_gap_us / 1e6, late_twin)
             self._writer = None
             recording = writer.close(result.exit_status, result.reason, attrs=result.shortfall.attrs())
             result.path = recording.path
@@ -304,7 +310,7 @@ class ProbeRunner:
             except GrblTimeout:
                 if time.monotonic() > deadline:
                     raise _Abort(f"the move did not finish within {allowed_s:.1f} s "
-                                 f"(GRBL {self.grbl.state})", hold=True) from None
+                                 f"(GRBL {self.grbl.state})", hold=True, late=True) from None
             except GrblError as exc:
                 self._check_faults()
                 raise _Abort(f"GRBL: {exc}", hold=False) from exc
@@ -333,7 +339,7 @@ class ProbeRunner:
             return action()
         except GrblError as exc:
             self._check_faults()
-            raise _Abort(f"GRBL: {exc}", hold=False) from exc
+            raise _Abort(f"GRBL: {exc}", hold=False, late=isinstance(exc, GrblTimeout)) from exc
 
     def _check_faults(self) -> None:
         session = self.session

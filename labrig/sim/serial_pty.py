@@ -47,8 +47,19 @@ class SerialTwin(Protocol):
         """Bytes the device has sent by ``now_us`` and not yet returned."""
 
 
+#: What a host's serial driver holds for a reader that is late, bytes: Linux keeps up to 64 KiB of a
+#: tty port's input in its flip buffers (``TTYB_DEFAULT_MEM_LIMIT``) beside the line discipline's
+#: 4 KiB, and loses what comes after. A pty takes only about 17 KB, so the port holds the rest.
+HOST_BUFFER_BYTES = 65536
+
+
 class PtyPort:
-    """One pseudo-terminal: the twin holds the master end; ``path`` is the serial port."""
+    """One pseudo-terminal: the twin holds the master end; ``path`` is the serial port.
+
+    A device's bytes wait for a late reader as they would on a real port: what the pty cannot
+    take now is held (up to :data:`HOST_BUFFER_BYTES`, in order) and written as it drains, on the
+    server's next ticks (:meth:`flush`); beyond that, new bytes are lost and counted.
+    """
 
     def __init__(self) -> None:
         self.master, self._slave = os.openpty()
@@ -57,6 +68,7 @@ class PtyPort:
         os.set_blocking(self.master, False)
         self.dropped_bytes = 0
         self.closed = False
+        self._pending = bytearray()
 
     def fileno(self) -> int:
         return self.master
@@ -76,18 +88,38 @@ class PtyPort:
                 return b""
             raise
 
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes held for a late reader, not yet in the pty."""
+        return len(self._pending)
+
     def write(self, data: bytes) -> None:
-        """Write what the pty takes now; the rest is dropped and counted, as a
-        real port's output is lost when nobody reads it (never blocks the server)."""
+        """Queue ``data`` behind what is held and write what the pty takes now (never blocks the server).
+
+        Bytes beyond :data:`HOST_BUFFER_BYTES` held are dropped and counted, as a real port's input is
+        lost when nobody reads it for long."""
+        room = HOST_BUFFER_BYTES - len(self._pending)
+        if len(data) > room:
+            self.dropped_bytes += len(data) - max(room, 0)
+            data = data[:max(room, 0)]
+        self._pending += data
+        self.flush()
+
+    def flush(self) -> None:
+        """Write what the pty takes of the held bytes. With no client on the port (EIO) they are lost."""
+        if not self._pending:
+            return
         try:
-            n = os.write(self.master, data)
+            n = os.write(self.master, self._pending)
         except BlockingIOError:
-            n = 0
+            return
         except OSError as exc:
             if exc.errno != errno.EIO:
                 raise
-            n = 0
-        self.dropped_bytes += len(data) - n
+            self.dropped_bytes += len(self._pending)
+            self._pending.clear()
+            return
+        del self._pending[:n]
 
     def close(self) -> None:
         if self.closed:  # never close a descriptor number twice: it may belong to someone else by now
@@ -146,6 +178,9 @@ class RelayedPort:
             self._sock.send(data)
         except (BlockingIOError, OSError):
             self.dropped_bytes += len(data)
+
+    def flush(self) -> None:
+        """Nothing held here: the relay writes to its pty (what it cannot take is lost there)."""
 
     def close(self) -> None:
         if getattr(self, "closed", False):
@@ -286,6 +321,8 @@ class TwinServer:
                     out = self._serve(f"{name} transmit", partial(twin.transmit, now))
                     if out:
                         self.ports[name].write(out)
+                    else:
+                        self.ports[name].flush()
                 self.served_until_us = now
         except BaseException as exc:  # surfaced to the owner; the thread must not die silently
             self.error = exc
