@@ -219,8 +219,10 @@ def test_a_press_beyond_the_gel_model_aborts_the_run_and_the_rig_stays_up(rig: R
 
 def test_a_twin_starved_for_seconds_answers_late_and_the_run_completes(rig: RigConfig, sphere: Indenter,
                                                                         tmp_path: Path) -> None:
-    """Starvation without load: the virtual rig's process is stopped (SIGSTOP) for 2.5 s mid-run, so the
-    GRBL twin answers a line and its status queries seconds late. The run waits and completes."""
+    """Starvation without load: the virtual rig's process is stopped (SIGSTOP) for 4 s mid-run, so the
+    GRBL twin answers a line and its status queries seconds late. The run waits and completes. The F/T
+    twin catches up with 4 s of frames at once (118 KB): the pty and the port's host buffer hold 83 KB
+    of them, the rest (about 1.2 s) are lost, as from a real port nobody read for that long."""
     import os
     import signal
 
@@ -230,13 +232,13 @@ def test_a_twin_starved_for_seconds_answers_late_and_the_run_completes(rig: RigC
 
         def starve() -> None:
             os.kill(pid, signal.SIGSTOP)
-            time.sleep(2.5)
+            time.sleep(4.0)
             os.kill(pid, signal.SIGCONT)
 
         _when_phase(runner, "wait", starve)
         result = runner.run(QUICK, tmp_path / "starved.h5")
     assert result.exit_status == "complete", result.reason
     # ... but short of F/T data while the twin was stopped: marked, never silently kept.
-    assert result.shortfall.fell_behind and result.shortfall.ft_max_gap_s > 1.5
+    assert result.shortfall.fell_behind and 0.5 < result.shortfall.ft_max_gap_s < 3.0
     with Recording(result.path) as rec:
-        assert "F/T frames missing" in rec.attrs["fell_behind"] and rec.attrs["ft_max_gap_s"] > 1.5
+        assert "F/T frames missing" in rec.attrs["fell_behind"] and 0.5 < rec.attrs["ft_max_gap_s"] < 3.0

@@ -98,12 +98,11 @@ class PtyPort:
 
         Bytes beyond :data:`HOST_BUFFER_BYTES` held are dropped and counted, as a real port's input is
         lost when nobody reads it for long."""
-        room = HOST_BUFFER_BYTES - len(self._pending)
-        if len(data) > room:
-            self.dropped_bytes += len(data) - max(room, 0)
-            data = data[:max(room, 0)]
         self._pending += data
         self.flush()
+        if len(self._pending) > HOST_BUFFER_BYTES:  # the newest bytes are the ones lost
+            self.dropped_bytes += len(self._pending) - HOST_BUFFER_BYTES
+            del self._pending[HOST_BUFFER_BYTES:]
 
     def flush(self) -> None:
         """Write what the pty takes of the held bytes. With no client on the port (EIO) they are lost."""
