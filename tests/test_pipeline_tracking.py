@@ -118,6 +118,33 @@ def test_tracker_ignores_sparse_noise_and_follows_a_translated_grid(rig: RigConf
     assert np.abs(positions - (rest + 0.5 * shift)).max() < 0.6
 
 
+def test_the_polarity_guard_keeps_a_dot_from_a_band_of_slope_shading(rig: RigConfig) -> None:
+    """Every dot moves +1.5 px in y (ON on its leading rim, OFF on its trailing one) while a pressing
+    edge's slope shading brightens a band 11-14 px below the dots of one row (under the edge): many ON
+    events and no OFF. Without the guard their ON centroid follows the band; with it, only as many ON
+    events count as OFF ones, the nearest the dot."""
+    rest = rest_positions_px(rig)
+    angles = np.linspace(0.0, np.pi, 12)
+    shift = np.array([0.0, 1.5])
+    rows = []
+    for k, centre in enumerate(rest):
+        c = centre + 0.5 * shift
+        rows += [(x, y, 1) for x, y in np.rint(c + np.stack([7 * np.cos(angles), 7 * np.sin(angles)], 1))]
+        rows += [(x, y, 0) for x, y in np.rint(c + np.stack([7 * np.cos(angles), -7 * np.sin(angles)], 1))]
+        if k // rig.markers.cols == 6:
+            rows += [(x, y, 1) for x in np.arange(c[0] - 10, c[0] + 11) for y in np.rint(c[1] - np.array([11, 12, 13, 14]))]
+    arr = np.array(rows)
+    events = np.zeros(len(arr), dtype=[("x", "<u2"), ("y", "<u2"), ("p", "u1"), ("t", "<i8")])
+    events["x"], events["y"], events["p"] = arr[:, 0], arr[:, 1], arr[:, 2]
+    errors = {}
+    for guard in (2.0, None):
+        tracker = Tracker(rest, TrackerParams(marker_diameter_px=14.0, refine_lambda=0.0, polarity_guard=guard))
+        positions, updated = tracker.update(events)
+        assert updated.all()
+        errors[guard] = np.abs(positions - (rest + 0.5 * shift)).max()
+    assert errors[2.0] < 0.6 < 3.0 < errors[None]
+
+
 def test_grid_neighbours_and_parameter_checks(rig: RigConfig) -> None:
     n4 = grid_neighbours(12, 13, 4)
     assert (n4[0] >= 0).sum() == 2 and (n4[13 + 1] >= 0).sum() == 4

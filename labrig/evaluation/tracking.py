@@ -54,7 +54,7 @@ class TrackingTask:
     """One recording, one tracker setting. Windows: ``window_us`` long (default 10 ms) or ``window_events`` each.
 
     ``tracker``: "paper" (the bundled tracker with its event gates), "paper-published" (no gate,
-    no two-polarity test: the tracker as the paper describes it), "circle-fit" (a circle-fit
+    no two-polarity test, no polarity guard: the tracker as the paper describes it), "circle-fit" (a circle-fit
     baseline, formerly "evetac") or "evetac" (Evetac's published tracker, :mod:`labrig.pipeline.evetac`).
     ``rest``: where the markers' rest pixels come from: "calibration" (the extrinsics the
     recording names, else ``calibration_dir``'s, as ``labrig run`` resolves them; the rig's
@@ -144,7 +144,7 @@ def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed
     if task.tracker == "paper":
         return Tracker(rest_px, base, observed)
     if task.tracker == "paper-published":
-        return Tracker(rest_px, replace(base, gate_diameters=None, min_each_polarity=0), observed)
+        return Tracker(rest_px, replace(base, gate_diameters=None, min_each_polarity=0, polarity_guard=None), observed)
     raise LabrigError(f"tracker must be one of {', '.join(TRACKERS)}, not {task.tracker!r}")
 
 
@@ -183,7 +183,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         **{f.name: getattr(truth_fields, f.name) for f in fields(TruthErrors)})
 
 
-track_recording.cache_version = "5"  # type: ignore[attr-defined]
+track_recording.cache_version = "6"  # type: ignore[attr-defined]  # 6: the paper tracker's polarity guard
 
 
 def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str, npt.NDArray[np.bool_]]:

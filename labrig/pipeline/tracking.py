@@ -4,7 +4,10 @@
 patch (``patch_scale`` x the marker diameter) around its last position, clipped
 to its non-overlapping region (the midpoints to its four grid neighbours); the
 centroid of the patch's events (of each polarity, averaged, so that a moving
-bright dot's leading ON and trailing OFF crescents balance); markers with fewer
+bright dot's leading ON and trailing OFF crescents balance; where one polarity
+outnumbers the other by more than ``polarity_guard``, only as many of it as the
+other has count, the nearest the marker: the membrane's slope shading under a
+pressing edge is one polarity, bands of it that would drag the dot); markers with fewer
 than ``min_events`` events keep their position; then the grid-aware refinement
 p = lambda * prior + (1 - lambda) * centroid, the prior being the mean of the
 neighbours' positions each shifted by its rest offset to the marker.
@@ -102,6 +105,9 @@ class TrackerParams:
     gate_diameters: float | None = 1.0  # keep only events this close (in diameters) to the centre; None: whole patch
     gate_passes: int = 1  # re-centre the gate on the centroid and sum again (mean shift)
     noise_subtraction: bool = True  # with a gate: take the expected background events out of each gate's sums
+    # A gate whose ON (or OFF) events outnumber the other polarity's by more than this keeps only as many of them
+    # as the other has, the nearest its centre (a moving dot makes both alike; slope shading makes one); None: off
+    polarity_guard: float | None = 2.0
     grid_rows: int = 12
     grid_cols: int = 13
     width_px: int = 1280
@@ -161,11 +167,13 @@ def _repaint(label, old, new):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _sum_events(x, y, p, label, centre, gate2, sums, outside):  # pragma: no cover - compiled
+def _sum_events(x, y, p, label, centre, gate2, sums, outside, owner):  # pragma: no cover - compiled
     """sums[m, polarity] += (count, sum x, sum y) over the events in marker m's patch (and gate, if gate2 > 0);
-    outside[m, polarity] += 1 for the patch's events outside the gate."""
+    outside[m, polarity] += 1 for the patch's events outside the gate; owner[i]: the marker whose sums took
+    event i, else -1."""
     h, w = label.shape
     for i in range(x.shape[0]):
+        owner[i] = -1
         xi, yi = int(x[i]), int(y[i])
         if xi >= w or yi >= h:
             continue
@@ -180,6 +188,52 @@ def _sum_events(x, y, p, label, centre, gate2, sums, outside):  # pragma: no cov
             sums[m, ch, 0] += 1.0
             sums[m, ch, 1] += xi
             sums[m, ch, 2] += yi
+            owner[i] = m
+
+
+@njit(cache=True, nogil=True)
+def _guard_polarity(x, y, p, owner, centre, sums, ratio):  # pragma: no cover - compiled
+    """In place: where one polarity's count in a marker's gate exceeds ``ratio`` x the other's (both present),
+    its sums become those of its events nearest the gate's centre, as many as the other polarity has.
+    ``owner``: each event's marker from :func:`_sum_events` (-1: none)."""
+    m_count = sums.shape[0]
+    trim = np.full(m_count, -1, np.int64)  # the polarity to trim, -1: none
+    keep = np.zeros(m_count, np.int64)
+    for m in range(m_count):
+        n_off, n_on = sums[m, 0, 0], sums[m, 1, 0]
+        if n_off >= 1.0 and n_on >= 1.0:
+            if n_on > ratio * n_off:
+                trim[m], keep[m] = 1, int(n_off)
+            elif n_off > ratio * n_on:
+                trim[m], keep[m] = 0, int(n_on)
+    start = np.zeros(m_count + 1, np.int64)
+    for m in range(m_count):
+        start[m + 1] = start[m] + (int(sums[m, trim[m], 0]) if trim[m] >= 0 else 0)
+    if start[m_count] == 0:
+        return
+    d2 = np.empty(start[m_count])
+    ex = np.empty(start[m_count])
+    ey = np.empty(start[m_count])
+    fill = start[:-1].copy()
+    for i in range(x.shape[0]):
+        m = owner[i]
+        if m < 0 or trim[m] < 0 or (1 if p[i] else 0) != trim[m] or fill[m] >= start[m + 1]:
+            continue
+        xi, yi = float(x[i]), float(y[i])
+        dx, dy = xi - centre[m, 0], yi - centre[m, 1]
+        k = fill[m]
+        d2[k], ex[k], ey[k] = dx * dx + dy * dy, xi, yi
+        fill[m] = k + 1
+    for m in range(m_count):
+        if trim[m] < 0:
+            continue
+        a, b = start[m], fill[m]
+        nearest = np.argsort(d2[a:b])[: keep[m]]
+        sx, sy = 0.0, 0.0
+        for j in nearest:
+            sx += ex[a + j]
+            sy += ey[a + j]
+        sums[m, trim[m], 0], sums[m, trim[m], 1], sums[m, trim[m], 2] = len(nearest), sx, sy
 
 
 @njit(cache=True, nogil=True)
@@ -325,7 +379,12 @@ class Tracker(_PatchTracker):
             self._sums[...] = 0.0
             self._outside[...] = 0.0
             if len(events):
-                _sum_events(events["x"], events["y"], events["p"], self._label, centre, gate2, self._sums, self._outside)
+                owner = np.empty(len(events), np.int32)
+                _sum_events(events["x"], events["y"], events["p"], self._label, centre, gate2, self._sums, self._outside,
+                            owner)
+                if p.polarity_guard is not None:
+                    _guard_polarity(events["x"], events["y"], events["p"], owner, centre, self._sums,
+                                    float(p.polarity_guard))
             if gate2 and p.noise_subtraction:
                 subtract_background(self._sums, self._outside, self._painted, gate2, centre)
             lam = float(p.refine_lambda) if k == (p.gate_passes if gate2 else 1) - 1 else 0.0
