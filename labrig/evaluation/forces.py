@@ -4,7 +4,7 @@ Per evaluation window (sequential 20,000-event windows by default) the pipeline 
 markers on the window's events, the depth network sees its own trained window ending at the
 window's end, and the inverse FEM gives the per-marker forces. Their sum is compared with
 the F/T sensor's force over the depth window (tared, rotated into the gel frame by the rig
-registration, as the force on the gel), the depth map's centre of mass with the true contact
+registration, as the force on the gel), the depth map's dent core with the true contact
 centre (where the indenter touched, from the CNC pose), and, on the virtual rig, each marker's force with
 the sim's ``/truth/marker_forces``.
 

@@ -83,8 +83,8 @@ def contact_centre_px(groundtruth: Any, t_us: npt.ArrayLike, camera: Any) -> F64
 
     The sidecar's ``anchor_gel_mm``: where the indenter first touched, from the CNC pose through the
     registration (what a lab has). The depth maps are indexed by the surface point each cell saw at
-    rest, so a sheared contact stays centred there while the tip moves on; the map's centre of mass
-    is compared with this point, not with the moving tip.
+    rest, so a sheared contact stays centred there while the tip moves on; the map's dent core
+    (:func:`labrig.pipeline.forces.contact_location`) is compared with this point, not with the moving tip.
     """
     index = np.atleast_1d(groundtruth.nearest_index(np.asarray(t_us, np.float64)))
     anchor = np.asarray(groundtruth.anchor_gel_mm, np.float64)[index]
