@@ -22,6 +22,7 @@ import numpy.typing as npt
 from labrig import models
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.anchor import AnchorParams
 from labrig.pipeline.brightness import BrightnessIntegrator
 from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
 from labrig.pipeline.depthnet import DepthModel
@@ -32,6 +33,7 @@ from labrig.recording import Recording
 
 DEFAULT_QUIET = QuietParams()
 DEFAULT_REST_GATE = RestGateParams()
+DEFAULT_ANCHOR = AnchorParams()
 #: Tiles (rows x columns over the SAE grid) watched for motion with a noise-trained network.
 NOISE_TILES = (6, 7)
 
@@ -41,12 +43,14 @@ class DepthSource(Protocol):
 
     ``window_us``: the span the source's SAE covers, ending at the pipeline window's end
     (None: the pipeline window itself). ``depth_mm`` gets that span's SAE (None unless
-    ``needs_sae``), its bounds and how many events fell in it.
+    ``needs_sae``), its bounds and how many events fell in it. ``anchor``: the noise of the
+    contact's location read from its maps (:mod:`labrig.pipeline.anchor`); None: exact maps, no filter.
     """
 
     name: str
     needs_sae: bool
     window_us: float | None
+    anchor: AnchorParams | None
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]: ...
@@ -58,6 +62,7 @@ class TruthDepth:
     name = "truth"
     needs_sae = False
     window_us: float | None = None
+    anchor: AnchorParams | None = None  # the sim's own maps locate the contact exactly
 
     def __init__(self, recording: Recording) -> None:
         if "truth/depth" not in recording.streams or recording.rows("truth/depth") == 0:
@@ -110,6 +115,7 @@ class ModelDepth:
         self.window_us: float | None = self.model.window_ms * 1000.0
         self.inputs = self.model.inputs
         self.needs_counts = "brightness" in self.inputs.kinds
+        self.anchor: AnchorParams | None = anchor_params_for(self.model.card)
         if quiet == "auto":
             quiet = quiet_params_for(self.model.card)
         assert not isinstance(quiet, str), f"quiet must be QuietParams, None or 'auto', not {quiet!r}"
@@ -208,6 +214,17 @@ def rest_params_for(card: dict[str, Any]) -> RestGateParams | None:
     if _sees_brightness(card):
         return None
     return DEFAULT_REST_GATE
+
+
+def anchor_params_for(card: dict[str, Any]) -> AnchorParams:
+    """The contact anchor's noise model for a network: its card's ``contact_anchor`` (fields of
+    :class:`~labrig.pipeline.anchor.AnchorParams`) over the defaults, fitted for the bundled network."""
+    fields = card.get("contact_anchor") or {}
+    try:
+        return replace(DEFAULT_ANCHOR, **fields)
+    except TypeError as e:
+        raise LabrigError(f"model card: contact_anchor has an unknown field ({e}); "
+                          f"use {sorted(AnchorParams.__dataclass_fields__)}") from e
 
 
 def _sees_brightness(card: dict[str, Any]) -> bool:

@@ -32,6 +32,7 @@ import numpy.typing as npt
 
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import brightness, displacement, forces, ifem, sae, tracking
+from labrig.pipeline.anchor import AnchorFilter, anchor_px
 from labrig.pipeline.depth_sources import DepthSource
 from labrig.pipeline.front_thread import FrontThread, Handoff
 from labrig.pipeline.rest import RestParams, RestRefiner
@@ -116,6 +117,9 @@ class Pipeline:
         self.keep_sae = keep_sae
         self._index = 0
         self._recent: list[Events] = []  # events of the depth source's window
+        anchor = getattr(depth, "anchor", None)
+        self.anchor = AnchorFilter(anchor) if anchor is not None else None
+        self._last_t1_us: int | None = None
 
     # The two stages.
 
@@ -158,13 +162,24 @@ class Pipeline:
         start = time.perf_counter()
         f = self.surface(depth, u, self.normal_mode, self.threshold_mm)
         f *= forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening)
-        where = forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm)
+        contact_px, contact_mm = self._contact(depth, tracked.t0_us, tracked.t1_us)
         seconds["forces"] = time.perf_counter() - start
-        nan2 = np.full(2, np.nan)
         return WindowResult(tracked.index, tracked.t0_us, tracked.t1_us, tracked.n_events, tracked.positions_px,
-                            tracked.updated, u, f, forces.net_force_n(f), where.position_px if where else nan2,
-                            where.position_mm if where else nan2, depth,
+                            tracked.updated, u, f, forces.net_force_n(f), contact_px, contact_mm, depth,
                             tracked.sae if self.keep_sae else None, seconds)
+
+    def _contact(self, depth: npt.NDArray[np.float32], t0_us: int, t1_us: int) -> tuple[Array, Array]:
+        """The contact's location (px, mm; nan without a dent): the dent's core, through the anchor filter."""
+        where = forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm)
+        dt_s = (t1_us - (t0_us if self._last_t1_us is None else self._last_t1_us)) / 1e6
+        self._last_t1_us = t1_us
+        if self.anchor is None:
+            nan2 = np.full(2, np.nan)
+            return (where.position_px, where.position_mm) if where else (nan2, nan2.copy())
+        anchor_mm = self.anchor.update(where.position_mm if where else None, float(np.max(depth)), dt_s)
+        if anchor_mm is None:
+            return np.full(2, np.nan), np.full(2, np.nan)
+        return anchor_px(anchor_mm, self.setup.camera), anchor_mm
 
     def _rest_points(self, rest_px: Array) -> Array:
         """(M, 3) gel-frame rest points of ``rest_px``, recomputed only when the rest changed."""
