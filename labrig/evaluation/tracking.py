@@ -144,13 +144,15 @@ def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed
     if task.tracker == "paper":
         return Tracker(rest_px, base, observed)
     if task.tracker == "paper-published":
-        return Tracker(rest_px, replace(base, gate_diameters=None, min_each_polarity=0, polarity_guard=None), observed)
+        published = replace(base, gate_diameters=None, min_each_polarity=0, polarity_guard=None, lopsided_ratio=None,
+                            lag_noise_px=None)
+        return Tracker(rest_px, published, observed)
     raise LabrigError(f"tracker must be one of {', '.join(TRACKERS)}, not {task.tracker!r}")
 
 
 def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
     """Track ``task.recording`` window by window; lost tracks, drift and (virtual rig) true errors."""
-    from labrig.pipeline.tracking import marker_diameter_px
+    from labrig.pipeline.tracking import Tracker, marker_diameter_px
     from labrig.pipeline.windows import recording_windows
     from labrig.recording import Recording
 
@@ -162,7 +164,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         ends, positions, seconds = [], [], []
         for _, t1, events in recording_windows(rec, window_us=task.window_us, window_events=task.window_events):
             tic = time.perf_counter()
-            p, _ = tracker.update(events)
+            p, _ = tracker.update(events, t1) if isinstance(tracker, Tracker) else tracker.update(events)
             seconds.append(time.perf_counter() - tic)
             ends.append(t1)
             positions.append(p)
@@ -183,7 +185,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         **{f.name: getattr(truth_fields, f.name) for f in fields(TruthErrors)})
 
 
-track_recording.cache_version = "6"  # type: ignore[attr-defined]  # 6: the paper tracker's polarity guard
+track_recording.cache_version = "7"  # type: ignore[attr-defined]  # 7: lopsided gates follow neighbours, lag correction; 6: the paper tracker's polarity guard
 
 
 def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str, npt.NDArray[np.bool_]]:

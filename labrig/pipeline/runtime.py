@@ -134,7 +134,7 @@ class Pipeline:
         counts = brightness.signed_counts(events, self.setup.rig.roi) if getattr(self.depth, "needs_counts", False) else None
         seconds["sae"] = time.perf_counter() - start
         start = time.perf_counter()
-        positions, updated = self.tracker.update(events)
+        positions, updated = self.tracker.update(events, t1_us)
         if not self.rest.frozen:
             self.rest.add(positions, len(events), t1_us - t0_us)
             self.tracker.rest_px = self.rest.rest_px  # the neighbour prior's offsets

@@ -108,6 +108,12 @@ class TrackerParams:
     # A gate whose ON (or OFF) events outnumber the other polarity's by more than this keeps only as many of them
     # as the other has, the nearest its centre (a moving dot makes both alike; slope shading makes one); None: off
     polarity_guard: float | None = 2.0
+    # A gate with events that cannot place its dot (one polarity outnumbering the other more than this, or too
+    # few of either) takes the mean displacement of its 4-neighbours that could; None: it keeps its own place
+    lopsided_ratio: float | None = 10.0
+    # Report each dot at the window's end, not at its events' mean time: moved on by its velocity (its last two
+    # centroids, averaged with its neighbours'), the step shrunk where the centroids moved less than this; None: off
+    lag_noise_px: float | None = 1.0
     grid_rows: int = 12
     grid_cols: int = 13
     width_px: int = 1280
@@ -237,6 +243,59 @@ def _guard_polarity(x, y, p, owner, centre, sums, ratio):  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True)
+def _mean_times(owner, t, t_ref, count, mean):  # pragma: no cover - compiled
+    """count[m], mean[m]: how many events marker m's sums took (``owner``) and their mean time - t_ref (0 if none)."""
+    count[:] = 0.0
+    mean[:] = 0.0
+    for i in range(owner.shape[0]):
+        m = owner[i]
+        if m >= 0:
+            count[m] += 1.0
+            mean[m] += float(t[i] - t_ref)
+    for m in range(count.shape[0]):
+        if count[m] > 0.0:
+            mean[m] /= count[m]
+
+
+@njit(cache=True, nogil=True)
+def _lag_steps(centroid, last_px, last_t, t_mean, count, updated, neigh, t_end, noise_px, limit_px, out):  # pragma: no cover
+    """out[m] = centroid[m] + the step to ``t_end`` (see :meth:`Tracker._at_window_end`)."""
+    m_count = centroid.shape[0]
+    velocity = np.zeros((m_count, 2))
+    dt = np.zeros(m_count)
+    moving = np.zeros(m_count, np.bool_)
+    for m in range(m_count):
+        d = t_mean[m] - last_t[m]
+        if updated[m] and count[m] > 0.0 and d > 0.0:  # NaN (no previous centroid) compares False
+            moving[m], dt[m] = True, d
+            velocity[m, 0] = (centroid[m, 0] - last_px[m, 0]) / d
+            velocity[m, 1] = (centroid[m, 1] - last_px[m, 1]) / d
+    for m in range(m_count):
+        out[m, 0], out[m, 1] = centroid[m, 0], centroid[m, 1]
+        if not moving[m]:
+            continue
+        vx, vy, n = velocity[m, 0], velocity[m, 1], 1.0
+        for k in range(neigh.shape[1]):
+            j = neigh[m, k]
+            if j >= 0 and moving[j]:
+                vx += velocity[j, 0]
+                vy += velocity[j, 1]
+                n += 1.0
+        vx, vy = vx / n, vy / n
+        moved = np.sqrt(vx * vx + vy * vy) * dt[m]
+        if moved <= noise_px:
+            continue
+        keep = 1.0 - (noise_px / moved) ** 2
+        lead = t_end - t_mean[m]
+        sx, sy = keep * vx * lead, keep * vy * lead
+        size = np.sqrt(sx * sx + sy * sy)
+        if size > limit_px:
+            sx, sy = sx * limit_px / size, sy * limit_px / size
+        out[m, 0] += sx
+        out[m, 1] += sy
+
+
+@njit(cache=True, nogil=True)
 def _centroids_and_prior(pos, sums, neigh, rest, min_events, min_each, balance, lam, out, updated):  # pragma: no cover
     m = pos.shape[0]
     centroid = pos.copy()
@@ -363,14 +422,73 @@ class Tracker(_PatchTracker):
         self._outside = np.zeros((len(self.rest_px), 2))
         self.reset()
 
+    def reset(self, positions_px: npt.ArrayLike | None = None) -> None:
+        super().reset(positions_px)
+        self._centroid_px = self.positions_px.copy()  # (M, 2) each dot's last centroid, before the lag correction
+        self._centroid_t_us = np.full(len(self.positions_px), np.nan)  # (M,) when it was there (its events' mean)
+
+    def _at_window_end(self, centroid: Array, updated: BoolArray, events: npt.NDArray,
+                       owner: npt.NDArray[np.int32], t_end_us: float, noise_px: float) -> Array:
+        """The centroids (M, 2) px moved on from their events' mean times to ``t_end_us`` by each dot's velocity.
+
+        A moving dot's centroid is where it was at its events' mean time, about half a window before
+        the window's end (at 1.5 mm/s and 20,000-event windows, 1-2 px behind). The velocity: from the
+        dot's centroids and their times in this window and the one before, where both updated it,
+        averaged over the dot and its such 4-neighbours (the gel moves smoothly; the average cuts
+        the centroids' noise). The step is shrunk by max(0, 1 - (noise_px / moved)^2), ``moved`` the
+        averaged centroid step, so still dots stay still, and is at most a dot's radius.
+        """
+        m = len(centroid)
+        count, t_mean = np.empty(m), np.empty(m)
+        t_ref = int(t_end_us)
+        _mean_times(owner, events["t"], t_ref, count, t_mean)
+        t_mean += t_ref  # us
+        reported = np.empty_like(centroid)
+        _lag_steps(centroid, self._centroid_px, self._centroid_t_us, t_mean, count, updated, self._neigh4,
+                   float(t_end_us), float(noise_px), 0.5 * self.params.marker_diameter_px, reported)
+        self._centroid_px = np.where(updated[:, None], centroid, self.positions_px)
+        self._centroid_t_us = np.where(updated & (count > 0), t_mean, np.nan)  # no update: no velocity next time
+        return reported
+
+    def _follow_when_lopsided(self, out: Array, updated: BoolArray, counts: Array, ratio: float) -> None:
+        """In place: the dots whose gates had events but could not place them (``counts`` (M, 2) OFF / ON
+        before the polarity guard: one polarity more than ``ratio`` x the other, or too few of either to
+        update) take the mean displacement of their 4-neighbours that could (at least two), and are not
+        updated. A moving dot makes ON and OFF events alike; a gate flooded with one polarity is
+        seeing the membrane's slope shading (a flat punch's or a ridge's edge passing), whose trimmed
+        remainder still drags the dot; without its own say the gel's smooth motion is the best guess."""
+        p = self.params
+        n_off, n_on = counts[:, 0], counts[:, 1]
+        total = n_off + n_on
+        lopsided = (np.maximum(n_on, n_off) > ratio * np.maximum(np.minimum(n_on, n_off), 1.0)) & (total >= p.min_events)
+        orphan = (lopsided | (~updated & (total >= p.min_events))) & self.observed
+        if not orphan.any():
+            return
+        good = updated & ~lopsided
+        shift = out - self.rest_px
+        acc = np.zeros_like(out)
+        n = np.zeros(len(out))
+        for k in range(self._neigh4.shape[1]):
+            j = self._neigh4[:, k]
+            ok = (j >= 0) & good[np.maximum(j, 0)]
+            acc[ok] += shift[j[ok]]
+            n[ok] += 1
+        move = orphan & (n >= 2)
+        out[move] = self.rest_px[move] + acc[move] / n[move, None]
+        stay = lopsided & ~move
+        out[stay] = self.positions_px[stay]
+        updated[lopsided] = False
+
     @property
     def patches_px(self) -> npt.NDArray[np.int64]:
         """(M, 4) current patches as pixel bounds x0, x1, y0, y1 (x1, y1 exclusive)."""
         return self._painted.copy()
 
-    def update(self, events: npt.NDArray) -> tuple[Array, BoolArray]:
-        """Advance by one window of events (EVENT_DTYPE); returns copies of the positions and the update mask."""
+    def update(self, events: npt.NDArray, t_end_us: float | None = None) -> tuple[Array, BoolArray]:
+        """Advance by one window of events (EVENT_DTYPE) ending at ``t_end_us`` (default: its last event's time);
+        returns copies of the positions (at the window's end) and the update mask."""
         p = self.params
+        owner = np.empty(len(events), np.int32)
         out = np.empty_like(self.positions_px)
         updated = np.zeros(len(out), np.bool_)
         gate2 = 0.0 if p.gate_diameters is None else (p.gate_diameters * p.marker_diameter_px) ** 2
@@ -379,9 +497,9 @@ class Tracker(_PatchTracker):
             self._sums[...] = 0.0
             self._outside[...] = 0.0
             if len(events):
-                owner = np.empty(len(events), np.int32)
                 _sum_events(events["x"], events["y"], events["p"], self._label, centre, gate2, self._sums, self._outside,
                             owner)
+                polarity_counts = self._sums[:, :, 0].copy()  # before the guard trims
                 if p.polarity_guard is not None:
                     _guard_polarity(events["x"], events["y"], events["p"], owner, centre, self._sums,
                                     float(p.polarity_guard))
@@ -391,12 +509,21 @@ class Tracker(_PatchTracker):
             _centroids_and_prior(centre, self._sums, self._prior, self.rest_px, float(p.min_events),
                                  float(p.min_each_polarity), p.polarity_balance, lam, out, updated)
             centre = out.copy()
+        if p.lopsided_ratio is not None and len(events):
+            self._follow_when_lopsided(out, updated, polarity_counts, float(p.lopsided_ratio))
+        reported = out  # the tracker keeps its centroids (a dot that stops is where its events put it)
+        if p.lag_noise_px is not None:
+            end = float(events["t"][-1]) if t_end_us is None and len(events) else t_end_us
+            if end is not None:
+                reported = self._at_window_end(out, updated, events, owner, float(end), float(p.lag_noise_px))
         if not self.observed.all():
             follow_neighbours(out, self.rest_px, self.observed, self._follow)
+            if reported is not out:
+                follow_neighbours(reported, self.rest_px, self.observed, self._follow)
             updated &= self.observed
         self.positions_px = out
         self._sync_patches()
-        return out.copy(), updated
+        return reported.copy(), updated
 
 
 # -- circle-fit baseline -------------------------------------------------------------------------------

@@ -85,6 +85,7 @@ def run(windows: int = 300, events: int = 20_000, progress: bool = True) -> dict
                                "window_ms": WINDOW_US / 1000}
     trackers = (("paper", Tracker(rest, TrackerParams())),
                 ("paper-unguarded", Tracker(rest, TrackerParams(polarity_guard=None))),
+                ("paper-no-follow-no-lag", Tracker(rest, TrackerParams(lopsided_ratio=None, lag_noise_px=None))),
                 ("circle-fit", CircleFitTracker(rest, CircleFitParams())),
                 ("evetac", EvetacTracker(rest, EvetacParams())))
     for name, tracker in trackers:
@@ -99,6 +100,8 @@ def run(windows: int = 300, events: int = 20_000, progress: bool = True) -> dict
             "final_displacement_px_median": float(np.median(final)),
         }
     figures["paper_over_unguarded_median"] = figures["paper"]["median_ms"] / figures["paper-unguarded"]["median_ms"]
+    figures["paper_over_no_follow_no_lag_median"] = (figures["paper"]["median_ms"]
+                                                     / figures["paper-no-follow-no-lag"]["median_ms"])
     figures["circle_fit_over_paper_median"] = figures["circle-fit"]["median_ms"] / figures["paper"]["median_ms"]
     figures["evetac_over_paper_median"] = figures["evetac"]["median_ms"] / figures["paper"]["median_ms"]
     figures["evetac_over_circle_fit_median"] = figures["evetac"]["median_ms"] / figures["circle-fit"]["median_ms"]
@@ -107,11 +110,12 @@ def run(windows: int = 300, events: int = 20_000, progress: bool = True) -> dict
 
 def render(f: dict[str, Any]) -> None:
     rows = [[name, f"{f[name]['median_ms']:.3f}", f"{f[name]['p95_ms']:.3f}", f"{f[name]['median_window_fraction']:.4f}",
-             f"{f[name]['p95_window_fraction']:.4f}"] for name in ("paper", "paper-unguarded", "circle-fit", "evetac")]
+             f"{f[name]['p95_window_fraction']:.4f}"] for name in ("paper", "paper-unguarded", "paper-no-follow-no-lag", "circle-fit", "evetac")]
     emit(f"Marker tracking: {f['events_per_window']} events, {f['markers']} markers per {f['window_ms']:.0f} ms window",
          ["tracker", "median ms", "p95 ms", "median / window", "p95 / window"], rows,
          [f"target for the paper's tracker: <= 0.05 of the window; the paper's C++ tracker: 0.46. "
           f"the paper's tracker with its polarity guard / without: {f['paper_over_unguarded_median']:.2f} x; "
+          f"with its neighbour-following and lag correction / without: {f['paper_over_no_follow_no_lag_median']:.2f} x; "
           f"circle-fit / paper: {f['circle_fit_over_paper_median']:.2f} x; Evetac (published) / paper: "
           f"{f['evetac_over_paper_median']:.2f} x; Evetac / circle-fit: {f['evetac_over_circle_fit_median']:.2f} x"])
 
