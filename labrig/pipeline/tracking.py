@@ -108,8 +108,8 @@ class TrackerParams:
     # A gate whose ON (or OFF) events outnumber the other polarity's by more than this keeps only as many of them
     # as the other has, the nearest its centre (a moving dot makes both alike; slope shading makes one); None: off
     polarity_guard: float | None = 2.0
-    # A gate with events that cannot place its dot (one polarity outnumbering the other more than this, or too
-    # few of either) takes the mean displacement of its 4-neighbours that could; None: it keeps its own place
+    # A gate whose one polarity outnumbers the other more than this cannot place its dot: the dot makes the mean
+    # move of its updated 4-neighbours instead; None: off
     lopsided_ratio: float | None = 10.0
     # Report each dot at the window's end, not at its events' mean time: moved on by its velocity (its last two
     # centroids, averaged with its neighbours'), the step shrunk where the centroids moved less than this; None: off
@@ -451,30 +451,32 @@ class Tracker(_PatchTracker):
         return reported
 
     def _follow_when_lopsided(self, out: Array, updated: BoolArray, counts: Array, ratio: float) -> None:
-        """In place: the dots whose gates had events but could not place them (``counts`` (M, 2) OFF / ON
-        before the polarity guard: one polarity more than ``ratio`` x the other, or too few of either to
-        update) take the mean displacement of their 4-neighbours that could (at least two), and are not
-        updated. A moving dot makes ON and OFF events alike; a gate flooded with one polarity is
-        seeing the membrane's slope shading (a flat punch's or a ridge's edge passing), whose trimmed
-        remainder still drags the dot; without its own say the gel's smooth motion is the best guess."""
+        """In place: the dots whose gates are lopsided (``counts`` (M, 2) OFF / ON events before the
+        polarity guard: one polarity more than ``ratio`` x the other) make this window's mean move of
+        their 4-neighbours that updated (at least two; else they stay), and are not updated. A moving
+        dot makes ON and OFF events alike; a gate flooded with one polarity is seeing the membrane's
+        slope shading (a flat punch's or a ridge's edge passing), whose trimmed remainder still drags
+        the dot. Without its own say, the gel's smooth motion is the best guess; following the
+        neighbours' moves, not their displacement, keeps the dot's own history (a dot under a
+        slipping contact has moved differently from its neighbours)."""
         p = self.params
         n_off, n_on = counts[:, 0], counts[:, 1]
         total = n_off + n_on
-        lopsided = (np.maximum(n_on, n_off) > ratio * np.maximum(np.minimum(n_on, n_off), 1.0)) & (total >= p.min_events)
-        orphan = (lopsided | (~updated & (total >= p.min_events))) & self.observed
-        if not orphan.any():
+        lopsided = ((np.maximum(n_on, n_off) > ratio * np.maximum(np.minimum(n_on, n_off), 1.0))
+                    & (total >= p.min_events) & self.observed)
+        if not lopsided.any():
             return
         good = updated & ~lopsided
-        shift = out - self.rest_px
+        step = out - self.positions_px  # this window's moves
         acc = np.zeros_like(out)
         n = np.zeros(len(out))
         for k in range(self._neigh4.shape[1]):
             j = self._neigh4[:, k]
             ok = (j >= 0) & good[np.maximum(j, 0)]
-            acc[ok] += shift[j[ok]]
+            acc[ok] += step[j[ok]]
             n[ok] += 1
-        move = orphan & (n >= 2)
-        out[move] = self.rest_px[move] + acc[move] / n[move, None]
+        move = lopsided & (n >= 2)
+        out[move] = self.positions_px[move] + acc[move] / n[move, None]
         stay = lopsided & ~move
         out[stay] = self.positions_px[stay]
         updated[lopsided] = False
