@@ -27,6 +27,9 @@ from labrig.recording import schema
 from labrig.recording.finalize import committed_rows, fit_clock_models
 from labrig.recording.layout import stream_group, stream_path
 
+#: Rows of each event column read at once and kept for the windows that follow (x, y, p, t: 13 bytes a row).
+EVENT_READ_AHEAD_ROWS = 1 << 18
+
 
 @dataclass(frozen=True)
 class Phase:
@@ -101,6 +104,9 @@ class Recording:
             self.file.close()
             raise
         self._event_index: tuple[int, npt.NDArray[np.int64]] | None = None
+        self._event_bin_us: int | None = None
+        # Read-ahead of the event columns: (first row, (x, y, p, t_device_us)); windows read in order hit it.
+        self._event_block: tuple[int, tuple[npt.NDArray[Any], ...]] | None = None
 
     def _check_schema(self) -> None:
         attrs = self.file.attrs
@@ -254,7 +260,9 @@ class Recording:
         if start_bin < 0 or first_row.size == 0:
             empty = np.zeros(0, np.int64)
             return empty, empty, empty, empty
-        bin_us = int(self.file["streams/events"].attrs["index_bin_us"])
+        if self._event_bin_us is None:
+            self._event_bin_us = int(self.file["streams/events"].attrs["index_bin_us"])
+        bin_us = self._event_bin_us
         k0 = d0_us // bin_us - start_bin
         # One extra bin past the end covers timestamps that step backwards.
         k1 = -(-d1_us // bin_us) - start_bin + 1
@@ -263,8 +271,21 @@ class Recording:
         if i1 <= i0:
             empty = np.zeros(0, np.int64)
             return empty, empty, empty, empty
-        cols = [self.column("events", c, i0, i1) for c in ("x", "y", "p", "t_device_us")]
-        return cols[0], cols[1], cols[2], cols[3]
+        x, y, p, t = self._event_rows(i0, i1)
+        return x, y, p, t
+
+    def _event_rows(self, i0: int, i1: int) -> tuple[npt.NDArray[Any], ...]:
+        """The event columns (x, y, p, t_device_us) of rows ``[i0, i1)``, through a read-ahead block of at
+        least ``EVENT_READ_AHEAD_ROWS`` rows: one HDF5 read per column serves the windows that follow
+        (a 10 ms window is a few thousand rows; four small reads a window cost about 1 ms in h5py's
+        per-call overhead and chunk decompression)."""
+        block = self._event_block
+        if block is None or i0 < block[0] or i1 > block[0] + len(block[1][0]):
+            stop = min(max(i1, i0 + EVENT_READ_AHEAD_ROWS), self.n_events)
+            block = (i0, tuple(self.column("events", c, i0, stop) for c in ("x", "y", "p", "t_device_us")))
+            self._event_block = block
+        a, b = i0 - block[0], i1 - block[0]
+        return tuple(column[a:b] for column in block[1])
 
     def event_counts(self, bin_ms: float = 10.0) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
         """Event counts per ``bin_ms`` from the index alone: (bin start t_us, counts)."""
