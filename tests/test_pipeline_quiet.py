@@ -87,6 +87,21 @@ def test_the_depth_source_sees_its_own_window_ending_at_each_window_end(rig: Rig
     assert default.calls[0][:3] == (0, 10_000, 300)
 
 
+def test_depth_every_10_ms_with_tracking_and_forces_every_1_ms(rig: RigConfig, setup: run_setup.PipelineSetup) -> None:
+    """1 ms windows, depth every 10 ms: the source sees its own 30 ms window ending at every tenth window's
+    end, the others keep its map, and every window is tracked and gets forces."""
+    spy = _Spy(30_000.0)
+    pipe = runtime.Pipeline(setup, spy, depth_every_us=10_000)
+    results = [pipe.process(k * 1_000, (k + 1) * 1_000, _noise(rig, k * 1_000, (k + 1) * 1_000, 40, seed=k))
+               for k in range(35)]
+    assert [c[1] for c in spy.calls] == [1_000, 11_000, 21_000, 31_000]
+    assert [c[0] for c in spy.calls] == [-29_000, -19_000, -9_000, 1_000]
+    assert len(results) == 35 and all(r.forces_n.shape == (len(setup.rest_px), 3) for r in results)
+    assert all(np.shares_memory(results[k].depth_mm, results[1].depth_mm) for k in range(1, 10))
+    with pytest.raises(ValueError, match="depth_every_us"):
+        runtime.Pipeline(setup, spy, depth_every_us=0)
+
+
 def test_the_network_holds_its_last_active_map_through_quiet_windows(rig: RigConfig,
                                                                      setup: run_setup.PipelineSetup) -> None:
     network = depth_sources.ModelDepth(bundled_model_path("sae-only"))

@@ -70,6 +70,7 @@ class TrackedWindow:
     # (90, 112) ON minus OFF events per grid cell over the whole window, for a source that integrates
     # the brightness change (None unless it ``needs_counts``): every event counted once, in order.
     counts: npt.NDArray[np.float32] | None = None
+    depth_due: bool = True  # the depth source runs on this window (False: the back stage keeps the last map)
 
 
 @dataclass
@@ -99,7 +100,12 @@ class Pipeline:
                  tracker_params: tracking.TrackerParams | None = None,
                  surface_params: ifem.SurfaceParams | None = None, normal_mode: str = "contact",
                  threshold_mm: float = 0.01, keep_sae: bool = False, cache_dir: str | Path | None = None,
-                 rest_params: RestParams | None = None) -> None:
+                 rest_params: RestParams | None = None, depth_every_us: int | None = None) -> None:
+        """``depth_every_us``: run the depth source only on the first window ending at least this long after
+        the last one it ran on, and keep its map in between (tracking and forces every window, e.g. 1 ms
+        windows with depth every 10 ms); None: every window."""
+        if depth_every_us is not None and depth_every_us <= 0:
+            raise ValueError(f"depth_every_us must be positive or None, not {depth_every_us}")
         self.setup = setup
         self.depth = depth
         rig = setup.rig
@@ -120,6 +126,9 @@ class Pipeline:
         anchor = getattr(depth, "anchor", None)
         self.anchor = AnchorFilter(anchor) if anchor is not None else None
         self._last_t1_us: int | None = None
+        self.depth_every_us = depth_every_us
+        self._depth_ran_us: int | None = None  # the end of the last window the depth source ran on (front stage)
+        self._depth_map: npt.NDArray[np.float32] | None = None  # its map (back stage)
 
     # The two stages.
 
@@ -129,7 +138,11 @@ class Pipeline:
         grid = None
         start = time.perf_counter()
         d0_us, d_events = self._depth_window(t0_us, t1_us, events)
-        if self.depth.needs_sae or self.keep_sae:
+        due = (self.depth_every_us is None or self._depth_ran_us is None
+               or t1_us - self._depth_ran_us >= self.depth_every_us)
+        if due:
+            self._depth_ran_us = t1_us
+        if (self.depth.needs_sae and due) or self.keep_sae:
             grid = sae.sae_grid(d_events, d0_us, t1_us, self.setup.rig.roi)
         counts = brightness.signed_counts(events, self.setup.rig.roi) if getattr(self.depth, "needs_counts", False) else None
         seconds["sae"] = time.perf_counter() - start
@@ -140,7 +153,7 @@ class Pipeline:
             self.tracker.rest_px = self.rest.rest_px  # the neighbour prior's offsets
         seconds["track"] = time.perf_counter() - start
         tracked = TrackedWindow(self._index, t0_us, t1_us, len(events), positions.copy(), updated.copy(),
-                                d0_us, len(d_events), grid, seconds, self.rest.rest_px, counts)
+                                d0_us, len(d_events), grid, seconds, self.rest.rest_px, counts, due)
         self._index += 1
         return tracked
 
@@ -153,7 +166,11 @@ class Pipeline:
             self.depth.markers(tracked.positions_px, rest_px)  # type: ignore[attr-defined]
         if tracked.counts is not None:  # the brightness change since rest
             self.depth.counts(tracked.counts, tracked.t1_us)  # type: ignore[attr-defined]
-        depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
+        if tracked.depth_due or self._depth_map is None:
+            depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
+            self._depth_map = depth
+        else:
+            depth = self._depth_map
         seconds["depth"] = time.perf_counter() - start
         start = time.perf_counter()
         u = displacement.displacements_mm(tracked.positions_px, depth, self.setup.camera, self._rest_points(rest_px),
