@@ -64,8 +64,9 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
                           _ms(truth[r["axis"]]["position_mae_px"], truth[r["axis"]]["position_std_px"])] if truth else []),
                        PAPER[f"force_{r['axis']}_mae_n"]] for r in rows],
                      caption="Summed per-marker forces against the F/T sensor (force on the gel, gel frame), mean ± std "
-                             "over windows in the probing phases; position: the dent's core (the centre of mass of the "
-                             "depth above a fifth of the map's peak) against the "
+                             "over windows in the probing phases; position: the contact's anchor (each window's dent core, "
+                             "the centre of mass of the depth above a fifth of the map's peak, filtered over the contact "
+                             "with the network's noise: labrig.pipeline.anchor; the true depth's unfiltered) against the "
                              "contact centre where the indenter touched (CNC pose; the maps are indexed by the surface "
                              "at rest, so shear does not move it). Total: norm of the error vector. 'True depth' "
                              "(virtual-rig recordings): the same pipeline fed the sim's depth maps instead of the "
