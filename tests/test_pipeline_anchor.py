@@ -62,6 +62,18 @@ def test_a_lone_outlier_is_bounded_and_no_dent_ends_the_contact() -> None:
     np.testing.assert_array_equal(kf.update(elsewhere, 0.3, 0.02), elsewhere)  # a new contact starts from its core
 
 
+def test_a_surer_core_far_from_a_shaky_anchor_is_a_new_contact() -> None:
+    """A faint dimple before the press (a noise dent, 0.05 mm) starts an anchor the filter barely trusts;
+    the press's first core, 5 mm away and surer, is taken at once, not bounded as an outlier."""
+    kf = AnchorFilter()
+    kf.update(np.array([-3.0, 2.0]), 0.05, 0.02)
+    np.testing.assert_array_equal(kf.update(TRUE_MM, 0.4, 0.02), TRUE_MM)
+    sure = AnchorFilter()  # the same far core against a sure anchor is one outlier, bounded
+    for _ in range(10):
+        sure.update(np.array([-3.0, 2.0]), 1.0, 0.02)
+    assert np.linalg.norm(sure.update(TRUE_MM, 0.4, 0.02) - np.array([-3.0, 2.0])) < 0.5
+
+
 class _Dents:
     """A depth source that replays maps, with the bundled network's anchor noise."""
 

@@ -15,7 +15,12 @@ when it is shallow: as the indenter rises, a 0.1 mm dent's core errs by half a m
   1.5 mm of peak, with a floor of about 0.045 mm; docs/evaluation.md);
 * slip: a core farther from the anchor than the ``gate`` (chi-square, 2 degrees of freedom) in
   ``persist`` windows running means the anchor moved: its variance takes the innovation and the
-  filter follows; a lone outlier is only down-weighted (its innovation variance scaled to the gate).
+  filter follows; a lone outlier is only down-weighted (its innovation variance scaled to the gate);
+* a new contact: a core outside the gate that is surer than the anchor (its noise variance below
+  the anchor's) starts the anchor again there. Only a surer anchor may call a core an outlier: an
+  anchor begun on a faint dimple before the press would otherwise hold the press's first core
+  hundreds of pixels away (a paper-only network that dimples before contact: 4.23 px on the test
+  split, 2.31 px with this rule; the bundled network unchanged).
 
 A window without a dent ends the contact; the next dent starts a new one from its own core.
 """
@@ -76,6 +81,9 @@ class AnchorFilter:
         distance2 = float(innovation @ innovation)
         spread = self.variance_mm2 + noise
         if distance2 / spread > p.gate:
+            if noise < self.variance_mm2:  # a surer core than the anchor, far from it: a new contact
+                self.anchor_mm, self.variance_mm2, self.outliers = z.copy(), noise, 0
+                return self.anchor_mm.copy()
             self.outliers += 1
             if self.outliers >= p.persist:  # the contact slipped: follow it
                 self.variance_mm2 += distance2 / 2.0
