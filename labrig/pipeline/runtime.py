@@ -190,13 +190,13 @@ class Pipeline:
         where = forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm)
         dt_s = (t1_us - (t0_us if self._last_t1_us is None else self._last_t1_us)) / 1e6
         self._last_t1_us = t1_us
-        if self.anchor is None:
-            nan2 = np.full(2, np.nan)
-            return (where.position_px, where.position_mm) if where else (nan2, nan2.copy())
-        anchor_mm = self.anchor.update(where.position_mm if where else None, float(np.max(depth)), dt_s)
-        if anchor_mm is None:
-            return np.full(2, np.nan), np.full(2, np.nan)
-        return anchor_px(anchor_mm, self.setup.camera), anchor_mm
+        if self.anchor is not None:
+            anchor_mm = self.anchor.update(where.position_mm if where else None, float(np.max(depth)), dt_s)
+            if anchor_mm is not None:
+                return anchor_px(anchor_mm, self.setup.camera), anchor_mm
+        elif where is not None:
+            return where.position_px, where.position_mm
+        return np.full(2, np.nan), np.full(2, np.nan)
 
     def _rest_points(self, rest_px: Array) -> Array:
         """(M, 3) gel-frame rest points of ``rest_px``, recomputed only when the rest changed."""
