@@ -17,6 +17,9 @@ import hdf5plugin
 DEFAULT_BULK_CODEC = "bitshuffle-lz4"
 #: The codec for every other stream: small, and readable by any HDF5 reader.
 PORTABLE_CODEC = "gzip"
+#: The codec for the virtual rig's truth streams (1 kHz marker positions, depth maps: most of a
+#: virtual recording's bytes): zstd writes them 4x faster than gzip for 20 % more bytes.
+TRUTH_CODEC = "zstd"
 
 
 def _blosc2(cname: Literal["lz4", "zstd"], clevel: int) -> dict[str, Any]:

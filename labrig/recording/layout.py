@@ -79,7 +79,7 @@ def _create_stream(f: h5py.File, spec: schema.StreamSpec, bulk_codec: str) -> No
     group.attrs["clock"] = spec.clock or "host"
     for key, value in spec.attrs.items():
         group.attrs[key] = value
-    codec = bulk_codec if spec.bulk else PORTABLE_CODEC
+    codec = spec.codec or (bulk_codec if spec.bulk else PORTABLE_CODEC)
     for column in spec.columns:
         ds = group.create_dataset(
             column.name,

@@ -48,6 +48,8 @@ class StreamSpec:
     to the host time base (``None``: the stream is stamped on the host clock).
     ``bulk``: the stream is large (camera events) and uses the recording's bulk
     codec; other streams use gzip so that any HDF5 reader can open them.
+    ``codec``: a codec of its own (a name in :data:`labrig.recording.codecs.CODECS`),
+    overriding both (the sim's large truth streams).
     """
 
     name: str
@@ -57,6 +59,7 @@ class StreamSpec:
     clock: str | None = None
     bulk: bool = False
     attrs: dict[str, object] = field(default_factory=dict)
+    codec: str | None = None
 
     def column(self, name: str) -> Column:
         for c in self.columns:

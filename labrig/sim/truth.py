@@ -16,6 +16,7 @@ the true camera; the mapping is stored with the stream.
 from __future__ import annotations
 
 from labrig.physics.grid import GRID_SHAPE
+from labrig.recording.codecs import TRUTH_CODEC
 from labrig.recording.schema import Column, StreamSpec
 
 
@@ -31,6 +32,7 @@ def truth_streams(n_markers: int, grid_shape: tuple[int, int] = GRID_SHAPE) -> t
             ),
             chunk_rows=256,
             description="true marker positions",
+            codec=TRUTH_CODEC,
         ),
         StreamSpec(
             "truth/contact",
@@ -52,6 +54,7 @@ def truth_streams(n_markers: int, grid_shape: tuple[int, int] = GRID_SHAPE) -> t
             ),
             chunk_rows=256,
             description="true per-marker force field",
+            codec=TRUTH_CODEC,
         ),
         StreamSpec(
             "truth/depth",
@@ -62,5 +65,6 @@ def truth_streams(n_markers: int, grid_shape: tuple[int, int] = GRID_SHAPE) -> t
             ),
             chunk_rows=16,
             description="true normal-displacement field on the network grid (ROI resized)",
+            codec=TRUTH_CODEC,
         ),
     )
