@@ -30,6 +30,7 @@ run that pressed too deep aborts and retracts.
 from __future__ import annotations
 
 import bisect
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -87,22 +88,30 @@ class ContactKinematics:
         self._tables = {float(table.meta["direction_deg"]) % 180.0: table}
         self._active = table
         self._history = ShearHistory()
-        self._anchor: F64 | None = None
-        self._shear_axis: F64 | None = None
+        # The state in Python floats (a step runs at the F/T rate: no small arrays on its way).
+        self._anchor: tuple[float, float] | None = None
+        self._shear_axis: tuple[float, float] | None = None
+        self._rotation = machine_to_gel.rotation.tolist()
+        self._origin = (machine_to_gel.rotation @ self.tool_offset_mm + machine_to_gel.translation_mm).tolist()
+        self._deepest_mm = float(table.depths_mm[-1])
         #: One per excursion beyond the gel model's depth (appended when it starts; world us).
         self.faults: list[RigFault] = []
         self._beyond = False
 
     def step(self, t_us: int, tool_machine_mm: npt.ArrayLike) -> ContactState:
-        tip = self.machine_to_gel.apply(np.asarray(tool_machine_mm, dtype=np.float64).reshape(3) + self.tool_offset_mm)
-        depth = max(0.0, -float(tip[2]))
+        x, y, z = np.asarray(tool_machine_mm, dtype=np.float64).reshape(3).tolist()
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._rotation
+        o0, o1, o2 = self._origin
+        tx, ty, tz = r00 * x + r01 * y + r02 * z + o0, r10 * x + r11 * y + r12 * z + o1, r20 * x + r21 * y + r22 * z + o2
+        tip = np.array([tx, ty, tz])
+        depth = max(0.0, -tz)
         if depth <= 0.0:
             self._anchor = None
             self._shear_axis = None
             self._active = self.table
             self._history.reset()
-            return ContactState(int(t_us), tip, 0.0, None, (), 0.0, np.zeros(3), np.array([tip[0], tip[1], 0.0]))
-        deepest = float(self.table.depths_mm[-1])
+            return ContactState(int(t_us), tip, 0.0, None, (), 0.0, np.zeros(3), np.array([tx, ty, 0.0]))
+        deepest = self._deepest_mm
         if depth > deepest:
             if not self._beyond:
                 self.faults.append(RigFault(int(t_us), (
@@ -113,48 +122,51 @@ class ContactKinematics:
         else:
             self._beyond = False
         if self._anchor is None:
-            self._anchor = tip[:2].copy()
-        shift = self._shear_shift(tip[:2] - self._anchor)
+            self._anchor = (tx, ty)
+        ax, ay = self._anchor
+        sx, sy = self._shear_shift(tx - ax, ty - ay)
         if not self.table.axisymmetric and self._shear_axis is not None:
-            shift = self._along_table(shift)
-        limit = self._slip_shift_mm(depth)
-        size = float(np.hypot(*shift))
+            sx, sy = self._along_table(sx, sy)
+        limit = self._active.slip_shift_at(depth)
+        size = math.hypot(sx, sy)
         if limit > 0 and size > limit:  # gross slip: the contact is dragged along
-            self._anchor = tip[:2] - shift * (limit / size)
-            shift = tip[:2] - self._anchor
+            ax, ay = tx - sx * (limit / size), ty - sy * (limit / size)
+            self._anchor = (ax, ay)
+            sx, sy = tx - ax, ty - ay
         table = self._active
-        terms, angle = table.shear_terms(shift, self._history)
-        force = table.force_for_terms(depth, terms, angle)
-        cop = self._anchor + table.pressure_centre_mm(depth)
-        return ContactState(int(t_us), tip, depth, self._anchor.copy(), terms, angle,
-                            np.array([force[0], force[1], -force[2]]), np.array([cop[0], cop[1], 0.0]), table)
+        terms, angle = table.shear_terms((sx, sy), self._history)
+        fx, fy, fz = table.force_xyz_for_terms(depth, terms, angle)
+        cx, cy = table.pressure_centre_xy(depth)
+        return ContactState(int(t_us), tip, depth, np.array([ax, ay]), terms, angle,
+                            np.array([fx, fy, -fz]), np.array([ax + cx, ay + cy, 0.0]), table)
 
-    def _along_table(self, shift: F64) -> F64:
+    def _along_table(self, sx: float, sy: float) -> tuple[float, float]:
         """A non-axisymmetric indenter's shift, along the direction of the table that serves it.
 
         The table is chosen once the shift is DIRECTION_FIX_MM long (a few micrometres of drift,
         e.g. from the gel's tilt while pressing, do not pick one) and kept from the first reversal
         on; the shift is projected on its direction (at most DIRECTION_STEP_DEG / 2 away)."""
-        size = float(np.hypot(*shift))
+        size = math.hypot(sx, sy)
         if size >= DIRECTION_FIX_MM and not self._history.reversals_mm and self._shear_axis is not None:
             table = self._table_for(self._shear_axis)
             if table is not self._active:
                 self._active = table
                 self._history.reset()
-        direction = self._active.direction
-        self._history.axis = (float(direction[0]), float(direction[1]))
-        return float(shift @ direction) * direction
+        dx, dy = (float(v) for v in self._active.direction)
+        self._history.axis = (dx, dy)
+        along = sx * dx + sy * dy
+        return along * dx, along * dy
 
-    def _table_for(self, axis: F64) -> ContactTable:
+    def _table_for(self, axis: tuple[float, float]) -> ContactTable:
         if self.table.axisymmetric or self._table_for_direction is None:
             return self.table
-        direction = table_direction_deg(float(np.degrees(np.arctan2(axis[1], axis[0]))))
+        direction = table_direction_deg(math.degrees(math.atan2(axis[1], axis[0])))
         if direction not in self._tables:
             self._tables[direction] = self._table_for_direction(direction)
         return self._tables[direction]
 
-    def _shear_shift(self, shift: F64) -> F64:
-        """The in-plane shift along the current shear axis (Masing needs one axis).
+    def _shear_shift(self, sx: float, sy: float) -> tuple[float, float]:
+        """The in-plane shift (x, y mm) along the current shear axis (Masing needs one axis).
 
         While the loading is virgin (no reversal yet) the axis is the shift's own
         direction; from the first reversal on it stays, and the component across
@@ -163,30 +175,28 @@ class ContactKinematics:
         until lift-off; a shift clearly across the axis starts a new axis and a
         fresh history (the old residual is then forgotten: an approximation).
         """
-        size = float(np.hypot(*shift))
+        size = math.hypot(sx, sy)
         axis = self._shear_axis
-        if axis is not None and not self._history.reversals_mm and size >= SHEAR_AXIS_MM and float(shift @ axis) > 0:
+        if axis is not None and not self._history.reversals_mm and size >= SHEAR_AXIS_MM and sx * axis[0] + sy * axis[1] > 0:
             # Virgin loading has no memory to keep: the axis follows the shift's direction (a slow
             # drift before the shear, e.g. from the gel's tilt, does not fix a wrong axis).
-            self._shear_axis = shift / size
-            self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
-            return shift.copy()
+            self._shear_axis = (sx / size, sy / size)
+            self._history.axis = self._shear_axis
+            return sx, sy
         if axis is not None:
-            along = float(shift @ axis)
-            across = float(np.hypot(*(shift - along * axis)))
+            along = sx * axis[0] + sy * axis[1]
+            across = math.hypot(sx - along * axis[0], sy - along * axis[1])
             if across <= SHEAR_AXIS_MM or across <= 0.1 * abs(along):
-                return along * axis
+                return along * axis[0], along * axis[1]
         if size < SHEAR_AXIS_MM:
-            return np.zeros(2)
-        self._shear_axis = shift / size
+            return 0.0, 0.0
+        self._shear_axis = (sx / size, sy / size)
         self._history.reset()
-        self._history.axis = (float(self._shear_axis[0]), float(self._shear_axis[1]))
-        return shift.copy()
+        self._history.axis = self._shear_axis
+        return sx, sy
 
     def _slip_shift_mm(self, depth: float) -> float:
-        depths = np.asarray(self._active.shear_depths_mm)
-        slips = np.asarray(self._active.slip_shift_mm)
-        return float(np.interp(depth, depths[: len(slips)], slips)) if len(slips) else 0.0
+        return self._active.slip_shift_at(depth)
 
 
 class ContactTrack:

@@ -40,6 +40,8 @@ sums. Tables are cached on disk, keyed by a hash of every input
 
 from __future__ import annotations
 
+import bisect
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -124,6 +126,7 @@ class ContactTable:
         self.direction = np.array([np.cos(angle), np.sin(angle)])
         self._convolver: SurfaceConvolver | None = None
         self._pressure_centres_mm = _pressure_centres(self.pressure, self.grid, self.box)
+        self._scalar_lookup: _ScalarLookup | None = None
 
     # ------------------------------------------------------------------ building
 
@@ -251,28 +254,54 @@ class ContactTable:
         fields' milliseconds, for force sensors sampled at kHz. Equal to
         :meth:`fields_for_terms`'s force.
         """
+        return np.array(self.force_xyz_for_terms(depth_mm, terms, angle))
+
+    def force_xyz_for_terms(self, depth_mm: float, terms: tuple[Term, ...], angle: float = 0.0) -> tuple[float, float, float]:
+        """:meth:`force_for_terms` as Python floats (the kHz samplers' path: no small arrays)."""
         depth = self._check_depth(depth_mm)
         if depth <= 0:
-            return np.zeros(3)
-        row, weight = _bracket(self.depths_mm, depth)
-        shear = np.zeros(2)
+            return 0.0, 0.0, 0.0
+        lookup = self._lookup()
+        row, weight = _bracket_list(lookup.depths_mm, depth)
+        shear_x = shear_y = 0.0
         for w, s in terms:
             if s != 0 and w != 0:
-                shear += w * self._monotonic_force(depth, s)
+                fx, fy = self._monotonic_force_xy(depth, s)
+                shear_x += w * fx
+                shear_y += w * fy
         if angle:
-            c, s_ = np.cos(angle), np.sin(angle)
-            shear = np.array([c * shear[0] - s_ * shear[1], s_ * shear[0] + c * shear[1]])
-        factor = stiffening_factor(depth, self.meta["spec"]["gel"]["thickness_mm"], self.stiffening)
-        normal = float(_lerp(self.normal_force_n, row, weight))
-        return np.array([shear[0], shear[1], normal]) * factor
+            c, s_ = math.cos(angle), math.sin(angle)
+            shear_x, shear_y = c * shear_x - s_ * shear_y, s_ * shear_x + c * shear_y
+        factor = stiffening_factor(depth, lookup.thickness_mm, self.stiffening)
+        normal = _lerp_list(lookup.normal_force_n, row, weight)
+        return shear_x * factor, shear_y * factor, normal * factor
 
     def pressure_centre_mm(self, depth_mm: float) -> F64:
         """Centre of pressure (x, y) mm relative to the tip at ``depth_mm`` (normal contact only, Goodman)."""
+        return np.array(self.pressure_centre_xy(depth_mm))
+
+    def pressure_centre_xy(self, depth_mm: float) -> tuple[float, float]:
+        """:meth:`pressure_centre_mm` as Python floats."""
         depth = float(depth_mm)
         if depth <= 0:
-            return np.zeros(2)
-        row, weight = _bracket(self.depths_mm, depth)
-        return np.asarray(_lerp(self._pressure_centres_mm, row, weight), dtype=np.float64)
+            return 0.0, 0.0
+        lookup = self._lookup()
+        row, weight = _bracket_list(lookup.depths_mm, depth)
+        return _lerp_list(lookup.centres_x_mm, row, weight), _lerp_list(lookup.centres_y_mm, row, weight)
+
+    def slip_shift_at(self, depth_mm: float) -> float:
+        """Gross-slip shift (mm) at ``depth_mm``, linear between the shear depths, held beyond them (0 without)."""
+        lookup = self._lookup()
+        depths, slips = lookup.shear_depths_mm, lookup.slip_shift_mm
+        if not slips:
+            return 0.0
+        depth = float(depth_mm)
+        if depth <= depths[0]:
+            return slips[0]
+        if depth >= depths[-1]:
+            return slips[-1]
+        i = bisect.bisect_right(depths, depth) - 1
+        return (slips[i + 1] - slips[i]) / (depths[i + 1] - depths[i]) * (depth - depths[i]) + slips[i]
 
     def fields_for_terms(self, depth_mm: float, terms: tuple[Term, ...], angle: float = 0.0) -> ContactFields:
         """Contact fields at ``depth_mm`` for Masing ``terms`` (see :meth:`shear_terms`).
@@ -320,16 +349,25 @@ class ContactTable:
             raise ValueError(f"depth {depth:.3f} mm is beyond this table's {self.depths_mm[-1]:.3f} mm")
         return depth
 
-    def _monotonic_force(self, depth: float, shift: float) -> F64:
-        """Monotonic net shear force (2,) N, unstiffened, for a signed shift along the table direction."""
-        j, v = _bracket(self.shear_depths_mm, depth)
-        out = np.zeros(2)
+    def _monotonic_force_xy(self, depth: float, shift: float) -> tuple[float, float]:
+        """Monotonic net shear force (x, y) N, unstiffened, for a signed shift along the table direction."""
+        lookup = self._lookup()
+        j, v = _bracket_list(lookup.shear_depths_mm, depth)
+        out_x = out_y = 0.0
+        sign = float((shift > 0) - (shift < 0))
         for row, w in ((j, 1 - v), (j + 1, v)):
-            if w == 0 or row >= len(self.shear_rows) or self.slip_shift_mm[row] <= 0:
+            if w == 0 or row >= len(lookup.slip_shift_mm) or lookup.slip_shift_mm[row] <= 0:
                 continue
-            k, f = _bracket(self._mindlin, float(to_mindlin(min(abs(shift) / self.slip_shift_mm[row], 1.0))))
-            out += w * np.sign(shift) * _lerp(self.shear_force_n[row], k, f)
-        return out
+            k, f = _bracket_list(lookup.mindlin, 1.0 - (1.0 - min(abs(shift) / lookup.slip_shift_mm[row], 1.0)) ** 1.5)
+            c = w * sign
+            out_x += c * _lerp_list(lookup.shear_force_x_n[row], k, f)
+            out_y += c * _lerp_list(lookup.shear_force_y_n[row], k, f)
+        return out_x, out_y
+
+    def _lookup(self) -> _ScalarLookup:
+        if self._scalar_lookup is None:
+            self._scalar_lookup = _ScalarLookup.of(self)
+        return self._scalar_lookup
 
     def _monotonic_traction(self, depth: float, shift: float) -> F32:
         """Monotonic traction (box, float32) at ``depth`` for a signed shift along the table direction."""
@@ -344,33 +382,35 @@ class ContactTable:
 
     def _resolve_shift(self, shift_mm: float | npt.ArrayLike, history: ShearHistory | None) -> tuple[float, float]:
         """(signed shift along the table direction, rotation angle in rad) for a scalar or vector shift."""
+        if isinstance(shift_mm, (int, float)):
+            return float(shift_mm), 0.0
         shift = np.asarray(shift_mm, dtype=np.float64)
         if shift.ndim == 0:
             return float(shift), 0.0
-        shift = shift.reshape(2)
-        size = float(np.hypot(*shift))
+        sx, sy = shift.reshape(2).tolist()
+        size = math.hypot(sx, sy)
         if history is not None:
             if history.axis is None and size > 0:
-                history.axis = (shift[0] / size, shift[1] / size)
-            axis = np.array(history.axis) if history.axis is not None else self.direction
-            along = float(shift @ axis)
-            if np.hypot(*(shift - along * axis)) > 1e-9 + 1e-6 * size:
+                history.axis = (sx / size, sy / size)
+            ax, ay = history.axis if history.axis is not None else self._lookup().direction
+            along = sx * ax + sy * ay
+            if math.hypot(sx - along * ax, sy - along * ay) > 1e-9 + 1e-6 * size:
                 raise ValueError("a shear history needs shifts along one axis (the first non-zero shift's)")
         elif size == 0:
             return 0.0, 0.0
         else:
-            axis, along = shift / size, size
-        turn = float(np.arctan2(axis[1], axis[0]) - np.arctan2(self.direction[1], self.direction[0]))
-        turn = (turn + np.pi) % (2 * np.pi) - np.pi
-        if abs(turn) > np.pi / 2 + 1e-12:  # opposite half-plane: F is odd in the shift
-            turn -= np.copysign(np.pi, turn)
+            ax, ay, along = sx / size, sy / size, size
+        turn = math.atan2(ay, ax) - self._lookup().direction_rad
+        turn = (turn + math.pi) % (2 * math.pi) - math.pi
+        if abs(turn) > math.pi / 2 + 1e-12:  # opposite half-plane: F is odd in the shift
+            turn -= math.copysign(math.pi, turn)
             along = -along
         if abs(turn) > 1e-9 and not self.axisymmetric:
-            if abs(turn) > np.radians(DIRECTION_TOLERANCE_DEG):
+            if abs(turn) > math.radians(DIRECTION_TOLERANCE_DEG):
                 raise ValueError(
                     f"this table shears along {self.meta['direction_deg']:.1f} deg; build one for this direction"
                 )
-            return along * float(np.cos(turn)), 0.0  # a few degrees off: the component along the table's direction
+            return along * math.cos(turn), 0.0  # a few degrees off: the component along the table's direction
         return along, (turn if abs(turn) > 1e-9 else 0.0)
 
     def _tangential_convolver(self) -> SurfaceConvolver:
@@ -417,3 +457,47 @@ def _lerp(stack: np.ndarray, i: int, w: float) -> np.ndarray:
         return stack[i].copy()
     a = stack.dtype.type
     return stack[i] * a(1 - w) + stack[i + 1] * a(w)
+
+
+@dataclass(frozen=True)
+class _ScalarLookup:
+    """A table's small arrays as Python floats, for the per-sample lookups of kHz samplers."""
+
+    depths_mm: list[float]
+    normal_force_n: list[float]
+    centres_x_mm: list[float]
+    centres_y_mm: list[float]
+    shear_depths_mm: list[float]
+    slip_shift_mm: list[float]
+    mindlin: list[float]
+    shear_force_x_n: list[list[float]]
+    shear_force_y_n: list[list[float]]
+    thickness_mm: float
+    direction: tuple[float, float]
+    direction_rad: float
+
+    @classmethod
+    def of(cls, table: ContactTable) -> _ScalarLookup:
+        dx, dy = (float(v) for v in table.direction)
+        return cls(
+            table.depths_mm.tolist(), table.normal_force_n.tolist(), table._pressure_centres_mm[:, 0].tolist(),
+            table._pressure_centres_mm[:, 1].tolist(), table.shear_depths_mm.tolist(), table.slip_shift_mm.tolist(),
+            table._mindlin.tolist(), table.shear_force_n[..., 0].tolist(), table.shear_force_n[..., 1].tolist(),
+            float(table.meta["spec"]["gel"]["thickness_mm"]), (dx, dy), math.atan2(dy, dx),
+        )
+
+
+def _bracket_list(axis: list[float], value: float) -> tuple[int, float]:
+    """:func:`_bracket` on a Python list."""
+    if value <= axis[0]:
+        return 0, 0.0
+    if value >= axis[-1]:
+        return len(axis) - 1, 0.0
+    i = bisect.bisect_right(axis, value) - 1
+    return i, (value - axis[i]) / (axis[i + 1] - axis[i])
+
+
+def _lerp_list(values: list[float], i: int, w: float) -> float:
+    if w == 0.0:
+        return values[i]
+    return values[i] * (1 - w) + values[i + 1] * w
