@@ -33,6 +33,7 @@ no step-segment buffer, exact real-valued profiles, and the whole queue is repla
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from collections.abc import Mapping, Sequence
@@ -397,6 +398,7 @@ class MotionTimeline:
         # positions_at's rows (history + plan) and what they were made of (the history array, the plan's pieces).
         self._rows = np.zeros((0, 10))
         self._rows_key: tuple[npt.NDArray[np.float64], list[_Piece]] | None = None
+        self._rows_lists: tuple[list[float], list[list[float]]] | None = None  # position_at's view of the rows
 
     # -- queries -----------------------------------------------------------------
 
@@ -442,14 +444,34 @@ class MotionTimeline:
 
     def positions_at(self, t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Positions (N, 3) mm at ``t_us``: history, then the current plan (which later events may change)."""
+        return self._history.positions_of_rows(self._current_rows(), t_us)
+
+    def position_at(self, t_us: float) -> tuple[float, float, float]:
+        """:meth:`positions_at` for one time, as Python floats (kHz samplers; the same arithmetic)."""
+        rows = self._current_rows()
+        if self._rows_lists is None:
+            listed = rows.tolist()
+            self._rows_lists = ([r[0] for r in listed], listed)
+        starts, listed = self._rows_lists
+        i = bisect.bisect_right(starts, t_us) - 1
+        if i < 0:
+            x, y, z = self._history.initial_mm
+            return x, y, z
+        t0, duration, x, y, z, ux, uy, uz, v0, accel = listed[i]
+        tau = min(max(t_us - t0, 0.0), duration) / US_PER_S
+        dist = v0 * tau + 0.5 * accel * tau * tau
+        return x + ux * dist, y + uy * dist, z + uz * dist
+
+    def _current_rows(self) -> npt.NDArray[np.float64]:
+        """The history's rows followed by the plan's (kept while neither changes)."""
         history = self._history._array()
         key = self._rows_key
         if key is None or key[0] is not history or len(key[1]) != len(self._plan) or any(
                 a is not b for a, b in zip(key[1], self._plan)):
-            # The rows change only with the history or the plan: kept between queries (kHz samplers).
             self._rows = self._history.with_extra([p.segment() for p in self._plan])
             self._rows_key = (history, list(self._plan))
-        return self._history.positions_of_rows(self._rows, t_us)
+            self._rows_lists = None
+        return self._rows
 
     # -- operations ----------------------------------------------------------------
 

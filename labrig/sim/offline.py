@@ -127,6 +127,8 @@ class OfflineRig:
     # -- couplings ----------------------------------------------------------------------------------
 
     def _tool_world(self, t_world_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        if isinstance(t_world_us, int):  # one time: the contact track's samples, at the F/T rate
+            return np.array([self.timeline.position_at(float(t_world_us) + self.origin_us)])
         t = np.atleast_1d(np.asarray(t_world_us, dtype=np.float64)) + self.origin_us
         return self.timeline.positions_at(t)
 
