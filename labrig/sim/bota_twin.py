@@ -147,6 +147,10 @@ class BotaTwin:
         self._bias0 = np.array([*p.force_bias_n, *p.torque_bias_nm])
         self._bias_per_c = np.array([*p.force_bias_n_per_c, *p.torque_bias_nm_per_c])
         self._range = np.array([*p.force_range_n, *p.torque_range_nm])
+        # The same as Python floats, for the per-sample arithmetic (800 Hz: no small arrays).
+        self._noise_sigma_list = self._noise_sigma.tolist()
+        self._bias0_list, self._bias_per_c_list = self._bias0.tolist(), self._bias_per_c.tolist()
+        self._range_list = self._range.tolist()
         # Non-volatile and active configuration.
         self._saved = (p.comm, p.filter, p.offsets, np.eye(6))
         self.comm, self.filter, self.offsets, self.matrix = p.comm, p.filter, p.offsets, np.eye(6)
@@ -393,21 +397,22 @@ class BotaTwin:
             self._pending_status |= Status.APP_TOOK_TOO_LONG
             return
         p = self.params
-        temperature = self.temperature_c(t_us) + p.temperature_noise_c * float(self._rng.standard_normal())
+        normals = self._rng.standard_normal(7).tolist()  # the temperature's, then the six gauges' (one draw)
+        temperature = self.temperature_c(t_us) + p.temperature_noise_c * normals[0]
         force, torque = self.wrench_at(round(t_us))
-        load = np.concatenate((np.asarray(force, dtype=np.float64), np.asarray(torque, dtype=np.float64)))
-        gauges = load + self._bias0 + self._bias_per_c * (temperature - p.ambient_c)
+        warm = temperature - p.ambient_c
+        gauges = [load + bias + per_c * warm for load, bias, per_c in
+                  zip((*np.asarray(force).tolist(), *np.asarray(torque).tolist()), self._bias0_list, self._bias_per_c_list)]
         status = self._pending_status | self._sticky_status
         self._pending_status = 0
-        over = np.abs(gauges) > self._range
-        if over.any():
+        if any(abs(g) > r for g, r in zip(gauges, self._range_list)):
             status |= Status.OVERRANGE
-            gauges = np.clip(gauges, -self._range, self._range)
-        gauges = gauges + self._noise_sigma * self._rng.standard_normal(6)
+            gauges = [min(max(g, -r), r) for g, r in zip(gauges, self._range_list)]
+        noisy = np.array([g + sigma * n for g, sigma, n in zip(gauges, self._noise_sigma_list, normals[1:])])
         if self.comm.calibrated:
-            values = self.matrix @ gauges + np.array([*self.offsets.force_n, *self.offsets.torque_nm])
+            values = self.matrix @ noisy + np.array([*self.offsets.force_n, *self.offsets.torque_nm])
         else:
-            values = gauges
+            values = noisy
             status |= Status.RAW_MEASUREMENTS
         v = values.tolist()
         frame = Frame(int(status), (v[0], v[1], v[2]), (v[3], v[4], v[5]), int(device_us) % TIMESTAMP_MODULUS, temperature)

@@ -130,6 +130,7 @@ class VirtualRig:
         #: F/T sensor axes in the gel frame; its origin rides with the tool.
         self.ft_axes_in_gel = rotvec_to_matrix(pose.ft_axes_in_gel_rotvec_rad)
         self.ft_origin_from_tip_mm = np.asarray(pose.ft_origin_in_gel_mm, dtype=np.float64)
+        self._ft_axes_list, self._ft_origin_list = self.ft_axes_in_gel.tolist(), self.ft_origin_from_tip_mm.tolist()
         #: The markers as printed ([sim.markers]); ``rest_mm``: their rest centres (N = rows * cols, gel mm).
         self.printed = PrintedLayout(rig)
         self.rest_mm = self.printed.rest_mm
@@ -294,11 +295,17 @@ class VirtualRig:
         The sensor carries the indenter, so it feels the reaction of the force
         on the gel, applied at the centre of pressure, about its own origin.
         """
-        force_on_indenter = -np.asarray(force_on_gel_n, dtype=np.float64)
-        origin = np.asarray(tip_gel_mm, dtype=np.float64) + self.ft_origin_from_tip_mm
-        torque = wrench_about(force_on_indenter, np.asarray(centre_of_pressure_mm, dtype=np.float64), origin)
-        to_ft = self.ft_axes_in_gel.T
-        return to_ft @ force_on_indenter, to_ft @ torque
+        f = [-v for v in np.asarray(force_on_gel_n, dtype=np.float64).tolist()]
+        o0, o1, o2 = (a + b for a, b in zip(np.asarray(tip_gel_mm, dtype=np.float64).tolist(), self._ft_origin_list))
+        c0, c1, c2 = np.asarray(centre_of_pressure_mm, dtype=np.float64).tolist()
+        l0, l1, l2 = (c0 - o0) * 1e-3, (c1 - o1) * 1e-3, (c2 - o2) * 1e-3  # lever, m (wrench_about's cross product)
+        torque = (l1 * f[2] - l2 * f[1], l2 * f[0] - l0 * f[2], l0 * f[1] - l1 * f[0])
+        (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = self._ft_axes_list  # gel axes -> F/T: its transpose
+        return (np.array([a00 * f[0] + a10 * f[1] + a20 * f[2], a01 * f[0] + a11 * f[1] + a21 * f[2],
+                          a02 * f[0] + a12 * f[1] + a22 * f[2]]),
+                np.array([a00 * torque[0] + a10 * torque[1] + a20 * torque[2],
+                          a01 * torque[0] + a11 * torque[1] + a21 * torque[2],
+                          a02 * torque[0] + a12 * torque[1] + a22 * torque[2]]))
 
     # -- time stepping ------------------------------------------------------------
 
