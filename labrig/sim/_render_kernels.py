@@ -69,13 +69,16 @@ def shade_compose(
 
 @njit(cache=True, nogil=True)
 def sensor_block(
-    y0, x0, width, changed, log_new, log_input, log_filtered, hi, lo, is_active, a, b, c, settle, who, before, after, active
+    y0, x0, width, changed, values, eps, log_input, log_filtered, hi, lo, is_active, a, b, c, settle, who, before, after,
+    active
 ):  # type: ignore[no-untyped-def]
     """Low-pass update of a dense block's changed pixels and of the unsettled pixels in it.
 
     The block is rows y0.., columns x0.. of a window ``width`` wide; ``changed``
-    and ``log_new`` are block-shaped, the state (``log_input``, ``log_filtered``,
-    the no-crossing band ``hi``/``lo``, ``is_active``) flat over the window.
+    and ``values`` (linear intensity) are block-shaped, the state (``log_input``,
+    ``log_filtered``, the no-crossing band ``hi``/``lo``, ``is_active``) flat
+    over the window. A changed pixel's new log input is ``log(eps + value)``; an
+    unchanged one keeps its stored log input (its value is the one that gave it).
     Updated pixels get ``y1 = a y0 + b u1 + c u0`` (u: log input before and
     after). Writes, in row-major order, the updated pixels whose ``y1`` left the
     band (``who``, ``before``, ``after``) and those left unsettled
@@ -86,13 +89,16 @@ def sensor_block(
     n_active = 0
     for r in range(h):
         start = (r + y0) * width + x0
-        c_row, new_row = changed[r], log_new[r]
+        c_row, value_row = changed[r], values[r]
         u_row, y_row = log_input[start : start + w], log_filtered[start : start + w]
         hi_row, lo_row, a_row = hi[start : start + w], lo[start : start + w], is_active[start : start + w]
         for col in range(w):
-            if not (c_row[col] or a_row[col]):
+            if c_row[col]:
+                u1 = np.log(eps + value_row[col])
+            elif a_row[col]:
+                u1 = u_row[col]
+            else:
                 continue
-            u1 = new_row[col]
             y_0 = y_row[col]
             y1 = a * y_0
             y1 += b * u1
@@ -396,7 +402,7 @@ def warm_up() -> None:
     shade_compose((0, 1, 0, 1), (0, 1, 0, 1), np.zeros(8), 2, np.zeros((2, 2), np.int32), z2, z2.copy(), 1.0,
                   np.ones((2, 2)), np.zeros((4, 4)), 1, np.zeros((2, 2)), True, 1e-4,
                   np.zeros((1, 1), np.bool_), np.zeros((1, 1)))
-    sensor_block(0, 0, 2, np.ones((1, 1), np.bool_), np.zeros((1, 1)), np.zeros(4), np.zeros(4), np.ones(4),
+    sensor_block(0, 0, 2, np.ones((1, 1), np.bool_), np.zeros((1, 1)), 1e-3, np.zeros(4), np.zeros(4), np.ones(4),
                  -np.ones(4), np.zeros(4, np.bool_), 0.5, 0.25, 0.25, 1e-4, np.zeros(1, i8), np.zeros(1, f8),
                  np.zeros(1, f8), np.zeros(1, i8))
     sensor_list(np.zeros(1, i8), np.zeros(1), np.zeros(1, i8), (0, 0, 0, 0), 2, np.zeros(4, i8), 1, np.zeros(4),

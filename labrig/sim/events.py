@@ -301,19 +301,17 @@ class EventSensor:
 
         Returns the pixels that may cross a threshold (flat), their filtered log
         intensity before and after, and the block's pixels left unsettled (flat),
-        all in row-major order. One fused pass over the block (:mod:`._render_kernels`).
-        The block's values are the window's values over the whole rectangle, so
-        for its unchanged pixels the new log intensity is exactly the stored one.
+        all in row-major order. One fused pass over the block (:mod:`._render_kernels`), which takes the
+        log of the changed pixels only: the block's values are the window's values over the whole rectangle,
+        so for its unchanged pixels the new log intensity is exactly the stored one.
         """
-        log_new = np.add(self.params.eps, block.values)
-        np.log(log_new, out=log_new)
         n = block.changed.size
         who, active = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
         before, after = np.empty(n), np.empty(n)
         a, b, c = coef
         n_who, n_active = _k.sensor_block(
-            block.y0, block.x0, self.width, block.changed, log_new, self.log_input, self.log_filtered,
-            self._hi, self._lo, self._is_active, a, b, c, settle, who, before, after, active,
+            block.y0, block.x0, self.width, block.changed, block.values, float(self.params.eps), self.log_input,
+            self.log_filtered, self._hi, self._lo, self._is_active, a, b, c, settle, who, before, after, active,
         )
         return who[:n_who], before[:n_who], after[:n_who], active[:n_active]
 
