@@ -1,5 +1,6 @@
 """The virtual rig's fast paths give what the plain paths give: compiled sensor passes, cached timeline
-rows, the one-wrench cross product, batched F/T rows, reused contact solves and steps over a still image."""
+rows, the one-wrench cross product, batched F/T rows, reused contact solves, steps over a still image,
+and the F/T rate's arithmetic on Python floats (table lookups, one position, the sensor's wrench)."""
 
 from __future__ import annotations
 
@@ -10,10 +11,12 @@ from hypothesis import strategies as st
 
 from labrig.config import RigConfig
 from labrig.devices.bota_stream import FtSample
-from labrig.devices.motion_profile import Segment, SegmentTable
+from labrig.devices.motion_profile import MachineLimits, MotionTimeline, Segment, SegmentTable, make_block
 from labrig.frames import wrench_about
 from labrig.indenters import Indenter
-from labrig.physics.mechanics import ContactTable
+from labrig.physics.mechanics import ContactTable, ShearHistory
+from labrig.physics.mechanics.stiffening import stiffening_factor
+from labrig.physics.mechanics.table_build import to_mindlin
 from labrig.protocol.routing import put_ft, put_ft_rows
 from labrig.recording import Recording, RecordingMetadata, RecordingWriter
 from labrig.sim import _render_kernels as _k
@@ -102,6 +105,83 @@ def test_one_time_on_the_timeline_is_the_vectorised_position(rows: list[tuple[fl
         np.testing.assert_array_equal(table.positions_of_rows(segments, time_us)[0], vectorised[i])
 
 
+def _force_reference(table: ContactTable, depth: float, terms: tuple[tuple[float, float], ...], angle: float) -> np.ndarray:
+    """The net force as numpy arrays (the model of ContactTable.force_xyz_for_terms)."""
+    def bracket(axis: np.ndarray, value: float) -> tuple[int, float]:
+        if value <= axis[0]:
+            return 0, 0.0
+        if value >= axis[-1]:
+            return len(axis) - 1, 0.0
+        i = int(axis.searchsorted(value, side="right")) - 1
+        return i, float((value - axis[i]) / (axis[i + 1] - axis[i]))
+
+    def lerp(stack: np.ndarray, i: int, w: float) -> np.ndarray:
+        return stack[i].copy() if w == 0 else stack[i] * (1 - w) + stack[i + 1] * w
+
+    shear = np.zeros(2)
+    for w, s in terms:
+        if s == 0 or w == 0:
+            continue
+        j, v = bracket(table.shear_depths_mm, depth)
+        for row, wr in ((j, 1 - v), (j + 1, v)):
+            if wr == 0 or row >= len(table.shear_rows) or table.slip_shift_mm[row] <= 0:
+                continue
+            k, f = bracket(to_mindlin(table.fractions), float(to_mindlin(min(abs(s) / table.slip_shift_mm[row], 1.0))))
+            shear += w * (wr * np.sign(s) * lerp(table.shear_force_n[row], k, f))
+    if angle:
+        c, s_ = np.cos(angle), np.sin(angle)
+        shear = np.array([c * shear[0] - s_ * shear[1], s_ * shear[0] + c * shear[1]])
+    row, weight = bracket(table.depths_mm, depth)
+    factor = stiffening_factor(depth, table.meta["spec"]["gel"]["thickness_mm"], table.stiffening)
+    return np.array([shear[0], shear[1], float(lerp(table.normal_force_n, row, weight))]) * factor
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.floats(0.0, 1.9), st.lists(st.tuples(st.sampled_from([1.0, 2.0]), st.floats(-1.0, 1.0)), min_size=1, max_size=4),
+       st.floats(-3.0, 3.0))
+def test_the_tables_float_lookups_are_the_array_lookups(table: ContactTable, depth: float,
+                                                         terms: list[tuple[float, float]], angle: float) -> None:
+    expected = _force_reference(table, depth, tuple(terms), angle) if depth > 0 else np.zeros(3)
+    np.testing.assert_allclose(table.force_for_terms(depth, tuple(terms), angle), expected, rtol=1e-12, atol=1e-12)
+    slips = table.slip_shift_mm
+    assert table.slip_shift_at(depth) == pytest.approx(float(np.interp(depth, table.shear_depths_mm[: len(slips)], slips)),
+                                                     rel=1e-12, abs=1e-15)
+    if depth > 0:
+        i = min(int(np.searchsorted(table.depths_mm, depth, side="right")) - 1, len(table.depths_mm) - 2)
+        w = (depth - table.depths_mm[i]) / (table.depths_mm[i + 1] - table.depths_mm[i])
+        centre = table._pressure_centres_mm[i] * (1 - w) + table._pressure_centres_mm[i + 1] * w
+        np.testing.assert_allclose(table.pressure_centre_mm(depth), centre, rtol=1e-9, atol=1e-12)
+
+
+def test_a_vector_shift_resolves_as_its_components(table: ContactTable) -> None:
+    history = ShearHistory()
+    for shift in (0.1, 0.3, -0.2):
+        vector = shift * np.array([np.cos(0.4), np.sin(0.4)])
+        along, angle = table._resolve_shift(vector, history)
+        assert along == pytest.approx(shift, rel=1e-12)
+        assert angle == pytest.approx(0.4, rel=1e-12)
+    assert table._resolve_shift((0.0, 0.0), None) == (0.0, 0.0)
+    with pytest.raises(ValueError, match="one axis"):
+        table._resolve_shift((0.0, 0.3), history)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(finite, finite, st.floats(-50, 0), st.floats(10, 3000)), min_size=1, max_size=5),
+       st.lists(st.floats(-1e5, 2e7), min_size=1, max_size=20))
+def test_one_position_on_the_motion_timeline_is_the_vectorised_one(moves: list[tuple[float, ...]],
+                                                                    times: list[float]) -> None:
+    limits = MachineLimits()
+    timeline = MotionTimeline(limits, (0.0, 0.0, 0.0), 0.0)
+    for x, y, z, feed in moves:
+        block = make_block(timeline.tail_mm, (x / 100, y / 100, z), feed, limits)
+        if block is not None:
+            timeline.append(block, timeline.t_us)
+            timeline.start(timeline.t_us)
+    vectorised = timeline.positions_at(np.array(times))
+    for i, t in enumerate(times):
+        assert timeline.position_at(t) == tuple(vectorised[i])
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.tuples(finite, finite, finite), st.tuples(finite, finite, finite), st.tuples(finite, finite, finite))
 def test_one_wrench_is_numpys_cross_product(force: tuple[float, ...], point: tuple[float, ...],
@@ -172,3 +252,20 @@ def test_a_still_image_takes_one_sensor_step_per_chunk_and_no_render(rig: RigCon
     assert sum(o.events.size for o in outs) > 0  # shot noise and leak go on
     t = np.concatenate([o.truth_t_us for o in outs])
     np.testing.assert_array_equal(t, np.arange(t.size) * 1000)
+
+
+@pytest.fixture(scope="module")
+def still_rig(rig: RigConfig, sphere: Indenter, table: ContactTable) -> VirtualRig:
+    return VirtualRig(rig, sphere, seed=1, table=table)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.tuples(finite, finite, finite), st.tuples(finite, finite, finite), st.tuples(finite, finite, finite))
+def test_the_sensors_wrench_is_the_rotated_reaction(still_rig: VirtualRig, force: tuple[float, ...],
+                                                    cop: tuple[float, ...], tip: tuple[float, ...]) -> None:
+    vr = still_rig
+    on_indenter = -np.asarray(force)
+    torque = wrench_about(on_indenter, cop, np.asarray(tip) + vr.ft_origin_from_tip_mm)
+    got_force, got_torque = vr.ft_wrench_of(force, cop, tip)
+    np.testing.assert_allclose(got_force, vr.ft_axes_in_gel.T @ on_indenter, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(got_torque, vr.ft_axes_in_gel.T @ torque, rtol=1e-12, atol=1e-9)
