@@ -269,3 +269,39 @@ def test_the_sensors_wrench_is_the_rotated_reaction(still_rig: VirtualRig, force
     got_force, got_torque = vr.ft_wrench_of(force, cop, tip)
     np.testing.assert_allclose(got_force, vr.ft_axes_in_gel.T @ on_indenter, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(got_torque, vr.ft_axes_in_gel.T @ torque, rtol=1e-12, atol=1e-9)
+
+
+def _clear_noise_reference(pix: np.ndarray, t: np.ndarray, n_pix: np.ndarray, n_t: np.ndarray, n_last: np.ndarray,
+                           r: int) -> np.ndarray:
+    """Which noise events keep clear of their pixel's other events, as numpy passes (the model of clear_noise)."""
+    keep = n_t >= n_last + r
+    mark = np.zeros(max(pix.max(initial=0), n_pix.max(initial=0)) + 1, np.int64)
+    mark[n_pix] = -1
+    near = mark[pix] == -1
+    all_pix, all_t = np.concatenate([pix[near], n_pix]), np.concatenate([t[near], n_t])
+    is_noise = np.concatenate([np.zeros(int(near.sum()), bool), np.ones(n_pix.size, bool)])
+    order = np.lexsort((all_t, all_pix))
+    sp, st_ = all_pix[order], all_t[order]
+    gap_prev = np.full(sp.size, np.iinfo(np.int64).max)
+    gap_next = gap_prev.copy()
+    same = sp[1:] == sp[:-1]
+    gap_prev[1:][same] = (st_[1:] - st_[:-1])[same]
+    gap_next[:-1][same] = (st_[1:] - st_[:-1])[same]
+    clear = np.empty(sp.size, bool)
+    clear[order] = (gap_prev >= r) & (gap_next >= r)
+    return keep & clear[is_noise]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 40), st.integers(1, 30), st.integers(0, 2**31), st.sampled_from([1, 50, 300]))
+def test_compiled_noise_clearance_is_the_numpy_passes(n_signal: int, n_noise: int, seed: int, r: int) -> None:
+    rng = np.random.default_rng(seed)
+    pixels = 12  # few pixels: many events share one
+    pix, t = rng.integers(0, pixels, n_signal), rng.integers(1000, 2000, n_signal)
+    n_pix, n_t = rng.integers(0, pixels, n_noise), rng.integers(1000, 2000, n_noise)
+    n_last = np.where(rng.random(n_noise) < 0.3, n_t - rng.integers(0, 2 * r + 1, n_noise), -(2**62))
+    keep = np.empty(n_noise, bool)
+    kept = _k.clear_noise(pix, t, n_pix, n_t, n_last, r, np.full(pixels, 7, np.int64), keep)
+    expected = _clear_noise_reference(pix, t, n_pix, n_t, n_last, r)
+    np.testing.assert_array_equal(keep, expected)
+    assert kept == int(expected.sum())

@@ -395,8 +395,62 @@ def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_fil
     return n
 
 
+@njit(cache=True, nogil=True)
+def clear_noise(pix, t, noise_pix, noise_t, noise_last, refractory, mark, keep):  # type: ignore[no-untyped-def]
+    """Which shot-noise events keep clear of every other event of their pixel by ``refractory`` (us).
+
+    ``pix``, ``t``: the step's other events (signal, leak); ``noise_pix``, ``noise_t``: the noise
+    events, ``noise_last`` their pixels' last event time before the step. A noise event is kept
+    (``keep``, bool, one per noise event) when it comes at least ``refractory`` after its pixel's
+    last event and at least ``refractory`` away from each other event of its pixel in the step,
+    noise included (two noise events too close are both dropped). ``mark`` is scratch over the
+    pixels. Returns the number kept.
+    """
+    n_noise = noise_pix.size
+    for i in range(pix.size):
+        mark[pix[i]] = 0
+    for j in range(n_noise):
+        mark[noise_pix[j]] = -1
+    near = 0
+    for i in range(pix.size):
+        if mark[pix[i]] == -1:
+            near += 1
+    size = near + n_noise
+    all_pix = np.empty(size, np.int64)
+    all_t = np.empty(size, np.int64)
+    noise_at = np.full(size, -1, np.int64)
+    k = 0
+    for i in range(pix.size):
+        if mark[pix[i]] == -1:
+            all_pix[k] = pix[i]
+            all_t[k] = t[i]
+            k += 1
+    for j in range(n_noise):
+        all_pix[k] = noise_pix[j]
+        all_t[k] = noise_t[j]
+        noise_at[k] = j
+        k += 1
+    t_min = all_t.min() if size else 0
+    span = (all_t.max() - t_min + 1) if size else 1
+    order = np.argsort(all_pix * span + (all_t - t_min), kind="mergesort")
+    kept = 0
+    for m in range(size):
+        j = noise_at[order[m]]
+        if j < 0:
+            continue
+        p, tm = all_pix[order[m]], all_t[order[m]]
+        ok = noise_t[j] >= noise_last[j] + refractory
+        if ok and m > 0 and all_pix[order[m - 1]] == p and tm - all_t[order[m - 1]] < refractory:
+            ok = False
+        if ok and m + 1 < size and all_pix[order[m + 1]] == p and all_t[order[m + 1]] - tm < refractory:
+            ok = False
+        keep[j] = ok
+        kept += ok
+    return kept
+
+
 def warm_up() -> None:
-    """Compile (or load from numba's cache) both kernels on tiny inputs."""
+    """Compile (or load from numba's cache) the kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
     z2 = np.zeros((2, 2))
     shade_compose((0, 1, 0, 1), (0, 1, 0, 1), np.zeros(8), 2, np.zeros((2, 2), np.int32), z2, z2.copy(), 1.0,
@@ -421,3 +475,5 @@ def warm_up() -> None:
     rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
                0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
                np.zeros(16))
+    clear_noise(np.zeros(1, i8), np.zeros(1, i8), np.ones(1, i8), np.ones(1, i8), np.zeros(1, i8), 300, np.zeros(4, i8),
+                np.zeros(1, np.bool_))

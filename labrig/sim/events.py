@@ -430,26 +430,9 @@ class EventSensor:
         if n_pix.size == 0:
             return pix, pol, t
         r = self._refractory_us
-        if r > 0:
-            keep = n_t >= n_last + r
-            # Clear of this step's other events (signal, leak, other noise) of the same pixel.
-            mark = self._scratch
-            mark[pix] = 0
-            mark[n_pix] = -1
-            near = mark[pix] == -1
-            all_pix = np.concatenate([pix[near], n_pix])
-            all_t = np.concatenate([t[near], n_t])
-            is_noise = np.concatenate([np.zeros(int(near.sum()), bool), np.ones(n_pix.size, bool)])
-            order = np.lexsort((all_t, all_pix))
-            sp, st = all_pix[order], all_t[order]
-            gap_prev = np.full(sp.size, np.iinfo(np.int64).max)
-            gap_next = gap_prev.copy()
-            same = sp[1:] == sp[:-1]
-            gap_prev[1:][same] = (st[1:] - st[:-1])[same]
-            gap_next[:-1][same] = (st[1:] - st[:-1])[same]
-            clear = np.empty(sp.size, bool)
-            clear[order] = (gap_prev >= r) & (gap_next >= r)
-            keep &= clear[is_noise]
+        if r > 0:  # one compiled pass (:func:`._render_kernels.clear_noise`)
+            keep = np.empty(n_pix.size, dtype=bool)
+            _k.clear_noise(pix, t, n_pix, n_t, n_last, r, self._scratch, keep)
             n_pix, n_pol, n_t = n_pix[keep], n_pol[keep], n_t[keep]
             np.maximum.at(self.last_event_us, n_pix, n_t)
         return np.concatenate([pix, n_pix]), np.concatenate([pol, n_pol]), np.concatenate([t, n_t])
