@@ -305,3 +305,17 @@ def test_compiled_noise_clearance_is_the_numpy_passes(n_signal: int, n_noise: in
     expected = _clear_noise_reference(pix, t, n_pix, n_t, n_last, r)
     np.testing.assert_array_equal(keep, expected)
     assert kept == int(expected.sum())
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(2, 30), st.integers(2, 30), st.integers(0, 2**31), st.floats(0.0, 0.5))
+def test_compiled_slope_and_its_box_are_the_numpy_passes(nx: int, ny: int, seed: int, tol: float) -> None:
+    from labrig.sim.shading import DepthField, slope_of
+
+    rng = np.random.default_rng(seed)
+    x, y = np.linspace(-1.0, 2.0, nx), np.linspace(0.5, 1.7, ny)
+    depth = rng.normal(0, 0.05, (ny, nx)) * (rng.random((ny, nx)) < 0.3)
+    field = DepthField(x, y, depth)
+    expected = slope_of(depth, (x[-1] - x[0]) / (nx - 1), (y[-1] - y[0]) / (ny - 1))
+    np.testing.assert_array_equal(field.slope, expected)
+    assert field.slope_bbox_mm(tol) == field.node_box_mm(expected > tol)

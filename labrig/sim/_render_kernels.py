@@ -449,6 +449,47 @@ def clear_noise(pix, t, noise_pix, noise_t, noise_last, refractory, mark, keep):
     return kept
 
 
+@njit(cache=True, nogil=True)
+def slope_magnitude(depth, dx, dy, out):  # type: ignore[no-untyped-def]
+    """|grad depth| at the nodes of a (ny, nx) grid into ``out``: central differences, one-sided at the
+    edges (as np.gradient; the numpy code's arithmetic, operation for operation)."""
+    ny, nx = depth.shape
+    for j in range(ny):
+        for i in range(nx):
+            if i == 0:
+                gx = (depth[j, 1] - depth[j, 0]) / dx
+            elif i == nx - 1:
+                gx = (depth[j, nx - 1] - depth[j, nx - 2]) / dx
+            else:
+                gx = (depth[j, i + 1] - depth[j, i - 1]) / (2.0 * dx)
+            if j == 0:
+                gy = (depth[1, i] - depth[0, i]) / dy
+            elif j == ny - 1:
+                gy = (depth[ny - 1, i] - depth[ny - 2, i]) / dy
+            else:
+                gy = (depth[j + 1, i] - depth[j - 1, i]) / (2.0 * dy)
+            gx *= gx
+            gy *= gy
+            gx += gy
+            out[j, i] = np.sqrt(gx)
+
+
+@njit(cache=True, nogil=True)
+def above_box(values, tol):  # type: ignore[no-untyped-def]
+    """(row0, row1, col0, col1), inclusive, of the entries of a 2-D array above ``tol``; row0 = -1 if none."""
+    ny, nx = values.shape
+    r0, r1, c0, c1 = -1, -1, nx, -1
+    for j in range(ny):
+        for i in range(nx):
+            if values[j, i] > tol:
+                if r0 < 0:
+                    r0 = j
+                r1 = j
+                c0 = min(c0, i)
+                c1 = max(c1, i)
+    return r0, r1, c0, c1
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
@@ -477,3 +518,5 @@ def warm_up() -> None:
                np.zeros(16))
     clear_noise(np.zeros(1, i8), np.zeros(1, i8), np.ones(1, i8), np.ones(1, i8), np.zeros(1, i8), 300, np.zeros(4, i8),
                 np.zeros(1, np.bool_))
+    slope_magnitude(np.zeros((2, 2)), 1.0, 1.0, np.zeros((2, 2)))
+    above_box(np.zeros((2, 2)), 0.5)

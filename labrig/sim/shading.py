@@ -28,6 +28,8 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
+from labrig.sim import _render_kernels as _k
+
 Array = npt.NDArray[np.float64]
 
 
@@ -45,15 +47,13 @@ class DepthField:
 
     @cached_property
     def slope(self) -> Array:
-        """Surface slope magnitude |grad depth| (dimensionless) at the grid nodes, (ny, nx)."""
-        d = np.asarray(self.depth_mm, dtype=np.float64)
+        """Surface slope magnitude |grad depth| (dimensionless) at the grid nodes, (ny, nx) (one compiled pass:
+        :func:`~labrig.sim._render_kernels.slope_magnitude`, the arithmetic of :func:`slope_of`)."""
+        d = np.ascontiguousarray(self.depth_mm, dtype=np.float64)
         x0, x1, nx, y0, y1, ny = self.grid_key()
-        gx = _derivative(d, (x1 - x0) / (nx - 1), axis=1)
-        gy = _derivative(d, (y1 - y0) / (ny - 1), axis=0)
-        gx *= gx
-        gy *= gy
-        gx += gy
-        return np.sqrt(gx, out=gx)
+        out = np.empty_like(d)
+        _k.slope_magnitude(d, (x1 - x0) / (nx - 1), (y1 - y0) / (ny - 1), out)
+        return out
 
     def same_as(self, other: DepthField | None) -> bool:
         """Whether ``other`` holds the same grid and depth values (then both share one computed slope)."""
@@ -66,7 +66,10 @@ class DepthField:
 
     def slope_bbox_mm(self, tol: float) -> tuple[float, float, float, float] | None:
         """(x0, x1, y0, y1) gel-frame box (mm) holding every node with slope > tol, grown by one node; None if flat."""
-        return self.node_box_mm(self.slope > tol)
+        rows0, rows1, cols0, cols1 = _k.above_box(self.slope, float(tol))
+        if rows0 < 0:
+            return None
+        return self._grown_box_mm(rows0, rows1, cols0, cols1)
 
     def node_box_mm(self, nodes: npt.NDArray[np.bool_]) -> tuple[float, float, float, float] | None:
         """(x0, x1, y0, y1) gel-frame box (mm) of the marked nodes (ny, nx), grown by one node; None if none."""
@@ -74,9 +77,13 @@ class DepthField:
         if rows.size == 0:
             return None
         cols = np.flatnonzero(nodes[rows[0] : rows[-1] + 1].any(axis=0))
+        return self._grown_box_mm(int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1]))
+
+    def _grown_box_mm(self, row0: int, row1: int, col0: int, col1: int) -> tuple[float, float, float, float]:
+        """The gel-frame box (mm) of node rows and columns (inclusive), grown by one node within the grid."""
         nx, ny = len(self.x_mm), len(self.y_mm)
-        i0, i1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 1, nx - 1)
-        j0, j1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 1, ny - 1)
+        i0, i1 = max(col0 - 1, 0), min(col1 + 1, nx - 1)
+        j0, j1 = max(row0 - 1, 0), min(row1 + 1, ny - 1)
         return float(self.x_mm[i0]), float(self.x_mm[i1]), float(self.y_mm[j0]), float(self.y_mm[j1])
 
     def grid_key(self) -> tuple[float, float, int, float, float, int]:
@@ -87,6 +94,16 @@ class DepthField:
     def sample_slope(self, xy_mm: npt.ArrayLike) -> Array:
         """Bilinearly interpolated slope at gel points (N, 2) mm; 0 outside the grid."""
         return GridLookup.build(self.grid_key(), xy_mm).sample(self.slope, slice(None))
+
+
+def slope_of(depth_mm: Array, dx_mm: float, dy_mm: float) -> Array:
+    """|grad depth| on a uniform grid by numpy passes (the model of :attr:`DepthField.slope`'s kernel)."""
+    gx = _derivative(np.asarray(depth_mm, dtype=np.float64), dx_mm, axis=1)
+    gy = _derivative(np.asarray(depth_mm, dtype=np.float64), dy_mm, axis=0)
+    gx *= gx
+    gy *= gy
+    gx += gy
+    return np.sqrt(gx, out=gx)
 
 
 def _derivative(values: Array, spacing: float, axis: int) -> Array:
