@@ -156,6 +156,24 @@ def test_fused_shading_matches_the_full_render_exactly(rig: RigConfig) -> None:
         assert np.array_equal(renderer.image, renderer.render_full(rest, field))
 
 
+def test_a_slowly_growing_dent_stays_within_the_reported_change(rig: RigConfig) -> None:
+    # The default shade_tol re-shades only nodes whose slope moved by min_rel_change / (2 slope_gain):
+    # after many small steps no pixel is further from the full render than the change filter allows
+    # plus that bound, and fewer pixels are re-shaded than with shade_tol 0.
+    rest = rig.markers.rest_positions_mm()
+    lazy, eager = Renderer(rig), Renderer(rig, shade_tol=0.0)
+    assert lazy.shade_tol == pytest.approx(lazy.min_rel_change / (2 * rig.sim.lighting.slope_gain))
+    lazy_px = eager_px = 0
+    for amplitude in np.linspace(0.3, 0.302, 12):
+        field = bump(float(amplitude))
+        lazy_px += lazy.render(rest, field).indices.size
+        eager_px += eager.render(rest, field).indices.size
+    full = lazy.render_full(rest, field)
+    relative = np.abs(lazy.image - full) / np.maximum(full, 1e-3)
+    assert relative.max() <= 2.5 * lazy.min_rel_change + 1e-9
+    assert lazy_px < eager_px
+
+
 def test_led_off_is_dark(rig: RigConfig) -> None:
     renderer = Renderer(rig)
     rest = rig.markers.rest_positions_mm()

@@ -30,7 +30,8 @@ and, per call:
   changed: the whole slope box when it or the grid moved, else the pixels
   around the nodes whose slope moved by more than ``shade_tol`` since those
   nodes were last used (so a pixel's shading is never more than
-  ``2 * slope_gain * shade_tol`` off; ``shade_tol=0`` re-shades on any change);
+  ``2 * slope_gain * shade_tol`` off: by default ``min_rel_change``, the smallest change the
+  renderer reports; ``shade_tol=0`` re-shades on any change);
 * reports the pixels whose intensity changed by more than ``min_rel_change``
   of its value: the re-shaded rectangle as a dense :class:`~labrig.sim.pixels.PixelBlock`
   (mask and values, no index lists) and the marker rims outside it as flat indices.
@@ -129,10 +130,12 @@ class Renderer:
         min_move_px: float = 0.002,
         min_rel_change: float = 1e-4,
         slope_tol: float = 1e-4,
-        shade_tol: float = 1e-6,
+        shade_tol: float | None = None,
     ) -> None:
         """``marker_xyz_mm`` (N, 3): the markers drawn, rest centres in the gel frame (default: the nominal
-        lattice); ``marker_diameter_mm`` (N,), ``marker_contrast`` (N,): per marker (default: nominal, 1)."""
+        lattice); ``marker_diameter_mm`` (N,), ``marker_contrast`` (N,): per marker (default: nominal, 1).
+        ``shade_tol`` (default: ``min_rel_change / (2 slope_gain)``, so that no pixel's shading is further off
+        than the smallest change the renderer reports)."""
         self.camera = camera or CameraModel.from_rig(rig)
         self.roi = rig.roi
         self.lighting = rig.sim.lighting
@@ -142,7 +145,9 @@ class Renderer:
         self.ink: Array | None = None if marker_contrast is None else np.asarray(marker_contrast, dtype=np.float64)
         self._coverage_max = 1.0 if self.ink is None else max(1.0, float(self.ink.max()))
         self.edge_px, self.min_move_px, self.min_rel_change = edge_px, min_move_px, min_rel_change
-        self.slope_tol, self.shade_tol = slope_tol, shade_tol
+        gain = float(self.lighting.slope_gain)
+        self.slope_tol = slope_tol
+        self.shade_tol = shade_tol if shade_tol is not None else (min_rel_change / (2 * gain) if gain > 0 else 0.0)
         rest = rig.markers.rest_positions_mm() if marker_xyz_mm is None else np.asarray(marker_xyz_mm, float)
         self.half_px = half_px or patch_half_px(self._axes(rest), edge_px)
         side = 2 * self.half_px
