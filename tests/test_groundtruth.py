@@ -101,6 +101,30 @@ def test_closed_forms_agree_with_the_numerical_solver(rig: RigConfig, tmp_path: 
         assert HertzModel(6.0, rig.gel).force_n(delta) == pytest.approx(closed.force_n(delta), rel=0.03)
 
 
+def test_numerical_maps_are_bilinear_samples_of_the_table(rig: RigConfig, tmp_path: Path) -> None:
+    from scipy import ndimage
+
+    table = DepthTable.build(load_indenter("sphere"), rig.gel, mode="halfspace", spacing_mm=0.1, size_mm=8.0,
+                             max_depth_mm=1.0, cache_dir=tmp_path)
+    rng = np.random.default_rng(2)
+    dx, dy = rng.uniform(-4.5, 4.5, (2, 30, 40))  # some beyond the table's 8 mm
+    delta = 0.63
+    uz, contact = table.fields(delta, dx, dy)
+    i, w = table._bracket(delta)
+    g = table.grid
+    coords = np.stack([dy.ravel() / g.spacing_mm + g.ny // 2, dx.ravel() / g.spacing_mm + g.nx // 2])
+    inside = ((coords >= 0) & (coords <= np.array([[g.ny - 1], [g.nx - 1]]))).all(axis=0)
+    expected = sum(wk * ndimage.map_coordinates(table.uz[k].astype(np.float64), coords, order=1)
+                   for k, wk in ((i, 1 - w), (i + 1, w)))
+    mask = sum(wk * ndimage.map_coordinates(table.contact[k].astype(np.float64), coords, order=1)
+               for k, wk in ((i, 1 - w), (i + 1, w)))
+    touching = ((mask >= 0.5) & inside).reshape(dx.shape)
+    assert np.array_equal(contact, touching)
+    free = inside.reshape(dx.shape) & ~touching
+    np.testing.assert_allclose(uz[free], expected.reshape(dx.shape)[free], rtol=1e-12, atol=1e-12)
+    assert inside.sum() < inside.size and np.all(uz[~inside.reshape(dx.shape)] > 0)  # the half-space's far field
+
+
 def test_model_choice_per_indenter(rig: RigConfig) -> None:
     assert choose_model(load_indenter("sphere"), rig.gel, "halfspace").method == "hertz"
     assert choose_model(load_indenter("cylinder"), rig.gel, "halfspace").method == "sneddon"

@@ -46,7 +46,6 @@ from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage
 
 from labrig.cache import cache_folder, cache_key
 from labrig.config import GelConfig
@@ -328,15 +327,16 @@ class DepthTable:
         g = self.grid
         col = dx / g.spacing_mm + g.nx // 2
         row = dy / g.spacing_mm + g.ny // 2
-        coords = np.stack([row.ravel(), col.ravel()])
         inside = ((col >= 0) & (col <= g.nx - 1) & (row >= 0) & (row <= g.ny - 1)).ravel()
+        # Bilinear weights once for the two depth rows' maps (the points outside are replaced below).
+        corners, weights = _bilinear(row.ravel(), col.ravel(), g.ny, g.nx)
         uz = np.zeros(dx.size)
         mask = np.zeros(dx.size)
         for k, weight in ((i, 1 - w), (i + 1, w)):
             if weight == 0:
                 continue
-            uz += weight * ndimage.map_coordinates(self.uz[k], coords, order=1, mode="nearest")
-            mask += weight * ndimage.map_coordinates(self.contact[k].astype(np.float32), coords, order=1, mode="constant")
+            uz += weight * _gather(self.uz[k], corners, weights)
+            mask += weight * _gather(self.contact[k], corners, weights)
         contact = (mask >= 0.5) & inside
         if self.elastic == "halfspace":  # far field of the net force beyond the table
             r = np.hypot(dx, dy).ravel()
@@ -448,3 +448,22 @@ def choose_model(indenter: Indenter, gel: GelConfig, elastic: str = "layer", met
     if method != "numerical":
         raise ValueError(f"contact method must be auto or one of {', '.join(CONTACT_METHODS)}, not {method!r}")
     return _cached_table(indenter, gel, elastic, table_options)
+
+
+def _bilinear(row: F64, col: F64, ny: int, nx: int) -> tuple[npt.NDArray[np.intp], F64]:
+    """Flat indices (4, N) of each point's four surrounding nodes on an (ny, nx) grid and their bilinear
+    weights (4, N); points beyond the grid take its nearest edge."""
+    r = np.clip(row, 0.0, ny - 1)
+    c = np.clip(col, 0.0, nx - 1)
+    r0 = np.minimum(r.astype(np.intp), ny - 2)
+    c0 = np.minimum(c.astype(np.intp), nx - 2)
+    fr, fc = r - r0, c - c0
+    base = r0 * nx + c0
+    corners = np.stack([base, base + 1, base + nx, base + nx + 1])
+    weights = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc])
+    return corners, weights
+
+
+def _gather(values: np.ndarray, corners: npt.NDArray[np.intp], weights: F64) -> F64:
+    """Bilinear samples (N,) of a 2-D array at the points of :func:`_bilinear`."""
+    return (values.ravel().take(corners) * weights).sum(axis=0)
