@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import h5py
+import hdf5plugin  # noqa: F401  (registers the sidecars' zstd filter)
 import numpy as np
 import numpy.typing as npt
 
@@ -101,7 +102,7 @@ class Sample:
 
 
 class Source:
-    """One recording and its sidecar: lazy map reads (one gzip chunk per map)."""
+    """One recording and its sidecar: lazy map reads (one compressed chunk per map)."""
 
     def __init__(self, recording: Path, sidecar: Path, split: str, phases: str = "probing") -> None:
         from labrig.recording import Recording
