@@ -107,16 +107,8 @@ def test_one_time_on_the_timeline_is_the_vectorised_position(rows: list[tuple[fl
 
 def _force_reference(table: ContactTable, depth: float, terms: tuple[tuple[float, float], ...], angle: float) -> np.ndarray:
     """The net force as numpy arrays (the model of ContactTable.force_xyz_for_terms)."""
-    def bracket(axis: np.ndarray, value: float) -> tuple[int, float]:
-        if value <= axis[0]:
-            return 0, 0.0
-        if value >= axis[-1]:
-            return len(axis) - 1, 0.0
-        i = int(axis.searchsorted(value, side="right")) - 1
-        return i, float((value - axis[i]) / (axis[i + 1] - axis[i]))
-
-    def lerp(stack: np.ndarray, i: int, w: float) -> np.ndarray:
-        return stack[i].copy() if w == 0 else stack[i] * (1 - w) + stack[i + 1] * w
+    from labrig.physics.mechanics.tables import _bracket as bracket
+    from labrig.physics.mechanics.tables import _lerp as lerp
 
     shear = np.zeros(2)
     for w, s in terms:
