@@ -296,16 +296,9 @@ class VirtualRig:
         on the gel, applied at the centre of pressure, about its own origin.
         """
         f = [-v for v in np.asarray(force_on_gel_n, dtype=np.float64).tolist()]
-        o0, o1, o2 = (a + b for a, b in zip(np.asarray(tip_gel_mm, dtype=np.float64).tolist(), self._ft_origin_list))
-        c0, c1, c2 = np.asarray(centre_of_pressure_mm, dtype=np.float64).tolist()
-        l0, l1, l2 = (c0 - o0) * 1e-3, (c1 - o1) * 1e-3, (c2 - o2) * 1e-3  # lever, m (wrench_about's cross product)
-        torque = (l1 * f[2] - l2 * f[1], l2 * f[0] - l0 * f[2], l0 * f[1] - l1 * f[0])
-        (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = self._ft_axes_list  # gel axes -> F/T: its transpose
-        return (np.array([a00 * f[0] + a10 * f[1] + a20 * f[2], a01 * f[0] + a11 * f[1] + a21 * f[2],
-                          a02 * f[0] + a12 * f[1] + a22 * f[2]]),
-                np.array([a00 * torque[0] + a10 * torque[1] + a20 * torque[2],
-                          a01 * torque[0] + a11 * torque[1] + a21 * torque[2],
-                          a02 * torque[0] + a12 * torque[1] + a22 * torque[2]]))
+        origin = [a + b for a, b in zip(np.asarray(tip_gel_mm, dtype=np.float64).tolist(), self._ft_origin_list)]
+        torque = wrench_about(f, centre_of_pressure_mm, origin).tolist()
+        return np.array(_to_ft(self._ft_axes_list, f)), np.array(_to_ft(self._ft_axes_list, torque))
 
     # -- time stepping ------------------------------------------------------------
 
@@ -465,6 +458,12 @@ class VirtualRig:
             return None
         f = solve.fields
         return DepthField(f.x_mm + solve.anchor_mm[0], f.y_mm + solve.anchor_mm[1], np.asarray(f.depth_mm, np.float64))
+
+
+def _to_ft(axes: list[list[float]], v: list[float]) -> list[float]:
+    """``axes.T @ v`` on floats: a gel-frame vector in the F/T sensor's axes (``axes``: its axes in the gel)."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = axes
+    return [a00 * v[0] + a10 * v[1] + a20 * v[2], a01 * v[0] + a11 * v[1] + a21 * v[2], a02 * v[0] + a12 * v[1] + a22 * v[2]]
 
 
 def _dead_mask(roi: Roi, dead: Roi | None) -> npt.NDArray[np.bool_] | None:

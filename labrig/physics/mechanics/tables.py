@@ -358,7 +358,8 @@ class ContactTable:
         for row, w in ((j, 1 - v), (j + 1, v)):
             if w == 0 or row >= len(lookup.slip_shift_mm) or lookup.slip_shift_mm[row] <= 0:
                 continue
-            k, f = _bracket_list(lookup.mindlin, 1.0 - (1.0 - min(abs(shift) / lookup.slip_shift_mm[row], 1.0)) ** 1.5)
+            fraction = min(abs(shift) / lookup.slip_shift_mm[row], 1.0)
+            k, f = _bracket_list(lookup.mindlin, 1.0 - (1.0 - fraction) ** 1.5)  # to_mindlin, on a float
             c = w * sign
             out_x += c * _lerp_list(lookup.shear_force_x_n[row], k, f)
             out_y += c * _lerp_list(lookup.shear_force_y_n[row], k, f)
