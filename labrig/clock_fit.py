@@ -375,7 +375,9 @@ def _upper_hull_line(u: npt.NDArray[np.float64], v: npt.NDArray[np.float64], bou
     return slope, float(np.max(v - slope * u))
 
 
-def _trigger_line(device_us: npt.NDArray[np.float64], host_us: npt.NDArray[np.float64]) -> _LineFit | None:
+def _trigger_line(
+    device_us: npt.NDArray[np.float64], host_us: npt.NDArray[np.float64], latest_us: npt.NDArray[np.float64] | None = None
+) -> _LineFit | None:
     """The line through the tightest cluster of trigger pairs, resting on its highest stamps.
 
     A host stamp is the earliest the edge can have happened: prompt edges lie on the line,
@@ -388,6 +390,11 @@ def _trigger_line(device_us: npt.NDArray[np.float64], host_us: npt.NDArray[np.fl
     which rests on the most prompt edges where least squares would follow the slightly
     late ones. ``None`` when fewer than three pairs agree, or they tell the drift no better
     than DRIFT_BOUND_PPM.
+
+    ``latest_us`` (host us per pair, ``inf`` where unknown): the latest each edge can have
+    happened. No edge happened after its latest time, so a line passing more than MIN_BAND_US
+    above one is refused: late edges that happen to line up (a loaded host) cannot outscore
+    the prompt ones then.
     """
     n = device_us.size
     if n < 3 or np.ptp(device_us) == 0:
@@ -414,6 +421,11 @@ def _trigger_line(device_us: npt.NDArray[np.float64], host_us: npt.NDArray[np.fl
     above = (lateness < -bands[:, None]).sum(axis=1)
     far_above = (lateness < -BAND_FACTOR * bands[:, None]).sum(axis=1)
     scores[above - np.minimum(far_above, 1) > n * MAX_ABOVE_FRACTION] = np.inf
+    if latest_us is not None and np.isfinite(latest_us).any():
+        known = np.isfinite(latest_us)
+        ceiling = latest_us[known] - device_us[known]  # in v's terms: offset + drift * u can reach no higher
+        over = intercepts[:, None] + slopes[:, None] * u[None, known] - ceiling[None, :]
+        scores[over.max(axis=1) > MIN_BAND_US] = np.inf
     best = int(np.argmin(scores))
     if not np.isfinite(scores[best]):
         return None
@@ -466,7 +478,8 @@ def fit_triggers(
     received; ``UNKNOWN_LATEST_US`` or ``None``: not known). The line rests on the earliest
     times of the most prompt edges, which lag their stamps by the host's wake-up and the
     device's read (30-100 us on a loaded host); the latest times bound from above how far the
-    truth can lie over it (``offset_bound_us``, :func:`_headroom_us`). The line is not raised
+    truth can lie over it (``offset_bound_us``, :func:`_headroom_us`) and refuse lines that pass
+    above one (late edges lined up by chance on a loaded host). The line is not raised
     towards them: an answer's way back is slower and far more variable than the line's way out
     (0.3-3 ms against 30-100 us, measured on the virtual rig under load), so the middle of the
     band was 2-5 times further from the truth than its floor.
@@ -478,7 +491,7 @@ def fit_triggers(
             raise ValueError("no trigger pairs and no fallback model")
         return fallback
     n_pairs = fallback.n_pairs if fallback is not None else 0
-    line = _trigger_line(d, h)
+    line = _trigger_line(d, h, _known_latest(latest_host_us, d.size))
     envelope_uncertainty = fallback.drift_uncertainty_ppm if fallback is not None else math.inf
     if line is None or line.drift_uncertainty_ppm > TRIGGER_PREFERENCE * envelope_uncertainty:
         if fallback is not None:
@@ -504,6 +517,16 @@ def fit_triggers(
         n_trigger_pairs=int(d.size),
         offset_bound_us=_headroom_us(d, h, latest_host_us, line),
     )
+
+
+def _known_latest(latest_host_us: npt.ArrayLike | None, n: int) -> npt.NDArray[np.float64] | None:
+    """Latest host times per pair as floats, ``inf`` where not known; None when none is."""
+    if latest_host_us is None:
+        return None
+    latest = np.asarray(latest_host_us, dtype=np.float64)
+    if latest.shape != (n,):
+        raise ValueError(f"latest_host_us has shape {latest.shape}, not one time per pair ({n},)")
+    return np.where(latest < UNKNOWN_LATEST_US, latest, np.inf)
 
 
 def _headroom_us(

@@ -176,6 +176,28 @@ def test_latest_times_bound_the_offset_from_above_without_moving_the_line() -> N
     assert unknown == alone
 
 
+def test_latest_times_refuse_a_line_through_late_edges_that_line_up() -> None:
+    """The signature of a through-driver run on a loaded host: the five last edges handled late
+    by amounts that grow 229 ppm of their time, so they line up tighter than the four prompt
+    ones and the fit took their line (-264 ppm against the true -35, 390 us off at the start),
+    with a prompt edge answered before that line says it happened. Each edge's latest time
+    (its answer) refuses that line; the prompt edges carry the fit."""
+    true_host = 1e6 + np.array([0.0, 0.3, 0.6, 0.9, 1.8, 2.1, 2.4, 2.7, 3.0]) * 1e6
+    device = 5e9 + true_host * (1 + 35e-6)
+    wake = np.array([50.0, 62.0, 45.0, 70.0, 0, 0, 0, 0, 0])
+    wake[4:] = 20 + 229e-6 * (true_host[4:] - true_host[4])
+    earliest = true_host - wake
+    latest = true_host + np.array([300.0, 450.0, 900.0, 380.0, 600.0, 700.0, 500.0, 800.0, 650.0])
+    fooled = fit_triggers(device, earliest)
+    assert fooled.drift_ppm == pytest.approx(-264.0, abs=1.0) and np.abs(fooled.to_host_us(device) - true_host).max() > 300
+    model = fit_triggers(device, earliest, latest_host_us=latest)
+    true_drift = (1 / (1 + 35e-6) - 1) * 1e6
+    assert model.method == "triggers" and model.n_triggers == 4
+    assert abs(model.drift_ppm - true_drift) <= model.drift_uncertainty_ppm
+    assert np.abs(model.to_host_us(device) - true_host).max() <= 60.0
+    assert np.isfinite(model.offset_bound_us) and (true_host - model.to_host_us(device)).max() <= model.offset_bound_us
+
+
 def test_a_file_without_latest_trigger_times_refits_as_before(tmp_path: Path) -> None:
     """Files written before ``trigger_out.t_latest_host_us`` existed refit with the bound unknown."""
     import h5py
