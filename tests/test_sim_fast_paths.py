@@ -311,3 +311,50 @@ def test_compiled_slope_and_its_box_are_the_numpy_passes(nx: int, ny: int, seed:
     expected = slope_of(depth, (x[-1] - x[0]) / (nx - 1), (y[-1] - y[0]) / (ny - 1))
     np.testing.assert_array_equal(field.slope, expected)
     assert field.slope_bbox_mm(tol) == field.node_box_mm(expected > tol)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 60), st.booleans(), st.booleans())
+def test_compiled_rim_luminance_and_composition_are_the_numpy_passes(seed: int, n: int, led_on: bool, with_block: bool
+                                                                     ) -> None:
+    """The renderer's scattered pixels (marker rims): distinct touched canvas pixels get their luminance, those in
+    the ROI outside the re-shaded block are composed and kept where they changed: as the numpy passes did."""
+    from labrig.sim.pixels import unique_indices
+
+    rng = np.random.default_rng(seed)
+    ch, cw, pad = 14, 16, 3  # canvas, and the ROI inside it
+    h, w = ch - 2 * pad, cw - 2 * pad
+    canvas_to_roi = np.full(ch * cw, -1, np.int64)
+    roi_to_canvas = ((np.arange(h)[:, None] + pad) * cw + pad + np.arange(w)[None, :]).ravel()
+    canvas_to_roi[roi_to_canvas] = np.arange(h * w)
+    touched = rng.integers(0, ch * cw, n)  # overlapping markers repeat pixels
+    cov = rng.uniform(-0.2, 1.6, ch * cw)
+    membrane, marker, cov_max = 0.1, 0.8, 1.3
+    lum = rng.random(ch * cw)
+    shade = rng.uniform(0.5, 2.0, h * w)
+    reported = rng.random(h * w)
+    reported[::3] = np.minimum(shade[::3] * lum[roi_to_canvas[::3]], 1.0)  # some pixels unchanged
+    block = (2, 7, 1, 4) if with_block else (0, 0, 0, 0)
+    # The numpy passes.
+    lum_ref, reported_ref = lum.copy(), reported.copy()
+    distinct = unique_indices(touched, np.zeros(ch * cw, np.int64))
+    lum_ref[distinct] = membrane + np.clip(cov[distinct], 0.0, cov_max) * (marker - membrane)
+    pixels = canvas_to_roi[distinct]
+    pixels = pixels[pixels >= 0]
+    y, x = np.divmod(pixels, w)
+    pixels = pixels[~((y >= block[2]) & (y < block[3]) & (x >= block[0]) & (x < block[1]))]
+    new = np.minimum(shade[pixels] * lum_ref[roi_to_canvas[pixels]], 1.0) if led_on else np.zeros(pixels.size)
+    old = reported_ref[pixels]
+    moved = np.abs(new - old) > (old + new + 1e-3) * 1e-4
+    reported_ref[pixels[moved]] = new[moved]
+    # The compiled ones.
+    outside = np.empty(n, np.int64)
+    k = _k.touch_luminance(touched, np.zeros(ch * cw, np.int64), cov, membrane, marker, cov_max, lum, canvas_to_roi,
+                           block, w, outside)
+    np.testing.assert_array_equal(lum, lum_ref)
+    np.testing.assert_array_equal(outside[:k], pixels)
+    out_pix, out_val = np.empty(k, np.int64), np.empty(k)
+    m = _k.compose_list(outside, k, roi_to_canvas, lum, shade, reported, led_on, 1e-4, out_pix, out_val)
+    np.testing.assert_array_equal(out_pix[:m], pixels[moved])
+    np.testing.assert_array_equal(out_val[:m], new[moved])
+    np.testing.assert_array_equal(reported, reported_ref)

@@ -234,6 +234,60 @@ def rim_change(
 
 
 @njit(cache=True, nogil=True)
+def touch_luminance(pixels, scratch, cov, membrane, marker, cov_max, lum, canvas_to_roi, block, width, out):
+    """The distinct canvas pixels of ``pixels`` get their luminance ``membrane + clip(cov, 0, cov_max) *
+    (marker - membrane)`` (as Renderer._luminance); returns how many of them are ROI pixels outside
+    ``block`` (x0, x1, y0, y1, ROI pixels; empty: x1 <= x0), written as flat ROI indices to ``out``.
+
+    Distinct as :func:`labrig.sim.pixels.unique_indices` keeps them (each value at its last
+    occurrence, in list order); ``scratch`` (int64, longer than the largest index) is overwritten.
+    """
+    for i in range(pixels.size):
+        scratch[pixels[i]] = i
+    bx0, bx1, by0, by1 = block
+    span = marker - membrane
+    n = 0
+    for i in range(pixels.size):
+        p = pixels[i]
+        if scratch[p] != i:
+            continue
+        c = min(max(cov[p], 0.0), cov_max)
+        lum[p] = membrane + c * span
+        roi = canvas_to_roi[p]
+        if roi < 0:
+            continue
+        if bx1 > bx0:
+            y = roi // width
+            x = roi - y * width
+            if by0 <= y < by1 and bx0 <= x < bx1:
+                continue
+        out[n] = roi
+        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def compose_list(pixels, n, roi_to_canvas, lum, shade, reported, led_on, rel, out_pix, out_val):
+    """Compose ROI pixels ``pixels[:n]`` (``min(shade * lum, 1)``, 0 with the LED off) and keep those whose
+    intensity moved by more than ``rel * (old + new + 1e-3)`` (as :func:`shade_compose`): ``reported`` is
+    updated there and they are written, in order, to ``out_pix`` / ``out_val``; returns their count."""
+    m = 0
+    for i in range(n):
+        k = pixels[i]
+        new = min(shade[k] * lum[roi_to_canvas[k]], 1.0) if led_on else 0.0
+        old = reported[k]
+        limit = old + new
+        limit += 1e-3
+        limit *= rel
+        if abs(new - old) > limit:
+            reported[k] = new
+            out_pix[m] = k
+            out_val[m] = new
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
 def crossings(
     t0, t1, who, y0, y1, reference, c_on_all, c_off_all, k_all, leak, t_start, epoch_start, epoch_end, hi, lo,
     last_event, refractory, out_pix, out_pol, out_t, leak_candidates,
@@ -516,6 +570,10 @@ def warm_up() -> None:
     rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
                0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
                np.zeros(16))
+    touch_luminance(np.zeros(1, i8), np.zeros(1, i8), np.zeros(1), 0.1, 0.9, 1.0, np.zeros(1), np.zeros(1, i8),
+                    (0, 0, 0, 0), 1, np.zeros(1, i8))
+    compose_list(np.zeros(1, i8), 1, np.zeros(1, i8), np.ones(1), np.ones(1), np.zeros(1), True, 1e-4,
+                 np.zeros(1, i8), np.zeros(1))
     clear_noise(np.zeros(1, i8), np.zeros(1, i8), np.ones(1, i8), np.ones(1, i8), np.zeros(1, i8), 300, np.zeros(4, i8),
                 np.zeros(1, np.bool_))
     slope_magnitude(np.zeros((2, 2)), 1.0, 1.0, np.zeros((2, 2)))

@@ -48,7 +48,7 @@ from labrig.config import RigConfig, Roi
 from labrig.physics.camera import CameraModel
 from labrig.sim import _render_kernels as _k
 from labrig.sim.discs import ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
-from labrig.sim.pixels import PixelBlock, unique_indices
+from labrig.sim.pixels import PixelBlock
 from labrig.sim.shading import DepthField, GridLookup
 
 Array = npt.NDArray[np.float64]
@@ -60,6 +60,9 @@ _JACOBIAN_STEP_MM = 1e-4
 #: Stand-ins for the kernel when nothing is re-shaded.
 _NO_NODES = np.zeros(8)
 _NO_LOOKUP = (np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 1)))
+#: Gel boxes whose pixel boxes a renderer keeps (cleared when full).
+_PIXEL_BOX_CACHE = 4096
+_MISSING = object()
 
 
 class RenderUpdate:
@@ -175,6 +178,7 @@ class Renderer:
         self._lookup_key: tuple[float, float, int, float, float, int] | None = None
         self._lookup: GridLookup | None = None
         self._kernel_base = np.zeros((1, 1), dtype=np.int32)
+        self._pixel_boxes: dict[tuple[float, float, float, float], Rect | None] = {}
         self._centres, self._axes_px = self._project(rest)
         self._origins = patch_origins(self._centres, self.half_px)
         self._patches = ellipse_coverage(self._centres, self._axes_px, self._origins, self.half_px, edge_px)
@@ -210,12 +214,13 @@ class Renderer:
         if led_on is not None and bool(led_on) != self._led_on:
             self._led_on = bool(led_on)
             rect = (0, self.roi.width_px, 0, self.roi.height_px)
+        # The touched pixels' luminance first (the block reads it), then the block, then the rest of them.
+        outside = np.empty(touched.size, dtype=np.int64)
+        n = _k.touch_luminance(touched, self._scratch, self._cov, float(self.lighting.membrane_level),
+                               float(self.lighting.marker_level), float(self._coverage_max), self._lum,
+                               self._canvas_to_roi, rect or (0, 0, 0, 0), self.roi.width_px, outside)
         block = self._compose_block(rect, shade) if rect is not None else None
-        pixels = self._canvas_to_roi[touched]
-        pixels = pixels[pixels >= 0]
-        if block is not None and pixels.size:
-            pixels = pixels[~block.contains(pixels, self.roi.width_px)]
-        pixels, values = self._compose_pixels(pixels)
+        pixels, values = self._compose_pixels(outside[:n])
         return RenderUpdate(pixels, values, block, self.roi.width_px)
 
     def render_full(self, marker_xyz_mm: npt.ArrayLike, depth: DepthField | None = None, *, led_on: bool | None = None) -> Array:
@@ -270,7 +275,8 @@ class Renderer:
         return self._canvas_corner(origins, 2 * self.half_px)[:, None] + self._offsets[None, :]
 
     def _move_markers(self, xyz: Array) -> Index:
-        """Re-draw the markers that moved; return the distinct canvas pixels whose coverage changed."""
+        """Re-draw the markers that moved; return the canvas pixels whose coverage changed (overlapping markers
+        repeat theirs; their luminance is left to :func:`._render_kernels.touch_luminance`)."""
         centres, axes = self._project(xyz)
         shift = np.maximum(np.abs(centres - self._centres).max(axis=1), np.abs(axes - self._axes_px).max(axis=(1, 2)))
         moved = np.flatnonzero(shift > self.min_move_px)
@@ -295,9 +301,6 @@ class Renderer:
             np.add.at(self._cov, pixels, delta)
             parts.append(pixels)
         pixels = np.concatenate(parts) if len(parts) > 1 else parts[0]
-        if moved.size > 1:
-            pixels = unique_indices(pixels, self._scratch)  # overlapping markers
-        self._lum[pixels] = self._luminance(self._cov[pixels])
         self._centres[moved], self._axes_px[moved], self._origins[moved] = c1, a1, origins
         self._inner_px[moved], self._outer_px[moved] = inner1, outer1
         return pixels
@@ -409,9 +412,23 @@ class Renderer:
         return self._pixel_box(depth.slope_bbox_mm(self.slope_tol))
 
     def _pixel_box(self, box_mm: tuple[float, float, float, float] | None) -> Rect | None:
-        """ROI pixel box holding the image of a gel-frame box (mm), with a 2-3 px margin; None if empty."""
+        """ROI pixel box holding the image of a gel-frame box (mm), with a 2-3 px margin; None if empty.
+
+        Cached per box: the boxes lie on the depth grid's nodes, so while a contact's anchor stays
+        put the same few recur at every re-shade (each a projection of 36 points otherwise)."""
         if box_mm is None:
             return None
+        cached = self._pixel_boxes.get(box_mm, _MISSING)
+        if cached is not _MISSING:
+            return cached  # type: ignore[return-value]
+        if len(self._pixel_boxes) >= _PIXEL_BOX_CACHE:
+            self._pixel_boxes.clear()
+        rect = self._project_box(box_mm)
+        self._pixel_boxes[box_mm] = rect
+        return rect
+
+    def _project_box(self, box_mm: tuple[float, float, float, float]) -> Rect | None:
+        """:meth:`_pixel_box` computed: the box's edges projected at 9 points each."""
         x0, x1, y0, y1 = box_mm
         t = np.linspace(0.0, 1.0, 9)
         edge_x = np.concatenate([x0 + (x1 - x0) * t, np.full(9, x1), x1 - (x1 - x0) * t, np.full(9, x0)])
@@ -477,15 +494,6 @@ class Renderer:
         out = np.multiply(shade, lum)
         return np.minimum(out, 1.0, out=out)
 
-    def _changed(self, new: Array, old: Array) -> npt.NDArray[np.bool_]:
-        """Pixels whose intensity moved by more than min_rel_change of its value."""
-        diff = np.subtract(new, old)
-        np.abs(diff, out=diff)
-        limit = np.add(old, new)
-        limit += 1e-3
-        limit *= self.min_rel_change
-        return np.greater(diff, limit, out=np.empty(diff.shape, dtype=bool))
-
     def _compose_block(self, rect: Rect, shade_rect: Rect | None) -> PixelBlock:
         """Re-shade ``shade_rect`` (inside ``rect``) from the current depth field, compose ``rect``, update the
         reported image where it changed; the changes as a dense block (one fused pass, :mod:`._render_kernels`)."""
@@ -506,16 +514,14 @@ class Renderer:
         return PixelBlock(y0, x0, changed, values)
 
     def _compose_pixels(self, pixels: Index) -> tuple[Index, Array]:
-        """Compose scattered ROI pixels; update the reported image; (pixels that changed, their new intensity)."""
+        """Compose scattered ROI pixels; update the reported image; (pixels that changed, their new intensity)
+        (one compiled pass, :func:`._render_kernels.compose_list`)."""
         if pixels.size == 0:
             return pixels, np.empty(0)
-        lum = self._lum[self._roi_to_canvas[pixels]]
-        new = self._intensity(lum, self._shade.ravel()[pixels], self._led_on)
-        reported = self._reported.ravel()
-        changed = self._changed(new, reported[pixels])
-        pixels, new = pixels[changed], new[changed]
-        reported[pixels] = new
-        return pixels, new
+        out_pix, out_val = np.empty(pixels.size, dtype=np.int64), np.empty(pixels.size)
+        m = _k.compose_list(pixels, pixels.size, self._roi_to_canvas, self._lum, self._shade.ravel(),
+                            self._reported.ravel(), self._led_on, float(self.min_rel_change), out_pix, out_val)
+        return out_pix[:m], out_val[:m]
 
 
 def _union(a: Rect, b: Rect) -> Rect:

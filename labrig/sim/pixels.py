@@ -19,7 +19,8 @@ Index = npt.NDArray[np.int64]
 
 
 def unique_indices(indices: Index, scratch: Index) -> Index:
-    """Distinct values of ``indices`` (first-seen order not kept), in O(n) without sorting.
+    """Distinct values of ``indices`` (first-seen order not kept), in O(n) without sorting (the numpy model of
+    :func:`labrig.sim._render_kernels.touch_luminance`'s, which the renderer uses).
 
     ``scratch`` is a caller-owned int64 work array longer than the largest index;
     its contents are overwritten.
