@@ -72,6 +72,17 @@ def test_crc16_x25_check_value_and_residue() -> None:
     assert crc16_x25(data + crc16_x25(data).to_bytes(2, "little")) == X25_RESIDUE
 
 
+@given(st.binary(max_size=80))
+def test_crc16_x25_is_the_bitwise_definition(data: bytes) -> None:
+    """The C-backed CRC against the definition: reflected poly 0x8408, bit by bit."""
+    crc = 0xFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1
+    assert crc16_x25(data) == crc16_x25(bytearray(data)) == crc16_x25(memoryview(data)) == crc ^ 0xFFFF
+
+
 def test_frame_layout_field_by_field() -> None:
     f = Frame(0x0005, (1.0, -2.0, 3.5), (0.25, 0.5, -0.75), 0xFFFF_FFF0, 27.25)
     data = encode_frame(f)

@@ -28,6 +28,7 @@ but never yield a frame whose CRC does not match.
 
 from __future__ import annotations
 
+import binascii
 import enum
 import re
 import struct
@@ -95,27 +96,18 @@ def status_names(status: int) -> list[str]:
 # -- CRC-16/X-25 ----------------------------------------------------------------
 
 
-def _x25_table() -> tuple[int, ...]:
-    """Byte table of the reflected polynomial 0x8408 (0x1021 bit-reversed)."""
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1
-        table.append(crc)
-    return tuple(table)
-
-
-_X25_TABLE = _x25_table()
+#: Each byte with its bits reversed (a ``bytes.translate`` table).
+_REVERSED_BITS = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 
 
 def crc16_x25(data: bytes | bytearray | memoryview) -> int:
-    """CRC-16/X-25: poly 0x1021 reflected, init 0xFFFF, xorout 0xFFFF (check("123456789") = 0x906E)."""
-    crc = 0xFFFF
-    table = _X25_TABLE
-    for byte in data:
-        crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
-    return crc ^ 0xFFFF
+    """CRC-16/X-25: poly 0x1021 reflected, init 0xFFFF, xorout 0xFFFF (check("123456789") = 0x906E).
+
+    The reflected CRC is the plain CRC-CCITT (``binascii.crc_hqx``, in C) of the bit-reversed bytes,
+    bit-reversed: ``reverse16(crc_hqx(reverse8(data), 0xFFFF)) ^ 0xFFFF`` (init 0xFFFF is its own reverse).
+    """
+    crc = binascii.crc_hqx(bytes(data).translate(_REVERSED_BITS), 0xFFFF)
+    return ((_REVERSED_BITS[crc & 0xFF] << 8) | _REVERSED_BITS[crc >> 8]) ^ 0xFFFF
 
 
 # -- configuration values ------------------------------------------------------
