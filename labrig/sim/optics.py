@@ -62,7 +62,6 @@ _NO_NODES = np.zeros(8)
 _NO_LOOKUP = (np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 1)))
 #: Gel boxes whose pixel boxes a renderer keeps (cleared when full).
 _PIXEL_BOX_CACHE = 4096
-_MISSING = object()
 
 
 class RenderUpdate:
@@ -418,9 +417,8 @@ class Renderer:
         put the same few recur at every re-shade (each a projection of 36 points otherwise)."""
         if box_mm is None:
             return None
-        cached = self._pixel_boxes.get(box_mm, _MISSING)
-        if cached is not _MISSING:
-            return cached  # type: ignore[return-value]
+        if box_mm in self._pixel_boxes:
+            return self._pixel_boxes[box_mm]
         if len(self._pixel_boxes) >= _PIXEL_BOX_CACHE:
             self._pixel_boxes.clear()
         rect = self._project_box(box_mm)

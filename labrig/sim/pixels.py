@@ -61,9 +61,3 @@ class PixelBlock:
     def changed_values(self) -> npt.NDArray[np.float64]:
         """New values of the changed pixels, in :meth:`flat_indices` order."""
         return self.values[self.changed]
-
-    def contains(self, indices: Index, width: int) -> npt.NDArray[np.bool_]:
-        """Which flat window indices fall inside the rectangle."""
-        y, x = np.divmod(indices, width)
-        h, w = self.changed.shape
-        return (y >= self.y0) & (y < self.y0 + h) & (x >= self.x0) & (x < self.x0 + w)
