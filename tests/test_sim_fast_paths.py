@@ -319,8 +319,6 @@ def test_compiled_rim_luminance_and_composition_are_the_numpy_passes(seed: int, 
                                                                      ) -> None:
     """The renderer's scattered pixels (marker rims): distinct touched canvas pixels get their luminance, those in
     the ROI outside the re-shaded block are composed and kept where they changed: as the numpy passes did."""
-    from labrig.sim.pixels import unique_indices
-
     rng = np.random.default_rng(seed)
     ch, cw, pad = 14, 16, 3  # canvas, and the ROI inside it
     h, w = ch - 2 * pad, cw - 2 * pad
@@ -337,7 +335,9 @@ def test_compiled_rim_luminance_and_composition_are_the_numpy_passes(seed: int, 
     block = (2, 7, 1, 4) if with_block else (0, 0, 0, 0)
     # The numpy passes.
     lum_ref, reported_ref = lum.copy(), reported.copy()
-    distinct = unique_indices(touched, np.zeros(ch * cw, np.int64))
+    last = np.zeros(ch * cw, np.int64)  # each distinct pixel at its last occurrence, in list order
+    last[touched] = np.arange(n)
+    distinct = touched[last[touched] == np.arange(n)]
     lum_ref[distinct] = membrane + np.clip(cov[distinct], 0.0, cov_max) * (marker - membrane)
     pixels = canvas_to_roi[distinct]
     pixels = pixels[pixels >= 0]

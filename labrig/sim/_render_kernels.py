@@ -239,8 +239,8 @@ def touch_luminance(pixels, scratch, cov, membrane, marker, cov_max, lum, canvas
     (marker - membrane)`` (as Renderer._luminance); returns how many of them are ROI pixels outside
     ``block`` (x0, x1, y0, y1, ROI pixels; empty: x1 <= x0), written as flat ROI indices to ``out``.
 
-    Distinct as :func:`labrig.sim.pixels.unique_indices` keeps them (each value at its last
-    occurrence, in list order); ``scratch`` (int64, longer than the largest index) is overwritten.
+    Each distinct value is kept at its last occurrence, in list order (overlapping markers repeat
+    pixels); ``scratch`` (int64, longer than the largest index) is overwritten.
     """
     for i in range(pixels.size):
         scratch[pixels[i]] = i

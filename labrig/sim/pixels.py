@@ -18,18 +18,6 @@ import numpy.typing as npt
 Index = npt.NDArray[np.int64]
 
 
-def unique_indices(indices: Index, scratch: Index) -> Index:
-    """Distinct values of ``indices`` (first-seen order not kept), in O(n) without sorting (the numpy model of
-    :func:`labrig.sim._render_kernels.touch_luminance`'s, which the renderer uses).
-
-    ``scratch`` is a caller-owned int64 work array longer than the largest index;
-    its contents are overwritten.
-    """
-    order = np.arange(indices.size, dtype=np.int64)
-    scratch[indices] = order
-    return indices[scratch[indices] == order]
-
-
 @dataclass(frozen=True, eq=False)
 class PixelBlock:
     """Changed pixels of the rectangle rows y0..y0+h, columns x0..x0+w of a pixel window.
