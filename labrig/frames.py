@@ -78,8 +78,4 @@ class Pose:
 def wrench_about(force_n: npt.ArrayLike, point_mm: npt.ArrayLike, origin_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """Torque (N m) about ``origin_mm`` of a force applied at ``point_mm`` (same frame)."""
     lever_m = (np.asarray(point_mm, dtype=np.float64) - np.asarray(origin_mm, dtype=np.float64)) * 1e-3
-    force = np.asarray(force_n, dtype=np.float64)
-    if lever_m.shape == (3,) and force.shape == (3,):  # one wrench (kHz samplers): np.cross's products, without its overhead
-        (a0, a1, a2), (b0, b1, b2) = lever_m.tolist(), force.tolist()
-        return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-    return np.cross(lever_m, force)
+    return np.cross(lever_m, np.asarray(force_n, dtype=np.float64))

@@ -174,14 +174,6 @@ def test_one_position_on_the_motion_timeline_is_the_vectorised_one(moves: list[t
         assert timeline.position_at(t) == tuple(vectorised[i])
 
 
-@settings(max_examples=200, deadline=None)
-@given(st.tuples(finite, finite, finite), st.tuples(finite, finite, finite), st.tuples(finite, finite, finite))
-def test_one_wrench_is_numpys_cross_product(force: tuple[float, ...], point: tuple[float, ...],
-                                            origin: tuple[float, ...]) -> None:
-    lever = (np.asarray(point) - np.asarray(origin)) * 1e-3
-    np.testing.assert_array_equal(wrench_about(force, point, origin), np.cross(lever, np.asarray(force)))
-
-
 def test_batched_ft_rows_are_the_rows_put_one_by_one(tmp_path) -> None:  # type: ignore[no-untyped-def]
     rng = np.random.default_rng(5)
     samples = [FtSample(int(i * 1250) % (1 << 32), 10**12 + i * 1_250_000 + int(rng.integers(0, 999)),

@@ -154,6 +154,7 @@ class BotaTwin:
         # Non-volatile and active configuration.
         self._saved = (p.comm, p.filter, p.offsets, np.eye(6))
         self.comm, self.filter, self.offsets, self.matrix = p.comm, p.filter, p.offsets, np.eye(6)
+        self._offsets_array: tuple[object, npt.NDArray[np.float64]] = (None, np.zeros(6))
         self._line_baud_code = p.comm.baud_code
         self._byte_us_of_code: tuple[object, float] = (None, 0.0)
         # Time line.
@@ -387,6 +388,14 @@ class BotaTwin:
 
     # -- measurements ------------------------------------------------------------
 
+    def _offset_values(self) -> npt.NDArray[np.float64]:
+        """The active offsets as one (6,) array, rebuilt only when a command replaced them."""
+        offsets, values = self._offsets_array
+        if offsets is not self.offsets:
+            values = np.array([*self.offsets.force_n, *self.offsets.torque_nm])
+            self._offsets_array = (self.offsets, values)
+        return values
+
     def _sample(self, t_us: float) -> None:
         """One sample at host time ``t_us`` (its device time is ``_next_sample_dev_us``)."""
         device_us = self._next_sample_dev_us
@@ -401,8 +410,8 @@ class BotaTwin:
         temperature = self.temperature_c(t_us) + p.temperature_noise_c * normals[0]
         force, torque = self.wrench_at(round(t_us))
         warm = temperature - p.ambient_c
-        gauges = [load + bias + per_c * warm for load, bias, per_c in
-                  zip((*np.asarray(force).tolist(), *np.asarray(torque).tolist()), self._bias0_list, self._bias_per_c_list)]
+        gauges = [float(load) + bias + per_c * warm for load, bias, per_c in
+                  zip((*force, *torque), self._bias0_list, self._bias_per_c_list)]
         status = self._pending_status | self._sticky_status
         self._pending_status = 0
         if any(abs(g) > r for g, r in zip(gauges, self._range_list)):
@@ -410,7 +419,7 @@ class BotaTwin:
             gauges = [min(max(g, -r), r) for g, r in zip(gauges, self._range_list)]
         noisy = np.array([g + sigma * n for g, sigma, n in zip(gauges, self._noise_sigma_list, normals[1:])])
         if self.comm.calibrated:
-            values = self.matrix @ noisy + np.array([*self.offsets.force_n, *self.offsets.torque_nm])
+            values = self.matrix @ noisy + self._offset_values()
         else:
             values = noisy
             status |= Status.RAW_MEASUREMENTS

@@ -105,10 +105,11 @@ class OfflineRig:
         self.origin_us = self.now_us + PRE_ROLL_US
         self.rendering = False
         self.tare_n = np.zeros(6)
+        self._tare_list = [0.0] * 6
         self.jogging = False
         self.last_status: CncStatus | None = None
         self._next_poll_us = self.now_us
-        self._tare_rows: list[npt.NDArray[np.float64]] | None = None
+        self._tare_rows: list[tuple[float, ...]] | None = None
         self.bota.transmit(self.now_us)  # power on
 
     @property
@@ -132,9 +133,9 @@ class OfflineRig:
         t = np.atleast_1d(np.asarray(t_world_us, dtype=np.float64)) + self.origin_us
         return self.timeline.positions_at(t)
 
-    def _wrench_at(self, t_host_us: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    def _wrench_at(self, t_host_us: int) -> tuple[list[float], list[float]]:
         force, cop, tip = self.track.wrench_state(t_host_us - self.origin_us)
-        return self.rig.ft_wrench_of(force, cop, tip)
+        return self.rig.ft_wrench_values(force, cop, tip)
 
     # -- GRBL ---------------------------------------------------------------------------------------
 
@@ -208,6 +209,7 @@ class OfflineRig:
         while len(self._tare_rows) < n_samples:
             self.step()
         self.tare_n = np.mean(self._tare_rows[:n_samples], axis=0)
+        self._tare_list = self.tare_n.tolist()
         self._tare_rows = None
         return tuple(float(v) for v in self.tare_n)
 
@@ -229,12 +231,12 @@ class OfflineRig:
         return status
 
     def _on_frame(self, frame: Frame, now_us: int) -> None:
-        raw = np.array([*frame.force_n, *frame.torque_nm])
+        raw = (*frame.force_n, *frame.torque_nm)
         if self._tare_rows is not None:
             self._tare_rows.append(raw)
         if self.sinks.ft is None:
             return
-        v = (raw - self.tare_n).tolist()
+        v = [a - b for a, b in zip(raw, self._tare_list)]
         self.sinks.ft(FtSample(frame.t_device_us, now_us * 1000, (v[0], v[1], v[2]), (v[3], v[4], v[5]), frame.status,
                                frame.temperature_c))
 

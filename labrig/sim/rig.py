@@ -49,7 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig, Roi
-from labrig.frames import Pose, rotvec_to_matrix, wrench_about
+from labrig.frames import Pose, rotvec_to_matrix
 from labrig.indenters import Indenter
 from labrig.physics.camera import CameraModel
 from labrig.physics.mechanics import ContactFields, ContactTable
@@ -295,10 +295,19 @@ class VirtualRig:
         The sensor carries the indenter, so it feels the reaction of the force
         on the gel, applied at the centre of pressure, about its own origin.
         """
-        f = [-v for v in np.asarray(force_on_gel_n, dtype=np.float64).tolist()]
-        origin = [a + b for a, b in zip(np.asarray(tip_gel_mm, dtype=np.float64).tolist(), self._ft_origin_list)]
-        torque = wrench_about(f, centre_of_pressure_mm, origin).tolist()
-        return np.array(_to_ft(self._ft_axes_list, f)), np.array(_to_ft(self._ft_axes_list, torque))
+        force, torque = self.ft_wrench_values(force_on_gel_n, centre_of_pressure_mm, tip_gel_mm)
+        return np.array(force), np.array(torque)
+
+    def ft_wrench_values(
+        self, force_on_gel_n: npt.ArrayLike, centre_of_pressure_mm: npt.ArrayLike, tip_gel_mm: npt.ArrayLike
+    ) -> tuple[list[float], list[float]]:
+        """:meth:`ft_wrench_of` as Python floats (the F/T twin's 800 Hz samples: no small arrays on their way)."""
+        f0, f1, f2 = (-v for v in np.asarray(force_on_gel_n, dtype=np.float64).tolist())
+        o0, o1, o2 = (a + b for a, b in zip(np.asarray(tip_gel_mm, dtype=np.float64).tolist(), self._ft_origin_list))
+        p0, p1, p2 = np.asarray(centre_of_pressure_mm, dtype=np.float64).tolist()
+        a0, a1, a2 = (p0 - o0) * 1e-3, (p1 - o1) * 1e-3, (p2 - o2) * 1e-3  # lever (m), as frames.wrench_about
+        torque = [a1 * f2 - a2 * f1, a2 * f0 - a0 * f2, a0 * f1 - a1 * f0]
+        return _to_ft(self._ft_axes_list, [f0, f1, f2]), _to_ft(self._ft_axes_list, torque)
 
     # -- time stepping ------------------------------------------------------------
 
