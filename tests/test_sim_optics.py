@@ -65,6 +65,19 @@ def test_back_projection_round_trips(camera: CameraModel) -> None:
     assert np.allclose(np.cross(camera.gel_to_camera.apply(back), ray_point), 0.0, atol=1e-9)
 
 
+def test_compiled_projection_is_the_numpy_distortion_bit_for_bit() -> None:
+    rng = np.random.default_rng(4)
+    for _ in range(20):  # random lenses, strong distortion included, points in front of the camera
+        k = tuple(rng.normal(0.0, [0.3, 0.3, 0.02, 0.02, 0.3]).tolist())
+        cam = CameraModel(*rng.uniform([500, 500, 600, 300], [1000, 1000, 700, 400]).tolist(), k, (0.0, 0.0, 0.0),
+                          (0.0, 0.0, 0.0))
+        points = rng.uniform([-20, -20, 5], [20, 20, 40], size=(5, 37, 3))
+        reference = cam.normalized_to_pixels(points[..., :2] / points[..., 2:3])
+        np.testing.assert_array_equal(cam.project_camera(points), reference)  # any leading shape
+        np.testing.assert_array_equal(cam.project_camera(points[0, 0]), reference[0, 0])  # one point
+        np.testing.assert_array_equal(cam.project_camera(points[:, 3]), reference[:, 3])  # a strided view
+
+
 def test_rodrigues_round_trip(camera: CameraModel) -> None:
     r = np.array(camera.gel_to_camera_rotvec_rad)
     assert np.allclose(matrix_to_rotvec(rotvec_to_matrix(r)), r, atol=1e-12)

@@ -18,6 +18,7 @@ from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 from labrig.config import RigConfig
 from labrig.frames import Pose, rotvec_to_matrix
@@ -37,6 +38,23 @@ def distort_normalized(xy: npt.ArrayLike, distortion: tuple[float, ...]) -> Arra
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return np.stack([xd, yd], axis=-1)
+
+
+@njit(cache=True, nogil=True)
+def _camera_points_to_pixels(points, fx, fy, cx, cy, k1, k2, p1, p2, k3, out):  # type: ignore[no-untyped-def]
+    """Camera-frame points (N, 3) -> pixels (N, 2) in ``out``: :func:`distort_normalized` and the intrinsics,
+    operation for operation (no fastmath), in one compiled pass instead of some twenty small array passes."""
+    for n in range(points.shape[0]):
+        z = points[n, 2]
+        x = points[n, 0] / z
+        y = points[n, 1] / z
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        out[n, 0] = fx * xd + cx
+        out[n, 1] = fy * yd + cy
+    return out
 
 
 def undistort_normalized(
@@ -108,9 +126,15 @@ class CameraModel:
         return np.stack([self.fx_px * xyd[..., 0] + self.cx_px, self.fy_px * xyd[..., 1] + self.cy_px], axis=-1)
 
     def project_camera(self, points_cam_mm: npt.ArrayLike) -> Array:
-        """Camera-frame points (N, 3) mm -> pixels (N, 2); points must have z > 0."""
+        """Camera-frame points (N, 3) mm -> pixels (N, 2); points must have z > 0.
+
+        The same numbers as ``normalized_to_pixels(p[..., :2] / p[..., 2:3])``, compiled: the virtual rig
+        projects its markers at every render step."""
         p = np.asarray(points_cam_mm, dtype=np.float64)
-        return self.normalized_to_pixels(p[..., :2] / p[..., 2:3])
+        flat = np.ascontiguousarray(p.reshape(-1, 3))
+        out = np.empty((flat.shape[0], 2))
+        _camera_points_to_pixels(flat, self.fx_px, self.fy_px, self.cx_px, self.cy_px, *self.distortion, out)
+        return out.reshape(*p.shape[:-1], 2)
 
     def project(self, points_mm: npt.ArrayLike, pose: Pose | None = None) -> Array:
         """Points (N, 3) mm in the gel frame (or in the frame ``pose`` maps into the camera) -> pixels (N, 2)."""
