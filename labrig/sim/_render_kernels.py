@@ -410,7 +410,7 @@ def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, is
 @njit(cache=True, nogil=True)
 def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_filtered, last_event, refractory,
                end_minus_start, start_minus_start, hi, lo, count_only, out_pix, out_t):  # type: ignore[no-untyped-def]
-    """Leak events due by ``t1`` of the quiet candidate pixels ``cand`` (EventSensor._quiet_leak's arithmetic).
+    """Leak events due by ``t1`` of the quiet candidate pixels ``cand`` (the leak of labrig.sim.events' model).
 
     A pixel leaks at ``t_start + (C_on + R - Lf) / k``; each leak moves R by C_on and
     refreshes its band (``end_minus_start`` / ``start_minus_start``: the epoch's ends
@@ -544,6 +544,135 @@ def above_box(values, tol):  # type: ignore[no-untyped-def]
     return r0, r1, c0, c1
 
 
+@njit(cache=True, nogil=True)
+def sensor_step(
+    t0, t1, pixels, log_new, old_active, has_block, block_y0, block_x0, block_changed, block_values, eps, width, mark,
+    stamp, log_input, log_filtered, hi, lo, is_active, a, b, c, settle, reference, c_on, c_off, k, leak, t_start,
+    epoch_start, epoch_end, last_event, refractory, c_max, c_min, k_max, leak_candidates, is_candidate, noise_pix,
+    noise_pol, noise_t, noise_last, scratch, dead, has_dead,
+):  # type: ignore[no-untyped-def]
+    """One step of EventSensor after its noise draw and epoch start (EventSensor.step's sequence, in one call).
+
+    The dense block (``has_block``) and the scattered pixels with the unsettled ones
+    (:func:`sensor_block`, :func:`sensor_list`), the new unsettled set, the crossings
+    with their leak candidates, the quiet pixels' leak (:func:`leak_due`,
+    :func:`quiet_leak`), the shot noise kept clear of the other events
+    (:func:`clear_noise`), dead pixels dropped, and the events sorted by (t, pixel,
+    polarity). Returns (pixels, polarities, times, new unsettled set, new leak
+    candidates); the state arrays are updated in place.
+    """
+    dt = t1 - t0
+    size = log_input.size
+    # Low-pass updates: the block, then the scattered and unsettled pixels outside it.
+    n_block = block_changed.size if has_block else 0
+    b_who, b_before, b_after = np.empty(n_block, np.int64), np.empty(n_block), np.empty(n_block)
+    b_active = np.empty(n_block, np.int64)
+    n_bw, n_ba = 0, 0
+    ry0, ry1, rx0, rx1 = 0, 0, 0, 0
+    if has_block:
+        n_bw, n_ba = sensor_block(block_y0, block_x0, width, block_changed, block_values, eps, log_input, log_filtered,
+                                  hi, lo, is_active, a, b, c, settle, b_who, b_before, b_after, b_active)
+        h, w = block_changed.shape
+        ry0, ry1, rx0, rx1 = block_y0, block_y0 + h, block_x0, block_x0 + w
+    n_list = pixels.size + old_active.size
+    l_who, l_before, l_after = np.empty(n_list, np.int64), np.empty(n_list), np.empty(n_list)
+    l_active = np.empty(n_list, np.int64)
+    n_lw, n_la = 0, 0
+    if n_list:
+        n_lw, n_la = sensor_list(pixels, log_new, old_active, (ry0, ry1, rx0, rx1), width, mark, stamp, log_input,
+                                 log_filtered, hi, lo, a, b, c, settle, l_who, l_before, l_after, l_active)
+    for i in range(old_active.size):
+        is_active[old_active[i]] = False
+    active = np.empty(n_ba + n_la, np.int64)
+    active[:n_ba] = b_active[:n_ba]
+    active[n_ba:] = l_active[:n_la]
+    for i in range(active.size):
+        is_active[active[i]] = True
+    # Threshold crossings. Room for every event: D starts within about one threshold of 0, so a pixel crosses at
+    # most (|y1 - y0| + 2 C_max + k dt) / C_min times, and its refractory period keeps at most dt / r + 2.
+    n_who = n_bw + n_lw
+    who, y0, y1 = np.empty(n_who, np.int64), np.empty(n_who), np.empty(n_who)
+    who[:n_bw], y0[:n_bw], y1[:n_bw] = b_who[:n_bw], b_before[:n_bw], b_after[:n_bw]
+    who[n_bw:], y0[n_bw:], y1[n_bw:] = l_who[:n_lw], l_before[:n_lw], l_after[:n_lw]
+    room = 2 * n_who
+    spread = 2 * c_max + k_max * dt
+    bound_sum = 0.0
+    for i in range(n_who):
+        bound = (abs(y1[i] - y0[i]) + spread) / c_min
+        if refractory:
+            bound = min(bound, dt // refractory + 2)
+        bound_sum += bound
+    room += int(bound_sum) + 1
+    sig_pix, sig_pol, sig_t = np.empty(room, np.int64), np.empty(room, np.uint8), np.empty(room, np.int64)
+    found = np.empty(n_who, np.int64)
+    n_sig, n_found = 0, 0
+    if n_who:
+        n_sig, n_found = crossings(t0, t1, who, y0, y1, reference, c_on, c_off, k, leak, t_start, epoch_start, epoch_end,
+                                   hi, lo, last_event, refractory, sig_pix, sig_pol, sig_t, found)
+    candidates = leak_candidates
+    if leak and n_found:  # new candidates, once each, in increasing pixel order
+        fresh = np.empty(n_found, np.int64)
+        n_fresh = 0
+        for i in range(n_found):
+            if not is_candidate[found[i]]:
+                fresh[n_fresh] = found[i]
+                n_fresh += 1
+        if n_fresh:
+            fresh = np.unique(fresh[:n_fresh])
+            for i in range(fresh.size):
+                is_candidate[fresh[i]] = True
+            candidates = np.concatenate((candidates, fresh))
+    # The quiet pixels' leak.
+    n_leak = 0
+    leak_pix, leak_t = np.empty(0, np.int64), np.empty(0, np.int64)
+    if leak and candidates.size:
+        due, kept = np.empty(candidates.size, np.int64), np.empty(candidates.size, np.int64)
+        n_due, n_kept = leak_due(candidates, t_start, t1, c_on, k, reference, log_filtered, hi, is_candidate, due, kept)
+        if n_kept < candidates.size:
+            candidates = kept[:n_kept]
+        if n_due:
+            end_minus_start, start_minus_start = epoch_end - t_start, epoch_start - t_start
+            count = quiet_leak(due[:n_due], t_start, t1, c_on, c_off, k, reference, log_filtered, last_event, refractory,
+                               end_minus_start, start_minus_start, hi, lo, True, leak_pix, leak_t)
+            if count:
+                leak_pix, leak_t = np.empty(count, np.int64), np.empty(count, np.int64)
+                n_leak = quiet_leak(due[:n_due], t_start, t1, c_on, c_off, k, reference, log_filtered, last_event,
+                                    refractory, end_minus_start, start_minus_start, hi, lo, False, leak_pix, leak_t)
+    # Signal and leak, then the shot noise that keeps clear of them.
+    n_other = n_sig + n_leak
+    other_pix, other_t = np.empty(n_other, np.int64), np.empty(n_other, np.int64)
+    other_pix[:n_sig], other_t[:n_sig] = sig_pix[:n_sig], sig_t[:n_sig]
+    other_pix[n_sig:], other_t[n_sig:] = leak_pix[:n_leak], leak_t[:n_leak]
+    keep = np.ones(noise_pix.size, np.bool_)
+    if noise_pix.size and refractory > 0:
+        clear_noise(other_pix, other_t, noise_pix, noise_t, noise_last, refractory, scratch, keep)
+        for j in range(noise_pix.size):
+            if keep[j] and noise_t[j] > last_event[noise_pix[j]]:
+                last_event[noise_pix[j]] = noise_t[j]
+    n_all = n_other + np.count_nonzero(keep)
+    out_pix, out_pol, out_t = np.empty(n_all, np.int64), np.empty(n_all, np.uint8), np.empty(n_all, np.int64)
+    n = 0
+    for i in range(n_sig):
+        if not (has_dead and dead[sig_pix[i]]):
+            out_pix[n], out_pol[n], out_t[n] = sig_pix[i], sig_pol[i], sig_t[i]
+            n += 1
+    for i in range(n_leak):
+        if not (has_dead and dead[leak_pix[i]]):
+            out_pix[n], out_pol[n], out_t[n] = leak_pix[i], 1, leak_t[i]
+            n += 1
+    for j in range(noise_pix.size):
+        if keep[j] and not (has_dead and dead[noise_pix[j]]):
+            out_pix[n], out_pol[n], out_t[n] = noise_pix[j], noise_pol[j], noise_t[j]
+            n += 1
+    out_pix, out_pol, out_t = out_pix[:n], out_pol[:n], out_t[:n]
+    # Sorted by (t, pixel, polarity) through one int64 key; equal keys are identical events.
+    key = np.empty(n, np.int64)
+    for i in range(n):
+        key[i] = ((out_t[i] - t0) * size + out_pix[i]) * 2 + out_pol[i]
+    order = np.argsort(key)
+    return out_pix[order], out_pol[order], out_t[order], active, candidates
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
@@ -576,5 +705,12 @@ def warm_up() -> None:
                  np.zeros(1, i8), np.zeros(1))
     clear_noise(np.zeros(1, i8), np.zeros(1, i8), np.ones(1, i8), np.ones(1, i8), np.zeros(1, i8), 300, np.zeros(4, i8),
                 np.zeros(1, np.bool_))
+    for has_block in (False, True):
+        sensor_step(0, 10, np.zeros(1, i8), np.zeros(1), np.zeros(1, i8), has_block, 0, 0, np.ones((1, 1), np.bool_),
+                    np.zeros((1, 1)), 1e-3, 2, np.zeros(4, i8), 1, np.zeros(4), np.zeros(4), np.ones(4), -np.ones(4),
+                    np.zeros(4, np.bool_), 0.5, 0.25, 0.25, 1e-4, np.zeros(4), 0.2 * np.ones(4), 0.2 * np.ones(4),
+                    1e-9 * np.ones(4), True, 0, 0.0, 10.0, np.zeros(4, i8), 300, 0.2, 0.2, 1e-9, np.zeros(1, i8),
+                    np.zeros(4, np.bool_), np.ones(1, i8), np.ones(1, np.uint8), np.ones(1, i8), np.zeros(1, i8),
+                    np.zeros(4, i8), np.zeros(4, np.bool_), has_block)
     slope_magnitude(np.zeros((2, 2)), 1.0, 1.0, np.zeros((2, 2)))
     above_box(np.zeros((2, 2)), 0.5)

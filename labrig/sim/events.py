@@ -61,6 +61,9 @@ Index = npt.NDArray[np.int64]
 
 _NEVER_US = -(2**62)
 _NO_INDEX = np.empty(0, dtype=np.int64)
+_NO_BLOCK = np.zeros((0, 0), dtype=np.bool_)
+_NO_BLOCK_VALUES = np.zeros((0, 0))
+_NO_DEAD = np.zeros(0, dtype=np.bool_)
 
 
 @dataclass(frozen=True)
@@ -225,23 +228,23 @@ class EventSensor:
             raise ValueError(f"step must go forward from the sensor time {self.t_us} us, not {t0_us} -> {t1_us} us")
         pixels = np.asarray(pixel_indices, dtype=np.int64).ravel()
         log_new = np.log(self.params.eps + np.asarray(new_intensity, dtype=np.float64).ravel())
-        noise = self._sample_shot_noise(t0_us, t1_us)
+        noise_pix, noise_pol, noise_t, noise_last = self._sample_shot_noise(t0_us, t1_us)
         self._start_epoch(t0_us, t1_us)
-        signal = self._update(t0_us, t1_us, pixels, log_new, block)
-        leak = self._quiet_leak(t1_us)
-        pix, pol, t = self._merge_noise(
-            np.concatenate([signal[0], leak[0]]),
-            np.concatenate([signal[1], leak[1]]),
-            np.concatenate([signal[2], leak[2]]),
-            noise,
+        p = self.params
+        a, b, c = self._filter(t1_us - t0_us)
+        self._stamp += 1
+        has_block = block is not None
+        pix, pol, t, self._active, self._leak_candidates = _k.sensor_step(
+            t0_us, t1_us, pixels, log_new, self._active, has_block, block.y0 if has_block else 0,
+            block.x0 if has_block else 0, block.changed if has_block else _NO_BLOCK,
+            block.values if has_block else _NO_BLOCK_VALUES, float(p.eps), self.width, self._mark, self._stamp,
+            self.log_input, self.log_filtered, self._hi, self._lo, self._is_active, a, b, c, p.settle_log,
+            self.reference, self.c_on, self.c_off, self._k, p.leak_rate_hz > 0, self._t_start_us,
+            float(self._epoch_start_us), float(self._epoch_end_us), self.last_event_us, self._refractory_us,
+            self._c_max, self._c_min, self._k_max, self._leak_candidates, self._is_candidate, noise_pix, noise_pol,
+            noise_t, noise_last, self._scratch, _NO_DEAD if self.dead is None else self.dead, self.dead is not None,
         )
         self.t_us = t1_us
-        if self.dead is not None:
-            alive = ~self.dead[pix]
-            pix, pol, t = pix[alive], pol[alive], t[alive]
-        # Sort by (t, pixel, polarity) through one int64 key; equal keys are identical events.
-        order = np.argsort(((t - t0_us) * self.size + pix) * 2 + pol)
-        pix, pol, t = pix[order], pol[order], t[order]
         y, x = np.divmod(pix, self.width)
         return make_events(x + self.x0, y + self.y0, pol, t)
 
@@ -255,93 +258,6 @@ class EventSensor:
         decay = float(np.exp(-dt_us * 2 * np.pi * p.cutoff_hz * 1e-6))
         beta = (1 - decay) / (dt_us * 2 * np.pi * p.cutoff_hz * 1e-6)
         return decay, 1 - beta, beta - decay
-
-    def _update(
-        self, t0_us: int, t1_us: int, pixels: Index, log_new: Array, block: PixelBlock | None
-    ) -> tuple[Index, npt.NDArray[np.uint8], Index]:
-        """Advance the given, the block's and the unsettled pixels; return their events (pixel, polarity, t)."""
-        coef = self._filter(t1_us - t0_us)
-        settle = self.params.settle_log
-        old_active = self._active
-        who, y0s, y1s, active = [], [], [], []
-        if block is not None:
-            dense = self._update_block(block, coef, settle)
-            who.append(dense[0])
-            y0s.append(dense[1])
-            y1s.append(dense[2])
-            active.append(dense[3])
-        if pixels.size or old_active.size:  # the given pixels, then unsettled ones that got no new input
-            rect = (0, 0, 0, 0)
-            if block is not None:  # those inside were updated in the block
-                rows, cols = block.slices()
-                rect = (rows.start, rows.stop, cols.start, cols.stop)
-            self._stamp += 1
-            n = pixels.size + old_active.size
-            buffers = np.empty(n, np.int64), np.empty(n), np.empty(n), np.empty(n, np.int64)
-            a, b, c = coef
-            n_who, n_active = _k.sensor_list(
-                pixels, log_new, old_active, rect, self.width, self._mark, self._stamp, self.log_input,
-                self.log_filtered, self._hi, self._lo, a, b, c, settle, *buffers,
-            )
-            who.append(buffers[0][:n_who])
-            y0s.append(buffers[1][:n_who])
-            y1s.append(buffers[2][:n_who])
-            active.append(buffers[3][:n_active])
-        self._is_active[self._active] = False
-        self._active = np.concatenate(active) if active else np.empty(0, dtype=np.int64)
-        self._is_active[self._active] = True
-        if not who:
-            return np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64)
-        return self._crossings(t0_us, t1_us, np.concatenate(who), np.concatenate(y0s), np.concatenate(y1s))
-
-    def _update_block(
-        self, block: PixelBlock, coef: tuple[float, float, float], settle: float
-    ) -> tuple[Index, Array, Array, Index]:
-        """Dense update of a block's changed pixels and of the unsettled pixels inside it.
-
-        Returns the pixels that may cross a threshold (flat), their filtered log
-        intensity before and after, and the block's pixels left unsettled (flat),
-        all in row-major order. One fused pass over the block (:mod:`._render_kernels`), which takes the
-        log of the changed pixels only: the block's values are the window's values over the whole rectangle,
-        so for its unchanged pixels the new log intensity is exactly the stored one.
-        """
-        n = block.changed.size
-        who, active = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-        before, after = np.empty(n), np.empty(n)
-        a, b, c = coef
-        n_who, n_active = _k.sensor_block(
-            block.y0, block.x0, self.width, block.changed, block.values, float(self.params.eps), self.log_input,
-            self.log_filtered, self._hi, self._lo, self._is_active, a, b, c, settle, who, before, after, active,
-        )
-        return who[:n_who], before[:n_who], after[:n_who], active[:n_active]
-
-    def _crossings(self, t0_us: int, t1_us: int, who: Index, y0: Array, y1: Array) -> tuple[Index, npt.NDArray[np.uint8], Index]:
-        """Threshold crossings of pixels whose filtered log intensity went y0 -> y1 over the step (already stored).
-
-        One compiled loop (:func:`._render_kernels.crossings`); the count of crossings
-        per pixel is bounded by |D| / C, which sizes the output.
-        """
-        if who.size == 0:
-            return np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64)
-        p = self.params
-        dt_us = t1_us - t0_us
-        # Room for every event: D starts within about one threshold of 0, so a pixel crosses at most
-        # (|y1 - y0| + 2 C_max + k dt) / C_min times, and its refractory period keeps at most dt / r + 2.
-        bound = np.abs(y1 - y0)
-        bound += 2 * self._c_max + self._k_max * dt_us
-        bound /= self._c_min
-        if self._refractory_us:
-            np.minimum(bound, dt_us // self._refractory_us + 2, out=bound)
-        room = int(bound.sum()) + 2 * who.size
-        pix, pol, t = np.empty(room, np.int64), np.empty(room, np.uint8), np.empty(room, np.int64)
-        candidates = np.empty(who.size, np.int64)
-        n, m = _k.crossings(
-            t0_us, t1_us, who, y0, y1, self.reference, self.c_on, self.c_off, self._k, p.leak_rate_hz > 0,
-            self._t_start_us, float(self._epoch_start_us), float(self._epoch_end_us), self._hi, self._lo,
-            self.last_event_us, self._refractory_us, pix, pol, t, candidates,
-        )
-        self._add_leak_candidates(candidates[:m])
-        return pix[:n], pol[:n], t[:n]
 
     # -- no-crossing band and leak of quiet pixels --------------------------------------------------
 
@@ -358,9 +274,8 @@ class EventSensor:
                            self._c_on_margin, self._c_off_margin, self.reference, self.log_filtered, self._hi, self._lo,
                            leak, candidates)
         self._is_candidate[self._leak_candidates] = False
-        self._leak_candidates = np.empty(0, dtype=np.int64)
-        if leak:
-            self._add_leak_candidates(candidates[:m].copy())
+        self._leak_candidates = candidates[:m].copy()  # increasing, once each (an empty list without leak)
+        self._is_candidate[self._leak_candidates] = True
 
     def _set_band(self, who: Index | slice, c_on: Array | None = None, c_off: Array | None = None) -> None:
         """Band of Lf with no crossing anywhere in the epoch: D = Lf - R + k (t - t_start) stays in (-C_off, C_on).
@@ -375,42 +290,6 @@ class EventSensor:
         self._hi[who] = r + c_on - k * (self._epoch_end_us - self._t_start_us) - 1e-9
         self._lo[who] = r - c_off - k * (self._epoch_start_us - self._t_start_us) + 1e-9
 
-    def _add_leak_candidates(self, who: Index) -> None:
-        if self.params.leak_rate_hz <= 0 or who.size == 0:
-            return
-        new = who[~self._is_candidate[who]]
-        if new.size:
-            new = np.unique(new)
-            self._is_candidate[new] = True
-            self._leak_candidates = np.concatenate([self._leak_candidates, new])
-
-    def _quiet_leak(self, t1_us: int) -> tuple[Index, npt.NDArray[np.uint8], Index]:
-        """ON leak events of pixels whose next leak time is <= t1_us (pixels updated this step are past theirs)."""
-        p = self.params
-        empty = (np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.int64))
-        if p.leak_rate_hz <= 0 or self._leak_candidates.size == 0:
-            return empty
-        # Compiled passes (:mod:`._render_kernels`): the candidates due (those that fell below their band since
-        # they became candidates cannot leak in this epoch and are dropped), then a counting pass over the due
-        # ones sizes the output of the pass that leaks them.
-        cand = self._leak_candidates
-        due_buffer, kept = np.empty(cand.size, np.int64), np.empty(cand.size, np.int64)
-        n_due, n_kept = _k.leak_due(cand, self._t_start_us, t1_us, self.c_on, self._k, self.reference,
-                                    self.log_filtered, self._hi, self._is_candidate, due_buffer, kept)
-        if n_kept < cand.size:
-            self._leak_candidates = kept[:n_kept]
-        if n_due == 0:
-            return empty
-        args = (due_buffer[:n_due], self._t_start_us, t1_us, self.c_on, self.c_off, self._k, self.reference,
-                self.log_filtered, self.last_event_us, self._refractory_us, self._epoch_end_us - self._t_start_us,
-                self._epoch_start_us - self._t_start_us, self._hi, self._lo)
-        due = _k.quiet_leak(*args, True, _NO_INDEX, _NO_INDEX)
-        if due == 0:
-            return empty
-        pix, t = np.empty(due, np.int64), np.empty(due, np.int64)
-        n = _k.quiet_leak(*args, False, pix, t)
-        return pix[:n], np.ones(n, dtype=np.uint8), t[:n]
-
     # -- shot noise --------------------------------------------------------------------------------
 
     def _sample_shot_noise(self, t0_us: int, t1_us: int) -> tuple[Index, npt.NDArray[np.uint8], Index, Index]:
@@ -421,18 +300,3 @@ class EventSensor:
         pol = self.rng.integers(0, 2, n).astype(np.uint8)
         t = t0_us + np.floor(self.rng.random(n) * (t1_us - t0_us)).astype(np.int64)
         return pix, pol, t, self.last_event_us[pix].copy()
-
-    def _merge_noise(
-        self, pix: Index, pol: npt.NDArray[np.uint8], t: Index, noise: tuple[Index, npt.NDArray[np.uint8], Index, Index]
-    ) -> tuple[Index, npt.NDArray[np.uint8], Index]:
-        """Add the shot-noise events that keep clear of every other event of their pixel by the refractory period."""
-        n_pix, n_pol, n_t, n_last = noise
-        if n_pix.size == 0:
-            return pix, pol, t
-        r = self._refractory_us
-        if r > 0:  # one compiled pass (:func:`._render_kernels.clear_noise`)
-            keep = np.empty(n_pix.size, dtype=bool)
-            _k.clear_noise(pix, t, n_pix, n_t, n_last, r, self._scratch, keep)
-            n_pix, n_pol, n_t = n_pix[keep], n_pol[keep], n_t[keep]
-            np.maximum.at(self.last_event_us, n_pix, n_t)
-        return np.concatenate([pix, n_pix]), np.concatenate([pol, n_pol]), np.concatenate([t, n_t])
