@@ -557,9 +557,9 @@ def sensor_step(
     (:func:`sensor_block`, :func:`sensor_list`), the new unsettled set, the crossings
     with their leak candidates, the quiet pixels' leak (:func:`leak_due`,
     :func:`quiet_leak`), the shot noise kept clear of the other events
-    (:func:`clear_noise`), dead pixels dropped, and the events sorted by (t, pixel,
-    polarity). Returns (pixels, polarities, times, new unsettled set, new leak
-    candidates); the state arrays are updated in place.
+    (:func:`clear_noise`) and dead pixels dropped. Returns the events (pixels,
+    polarities, times, and their sort key by (t, pixel, polarity)), the new
+    unsettled set and the new leak candidates; the state arrays are updated in place.
     """
     dt = t1 - t0
     size = log_input.size
@@ -664,13 +664,12 @@ def sensor_step(
         if keep[j] and not (has_dead and dead[noise_pix[j]]):
             out_pix[n], out_pol[n], out_t[n] = noise_pix[j], noise_pol[j], noise_t[j]
             n += 1
-    out_pix, out_pol, out_t = out_pix[:n], out_pol[:n], out_t[:n]
-    # Sorted by (t, pixel, polarity) through one int64 key; equal keys are identical events.
+    # The sort key, (t, pixel, polarity) in one int64 (equal keys are identical events); numpy's argsort, vectorised,
+    # sorts it faster than a compiled loop.
     key = np.empty(n, np.int64)
     for i in range(n):
         key[i] = ((out_t[i] - t0) * size + out_pix[i]) * 2 + out_pol[i]
-    order = np.argsort(key)
-    return out_pix[order], out_pol[order], out_t[order], active, candidates
+    return out_pix[:n], out_pol[:n], out_t[:n], key, active, candidates
 
 
 def warm_up() -> None:

@@ -234,7 +234,7 @@ class EventSensor:
         a, b, c = self._filter(t1_us - t0_us)
         self._stamp += 1
         has_block = block is not None
-        pix, pol, t, self._active, self._leak_candidates = _k.sensor_step(
+        pix, pol, t, key, self._active, self._leak_candidates = _k.sensor_step(
             t0_us, t1_us, pixels, log_new, self._active, has_block, block.y0 if has_block else 0,
             block.x0 if has_block else 0, block.changed if has_block else _NO_BLOCK,
             block.values if has_block else _NO_BLOCK_VALUES, float(p.eps), self.width, self._mark, self._stamp,
@@ -245,6 +245,8 @@ class EventSensor:
             noise_t, noise_last, self._scratch, _NO_DEAD if self.dead is None else self.dead, self.dead is not None,
         )
         self.t_us = t1_us
+        order = np.argsort(key)
+        pix, pol, t = pix[order], pol[order], t[order]
         y, x = np.divmod(pix, self.width)
         return make_events(x + self.x0, y + self.y0, pol, t)
 
