@@ -622,7 +622,8 @@ def sensor_step(
             for i in range(fresh.size):
                 is_candidate[fresh[i]] = True
             candidates = np.concatenate((candidates, fresh))
-    # The quiet pixels' leak.
+    # The quiet pixels' leak: the candidates due (those that fell below their band since they became candidates
+    # cannot leak in this epoch and leave), then a counting pass sizes the output of the pass that leaks them.
     n_leak = 0
     leak_pix, leak_t = np.empty(0, np.int64), np.empty(0, np.int64)
     if leak and candidates.size:

@@ -60,7 +60,6 @@ Index = npt.NDArray[np.int64]
 #: One CD event: sensor pixel x, y; polarity p (1 ON, 0 OFF); time t (us).
 
 _NEVER_US = -(2**62)
-_NO_INDEX = np.empty(0, dtype=np.int64)
 _NO_BLOCK = np.zeros((0, 0), dtype=np.bool_)
 _NO_BLOCK_VALUES = np.zeros((0, 0))
 _NO_DEAD = np.zeros(0, dtype=np.bool_)

@@ -37,10 +37,6 @@ class PixelBlock:
     def shape(self) -> tuple[int, int]:
         return self.changed.shape  # type: ignore[return-value]
 
-    def slices(self) -> tuple[slice, slice]:
-        h, w = self.changed.shape
-        return slice(self.y0, self.y0 + h), slice(self.x0, self.x0 + w)
-
     def flat_indices(self, width: int) -> Index:
         """Row-major indices, in a window ``width`` pixels wide, of the changed pixels."""
         rows, cols = np.divmod(np.flatnonzero(self.changed), self.changed.shape[1])
