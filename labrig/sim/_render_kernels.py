@@ -234,6 +234,105 @@ def rim_change(
 
 
 @njit(cache=True, nogil=True)
+def moved_markers(centres, axes, old_centres, old_axes, min_move):  # type: ignore[no-untyped-def]
+    """Indices of the markers whose image centre (K, 2) or axes (K, 2, 2) moved by more than ``min_move`` px
+    (the largest absolute change of any coordinate), increasing."""
+    out = np.empty(centres.shape[0], np.int64)
+    n = 0
+    for k in range(centres.shape[0]):
+        shift = max(abs(centres[k, 0] - old_centres[k, 0]), abs(centres[k, 1] - old_centres[k, 1]))
+        for i in range(2):
+            for j in range(2):
+                shift = max(shift, abs(axes[k, i, j] - old_axes[k, i, j]))
+        if shift > min_move:
+            out[n] = k
+            n += 1
+    return out[:n]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rim_moves(
+    moved, c1, aat, half, edge, inked, centres, axes_new, axes, origins, inner, outer, patches, pad, roi_x0, roi_y0,
+    ch, cw, cov,
+):  # type: ignore[no-untyped-def]
+    """Renderer._move_markers for the moved markers that stay within their rims, in one call.
+
+    ``moved`` (M,): the markers; ``c1`` (M, 2) their new centres; ``aat`` (M, 2, 2) A A^T of their new axes
+    (numpy's product, as :func:`labrig.sim.discs.rim_radii` and :func:`~labrig.sim.discs.inverse_shape` take
+    it). Per marker, as those and :func:`labrig.sim.discs.patch_origins`: the new rim radii, the candidate
+    annulus (the old rims widened by the move, 0.05 px margins), the new patch origin; a marker whose annulus
+    stays inside its patch (and every marker only when not ``inked``) takes :func:`rim_change` (its coverage
+    change added to ``cov``) and its stored state (``centres``, ``axes`` from ``axes_new``, ``origins``,
+    ``inner``, ``outer``) is updated. Returns the changed canvas pixels and whether each moved marker took
+    that path (the others are left to the caller, state untouched); also their new origins and radii.
+    """
+    m = moved.size
+    inner1, outer1, low, high = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    o1 = np.empty((m, 2), np.int64)
+    rim = np.zeros(m, np.bool_)
+    n_rim = 0
+    high_max = -np.inf
+    for i in range(m):
+        k = moved[i]
+        a00, a01, a11 = aat[i, 0, 0], aat[i, 0, 1], aat[i, 1, 1]
+        mean = (a00 + a11) / 2
+        half_diff = (a00 - a11) / 2
+        spread = np.sqrt(half_diff * half_diff + a01 * a01)
+        s1 = np.sqrt(mean + spread)
+        s2 = np.sqrt(max(mean - spread, 1e-300))
+        ratio = s1 / s2
+        inner1[i] = s2 - edge / 2 * s1 / s2
+        outer1[i] = s1 + edge / 2 * (ratio * ratio)
+        move = np.hypot(c1[i, 0] - centres[k, 0], c1[i, 1] - centres[k, 1])
+        low[i] = max(min(inner[k] - move, inner1[i]) - 0.05, 0.0)
+        high[i] = max(outer[k] + move, outer1[i]) + 0.05
+        o1[i, 0] = np.int64(np.floor(c1[i, 0])) - half + 1
+        o1[i, 1] = np.int64(np.floor(c1[i, 1])) - half + 1
+        if not inked and high[i] <= half - 1:
+            rim[i] = True
+            n_rim += 1
+            high_max = max(high_max, high[i])
+    if n_rim == 0:
+        return np.empty(0, np.int64), rim, o1, inner1, outer1
+    side = 2 * half
+    reach = min(int(np.ceil(high_max)), half - 1)
+    span0, span1 = half - 1 - reach, half + reach + 1
+    markers = np.empty(n_rim, np.int64)
+    rc1, ro1, ro0 = np.empty((n_rim, 2)), np.empty((n_rim, 2), np.int64), np.empty((n_rim, 2), np.int64)
+    qa, qb, qc = np.empty(n_rim), np.empty(n_rim), np.empty(n_rim)
+    rlow, rhigh, corner = np.empty(n_rim), np.empty(n_rim), np.empty(n_rim, np.int64)
+    j = 0
+    for i in range(m):
+        if not rim[i]:
+            continue
+        k = moved[i]
+        markers[j] = k
+        rc1[j, 0], rc1[j, 1] = c1[i, 0], c1[i, 1]
+        ro1[j, 0], ro1[j, 1] = o1[i, 0], o1[i, 1]
+        ro0[j, 0], ro0[j, 1] = origins[k, 0], origins[k, 1]
+        a00, a01, a11 = aat[i, 0, 0], aat[i, 0, 1], aat[i, 1, 1]
+        det = a00 * a11 - a01 * a01
+        qa[j], qb[j], qc[j] = a11 / det, -a01 / det, a00 / det
+        rlow[j], rhigh[j] = low[i], high[i]
+        ox = min(max(o1[i, 0] - roi_x0 + pad, 0), cw - side)
+        oy = min(max(o1[i, 1] - roi_y0 + pad, 0), ch - side)
+        corner[j] = oy * cw + ox
+        j += 1
+    size = n_rim * (span1 - span0) ** 2
+    pixels, delta = np.empty(size, np.int64), np.empty(size)
+    n = rim_change(markers, rc1, ro1, ro0, qa, qb, qc, rlow, rhigh, span0, span1, edge, patches, corner, cw, cov,
+                   pixels, delta)
+    for i in range(m):
+        if rim[i]:
+            k = moved[i]
+            centres[k, 0], centres[k, 1] = c1[i, 0], c1[i, 1]
+            axes[k] = axes_new[i]
+            origins[k, 0], origins[k, 1] = o1[i, 0], o1[i, 1]
+            inner[k], outer[k] = inner1[i], outer1[i]
+    return pixels[:n], rim, o1, inner1, outer1
+
+
+@njit(cache=True, nogil=True)
 def touch_luminance(pixels, scratch, cov, membrane, marker, cov_max, lum, canvas_to_roi, block, width, out):
     """The distinct canvas pixels of ``pixels`` get their luminance ``membrane + clip(cov, 0, cov_max) *
     (marker - membrane)`` (as Renderer._luminance); returns how many of them are ROI pixels outside
@@ -699,6 +798,10 @@ def warm_up() -> None:
     rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
                0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
                np.zeros(16))
+    moved_markers(np.ones((1, 2)), np.ones((1, 2, 2)), np.zeros((1, 2)), np.zeros((1, 2, 2)), 0.002)
+    rim_moves(np.zeros(1, i8), np.full((1, 2), 3.0), np.eye(2)[None].copy(), 4, 1.0, False, np.full((1, 2), 3.0),
+              np.eye(2)[None].copy(), np.eye(2)[None].copy(), np.zeros((1, 2), i8), np.zeros(1), np.ones(1),
+              np.zeros((1, 8, 8)), 8, 0, 0, 24, 24, np.zeros(576))
     touch_luminance(np.zeros(1, i8), np.zeros(1, i8), np.zeros(1), 0.1, 0.9, 1.0, np.zeros(1), np.zeros(1, i8),
                     (0, 0, 0, 0), 1, np.zeros(1, i8))
     compose_list(np.zeros(1, i8), 1, np.zeros(1, i8), np.ones(1), np.ones(1), np.zeros(1), True, 1e-4,

@@ -47,7 +47,7 @@ import numpy.typing as npt
 from labrig.config import RigConfig, Roi
 from labrig.physics.camera import CameraModel
 from labrig.sim import _render_kernels as _k
-from labrig.sim.discs import ellipse_coverage, inverse_shape, patch_half_px, patch_origins, rim_radii
+from labrig.sim.discs import ellipse_coverage, patch_half_px, patch_origins, rim_radii
 from labrig.sim.pixels import PixelBlock
 from labrig.sim.shading import DepthField, GridLookup
 
@@ -275,56 +275,35 @@ class Renderer:
 
     def _move_markers(self, xyz: Array) -> Index:
         """Re-draw the markers that moved; return the canvas pixels whose coverage changed (overlapping markers
-        repeat theirs; their luminance is left to :func:`._render_kernels.touch_luminance`)."""
+        repeat theirs; their luminance is left to :func:`._render_kernels.touch_luminance`).
+
+        Only the rims can change: pixels nearer the centre than the inner rim radius are fully covered and
+        those beyond the outer one empty, before and after. Candidates: an annulus about the new centre
+        holding both rims (the old one widened by the move). Markers whose annulus lies inside the new patch
+        take the compiled rim update (:func:`._render_kernels.rim_moves`, with :func:`._render_kernels.rim_change`:
+        the new coverage evaluated only at the candidates, with the arithmetic of :func:`ellipse_coverage`, so the
+        stored patches stay exactly the full ones); the others (long moves, per-marker contrast) are redrawn whole
+        (:meth:`_coverage_change`)."""
         centres, axes = self._project(xyz)
-        shift = np.maximum(np.abs(centres - self._centres).max(axis=1), np.abs(axes - self._axes_px).max(axis=(1, 2)))
-        moved = np.flatnonzero(shift > self.min_move_px)
+        moved = _k.moved_markers(centres, axes, self._centres, self._axes_px, self.min_move_px)
         if moved.size == 0:
-            return np.empty(0, dtype=np.int64)
-        c0, c1, a1 = self._centres[moved], centres[moved], axes[moved]
-        # Only the rims can change: pixels nearer the centre than the inner rim radius are fully covered and
-        # those beyond the outer one empty, before and after. Candidates: an annulus about the new centre
-        # holding both rims (the old one widened by the move), if it lies inside the new patch.
-        inner1, outer1 = rim_radii(a1, self.edge_px)
-        move = np.hypot(c1[:, 0] - c0[:, 0], c1[:, 1] - c0[:, 1])
-        low = np.maximum(np.minimum(self._inner_px[moved] - move, inner1) - 0.05, 0.0)
-        high = np.maximum(self._outer_px[moved] + move, outer1) + 0.05
-        origins = patch_origins(c1, self.half_px)
-        rim = (high <= self.half_px - 1) if self.ink is None else np.zeros(moved.size, dtype=bool)
-        parts = []
-        if rim.any():  # (adds its change to the coverage)
-            parts.append(self._rim_change(moved[rim], c1[rim], a1[rim], origins[rim], low[rim], high[rim])[0])
+            return moved
+        c1, a1 = centres[moved], axes[moved]
+        aat = a1 @ np.swapaxes(a1, -1, -2)  # numpy's product, as rim_radii and inverse_shape take it
+        ch, cw = self._canvas_shape
+        pixels, rim, origins, inner1, outer1 = _k.rim_moves(
+            moved, c1, aat, self.half_px, float(self.edge_px), self.ink is not None, self._centres, a1, self._axes_px,
+            self._origins, self._inner_px, self._outer_px, self._patches, self._pad, self.roi.x0_px, self.roi.y0_px,
+            ch, cw, self._cov)
         if not rim.all():
             far = ~rim
-            pixels, delta = self._coverage_change(moved[far], c1[far], a1[far], origins[far])
-            np.add.at(self._cov, pixels, delta)
-            parts.append(pixels)
-        pixels = np.concatenate(parts) if len(parts) > 1 else parts[0]
-        self._centres[moved], self._axes_px[moved], self._origins[moved] = c1, a1, origins
-        self._inner_px[moved], self._outer_px[moved] = inner1, outer1
+            markers = moved[far]
+            far_pixels, delta = self._coverage_change(markers, c1[far], a1[far], origins[far])
+            np.add.at(self._cov, far_pixels, delta)
+            pixels = np.concatenate([pixels, far_pixels])
+            self._centres[markers], self._axes_px[markers], self._origins[markers] = c1[far], a1[far], origins[far]
+            self._inner_px[markers], self._outer_px[markers] = inner1[far], outer1[far]
         return pixels
-
-    def _rim_change(
-        self, markers: Index, c1: Array, a1: Array, o1: npt.NDArray[np.int64], low: Array, high: Array
-    ) -> tuple[Index, Array]:
-        """Canvas pixels and coverage change of markers moved within their rims (see :meth:`_move_markers`);
-        the change is already added to the canvas coverage.
-
-        The new coverage is evaluated only at the candidate pixels, with the same
-        arithmetic as :func:`ellipse_coverage`; the stored patches (moved to the
-        new origins) are updated there, so they stay exactly the full patches.
-        One compiled loop over the markers (:func:`._render_kernels.rim_change`).
-        """
-        side = 2 * self.half_px
-        reach = min(int(np.ceil(high.max())), self.half_px - 1)
-        span0, span1 = self.half_px - 1 - reach, self.half_px + reach + 1
-        qa, qb, qc = inverse_shape(a1)
-        size = markers.size * (span1 - span0) ** 2
-        pixels, delta = np.empty(size, dtype=np.int64), np.empty(size)
-        n = _k.rim_change(markers, c1, o1, self._origins[markers], qa, qb, qc, low, high, span0, span1,
-                          float(self.edge_px), self._patches, self._canvas_corner(o1, side), self._canvas_shape[1],
-                          self._cov, pixels, delta)
-        return pixels[:n], delta[:n]
 
     def _coverage_change(self, markers: Index, c1: Array, a1: Array, new_origins: npt.NDArray[np.int64]) -> tuple[Index, Array]:
         """Canvas pixels (may repeat across markers) and the coverage change there, from old to new patches.
