@@ -136,12 +136,15 @@ def test_incremental_render_matches_full_render(rig: RigConfig) -> None:
     assert np.hypot(x - centre[0], y - centre[1]).max() < 9
 
 
-def test_incremental_render_with_per_marker_contrast_matches_full_render(rig: RigConfig) -> None:
-    # Contrast per marker sends every move through the whole-patch redraw, small moves included.
+@pytest.mark.parametrize("contrast", [False, True])
+def test_incremental_render_without_change_filter_is_the_full_render(rig: RigConfig, contrast: bool) -> None:
+    # Small moves take the compiled rim update, large ones the whole-patch redraw; contrast per marker sends
+    # every move through the redraw.
     rest = rig.markers.rest_positions_mm()
     rng = np.random.default_rng(5)
-    renderer = Renderer(rig, marker_contrast=rng.uniform(0.6, 1.3, len(rest)), min_rel_change=0.0)
-    for scale in (0.002, 0.05, 0.002):
+    ink = rng.uniform(0.6, 1.3, len(rest)) if contrast else None
+    renderer = Renderer(rig, marker_contrast=ink, min_rel_change=0.0)
+    for scale in (0.002, 0.003, 0.05, 0.002):
         xyz = rest + rng.normal(0.0, scale, rest.shape) * [1, 1, 0.2]
         renderer.render(xyz)
         assert np.abs(renderer.image - renderer.render_full(xyz)).max() < 1e-12
