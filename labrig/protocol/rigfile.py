@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import tomllib
 from dataclasses import dataclass
 from typing import Any
@@ -88,8 +89,14 @@ def safety_limits(rig: RigConfig) -> SafetyLimits:
     return limits
 
 
+@functools.lru_cache(maxsize=8)
+def _parsed(text: str) -> dict[str, Any]:
+    """A rig file's TOML, parsed once per text (a campaign checks its rig for each of its recordings); read only."""
+    return tomllib.loads(text)
+
+
 def _section(rig: RigConfig, name: str, cls: type) -> dict[str, Any]:
-    table = tomllib.loads(rig.text).get(name, {})
+    table = _parsed(rig.text).get(name, {})
     if not isinstance(table, dict):
         raise ConfigError(f"{rig.path}: [{name}] must be a table")
     fields = {f.name: f for f in dataclasses.fields(cls)}
