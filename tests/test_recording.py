@@ -147,6 +147,51 @@ def test_a_full_queue_is_counted_and_reported(tmp_path: Path) -> None:
         assert set(drops["reason"]) == {b"queue-full"}
 
 
+class _CountingEvent(threading.Event):
+    """An Event that counts its set() calls."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sets = 0
+
+    def set(self) -> None:
+        self.sets += 1
+        super().set()
+
+
+def test_a_writer_that_is_not_woken_by_puts_still_writes_every_row(tmp_path: Path) -> None:
+    # wake_on_put=False (virtual time): puts leave the writer thread to its poll, except when a queue is half
+    # full, and every row still reaches the file.
+    run = SyntheticRun(duration_s=0.5, peak_event_rate_hz=1e5, trigger_period_s=0)
+    path = tmp_path / "polled.h5"
+    writer = RecordingWriter(path, queue_batches=64, wake_on_put=False)
+    writer._wake = wake = _CountingEvent()  # before the thread starts waiting on it
+    writer.open()
+    batches = list(run.ft_batches())
+    for batch in batches[:10]:
+        writer.put("ft", **batch)
+    assert wake.sets == 0  # ten batches: below half of 64, nobody woke the thread
+    gate = threading.Event()
+    original = writer._add_pending
+
+    def held(*args, **kwargs):  # type: ignore[no-untyped-def]
+        gate.wait(5)  # the writer thread stays away from the queues while they fill
+        return original(*args, **kwargs)
+
+    writer._add_pending = held  # type: ignore[method-assign]
+    for i in range(40):
+        writer.put("gcode", t_host_us=i, direction=0, line=b"G0 X0")
+    assert wake.sets >= 1  # the gcode queue reached 32 of 64: the thread was woken
+    gate.set()
+    for batch in batches[10:]:
+        writer.put("ft", **batch)
+    result = writer.close()
+    assert not result.dropped
+    with Recording(path) as rec:
+        assert rec.rows("ft") == sum(len(b["t_host_us"]) for b in batches)
+        assert rec.rows("gcode") == 40
+
+
 def test_writer_refuses_to_overwrite_and_rejects_bad_rows(tmp_path: Path) -> None:
     path = tmp_path / "exists.h5"
     path.write_bytes(b"")

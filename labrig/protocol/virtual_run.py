@@ -138,7 +138,7 @@ class _VirtualRun:
                 "location_mm": list(self.plan.spec.location_mm), "tare_n_nm": list(tare), **extra}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      extra=info)
-        writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S,
+        writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S, wake_on_put=False,
                                  extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))).open()
         self.writer = writer
         result = RunResult(out, EXIT_COMPLETE)

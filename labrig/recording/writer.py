@@ -49,6 +49,8 @@ Columns = dict[str, npt.NDArray[Any]]
 
 #: Chunks of a bulk stream gathered before writing them (at 10 Mev/s: ~26 ms).
 BULK_WRITE_CHUNKS = 8
+#: The writer thread looks at its queues at least this often, s.
+POLL_S = 0.05
 
 #: Files whose close failed after a write failure. HDF5 cannot shut down
 #: cleanly with such a file open (it crashes at interpreter exit), so they are
@@ -166,7 +168,11 @@ class RecordingWriter:
     ``min_free_bytes``: stop cleanly when less than this (plus twice the data
     about to be written) is left on the disk or under the file-size limit;
     ``None`` disables the guard. ``on_commit`` is called from the writer thread
-    with the per-stream row counts after each complete flush.
+    with the per-stream row counts after each complete flush. ``wake_on_put``
+    False: a put does not wake the writer thread, which takes the queued rows
+    every ``POLL_S`` (or at once when a queue is half full); for producers
+    that run ahead of real time (virtual-time recordings), whose thousands of
+    puts would each cost a thread switch, more than the writes themselves.
     All ``t_host_us`` values are in the recording's time base: host
     microseconds since ``t0_host_ns`` (see :mod:`labrig.clock`).
     """
@@ -184,6 +190,7 @@ class RecordingWriter:
         min_free_bytes: int | None = 64 << 20,
         overwrite: bool = False,
         on_commit: Callable[[dict[str, int]], None] | None = None,
+        wake_on_put: bool = True,
     ) -> None:
         self.path = Path(path)
         self.partial = partial_path(self.path)
@@ -193,6 +200,8 @@ class RecordingWriter:
         codec_kwargs(bulk_codec)  # fail early on an unknown codec
         self.specs = {s.name: s for s in schema.CORE_STREAMS + tuple(extra_streams)}
         self.flush_interval_s = flush_interval_s
+        self.wake_on_put = wake_on_put
+        self._wake_rows = max(1, queue_batches // 2)
         self.min_free_bytes = min_free_bytes
         self.on_commit = on_commit
         self.overwrite = overwrite
@@ -360,12 +369,14 @@ class RecordingWriter:
         if self._stop.is_set() or self._fault_reason:
             self._count_drop(stream, n_rows, "stopped" if not self._fault_reason else "disk-full")
             return False
+        q = self._queues[stream]
         try:
-            self._queues[stream].put_nowait(batch)
+            q.put_nowait(batch)
         except queue.Full:
             self._count_drop(stream, n_rows, "queue-full")
             return False
-        self._wake.set()
+        if self.wake_on_put or q.qsize() >= self._wake_rows:
+            self._wake.set()
         return True
 
     def _count_drop(self, stream: str, rows: int, reason: str) -> None:
@@ -382,7 +393,7 @@ class RecordingWriter:
         try:
             while True:
                 stopping = self._stop.is_set()
-                self._wake.wait(timeout=max(0.0, min(0.05, next_flush - time.monotonic())))
+                self._wake.wait(timeout=max(0.0, min(POLL_S, next_flush - time.monotonic())))
                 self._wake.clear()
                 for name, q in self._queues.items():
                     # Take only what is queued now (round robin, so a busy camera
