@@ -371,3 +371,27 @@ def test_convolver_is_rfft2_and_irfft2_bit_for_bit(dtype: type, components: int)
             got = conv(traction)
             assert got.dtype == expected.dtype
             assert np.array_equal(got, expected)
+
+
+def test_compiled_masked_rotation_is_numpys_bit_for_bit() -> None:
+    # The traction's utilisation is rotated at every solve by a compiled pass; it must give numpy's numbers
+    # (weights renormalised over the valid taps, taps summed in order, rotation in float64).
+    from labrig.physics.mechanics.rotation import _sampler, rotate_vector_field
+
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        n = int(rng.choice([5, 21, 61, 93]))
+        yy, xx = np.mgrid[:n, :n] - n // 2
+        valid = (xx**2 + yy**2) < (rng.uniform(0.2, 0.6) * n) ** 2
+        field = (rng.standard_normal((2, n, n)) * valid).astype(np.float32)
+        angle = float(rng.uniform(-np.pi, np.pi))
+        index, weight = _sampler(n, round(angle, 12))
+        masked = weight * valid.ravel()[index]
+        total = masked.sum(axis=0)
+        weight = (masked / np.where(total > 0, total, 1)).astype(np.float32)
+        sampled = np.einsum("kn,ckn->cn", weight, field.reshape(2, -1)[:, index]).reshape(field.shape)
+        c, s = np.cos(angle), np.sin(angle)
+        expected = np.stack([c * sampled[0] - s * sampled[1], s * sampled[0] + c * sampled[1]]).astype(np.float32)
+        got = rotate_vector_field(field, angle, valid=valid)
+        assert got.dtype == np.float32
+        assert np.array_equal(got, expected)
