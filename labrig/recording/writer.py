@@ -201,7 +201,7 @@ class RecordingWriter:
         self.specs = {s.name: s for s in schema.CORE_STREAMS + tuple(extra_streams)}
         self.flush_interval_s = flush_interval_s
         self.wake_on_put = wake_on_put
-        self._wake_rows = max(1, queue_batches // 2)
+        self._wake_batches = max(1, queue_batches // 2)
         self.min_free_bytes = min_free_bytes
         self.on_commit = on_commit
         self.overwrite = overwrite
@@ -375,7 +375,7 @@ class RecordingWriter:
         except queue.Full:
             self._count_drop(stream, n_rows, "queue-full")
             return False
-        if self.wake_on_put or q.qsize() >= self._wake_rows:
+        if self.wake_on_put or q.qsize() >= self._wake_batches:
             self._wake.set()
         return True
 
