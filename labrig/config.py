@@ -44,6 +44,8 @@ from labrig.errors import ConfigError
 __all__ = ["ConfigError", "SimCameraDelivery", "SimFt", "SimGrbl", "SimMarkers"]
 
 DEFAULT_RIG = Path(__file__).resolve().parent.parent / "calibration" / "rig.toml"
+#: The default rig's calibration folder (gel, camera, rig registration), wherever the command runs from.
+DEFAULT_CALIBRATION_DIR = str(DEFAULT_RIG.parent)
 
 
 @dataclass(frozen=True)

@@ -91,7 +91,8 @@ def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
              ([str(campaign), "--window-events", "100", "--window-ms", "10"], "not both"),
              ([str(campaign), "--model", str(tmp_path / "x.onnx")], "no such file"),
              ([str(campaign), "--trackers", "paper,kalman"], "--trackers: kalman"),
-             ([str(campaign), "--trackers", ","], "--trackers: none given")]
+             ([str(campaign), "--trackers", ","], "--trackers: none given"),
+             ([str(campaign), "--calibration", str(tmp_path / "no-calibration")], "--calibration"),]
     bare = tmp_path / "bare"
     shutil.copytree(campaign, bare)
     for side in bare.glob("*.gt.h5"):

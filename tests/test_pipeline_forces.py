@@ -144,3 +144,18 @@ def test_full_pipeline_matches_the_sims_net_force_mid_hold(rig: RigConfig, recor
         assert np.abs(r.forces_n - f_true).mean(axis=0).max() < 0.02  # N per marker
         assert np.hypot(*r.contact_mm) < 0.3  # the contact is at the gel's centre
     assert abs(r.net_force_n[0] / net_true[0] - 1) < 0.15  # shear, with the tracker's lag
+
+
+def test_the_default_calibration_does_not_depend_on_the_working_folder(rig: RigConfig, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    # A relative "calibration" folder once made `labrig evaluate` run from elsewhere fall back, silently, to a
+    # linear gel and the nominal camera (the normal force 25 % low on deep presses).
+    from labrig.config import DEFAULT_CALIBRATION_DIR
+
+    monkeypatch.chdir(tmp_path)
+    setup = run_setup.setup_for_rig(rig)
+    gel_toml = str(Path(DEFAULT_CALIBRATION_DIR) / "gel.toml")
+    assert setup.sources["stiffening"] == gel_toml
+    assert setup.sources["modulus"] == gel_toml
+    assert setup.stiffening > 0
+    assert "extrinsics.toml" in setup.sources["camera"]

@@ -33,9 +33,25 @@ JsonOption = Annotated[bool, typer.Option("--json", help="Print the summary as J
 JsonResultOption = Annotated[bool, typer.Option("--json", help="Print the result as JSON (stable keys, units in names).")]
 RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: calibration/rig.toml).")]
 IndentersOption = Annotated[Path | None, typer.Option("--indenters", help="Indenter TOML (default: protocols/indenters.toml).")]
+CalibrationOption = Annotated[Path | None, typer.Option(
+    "--calibration", help="Calibration folder: gel.toml, intrinsics.toml, extrinsics.toml, rig-registration.toml "
+    "(default: the folder of labrig's default rig, wherever the command runs from).")]
 WindowMsOption = Annotated[float | None, typer.Option(
     help="Fixed-time windows, ms (default 10; live: the network's trained window).")]
 WindowEventsOption = Annotated[int | None, typer.Option(help="Fixed-count windows (the paper's evaluation: 20000).")]
+
+
+def calibration_folder(calibration: Path | None) -> Path:
+    """``--calibration``, checked (one clear line if it is not a folder), or the default rig's folder."""
+    from labrig.config import DEFAULT_CALIBRATION_DIR
+    from labrig.errors import LabrigError
+
+    if calibration is None:
+        return Path(DEFAULT_CALIBRATION_DIR)
+    if not calibration.is_dir():
+        raise LabrigError(f"--calibration {calibration}: not a folder; pass the folder holding the rig's gel.toml, "
+                          "intrinsics.toml and extrinsics.toml")
+    return calibration
 
 
 def json_default(value: Any) -> Any:

@@ -13,7 +13,7 @@ import typer
 from rich.markup import escape
 from rich.progress import MofNCompleteColumn, TaskID, TimeElapsedColumn
 
-from labrig.cli.console import JsonOption, console, err_console, print_json, progress_bar
+from labrig.cli.console import CalibrationOption, JsonOption, calibration_folder, console, err_console, print_json, progress_bar
 
 
 def evaluate_command(
@@ -28,8 +28,7 @@ def evaluate_command(
     window_events: Annotated[int | None, typer.Option(help="Events per evaluation window (default 20000, the paper's).")
                              ] = None,
     window_ms: Annotated[float | None, typer.Option(help="Fixed-time evaluation windows (ms) instead.")] = None,
-    calibration: Annotated[Path, typer.Option(help="Calibration folder (gel, camera, rig registration).")] = Path(
-        "calibration"),
+    calibration: CalibrationOption = None,
     workers: Annotated[int | None, typer.Option(help="Local processes (default: one per core; 1: in this process).")
                        ] = None,
     scheduler: Annotated[str | None, typer.Option(help="A Dask scheduler address (tcp://host:8786) to run the tasks on.")
@@ -58,7 +57,7 @@ def evaluate_command(
     settings = EvaluationSettings(
         data=data, split=split, model=model, models_dir=models,
         window_events=window_events if window_events is not None or window_ms is not None else 20_000,
-        window_ms=window_ms, calibration_dir=calibration, workers=workers, scheduler=scheduler, cache_dir=cache,
+        window_ms=window_ms, calibration_dir=calibration_folder(calibration), workers=workers, scheduler=scheduler, cache_dir=cache,
         use_cache=not no_cache, table1=table1, trackers=tuple(t.strip() for t in trackers.split(",") if t.strip()),
         sweep=sweep, sweep_recordings=sweep_recordings or None,
         stress=stress, stress_grid=stress_grid)

@@ -15,7 +15,7 @@ from typing import Annotated
 
 import typer
 
-from labrig.cli.console import JsonOption, WindowEventsOption, WindowMsOption, print_json
+from labrig.cli.console import JsonOption, WindowEventsOption, WindowMsOption, calibration_folder, print_json
 from labrig.cli.run_report import check_view, print_run
 from labrig.errors import LabrigError
 
@@ -46,8 +46,8 @@ def run(
     view: Annotated[Path | None, typer.Option(help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.")] = None,
     view_every: Annotated[int, typer.Option(help="Every n-th window in the animation.")] = 3,
     calibration: Annotated[Path | None, typer.Option(
-        help="Folder with gel.toml, intrinsics.toml, extrinsics.toml (default: calibration/ if present; live: the rig "
-             "file's folder).")] = None,
+        help="Folder with gel.toml, intrinsics.toml, extrinsics.toml (default: the folder of labrig's default rig; "
+             "live: the rig file's folder).")] = None,
     rig_path: Annotated[Path | None, typer.Option("--rig", help=(
         "Rig TOML (default: the one stored in the recording; live: calibration/rig.toml)."))] = None,
     youngs_modulus_mpa: Annotated[float | None, typer.Option(
@@ -91,7 +91,7 @@ def run(
     with Recording(recording) as rec:
         setup = run_setup.setup_for_recording(
             rec, rig=load_rig(rig_path) if rig_path else None,
-            calibration_dir=calibration if calibration is not None else Path("calibration"),
+            calibration_dir=calibration_folder(calibration),
             youngs_modulus_mpa=youngs_modulus_mpa)
         source = depth_sources.depth_source(depth, setup, rec, model)
         pipe = runtime.Pipeline(setup, source, keep_sae=view is not None)

@@ -15,7 +15,7 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from labrig.cli.console import console, print_json
+from labrig.cli.console import calibration_folder, console, print_json
 
 
 def train_command(
@@ -49,9 +49,9 @@ def train_command(
         help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
              "sae+disp+prev (+ the previous depth map), sae+bright (+ the brightness change since rest, the events' "
              "polarities integrated), sae+bright+disp; docs/depthnet.md.")] = "sae",
-    calibration: Annotated[Path, typer.Option(
-        help="Calibration folder (camera, marker map) for the tracker behind the displacement channels.")] = Path(
-        "calibration"),
+    calibration: Annotated[Path | None, typer.Option(
+        help="Calibration folder (camera, marker map) for the tracker behind the displacement channels (default: "
+             "the folder of labrig's default rig).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the model card as JSON.")] = False,
 ) -> None:
     """Train the depth U-Net on a campaign's train split; validate on its val split; export ONNX + model card."""
@@ -61,7 +61,7 @@ def train_command(
                          time_budget_min=time_budget_min, batch_size=batch_size, lr=lr, seed=seed,
                          checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows,
                          phases=phases, device=device, threads=threads, noise_hz=noise_hz, inputs=inputs,
-                         calibration_dir=str(calibration))
+                         calibration_dir=str(calibration_folder(calibration)))
     config.check()
     if out is None:
         out = Path("models") / f"depth-w{width}-{loss}-{window_ms:g}ms"

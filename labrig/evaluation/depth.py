@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.dataset import sidecar_path
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
@@ -32,7 +33,7 @@ class DepthTask:
     window_us: int | None = None
     max_windows: int | None = None  # evenly thinned when there are more
     sidecar: str = ""  # the ground truth (default NAME.gt.h5 beside the recording); named so caches see it change
-    calibration_dir: str | None = "calibration"  # a stateful network's camera and markers (its pipeline run)
+    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR  # a stateful network's camera and markers (its pipeline run)
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.dataset import (
     ALL_SPLITS,
     SPLITS,
@@ -65,7 +66,7 @@ class EvaluationSettings:
     models_dir: Path | None = None  # Table II's models (cards give window and loss)
     window_events: int | None = PAPER_WINDOW_EVENTS
     window_ms: float | None = None
-    calibration_dir: Path | None = Path("calibration")
+    calibration_dir: Path | None = Path(DEFAULT_CALIBRATION_DIR)
     workers: int | None = None
     scheduler: str | None = None
     cache_dir: Path | None = None

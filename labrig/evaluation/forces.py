@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.dataset import sidecar_path
 from labrig.evaluation.measured import contact_centre_px, ft_axes_in_gel, measured_force_on_gel_n
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
@@ -40,7 +41,7 @@ class ForceTask:
     depth: str
     window_events: int | None = PAPER_WINDOW_EVENTS
     window_us: int | None = None
-    calibration_dir: str | None = "calibration"
+    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR
     youngs_modulus_mpa: float | None = None
     stiffening: float | None = None  # None: the calibrated gel's (gel.toml); 0: a linear gel, the paper's
     patch_scale: float = 3.0

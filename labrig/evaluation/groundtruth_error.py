@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
 
 
@@ -25,7 +26,7 @@ class GroundTruthErrorTask:
     recording: str
     elastic: str = "layer"
     pose: str = "lab"
-    calibration_dir: str | None = "calibration"
+    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR
 
 
 @dataclass(frozen=True)

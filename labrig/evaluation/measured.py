@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.calibration.registration_file import REGISTRATION_FILE, load_registration
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
 from labrig.frames import rotvec_to_matrix
 from labrig.recording import Recording
@@ -26,7 +27,7 @@ F64 = npt.NDArray[np.float64]
 # -- the F/T sensor in the gel frame ------------------------------------------------------------
 
 
-def ft_axes_in_gel(recording: Recording | None, calibration_dir: str | Path | None = "calibration") -> tuple[F64, str]:
+def ft_axes_in_gel(recording: Recording | None, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR) -> tuple[F64, str]:
     """Rotation (3, 3) from the F/T sensor's axes to the gel frame, and where it came from.
 
     The rig registration the recording names (``extra_calibration``; None: no recording yet, as

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from matplotlib.lines import Line2D
 
-from labrig.config import DEFAULT_RIG
+from labrig.config import DEFAULT_CALIBRATION_DIR, DEFAULT_RIG
 from labrig.dataset import sidecar_path
 from labrig.evaluation import charts
 from labrig.evaluation.depth import DepthTask, evaluate_depth
@@ -69,7 +69,7 @@ class StressTask:
     trackers: tuple[str, ...] = tuple(TRACKERS)
     forces: bool = True
     model: str | None = None  # a depth network (.onnx) for "forces-model" and "depth-model"
-    calibration_dir: str | None = "calibration"
+    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR
     depth: bool = False  # measure the network's depth error too (with ``model``)
 
 
@@ -237,7 +237,7 @@ def plan(axes: Sequence[StressAxis], grid: str, base: StressScene) -> list[tuple
 
 
 def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | None = None, model: str | None = None,
-               calibration_dir: str | None = "calibration", base: StressScene | None = None) -> StressResult:
+               calibration_dir: str | None = DEFAULT_CALIBRATION_DIR, base: StressScene | None = None) -> StressResult:
     """Every axis over its grid; ``run(kind, fn, tasks) -> results`` runs the tasks (parallel, cached).
 
     ``axes``: default :data:`AXES`; ``base``: the least-stressed scene (default: the default

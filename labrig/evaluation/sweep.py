@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.dataset import sidecar_path
 from labrig.evaluation import charts, tables
 from labrig.evaluation.depth import DepthTask, evaluate_depth
@@ -85,7 +86,7 @@ def sweep_models(models_dir: Path | None, main_model: Path) -> tuple[list[str], 
 
 
 def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, run: Run,
-              calibration_dir: str | None = "calibration", window_events: int | None = PAPER_WINDOW_EVENTS,
+              calibration_dir: str | None = DEFAULT_CALIBRATION_DIR, window_events: int | None = PAPER_WINDOW_EVENTS,
               window_us: int | None = None, mesh_refinements: tuple[int, ...] = MESH_REFINEMENTS,
               patch_scales: tuple[float, ...] = PATCH_SCALES) -> SweepResult:
     """Every knob setting on ``recordings``; ``run(kind, fn, tasks) -> results`` runs tasks (parallel, cached)."""

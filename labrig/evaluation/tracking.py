@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
 
 Array = npt.NDArray[np.float64]
@@ -68,7 +69,7 @@ class TrackingTask:
     window_us: int | None = 10_000
     window_events: int | None = None
     rest: str = "calibration"
-    calibration_dir: str | None = "calibration"
+    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR
     lost_px: float = LOST_PX
 
 

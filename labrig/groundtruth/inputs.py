@@ -16,13 +16,14 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from labrig.config import DEFAULT_CALIBRATION_DIR as _DEFAULT_CALIBRATION_DIR
 from labrig.config import DEFAULT_RIG, ConfigError, GelConfig, RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.physics.camera import CameraModel
 
-#: Where calibration files are looked for by default (the repository's calibration/ folder).
-DEFAULT_CALIBRATION_DIR = DEFAULT_RIG.parent
+#: Where calibration files are looked for by default (the default rig's folder, labrig.config's).
+DEFAULT_CALIBRATION_DIR = Path(_DEFAULT_CALIBRATION_DIR)
 
 
 class GroundTruthError(LabrigError):

@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from labrig.calibration.files import camera_from_calibration, load_extrinsics, load_intrinsics
 from labrig.calibration.gel import load_gel
-from labrig.config import RigConfig, load_rig
+from labrig.config import DEFAULT_CALIBRATION_DIR, RigConfig, load_rig
 from labrig.physics.camera import CameraModel
 from labrig.recording import Recording
 
@@ -79,7 +79,7 @@ def _named_calibration(recording: Recording) -> dict[str, Path]:
 
 
 def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
-                        calibration_dir: str | Path | None = "calibration",
+                        calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR,
                         youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None,
                         stiffening: float | None = None) -> PipelineSetup:
     """Rig, camera, rest pixels and gel modulus for ``recording``.
@@ -92,7 +92,7 @@ def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
                          poisson_ratio=poisson_ratio, stiffening=stiffening, named=_named_calibration(recording))
 
 
-def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = "calibration",
+def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR,
                   youngs_modulus_mpa: float | None = None, poisson_ratio: float | None = None,
                   stiffening: float | None = None, named: dict[str, Path] | None = None) -> PipelineSetup:
     """Camera, rest pixels and gel law for ``rig`` (a live stream, or a recording's rig).

@@ -34,7 +34,7 @@ import hdf5plugin  # noqa: F401  (registers the sidecars' zstd filter)
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import Roi
+from labrig.config import DEFAULT_CALIBRATION_DIR, Roi
 from labrig.dataset import SPLITS, Dataset, require_groundtruth
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
@@ -255,7 +255,7 @@ class WindowSampler:
     """
 
     def __init__(self, sources: list[Source], window_us: float, seed: int, noise: NoiseAugment | None = None,
-                 inputs: InputSpec = SAE_ONLY, calibration_dir: str | Path | None = "calibration") -> None:
+                 inputs: InputSpec = SAE_ONLY, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR) -> None:
         if not sources:
             raise LabrigError("no recordings to sample from")
         self.sources = sources
@@ -315,6 +315,6 @@ def torch_dataset(sampler: WindowSampler) -> Any:
 
 
 def fixed_set(sources: list[Source], window_us: float, n: int, seed: int, inputs: InputSpec = SAE_ONLY,
-              calibration_dir: str | Path | None = "calibration") -> tuple[npt.NDArray, ...]:
+              calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR) -> tuple[npt.NDArray, ...]:
     """``n`` windows drawn once with their own seed (validation): arrays input (SAE and state channels), target, contact."""
     return WindowSampler(sources, window_us, seed, inputs=inputs, calibration_dir=calibration_dir).batch(n)

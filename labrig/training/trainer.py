@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
 from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import crop_from_unet
@@ -60,7 +61,7 @@ class TrainConfig:
     threads: int | None = None
     noise_hz: float = 0.0  # background-noise augmentation: up to this rate (Hz per pixel) on half the windows; 0: off
     inputs: str = "sae"  # the network's inputs (labrig.pipeline.depth_inputs.INPUT_SETS): sae, sae+disp, sae+disp+prev
-    calibration_dir: str | None = "calibration"  # the camera and markers the tracker's displacement channels need
+    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR  # the camera and markers the tracker's displacement channels need
 
     def check(self) -> None:
         if self.loss not in LOSSES:
@@ -327,7 +328,7 @@ def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out:
         parts += ["--noise-hz", f"{c.noise_hz:g}"]
     if c.inputs != "sae":
         parts += ["--inputs", c.inputs]
-        if c.calibration_dir not in (None, "calibration") and "disp" in c.inputs:
+        if c.calibration_dir not in (None, "calibration", DEFAULT_CALIBRATION_DIR) and "disp" in c.inputs:
             parts += ["--calibration", str(c.calibration_dir)]
     if c.val_every != 200 or c.val_windows != 128:
         parts += ["--val-every", str(c.val_every), "--val-windows", str(c.val_windows)]
