@@ -14,7 +14,7 @@ import torch
 from typer.testing import CliRunner
 
 from labrig.cli import app
-from labrig.config import RigConfig
+from labrig.config import DEFAULT_CALIBRATION_DIR, RigConfig
 from labrig.errors import LabrigError
 from labrig.evaluation import stress
 from labrig.evaluation.report import Report, check_report
@@ -203,7 +203,7 @@ def test_labrig_evaluate_stress_adds_the_section_and_the_summary(
                                       "--no-table1", "--stress", "--stress-grid", "reduced", "--workers", "1",
                                       "--cache", str(tmp_path / "cache"), "--out", str(out), "--json"])
     assert result.exit_code == 0, result.output
-    assert asked == {"grid": "reduced", "model": str(model), "calibration_dir": "calibration"}
+    assert asked == {"grid": "reduced", "model": str(model), "calibration_dir": DEFAULT_CALIBRATION_DIR}
     summary = json.loads(result.stdout)
     assert summary["report_problems"] == []
     assert summary["stress_breakdown"]["force_range_mm"]["forces-truth"] == pytest.approx(
