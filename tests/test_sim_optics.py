@@ -124,7 +124,8 @@ def test_incremental_render_matches_full_render(rig: RigConfig) -> None:
         update = renderer.render(xyz, depth)
         assert np.unique(update.indices).size == update.indices.size
     full = renderer.render_full(xyz)
-    assert np.abs(renderer.image - full).max() <= 2.001 * renderer.min_rel_change  # the dead band: rel (old + new + 1e-3)
+    # The dead band: a pixel is off by at most rel (old + new + 1e-3).
+    assert np.abs(renderer.image - full).max() <= 2.001 * renderer.min_rel_change
     # A marker's pixels only: re-rendering the same scene reports nothing, moving one marker reports its patch.
     assert renderer.render(xyz).indices.size == 0
     moved = xyz.copy()

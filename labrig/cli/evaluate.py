@@ -13,7 +13,15 @@ import typer
 from rich.markup import escape
 from rich.progress import MofNCompleteColumn, TaskID, TimeElapsedColumn
 
-from labrig.cli.console import CalibrationOption, JsonOption, calibration_folder, console, err_console, print_json, progress_bar
+from labrig.cli.console import (
+    CalibrationOption,
+    JsonOption,
+    calibration_folder,
+    console,
+    err_console,
+    print_json,
+    progress_bar,
+)
 
 
 def evaluate_command(
@@ -57,7 +65,8 @@ def evaluate_command(
     settings = EvaluationSettings(
         data=data, split=split, model=model, models_dir=models,
         window_events=window_events if window_events is not None or window_ms is not None else 20_000,
-        window_ms=window_ms, calibration_dir=calibration_folder(calibration), workers=workers, scheduler=scheduler, cache_dir=cache,
+        window_ms=window_ms, calibration_dir=calibration_folder(calibration), workers=workers, scheduler=scheduler,
+        cache_dir=cache,
         use_cache=not no_cache, table1=table1, trackers=tuple(t.strip() for t in trackers.split(",") if t.strip()),
         sweep=sweep, sweep_recordings=sweep_recordings or None,
         stress=stress, stress_grid=stress_grid)

@@ -27,7 +27,8 @@ F64 = npt.NDArray[np.float64]
 # -- the F/T sensor in the gel frame ------------------------------------------------------------
 
 
-def ft_axes_in_gel(recording: Recording | None, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR) -> tuple[F64, str]:
+def ft_axes_in_gel(recording: Recording | None,
+                   calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR) -> tuple[F64, str]:
     """Rotation (3, 3) from the F/T sensor's axes to the gel frame, and where it came from.
 
     The rig registration the recording names (``extra_calibration``; None: no recording yet, as

@@ -61,7 +61,8 @@ class TrainConfig:
     threads: int | None = None
     noise_hz: float = 0.0  # background-noise augmentation: up to this rate (Hz per pixel) on half the windows; 0: off
     inputs: str = "sae"  # the network's inputs (labrig.pipeline.depth_inputs.INPUT_SETS): sae, sae+disp, sae+disp+prev
-    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR  # the camera and markers the tracker's displacement channels need
+    #: The camera and markers the tracker's displacement channels need.
+    calibration_dir: str | None = DEFAULT_CALIBRATION_DIR
 
     def check(self) -> None:
         if self.loss not in LOSSES:

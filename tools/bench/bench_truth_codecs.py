@@ -97,9 +97,9 @@ def run(recording: int = 3, codecs: str = DEFAULT_CODECS, repeat: int = 3, progr
 def render(figures: dict[str, Any]) -> None:
     rows = []
     for name, b in figures["codecs"].items():
+        speed, size = b.get("write_ratio_to_current", float("nan")), b.get("size_ratio_to_current", float("nan"))
         rows.append([name + (" (in use)" if name == figures["truth_codec"] else ""), f"{b['write_cpu_s']:.3f}",
-                     f"{b['read_cpu_s']:.3f}", f"{b['size_mb']:.1f}", f"{b.get('write_ratio_to_current', float('nan')):.2f}x",
-                     f"{b.get('size_ratio_to_current', float('nan')):.2f}"])
+                     f"{b['read_cpu_s']:.3f}", f"{b['size_mb']:.1f}", f"{speed:.2f}x", f"{size:.2f}"])
     emit(f"Truth streams of {figures['recording']} ({figures['raw_mb']:.1f} MB raw), per codec",
          ["codec", "write CPU s", "read CPU s", "MB", "write speed vs in use", "bytes vs in use"], rows,
          ["Process CPU (compression threads included), fastest of the runs; one recording's truth streams."])
