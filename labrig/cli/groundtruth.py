@@ -16,7 +16,7 @@ from rich.markup import escape
 from rich.progress import MofNCompleteColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from labrig.cli.console import JsonOption, console, err_console, print_json, progress_bar
+from labrig.cli.console import JsonOption, calibration_folder, console, err_console, print_json, progress_bar
 from labrig.errors import LabrigError
 
 
@@ -28,7 +28,8 @@ def groundtruth(
     rate_hz: Annotated[float, typer.Option(help="Maps per second (F/T sample times thinned to this rate).")] = 100.0,
     scale_mm: Annotated[float, typer.Option(help="Global normalisation: mm of depth per unit of the [0, 1] maps.")] = 2.5,
     calibration: Annotated[Path | None, typer.Option(
-        help="Folder with gel.toml, rig-registration.toml, intrinsics.toml, extrinsics.toml (default: calibration/).")] = None,
+        help="Folder with gel.toml, rig-registration.toml, intrinsics.toml, extrinsics.toml (default: the folder of "
+             "labrig's default rig).")] = None,
     rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
     plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
@@ -53,8 +54,7 @@ def groundtruth(
         raise LabrigError("--rate-hz and --scale-mm must be positive")
     if workers < 1:
         raise LabrigError("--workers must be at least 1")
-    if calibration is not None and not calibration.is_dir():
-        raise LabrigError(f"--calibration {calibration}: not a folder")
+    calibration = calibration_folder(calibration)
     source = open_data(data)
     jobs, not_complete = (([source], 0) if isinstance(source, DatasetRecording)
                           else (source.complete(), source.count_not_complete()))
@@ -69,7 +69,7 @@ def groundtruth(
             results.append({"recording": str(job.path), "split": job.split, "status": "current", "sidecar": str(job.sidecar)})
         else:
             tasks.append(SidecarTask(str(job.path), str(job.sidecar), job.split, model, method, float(rate_hz),
-                                     float(scale_mm), None if calibration is None else str(calibration),
+                                     float(scale_mm), str(calibration),
                                      None if rig_path is None else str(rig_path),
                                      None if indenters_path is None else str(indenters_path)))
     with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
