@@ -212,3 +212,79 @@ def test_fault_injection() -> None:
     hooked = booted(frame_hook=lambda data: data + b"!")
     assert hooked.frame_hook is not None
     assert frames_of(run(hooked, BOOT_US + 5000, 40_000, 100))
+
+
+def read_both_ways(make_twin, reads_us: range) -> tuple[list[tuple[int, Frame]], list[tuple[int, Frame]]]:
+    """(read time, frame) of the frames a host reading at ``reads_us`` gets: through the bytes and a
+    receiver, and from :meth:`BotaTwin.read_frames` (the bytes whenever it declines)."""
+    from labrig.devices.bota_protocol import BotaReceiver
+
+    by_bytes, whole = [], []
+    twin, receiver = make_twin(), BotaReceiver()
+    for t in reads_us:
+        by_bytes += [(t, e) for e in receiver.feed(twin.transmit(t)) if isinstance(e, Frame)]
+    twin, receiver = make_twin(), BotaReceiver()
+    for t in reads_us:
+        frames = twin.read_frames(t)
+        if frames is None:
+            frames = [e for e in receiver.feed(twin.transmit(t)) if isinstance(e, Frame)]
+        whole += [(t, f) for f in frames]
+    return by_bytes, whole
+
+
+def test_frames_read_whole_are_the_receivers_frames_at_the_same_reads() -> None:
+    def loaded() -> BotaTwin:  # a load with float32 rounding to do, a drifting clock
+        return make(wrench_at=lambda t: ((0.1 + t * 1e-7, -2.0 / 3.0, -5.0 - t * 1e-6), (1e-3, 0.0, 2e-3)), seed=4,
+                    clock_drift_ppm=37.0, clock_offset_us=2**32 - 50_000)
+    by_bytes, whole = read_both_ways(loaded, range(0, BOOT_US + 200_000, 1000))
+    assert len(by_bytes) > 150 and whole == by_bytes
+    twin = loaded()
+    assert twin.read_frames(0) is None  # booting: the boot text goes through the receiver
+    # Reads that land between a frame's bytes: a frame is handed over at the first read after its last byte.
+    by_bytes, whole = read_both_ways(loaded, range(0, BOOT_US + 50_000, 290))
+    assert whole == by_bytes
+
+
+def test_frames_in_flight_go_out_as_bytes_when_the_line_carries_more() -> None:
+    from labrig.devices.bota_protocol import BotaReceiver
+
+    twin, receiver = make(seed=5), BotaReceiver()
+    got: list[Frame] = []
+    events: list = []
+    t = 0
+    while not (twin._whole and t > BOOT_US + 20_000):  # whole frames until one is on the line, not yet read
+        t += 100
+        frames = twin.read_frames(t)
+        if frames is None:
+            events += receiver.feed(twin.transmit(t))
+        else:
+            got += frames
+    twin.inject_garbage(b"noise\r\n")
+    assert twin.read_frames(t + 100) is None
+    events += receiver.feed(twin.transmit(t + 5000))
+    in_flight = [e for e in events if isinstance(e, Frame)]
+    assert got and in_flight and not any(isinstance(e, (SyncLost, CrcError)) for e in events)  # whole and in order
+    events += receiver.feed(twin.transmit(t + 10_000))  # the garbage, queued at t + 5000
+    assert any(isinstance(e, SyncLost) for e in events)
+    after = [e for e in events if isinstance(e, Frame)]
+    reference = frames_of(run(make(seed=5), 0, t + 10_000, 100))
+    assert sorted(after + got, key=lambda f: f.t_device_us) == reference  # none lost, none twice
+
+
+def test_user_matrix_and_offsets_apply_to_every_sample() -> None:
+    from labrig.devices.bota_protocol import cmd_matrix_row
+
+    def with_matrix(rows: dict[int, list[float]]) -> list[Frame]:
+        twin = booted(wrench_at=lambda t: ((1.0, 2.0, 3.0), (0.1, 0.2, 0.3)), force_noise_n=0.0, torque_noise_nm=0.0,
+                      seed=2)
+        talk(twin, 20_000, b"C")
+        commands = "".join(cmd_matrix_row(i, row).text + "\n" for i, row in rows.items()) + "b,1,0,0,0,0,0.5\n"
+        talk(twin, 30_000, commands.encode())
+        return frames_of(talk(twin, 40_000, b"R", 60_000))
+
+    plain, mixed = with_matrix({}), with_matrix({0: [0, 1, 0, 0, 0, 0], 5: [0, 0, 0, 0, 0, 2]})
+    for a, b in zip(plain, mixed):
+        assert b.force_n[0] == pytest.approx(a.force_n[1] + 1.0, abs=1e-6)  # row 0 reads gauge 1, plus its offset
+        assert b.force_n[1:] == a.force_n[1:]
+        assert b.torque_nm[2] == pytest.approx(2 * (a.torque_nm[2] - 0.5) + 0.5, abs=1e-6)
+    assert len(plain) > 10 and plain[0].force_n[0] == pytest.approx(1.0 + 0.35 + 1.0, abs=0.05)

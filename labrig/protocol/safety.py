@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -180,9 +181,10 @@ class ForceMonitor:
     def __init__(self, limits: SafetyLimits, on_trip: Callable[[], None]) -> None:
         self.limits = limits
         self.on_trip = on_trip
-        self.baseline_n = np.zeros(3)
-        self.peak_n = np.zeros(3)
-        self.last_n = np.zeros(3)
+        # Python floats: a sample (800 Hz) makes no small arrays.
+        self._baseline = [0.0, 0.0, 0.0]
+        self._peak = [0.0, 0.0, 0.0]
+        self._last = (0.0, 0.0, 0.0)
         self.trip: Trip | None = None
         self.samples = 0
         self._lock = threading.Lock()
@@ -192,9 +194,29 @@ class ForceMonitor:
         self._recent_fz = np.zeros(1)
         self._recent_i = 0
 
+    @property
+    def baseline_n(self) -> npt.NDArray[np.float64]:
+        """Subtracted from every sample (N)."""
+        return np.array(self._baseline)
+
+    @property
+    def peak_n(self) -> npt.NDArray[np.float64]:
+        """Largest |F| per axis seen (N); assign to restart it."""
+        return np.array(self._peak)
+
+    @peak_n.setter
+    def peak_n(self, value: npt.ArrayLike) -> None:
+        with self._lock:
+            self._peak = np.asarray(value, dtype=np.float64).reshape(3).tolist()
+
+    @property
+    def last_n(self) -> npt.NDArray[np.float64]:
+        """The last sample less the baseline (N)."""
+        return np.array(self._last)
+
     def set_baseline(self, force_n: npt.ArrayLike) -> None:
         with self._lock:
-            self.baseline_n = np.asarray(force_n, dtype=np.float64).reshape(3)
+            self._baseline = np.asarray(force_n, dtype=np.float64).reshape(3).tolist()
 
     def arm(self, kind: str, threshold_n: float, on_reached: Callable[[], None], *,
             average_samples: int = 1) -> threading.Event:
@@ -214,21 +236,27 @@ class ForceMonitor:
 
     def on_sample(self, t_host_ns: int, force_n: npt.ArrayLike) -> None:
         """Call for every F/T sample (sensor axes, raw); cheap."""
-        f = np.asarray(force_n, dtype=np.float64) - self.baseline_n
+        x, y, z = force_n if isinstance(force_n, tuple) else np.asarray(force_n, dtype=np.float64).reshape(3).tolist()
         fire: Callable[[], None] | None = None
         trip: Callable[[], None] | None = None
         with self._lock:
+            b = self._baseline
+            f = (x - b[0], y - b[1], z - b[2])
             self.samples += 1
-            self.last_n = f
-            self.peak_n = np.maximum(self.peak_n, np.abs(f))
-            shear = float(np.hypot(f[0], f[1]))
+            self._last = f
+            peak = self._peak
+            for i in range(3):
+                size = abs(f[i])
+                if not size <= peak[i] and peak[i] == peak[i]:  # as np.maximum: a NaN comes and stays
+                    peak[i] = size
+            shear = math.hypot(f[0], f[1])
             if self.trip is None:
                 if abs(f[2]) > self.limits.max_normal_force_n:
                     self.trip = Trip(f"normal force |Fz| = {abs(f[2]):.2f} N over the limit "
-                                     f"{self.limits.max_normal_force_n:.2f} N", tuple(f), t_host_ns)
+                                     f"{self.limits.max_normal_force_n:.2f} N", f, t_host_ns)
                 elif shear > self.limits.max_shear_force_n:
                     self.trip = Trip(f"shear force |Fxy| = {shear:.2f} N over the limit "
-                                     f"{self.limits.max_shear_force_n:.2f} N", tuple(f), t_host_ns)
+                                     f"{self.limits.max_shear_force_n:.2f} N", f, t_host_ns)
                 if self.trip is not None:
                     trip = self.on_trip
             if self._armed is not None:
@@ -237,7 +265,7 @@ class ForceMonitor:
                 if self._recent_i >= self._recent_fz.size and float(self._recent_fz.mean()) > self._armed[1]:
                     fire = self._armed[2]
                     self._armed = None
-                    self.reached_force_n = (float(f[0]), float(f[1]), float(f[2]))
+                    self.reached_force_n = f
         if trip is not None:
             trip()
         if fire is not None:

@@ -38,6 +38,7 @@ rewrite each encoded frame.
 from __future__ import annotations
 
 import math
+import struct
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -76,8 +77,12 @@ Vec3 = tuple[float, float, float]
 WrenchSource = Callable[[int], tuple[npt.ArrayLike, npt.ArrayLike]]
 #: Rewrites one encoded frame (37 bytes) before it is queued; may return any bytes.
 FrameHook = Callable[[bytes], bytes]
+#: A frame's float32 and uint32 fields, for decoding a frame as a receiver would without its bytes.
+_FRAME_FIELDS = struct.Struct("<6fIf")
 
 _ZERO3 = np.zeros(3)
+#: Samples' normals drawn at a time.
+NORMAL_ROWS = 256
 
 
 def zero_wrench(t_us: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
@@ -141,6 +146,9 @@ class BotaTwin:
         self.frame_hook = frame_hook
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(p.seed)
+        # The generator's normals, drawn NORMAL_ROWS samples ahead (the same stream as one draw per sample).
+        self._normal_rows: list[list[float]] = []
+        self._normal_next = 0
         self._drop_rng = np.random.default_rng([p.seed, 8])
         self._rate = 1.0 + p.clock_drift_ppm * 1e-6
         self._noise_sigma = np.array([p.force_noise_n] * 3 + [p.torque_noise_nm] * 3)
@@ -151,10 +159,12 @@ class BotaTwin:
         self._noise_sigma_list = self._noise_sigma.tolist()
         self._bias0_list, self._bias_per_c_list = self._bias0.tolist(), self._bias_per_c.tolist()
         self._range_list = self._range.tolist()
+        self._smallest_range = min(self._range_list)
+        self._identity: bool | None = None
         # Non-volatile and active configuration.
         self._saved = (p.comm, p.filter, p.offsets, np.eye(6))
         self.comm, self.filter, self.offsets, self.matrix = p.comm, p.filter, p.offsets, np.eye(6)
-        self._offsets_array: tuple[object, npt.NDArray[np.float64]] = (None, np.zeros(6))
+        self._offsets_array: tuple[object, npt.NDArray[np.float64], list[float]] = (None, np.zeros(6), [0.0] * 6)
         self._line_baud_code = p.comm.baud_code
         self._byte_us_of_code: tuple[object, float] = (None, 0.0)
         # Time line.
@@ -164,6 +174,9 @@ class BotaTwin:
         self._next_sample_dev_us = 0.0
         # UART: FIFO of [start_us, data, bytes already returned].
         self._tx: deque[list] = deque()
+        # Frames on the line for read_frames (ahead of any bytes in _tx): (start_us, the frame).
+        self._whole: deque[tuple[float, Frame]] = deque()
+        self._reading_whole = False
         self._line_free_us = 0.0
         # Receiver.
         self._rx = bytearray()
@@ -187,6 +200,7 @@ class BotaTwin:
     def receive(self, data: bytes, now_us: int) -> None:
         """Bytes the host wrote, arriving at ``now_us`` (host us)."""
         with self._lock:
+            self._whole_to_bytes()
             self._advance(now_us)
             if self.mode == "booting":
                 return  # the bootloader ignores what it does not understand
@@ -205,6 +219,7 @@ class BotaTwin:
     def transmit(self, now_us: int) -> bytes:
         """Bytes whose last bit has left the UART by ``now_us``."""
         with self._lock:
+            self._whole_to_bytes()
             self._advance(now_us)
             out = bytearray()
             byte_us = self._byte_us
@@ -219,6 +234,37 @@ class BotaTwin:
                     break
                 self._tx.popleft()
             return bytes(out)
+
+    def read_frames(self, now_us: int) -> list[Frame] | None:
+        """The frames whose last byte has left the UART by ``now_us``, as a receiver decodes them, without
+        their bytes: for a host that reads every frame whole and nothing else (virtual time).
+
+        The same frames, at the same reads, as :meth:`transmit` fed to a
+        :class:`~labrig.devices.bota_protocol.BotaReceiver` would give. None while the line
+        carries or may soon carry anything else (boot text, a command or its answer, injected
+        faults, a frame hook, dropped frames): read those with :meth:`transmit`, which sends
+        the frames still on the line as bytes first.
+        """
+        with self._lock:
+            if (self.mode != "run" or self._tx or self._rx or self._garbage or self._reset_requested
+                    or self._corrupt_left or self.frame_hook is not None or self.params.drop_probability > 0):
+                return None
+            self._reading_whole = True
+            try:
+                self._advance(now_us)
+            finally:
+                self._reading_whole = False
+            frames: list[Frame] = []
+            whole, byte_us = self._whole, self._byte_us
+            while whole and now_us > whole[0][0] and math.floor((now_us - whole[0][0]) / byte_us) >= FRAME_SIZE:
+                frames.append(whole.popleft()[1])
+            return frames
+
+    def _whole_to_bytes(self) -> None:
+        """The frames :meth:`read_frames` left on the line, as bytes ahead of the others."""
+        if self._whole:
+            self._tx.extendleft([start, encode_frame(frame), 0] for start, frame in reversed(self._whole))
+            self._whole.clear()
 
     # -- fault injection (any thread) ------------------------------------------
 
@@ -322,6 +368,7 @@ class BotaTwin:
     def _finish_boot(self, t_us: float) -> None:
         comm, filt, offsets, matrix = self._saved
         self.comm, self.filter, self.offsets, self.matrix = comm, filt, offsets, matrix.copy()
+        self._identity = None
         self._line_baud_code = comm.baud_code
         self._line_free_us = max(self._line_free_us, t_us)
         self.boots += 1
@@ -346,6 +393,7 @@ class BotaTwin:
 
     def _execute(self, text: str, t_us: float) -> None:
         self.commands.append(text)
+        self._identity = None
         try:
             code, args = parse_command(text)
         except CommandError as exc:
@@ -388,13 +436,32 @@ class BotaTwin:
 
     # -- measurements ------------------------------------------------------------
 
+    def _matrix_is_identity(self) -> bool:
+        """Whether the user matrix is the identity (rechecked after every command and boot)."""
+        if self._identity is None:
+            self._identity = bool(np.array_equal(self.matrix, np.eye(6)))
+        return self._identity
+
     def _offset_values(self) -> npt.NDArray[np.float64]:
         """The active offsets as one (6,) array, rebuilt only when a command replaced them."""
-        offsets, values = self._offsets_array
+        return self._offsets_now()[0]
+
+    def _offsets_now(self) -> tuple[npt.NDArray[np.float64], list[float]]:
+        """The active offsets as an array and as Python floats, rebuilt only when a command replaced them."""
+        offsets, values, listed = self._offsets_array
         if offsets is not self.offsets:
             values = np.array([*self.offsets.force_n, *self.offsets.torque_nm])
-            self._offsets_array = (self.offsets, values)
-        return values
+            listed = values.tolist()
+            self._offsets_array = (self.offsets, values, listed)
+        return values, listed
+
+    def _normals(self) -> list[float]:
+        """The next sample's seven normals: the temperature's, then the six gauges'."""
+        if self._normal_next == len(self._normal_rows):
+            self._normal_rows = self._rng.standard_normal((NORMAL_ROWS, 7)).tolist()
+            self._normal_next = 0
+        self._normal_next += 1
+        return self._normal_rows[self._normal_next - 1]
 
     def _sample(self, t_us: float) -> None:
         """One sample at host time ``t_us`` (its device time is ``_next_sample_dev_us``)."""
@@ -406,7 +473,7 @@ class BotaTwin:
             self._pending_status |= Status.APP_TOOK_TOO_LONG
             return
         p = self.params
-        normals = self._rng.standard_normal(7).tolist()  # the temperature's, then the six gauges' (one draw)
+        normals = self._normals()
         temperature = self.temperature_c(t_us) + p.temperature_noise_c * normals[0]
         force, torque = self.wrench_at(round(t_us))
         warm = temperature - p.ambient_c
@@ -414,16 +481,25 @@ class BotaTwin:
                   zip((*force, *torque), self._bias0_list, self._bias_per_c_list)]
         status = self._pending_status | self._sticky_status
         self._pending_status = 0
-        if any(abs(g) > r for g, r in zip(gauges, self._range_list)):
+        if max(map(abs, gauges)) > self._smallest_range and any(abs(g) > r for g, r in zip(gauges, self._range_list)):
             status |= Status.OVERRANGE
             gauges = [min(max(g, -r), r) for g, r in zip(gauges, self._range_list)]
-        noisy = np.array([g + sigma * n for g, sigma, n in zip(gauges, self._noise_sigma_list, normals[1:])])
-        if self.comm.calibrated:
-            values = self.matrix @ noisy + self._offset_values()
-        else:
-            values = noisy
+        noisy = [g + sigma * n for g, sigma, n in zip(gauges, self._noise_sigma_list, normals[1:])]
+        if not self.comm.calibrated:
+            v = noisy
             status |= Status.RAW_MEASUREMENTS
-        v = values.tolist()
+        elif self._matrix_is_identity():  # the product's numbers without the product
+            v = [n + o for n, o in zip(noisy, self._offsets_now()[1])]
+        else:
+            v = (self.matrix @ np.array(noisy) + self._offset_values()).tolist()
+        if self._reading_whole:  # the fields as the receiver decodes them: float32, 16-bit status
+            f = _FRAME_FIELDS.unpack(_FRAME_FIELDS.pack(*v, int(device_us) % TIMESTAMP_MODULUS, temperature))
+            frame = Frame(int(status) & 0xFFFF, f[0:3], f[3:6], f[6], f[7])
+            start = max(float(t_us), self._line_free_us)
+            self._whole.append((start, frame))
+            self._line_free_us = start + FRAME_SIZE * self._byte_us
+            self.frames_sent += 1
+            return
         frame = Frame(int(status), (v[0], v[1], v[2]), (v[3], v[4], v[5]), int(device_us) % TIMESTAMP_MODULUS, temperature)
         data = encode_frame(frame)
         if self._corrupt_left > 0:

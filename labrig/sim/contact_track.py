@@ -46,6 +46,8 @@ from labrig.sim.faults import RigFault
 
 F64 = npt.NDArray[np.float64]
 ToolPath = Callable[[npt.ArrayLike], F64]
+#: The tool (machine mm) at one world time (us), as Python floats.
+ToolPoint = Callable[[int], tuple[float, float, float]]
 
 #: A shear axis is fixed once the tip has moved this far in-plane from the anchor, mm.
 SHEAR_AXIS_MM = 1e-3
@@ -99,7 +101,10 @@ class ContactKinematics:
         self._beyond = False
 
     def step(self, t_us: int, tool_machine_mm: npt.ArrayLike) -> ContactState:
-        x, y, z = np.asarray(tool_machine_mm, dtype=np.float64).reshape(3).tolist()
+        if isinstance(tool_machine_mm, tuple):
+            x, y, z = tool_machine_mm
+        else:
+            x, y, z = np.asarray(tool_machine_mm, dtype=np.float64).reshape(3).tolist()
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._rotation
         o0, o1, o2 = self._origin
         tx, ty, tz = r00 * x + r01 * y + r02 * z + o0, r10 * x + r11 * y + r12 * z + o1, r20 * x + r21 * y + r22 * z + o2
@@ -206,9 +211,12 @@ class ContactTrack:
     samples are dropped unless :meth:`hold` pins them for a lagging reader).
     """
 
-    def __init__(self, kinematics: ContactKinematics, tool_path: ToolPath, *, keep_us: int = 30_000_000) -> None:
+    def __init__(self, kinematics: ContactKinematics, tool_path: ToolPath, *, keep_us: int = 30_000_000,
+                 tool_at: ToolPoint | None = None) -> None:
+        """``tool_at``: ``tool_path`` at one time as Python floats, for the samples (optional)."""
         self.kinematics = kinematics
         self.tool_path = tool_path
+        self.tool_at = tool_at
         self.keep_us = int(keep_us)
         self._times: list[int] = []
         self._states: list[ContactState] = []
@@ -226,7 +234,7 @@ class ContactTrack:
         t = int(t_us)
         with self._lock:
             if not self._times or t > self._times[-1]:
-                state = self.kinematics.step(t, self.tool_path(t)[0])
+                state = self.kinematics.step(t, self.tool_at(t) if self.tool_at is not None else self.tool_path(t)[0])
                 self._times.append(t)
                 self._states.append(state)
                 self._prune()

@@ -10,8 +10,10 @@ as long as the CPU needs and its content never depends on load or wall time:
   reports are polled at the driver's rate (10 Hz), stamped when
   their last byte arrives, positions printed to 3 decimals; the conversation goes to ``on_gcode``.
 * Bota: the byte-level twin (:class:`~labrig.sim.bota_twin.BotaTwin`: noise, temperature-drifting
-  bias, its own drifting clock, 800 Hz) decoded by the driver's receiver; the host reads the port
-  every millisecond and stamps the frames it finds then; samples are tared as the driver tares.
+  bias, its own drifting clock, 800 Hz); the host reads the port every millisecond and stamps the
+  frames it finds then; samples are tared as the driver tares. Its boot text goes through the
+  driver's receiver; once it streams, frames are read whole (:meth:`BotaTwin.read_frames`: the
+  receiver's frames at the same reads, without encoding and decoding their bytes).
 * Camera: the rig renders ``RENDER_LAG_US`` behind the host clock (its solves in the known past,
   as live) in chunks; each chunk's events and trigger edges, in camera time, arrive at the host
   time the chunk was handed over.
@@ -96,7 +98,7 @@ class OfflineRig:
         start = quantize_mm(np.asarray(start_tool_mm, dtype=np.float64).tolist(), limits.steps_per_mm)
         self.timeline = MotionTimeline(limits, start, self.now_us)
         self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=RENDER_LAG_US * 2 // 3)
-        self.track = self.rig.bind(self._tool_world)
+        self.track = self.rig.bind(self._tool_world, self._tool_at)
         self.bota = BotaTwin(BotaTwinParams(filter=FilterSetup(sinc_length=64), boot_delay_us=FT_BOOT_US,
                                             clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM,
                                             seed=seed), wrench_at=self._wrench_at)
@@ -132,6 +134,9 @@ class OfflineRig:
             return np.array([self.timeline.position_at(float(t_world_us) + self.origin_us)])
         t = np.atleast_1d(np.asarray(t_world_us, dtype=np.float64)) + self.origin_us
         return self.timeline.positions_at(t)
+
+    def _tool_at(self, t_world_us: int) -> tuple[float, float, float]:
+        return self.timeline.position_at(float(t_world_us) + self.origin_us)
 
     def _wrench_at(self, t_host_us: int) -> tuple[list[float], list[float]]:
         force, cop, tip = self.track.wrench_state(t_host_us - self.origin_us)
@@ -219,9 +224,11 @@ class OfflineRig:
         """One millisecond on: the F/T port read, a status poll if due, the renderer; returns the poll's report."""
         self.clock.advance_ns(FT_READ_US * 1000)
         now = self.now_us
-        for event in self.receiver.feed(self.bota.transmit(now)):
-            if isinstance(event, Frame):
-                self._on_frame(event, now)
+        frames = self.bota.read_frames(now)
+        if frames is None:  # anything but frames on the line: through the driver's receiver
+            frames = [event for event in self.receiver.feed(self.bota.transmit(now)) if isinstance(event, Frame)]
+        for frame in frames:
+            self._on_frame(frame, now)
         status = None
         if now >= self._next_poll_us:
             status = self._poll(now)

@@ -53,7 +53,7 @@ from labrig.frames import Pose, rotvec_to_matrix
 from labrig.indenters import Indenter
 from labrig.physics.camera import CameraModel
 from labrig.physics.mechanics import ContactFields, ContactTable
-from labrig.sim.contact_track import ContactKinematics, ContactState, ContactTrack
+from labrig.sim.contact_track import ContactKinematics, ContactState, ContactTrack, ToolPoint
 from labrig.sim.delivery import HotPixels, merge_events
 from labrig.sim.events import EVENT_DTYPE, EventSensor
 from labrig.sim.motion import true_gel_in_machine
@@ -178,10 +178,11 @@ class VirtualRig:
         self._marker_weights_key: tuple[float, ...] | None = None
         self._marker_weights: _Weights | None = None
 
-    def bind(self, tool_path: ToolPath) -> ContactTrack:
+    def bind(self, tool_path: ToolPath, tool_at: ToolPoint | None = None) -> ContactTrack:
         """Drive the rig from ``tool_path`` (machine mm at world us) through a shared contact
-        track, which other consumers (the F/T twin) may sample too; returns it."""
-        self.track = ContactTrack(self.kinematics, tool_path)
+        track, which other consumers (the F/T twin) may sample too; returns it. ``tool_at``:
+        the same path at one time as Python floats (the track's samples), if the caller has it."""
+        self.track = ContactTrack(self.kinematics, tool_path, tool_at=tool_at)
         self._own_track = False
         return self.track
 

@@ -43,14 +43,14 @@ from _common import bench_main, emit
 
 ROOT = Path(__file__).resolve().parents[2]
 STAGES = ("contact", "render", "ft", "other", "writer")
-#: Wrapped callables per stage: (module, class, method).
+#: Wrapped callables per stage: (module, class, method); those a tree lacks are skipped.
 TIMED = {
     "contact": [("labrig.sim.contact_track", "ContactTrack", "sample"),
                 ("labrig.sim.contact_track", "ContactTrack", "first_after"),
                 ("labrig.sim.contact_track", "ContactTrack", "wrench_state"), ("labrig.sim.rig", "VirtualRig", "solve")],
     "render": [("labrig.sim.offline", "OfflineRig", "render_to")],
-    "ft": [("labrig.sim.bota_twin", "BotaTwin", "transmit"), ("labrig.devices.bota_protocol", "BotaReceiver", "feed"),
-           ("labrig.sim.offline", "OfflineRig", "_on_frame")],
+    "ft": [("labrig.sim.bota_twin", "BotaTwin", "transmit"), ("labrig.sim.bota_twin", "BotaTwin", "read_frames"),
+           ("labrig.devices.bota_protocol", "BotaReceiver", "feed"), ("labrig.sim.offline", "OfflineRig", "_on_frame")],
 }
 
 
@@ -118,7 +118,8 @@ def probe(index: int) -> dict[str, Any]:
     for stage, targets in TIMED.items():
         for module, cls_name, method in targets:
             cls = getattr(importlib.import_module(module), cls_name)
-            setattr(cls, method, clock.wrap(stage, getattr(cls, method)))
+            if hasattr(cls, method):  # an older tree (a baseline) may lack some
+                setattr(cls, method, clock.wrap(stage, getattr(cls, method)))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "probe.h5"
         cpu0, main0 = time.process_time(), time.thread_time()
