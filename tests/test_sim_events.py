@@ -167,6 +167,32 @@ def test_leak_rate_over_a_quiet_run(rig: RigConfig) -> None:
     assert np.all(np.diff(events["t"]) >= 0)
 
 
+def test_shot_noise_is_uniform_in_time_whatever_the_steps() -> None:
+    from labrig.sim.events import NOISE_HORIZON_US
+
+    params = dataclasses.replace(EventParams(), leak_rate_hz=0.0, refractory_us=0.0, shot_noise_rate_hz=50.0)
+    n = 100 * 100
+    steps = [0]
+    rng = np.random.default_rng(1)
+    while steps[-1] < 2_000_000:  # short steps, steps across the horizon's end, a step of several horizons
+        steps.append(steps[-1] + int(rng.choice([7, 1_000, 33_333, NOISE_HORIZON_US - 1, 3 * NOISE_HORIZON_US + 5])))
+    sensor = EventSensor(params, 100, 100, np.full(n, 0.5), seed=4)
+    events = [sensor.step(t0, t1, [], []) for t0, t1 in zip(steps, steps[1:])]
+    for (t0, t1), ev in zip(zip(steps, steps[1:]), events):
+        assert ev.size == 0 or (t0 <= ev["t"].min() and ev["t"].max() < t1)  # each event in its own step
+    t = np.concatenate(events)["t"]
+    expected = n * params.shot_noise_rate_hz * steps[-1] * 1e-6  # ~1e6 events
+    assert t.size / expected == pytest.approx(1.0, rel=0.01)
+    per_ms = np.bincount(t // 1000)  # uniform: Poisson counts per ms, no step or horizon in sight
+    assert per_ms.mean() == pytest.approx(n * params.shot_noise_rate_hz * 1e-3, rel=0.01)
+    assert per_ms.var() / per_ms.mean() == pytest.approx(1.0, abs=0.1)
+    at_horizons = per_ms[np.arange(NOISE_HORIZON_US // 1000 - 1, per_ms.size, NOISE_HORIZON_US // 1000)]
+    assert at_horizons.mean() == pytest.approx(per_ms.mean(), rel=0.1)
+    again = EventSensor(params, 100, 100, np.full(n, 0.5), seed=4)
+    assert np.concatenate([again.step(t0, t1, [], []) for t0, t1 in zip(steps, steps[1:])]).tobytes() == (
+        np.concatenate(events).tobytes())
+
+
 def test_shot_noise_rate_over_a_quiet_run(rig: RigConfig) -> None:
     params = dataclasses.replace(EventParams.from_rig(rig), leak_rate_hz=0.0)
     events, pixels = quiet_run(rig, params, seconds=10.0)

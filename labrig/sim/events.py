@@ -37,7 +37,8 @@ per-pixel band in which no crossing (nor leak) can happen before the end of
 the current leak epoch (0.1 s of sim time). A quiet pixel's next leak time,
 ``t_start + (C_on + R - Lf) / k``, is computed for the few pixels that may
 leak within the epoch, not stored per input change; shot noise is sampled as
-one Poisson count for the array. Random numbers come from one numpy
+one Poisson count for the array over ``NOISE_HORIZON_US`` ahead (the steps
+take theirs from it). Random numbers come from one numpy
 Generator: the same seed and inputs give byte-identical events. Times are
 integer microseconds of the sim's world time.
 """
@@ -63,6 +64,10 @@ _NEVER_US = -(2**62)
 _NO_BLOCK = np.zeros((0, 0), dtype=np.bool_)
 _NO_BLOCK_VALUES = np.zeros((0, 0))
 _NO_DEAD = np.zeros(0, dtype=np.bool_)
+_NO_PIXELS_I = np.zeros(0, dtype=np.int64)
+_NO_POLARITY = np.zeros(0, dtype=np.uint8)
+#: Shot noise is drawn this far ahead at a time (us of sim time; offsets in it fit 16 bits, sorted by radix).
+NOISE_HORIZON_US = 2**16
 
 
 @dataclass(frozen=True)
@@ -182,6 +187,9 @@ class EventSensor:
         self._c_off_margin = 2e-9 - self.c_off
         self._leak_candidates = np.empty(0, dtype=np.int64)
         self._is_candidate = np.zeros(n, dtype=bool)
+        # Shot noise drawn ahead: (pixel, polarity, t) sorted by t, covering [_noise_from_us, _noise_until_us).
+        self._noise: tuple[Index, npt.NDArray[np.uint8], Index] = (_NO_PIXELS_I, _NO_POLARITY, _NO_PIXELS_I)
+        self._noise_from_us = self._noise_until_us = self.t_us
 
     @classmethod
     def from_rig(
@@ -294,10 +302,34 @@ class EventSensor:
     # -- shot noise --------------------------------------------------------------------------------
 
     def _sample_shot_noise(self, t0_us: int, t1_us: int) -> tuple[Index, npt.NDArray[np.uint8], Index, Index]:
-        """Shot-noise events (pixel, polarity, t) and their pixels' last event time at the step's start."""
-        rate = self.params.shot_noise_rate_hz
-        n = int(self.rng.poisson(self.size * rate * (t1_us - t0_us) * 1e-6)) if rate > 0 else 0
+        """Shot-noise events (pixel, polarity, t) of [t0_us, t1_us) and their pixels' last event time at the
+        step's start.
+
+        The noise is drawn for a horizon ahead (a Poisson count over every pixel and the horizon's
+        whole microseconds, uniform times, sorted) and each step takes the events before its end:
+        the same process as a draw per step, with a few draws per horizon instead of per step."""
+        if self.params.shot_noise_rate_hz <= 0:
+            return _NO_PIXELS_I, _NO_POLARITY, _NO_PIXELS_I, _NO_PIXELS_I
+        if t0_us < self._noise_from_us:
+            raise ValueError(f"shot noise is drawn up to {self._noise_from_us} us; a step from {t0_us} us is past")
+        while self._noise_until_us < t1_us:
+            self._draw_noise()
+        pix, pol, t = self._noise
+        n = int(np.searchsorted(t, t1_us))
+        self._noise = (pix[n:], pol[n:], t[n:])
+        self._noise_from_us = t1_us
+        pix, pol, t = pix[:n], pol[:n], t[:n]
+        return pix, pol, t, self.last_event_us[pix]
+
+    def _draw_noise(self) -> None:
+        """Draw the next NOISE_HORIZON_US of shot noise after what is drawn."""
+        t0_us, span = self._noise_until_us, NOISE_HORIZON_US
+        n = int(self.rng.poisson(self.size * self.params.shot_noise_rate_hz * span * 1e-6))
         pix = self.rng.integers(0, self.size, n)
-        pol = self.rng.integers(0, 2, n).astype(np.uint8)
-        t = t0_us + np.floor(self.rng.random(n) * (t1_us - t0_us)).astype(np.int64)
-        return pix, pol, t, self.last_event_us[pix].copy()
+        pol = self.rng.integers(0, 2, n, dtype=np.uint8)
+        offset = np.floor(self.rng.random(n) * span).astype(np.uint16)
+        order = np.argsort(offset, kind="stable")  # a radix sort on 16 bits
+        old_pix, old_pol, old_t = self._noise
+        self._noise = (np.concatenate((old_pix, pix[order])), np.concatenate((old_pol, pol[order])),
+                       np.concatenate((old_t, t0_us + offset[order].astype(np.int64))))
+        self._noise_until_us = t0_us + span
