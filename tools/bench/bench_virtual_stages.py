@@ -15,6 +15,10 @@ calls):
 * ``other``: the rest of the main thread (the GRBL model, the run's sequence, rig set-up);
 * ``writer``: the writer thread (process CPU less the main thread's: compression, HDF5).
 
+Across the stages, the main thread's time is also split into ``compiled`` (the rig's numba
+kernels and scipy's FFTs, timed where Python calls them) and ``glue`` (the rest: Python and
+numpy's small operations): what a faster kernel can gain, and what only fewer Python steps can.
+
 Process start, imports, the contact table's load, the compiled kernels' load and the camera's
 per-pixel rays (one rig built and dropped) are left out (warmed before timing): they are paid
 once per worker process, not per recording (the campaign
@@ -43,6 +47,10 @@ from _common import bench_main, emit
 
 ROOT = Path(__file__).resolve().parents[2]
 STAGES = ("contact", "render", "ft", "other", "writer")
+#: The main thread again, split into compiled kernels (numba, FFT) and the rest.
+SPLIT = ("compiled", "glue")
+#: Modules whose numba kernels count as compiled time (scipy.fft's transforms count too).
+COMPILED_MODULES = ("labrig.sim._render_kernels", "labrig.physics.camera", "labrig.physics.mechanics.rotation")
 #: Wrapped callables per stage: (module, class, method); those a tree lacks are skipped.
 TIMED = {
     "contact": [("labrig.sim.contact_track", "ContactTrack", "sample"),
@@ -93,6 +101,45 @@ class _StageClock:
         return timed
 
 
+class _CompiledClock:
+    """Thread-CPU time of the main thread inside compiled callables (outermost calls only)."""
+
+    def __init__(self, thread: int) -> None:
+        self.seconds = 0.0
+        self.thread = thread
+        self._depth = 0
+
+    def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            if self._depth or threading.get_ident() != self.thread:
+                return fn(*args, **kwargs)
+            self._depth += 1
+            start = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._depth -= 1
+                self.seconds += time.thread_time() - start
+
+        return timed
+
+    def install(self) -> None:
+        """Wrap the compiled modules' numba kernels and scipy.fft's transforms (module attributes, looked up at
+        each call by their callers)."""
+        import importlib
+
+        import scipy.fft
+        from numba.core.registry import CPUDispatcher
+
+        for name in COMPILED_MODULES:
+            module = importlib.import_module(name)
+            for attr, value in list(vars(module).items()):
+                if isinstance(value, CPUDispatcher):
+                    setattr(module, attr, self.wrap(value))
+        for attr in ("rfft", "irfft", "fft", "ifft", "rfft2", "irfft2"):
+            setattr(scipy.fft, attr, self.wrap(getattr(scipy.fft, attr)))
+
+
 def probe(index: int) -> dict[str, Any]:
     """Record the paper campaign's recording ``index`` in virtual time in this process; its figures."""
     import importlib
@@ -115,6 +162,8 @@ def probe(index: int) -> dict[str, Any]:
     _render_kernels.warm_up()
     VirtualRig(rig, indenter, seed=0)  # the per-process caches a campaign worker's first recording fills
     clock = _StageClock()
+    compiled = _CompiledClock(clock.thread)
+    compiled.install()
     for stage, targets in TIMED.items():
         for module, cls_name, method in targets:
             cls = getattr(importlib.import_module(module), cls_name)
@@ -128,7 +177,7 @@ def probe(index: int) -> dict[str, Any]:
         with Recording(out) as rec:
             phases = rec.phases()
             sim_s = (phases[-1].t_end_us - phases[0].t_start_us) / 1e6
-    stages = dict(clock.seconds, writer=cpu - main)
+    stages = dict(clock.seconds, writer=cpu - main, compiled=compiled.seconds, glue=main - compiled.seconds)
     return {"index": index, "indenter": plan.spec.indenter, "sim_s": sim_s, "cpu_s": cpu, "stages_cpu_s": stages}
 
 
@@ -165,7 +214,8 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         by_index.setdefault(r["index"], []).append(r)
     sim = sum(rs[0]["sim_s"] for rs in by_index.values())
     cpu = sum(_median([r["cpu_s"] for r in rs]) for rs in by_index.values())
-    stages = {s: sum(_median([r["stages_cpu_s"][s] for r in rs]) for rs in by_index.values()) for s in STAGES}
+    stages = {s: sum(_median([r["stages_cpu_s"].get(s, 0.0) for r in rs]) for rs in by_index.values())
+              for s in (*STAGES, *SPLIT)}
     return {"recordings": len(by_index), "sim_s": sim, "cpu_s": cpu, "sim_s_per_cpu_s": sim / cpu,
             "cpu_s_per_sim_s": {s: v / sim for s, v in stages.items()}}
 
@@ -192,7 +242,8 @@ def run(baseline: Path | None = None, recordings: str = "", repeat: int = 1, pro
     if "baseline" in figures:
         base, this = figures["baseline"], figures["this_tree"]
         figures["speedup"] = {"total": this["sim_s_per_cpu_s"] / base["sim_s_per_cpu_s"],
-                              **{s: base["cpu_s_per_sim_s"][s] / max(this["cpu_s_per_sim_s"][s], 1e-9) for s in STAGES}}
+                              **{s: base["cpu_s_per_sim_s"][s] / max(this["cpu_s_per_sim_s"][s], 1e-9)
+                                 for s in (*STAGES, *SPLIT)}}
     return figures
 
 
@@ -201,8 +252,9 @@ def render(f: dict[str, Any]) -> None:
     columns = ["figure", *[n.replace("_", " ") for n in names]] + (["speed-up"] if "speedup" in f else [])
     rows = [["sim s / CPU s (per core)", *[f"{f[n]['sim_s_per_cpu_s']:.2f}" for n in names]]
             + ([f"{f['speedup']['total']:.2f}x"] if "speedup" in f else [])]
-    for s in STAGES:
-        rows.append([f"{s}: CPU s / sim s", *[f"{f[n]['cpu_s_per_sim_s'][s]:.3f}" for n in names]]
+    for s in (*STAGES, *SPLIT):
+        label = f"{s}: CPU s / sim s" if s in STAGES else f"main thread, {s}: CPU s / sim s"
+        rows.append([label, *[f"{f[n]['cpu_s_per_sim_s'][s]:.3f}" for n in names]]
                     + ([f"{f['speedup'][s]:.2f}x"] if "speedup" in f else []))
     first = f[names[0]]
     notes = [f"{first['recordings']} recordings of protocols/paper.toml (indices {f['indices']}), "
