@@ -16,7 +16,15 @@ from rich.markup import escape
 from rich.progress import MofNCompleteColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from labrig.cli.console import JsonOption, calibration_folder, console, err_console, print_json, progress_bar
+from labrig.cli.console import (
+    CalibrationOption,
+    JsonOption,
+    calibration_folder,
+    console,
+    err_console,
+    print_json,
+    progress_bar,
+)
 from labrig.errors import LabrigError
 
 
@@ -27,9 +35,7 @@ def groundtruth(
     method: Annotated[str, typer.Option(help="Contact solution: auto (per indenter), hertz, sneddon or numerical.")] = "auto",
     rate_hz: Annotated[float, typer.Option(help="Maps per second (F/T sample times thinned to this rate).")] = 100.0,
     scale_mm: Annotated[float, typer.Option(help="Global normalisation: mm of depth per unit of the [0, 1] maps.")] = 2.5,
-    calibration: Annotated[Path | None, typer.Option(
-        help="Folder with gel.toml, rig-registration.toml, intrinsics.toml, extrinsics.toml (default: the folder of "
-             "labrig's default rig).")] = None,
+    calibration: CalibrationOption = None,
     rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
     plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
