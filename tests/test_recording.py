@@ -250,9 +250,9 @@ def test_the_sims_truth_streams_use_their_own_codec(tmp_path: Path) -> None:
     with RecordingWriter(tmp_path / "truth.h5", extra_streams=streams) as writer:
         writer.put("truth/markers", t_host_us=[0, 1], position_mm=np.ones((2, 156, 3)), position_px=np.ones((2, 156, 2)))
     with h5py.File(tmp_path / "truth.h5") as f:
-        zstd_filter = str(hdf5plugin.Zstd.filter_id)
-        assert zstd_filter in f["truth/markers/position_px"]._filters
-        assert zstd_filter in f["truth/depth/depth_mm"]._filters
+        blosc2_filter = str(hdf5plugin.Blosc2.filter_id)
+        assert blosc2_filter in f["truth/markers/position_px"]._filters
+        assert blosc2_filter in f["truth/depth/depth_mm"]._filters
         assert f["streams/ft/force_n"].compression == "gzip"  # the rest stays portable
     with Recording(tmp_path / "truth.h5") as rec:
         np.testing.assert_array_equal(rec.column("truth/markers", "position_px"), np.ones((2, 156, 2)))

@@ -21,7 +21,7 @@ from typing import Any
 from _common import bench_main, emit
 
 ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_CODECS = "zstd,blosc2-lz4,bitshuffle-lz4,lz4,blosc2-zstd,gzip"
+DEFAULT_CODECS = "blosc2-lz4-shuffle,zstd,blosc2-lz4,bitshuffle-lz4,lz4,blosc2-zstd,gzip"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
