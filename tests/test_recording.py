@@ -192,6 +192,33 @@ def test_a_writer_that_is_not_woken_by_puts_still_writes_every_row(tmp_path: Pat
         assert rec.rows("gcode") == 40
 
 
+class _WaitLog(threading.Event):
+    """The writer's wake event, counting the waits begun once the writer was told to stop."""
+
+    def __init__(self, stop: threading.Event) -> None:
+        super().__init__()
+        self.stop, self.waits_after_stop = stop, 0
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if self.stop.is_set():
+            self.waits_after_stop += 1
+        return super().wait(timeout)
+
+
+def test_a_closing_writer_writes_what_is_left_without_waiting_for_its_poll(tmp_path: Path) -> None:
+    run = SyntheticRun(duration_s=0.2, peak_event_rate_hz=1e5, trigger_period_s=0)
+    writer = RecordingWriter(tmp_path / "closing.h5", wake_on_put=False)
+    writer._wake = wake = _WaitLog(writer._stop)
+    writer.open()
+    batches = list(run.ft_batches())
+    for batch in batches:
+        writer.put("ft", **batch)
+    writer.close()
+    assert wake.waits_after_stop == 0  # it used to sleep out one more poll (up to POLL_S) before writing
+    with Recording(tmp_path / "closing.h5") as rec:
+        assert rec.rows("ft") == sum(len(b["t_host_us"]) for b in batches)
+
+
 def test_writer_refuses_to_overwrite_and_rejects_bad_rows(tmp_path: Path) -> None:
     path = tmp_path / "exists.h5"
     path.write_bytes(b"")

@@ -392,9 +392,10 @@ class RecordingWriter:
         next_flush = time.monotonic() + self.flush_interval_s
         try:
             while True:
-                stopping = self._stop.is_set()
-                self._wake.wait(timeout=max(0.0, min(POLL_S, next_flush - time.monotonic())))
+                if not self._stop.is_set():  # once stopping, write what is left at once
+                    self._wake.wait(timeout=max(0.0, min(POLL_S, next_flush - time.monotonic())))
                 self._wake.clear()
+                stopping = self._stop.is_set()  # read before draining: what was put before the stop is queued
                 for name, q in self._queues.items():
                     # Take only what is queued now (round robin, so a busy camera
                     # cannot starve the F/T stream); pending is written as it
