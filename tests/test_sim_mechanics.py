@@ -33,6 +33,7 @@ from labrig.physics.mechanics import (
     stiffening_factor,
 )
 from labrig.physics.mechanics.spectral import layer_plane_strain
+from labrig.physics.mechanics.table_cache import table_path
 
 GEL = GelConfig(thickness_mm=4.0, size_x_mm=30.0, size_y_mm=28.0, youngs_modulus_mpa=0.4, poisson_ratio=0.48, friction=1.0)
 R_MM = 6.0
@@ -329,6 +330,23 @@ def test_table_cache_is_fast_and_keyed(table) -> None:  # type: ignore[no-untype
     assert (time.perf_counter() - start) / 20 < 0.02  # a few ms per lookup
     other = ContactTable.build(sphere(), GEL, mode="layer", spacing_mm=0.2, size_mm=16.0, max_depth_mm=0.3, cache_dir=cache)
     assert other.meta["key"] != tab.meta["key"]
+
+
+def test_a_process_loads_a_table_file_once(table) -> None:  # type: ignore[no-untyped-def]
+    """Rigs built one after another (a campaign's worker) share the loaded table, read-only, until its file changes."""
+    tab, cache = table
+    options = dict(mode="layer", spacing_mm=0.2, size_mm=16.0, max_depth_mm=1.5, cache_dir=cache)
+    first = ContactTable.build(sphere(), GEL, **options)
+    assert ContactTable.build(sphere(), GEL, **options) is first
+    assert not first.traction.flags.writeable and not first.depth_fields.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        first.pressure[0, 0, 0] = 1.0
+    assert ContactTable.build(sphere(), GEL, stiffening=0.5, **options) is not first  # stiffening is the table's own
+    path = table_path(sphere(), "layer", first.meta["key"], cache)
+    first.save(path)  # the file rewritten: loaded again
+    again = ContactTable.build(sphere(), GEL, **options)
+    assert again is not first
+    np.testing.assert_array_equal(again.traction, first.traction)
 
 
 def test_stiffening_scales_forces_not_displacements(table) -> None:  # type: ignore[no-untyped-def]

@@ -42,7 +42,9 @@ from __future__ import annotations
 
 import bisect
 import math
+import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,6 +76,9 @@ from labrig.physics.mechanics.tangential import STICK_MARGIN
 #: component along it); tables are built every DIRECTION_STEP_DEG (see :func:`table_direction_deg`).
 DIRECTION_STEP_DEG = 15.0
 DIRECTION_TOLERANCE_DEG = DIRECTION_STEP_DEG / 2 + 0.5
+#: Table files a process keeps loaded (each tens of MB): a campaign's worker records recording after
+#: recording with the same few tables, and a load is about 0.06 s.
+LOADED_TABLES = 8
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -167,7 +172,7 @@ class ContactTable:
         path = table_path(indenter, mode, key, cache_dir)
         if use_cache and path.exists():
             try:
-                return cls.load(path, stiffening=stiffening)
+                return _loaded(cls, path, stiffening)
             except (OSError, ValueError, KeyError):
                 pass  # a damaged cache file: rebuild it
         start = time.perf_counter()
@@ -423,6 +428,30 @@ class ContactTable:
         out = np.zeros((*box_field.shape[:-2], *self.grid.shape), dtype=box_field.dtype)
         out[(..., *self.box.slices)] = box_field
         return out
+
+
+_loaded_tables: OrderedDict[tuple[str, int, int, float], ContactTable] = OrderedDict()
+_loaded_lock = threading.Lock()
+
+
+def _loaded(cls: type[ContactTable], path: Path, stiffening: float) -> ContactTable:
+    """The table in ``path``, loaded once per process while the file stays as it is (its arrays
+    read-only: every rig of the process shares them, with their lazily built lookups)."""
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size, float(stiffening))
+    with _loaded_lock:
+        table = _loaded_tables.get(key)
+        if table is not None:
+            _loaded_tables.move_to_end(key)
+            return table
+    table = cls.load(path, stiffening=stiffening)
+    for name in TABLE_ARRAYS:
+        getattr(table, name).flags.writeable = False
+    with _loaded_lock:
+        _loaded_tables[key] = table
+        while len(_loaded_tables) > LOADED_TABLES:
+            _loaded_tables.popitem(last=False)
+    return table
 
 
 def table_direction_deg(shear_direction_deg: float) -> float:
