@@ -39,7 +39,8 @@ def _leak_reference(s: EventSensor, cand: np.ndarray, t1: int) -> tuple[np.ndarr
         t_int = np.floor(t + 1e-6).astype(np.int64)
         ok = t >= s.last_event_us[due] + s._refractory_us
         s.reference[due] += s.c_on[due]
-        s._set_band(due)
+        s._hi[due] = s.reference[due] + s.c_on[due] - 1e-9  # the band moves with R (outside_band)
+        s._lo[due] = s.reference[due] - s.c_off[due] + 1e-9
         s.last_event_us[due[ok]] = t_int[ok]
         out_pix.append(due[ok])
         out_t.append(t_int[ok])
@@ -75,19 +76,32 @@ def test_compiled_quiet_leak_gives_the_numpy_rounds_events_and_state(seed: int) 
         np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
 
 
-@pytest.mark.parametrize("leak_hz", [0.0, 0.05, 30.0])
-def test_compiled_epoch_bands_match_the_numpy_passes(leak_hz: float) -> None:
+@pytest.mark.parametrize("leak_hz", [0.05, 30.0])
+def test_compiled_epoch_leak_candidates_match_numpy(leak_hz: float) -> None:
     s = _sensor(3, leak_hz)
-    end, start = s._epoch_end_us + 1e5, s._epoch_start_us + 1e5
-    hi = s._k * -(end - s._t_start_us) + s._c_on_margin + s.reference
-    lo = s._k * -(start - s._t_start_us) + s._c_off_margin + s.reference
-    expected = np.flatnonzero(s.log_filtered >= hi) if leak_hz > 0 else np.empty(0, np.int64)
-    out_hi, out_lo, cand = np.empty(s.size), np.empty(s.size), np.empty(s.size, np.int64)
-    m = _k.epoch_bands(s._k, -(end - s._t_start_us), -(start - s._t_start_us), s._c_on_margin, s._c_off_margin,
-                       s.reference, s.log_filtered, out_hi, out_lo, leak_hz > 0, cand)
-    np.testing.assert_array_equal(out_hi, hi)
-    np.testing.assert_array_equal(out_lo, lo)
+    to_end = 2_000.0  # us: some pixels reach their band's top by then, others not
+    expected = np.flatnonzero(s.log_filtered + s._k * to_end >= s._hi)
+    assert 0 < expected.size < s.size
+    cand = np.empty(s.size, np.int64)
+    m = _k.epoch_leak_candidates(s._k, to_end, s.log_filtered, s._hi, cand)
     np.testing.assert_array_equal(cand[:m], expected)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_time_free_band_holds_every_crossing_of_the_epoch(seed: int) -> None:
+    """A pixel inside its band (outside_band false) has no crossing anywhere in the epoch: D = Lf - R + k (t - t_start)
+    stays inside (-C_off, C_on) from the epoch's start to its end, for values on both sides of the band's edges."""
+    s = _sensor(seed, 0.5)  # a band narrower by the leak over the epoch, not empty
+    rng = np.random.default_rng(seed)
+    to_start, to_end = s._epoch_start_us - s._t_start_us, s._epoch_end_us - s._t_start_us
+    # Values spread around both edges, some within rounding of them.
+    y = np.where(rng.random(s.size) < 0.5, s._hi - s._k * to_end, s._lo - s._k * to_start)
+    y += rng.normal(0, 1e-3, s.size) * (rng.random(s.size) < 0.5) + rng.normal(0, 1e-12, s.size)
+    inside = np.array([not _k.outside_band(y[i], s._hi[i], s._lo[i], s._k[i], to_end, to_start) for i in range(s.size)])
+    assert 0 < inside.sum() < s.size
+    for to_t in (to_start, to_end):
+        d = y - s.reference + s._k * to_t
+        assert np.all(d[inside] < s.c_on[inside]) and np.all(d[inside] > -s.c_off[inside])
 
 
 @settings(max_examples=60, deadline=None)

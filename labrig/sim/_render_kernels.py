@@ -67,10 +67,23 @@ def shade_compose(
     return count
 
 
+@njit(cache=True, nogil=True, inline="always")
+def outside_band(y, hi, lo, k, to_end, to_start):  # type: ignore[no-untyped-def]
+    """Whether a pixel's filtered log intensity ``y`` may cross a threshold within the leak epoch.
+
+    The band is kept free of time: ``hi = R + C_on - margin`` and ``lo = R - C_off + margin``
+    change only when the reference R does. With D = Lf - R + k (t - t_start) growing by the
+    leak ``k`` (ln units per us), an ON crossing (or a leak) by the epoch's end needs
+    ``y + k to_end >= hi`` and an OFF crossing after its start ``y + k to_start <= lo``
+    (``to_end``, ``to_start``: the epoch's ends minus ``t_start``, us).
+    """
+    return y + k * to_end >= hi or y + k * to_start <= lo
+
+
 @njit(cache=True, nogil=True)
 def sensor_block(
-    y0, x0, width, changed, values, eps, log_input, log_filtered, hi, lo, is_active, a, b, c, settle, who, before, after,
-    active
+    y0, x0, width, changed, values, eps, log_input, log_filtered, hi, lo, k, to_end, to_start, is_active, a, b, c, settle,
+    who, before, after, active
 ):  # type: ignore[no-untyped-def]
     """Low-pass update of a dense block's changed pixels and of the unsettled pixels in it.
 
@@ -81,7 +94,8 @@ def sensor_block(
     unchanged one keeps its stored log input (its value is the one that gave it).
     Updated pixels get ``y1 = a y0 + b u1 + c u0`` (u: log input before and
     after). Writes, in row-major order, the updated pixels whose ``y1`` left the
-    band (``who``, ``before``, ``after``) and those left unsettled
+    epoch's band (:func:`outside_band`: ``k``, ``to_end``, ``to_start``) (``who``,
+    ``before``, ``after``) and those left unsettled
     (|u1 - y1| > settle: ``active``); returns both counts.
     """
     h, w = changed.shape
@@ -92,6 +106,7 @@ def sensor_block(
         c_row, value_row = changed[r], values[r]
         u_row, y_row = log_input[start : start + w], log_filtered[start : start + w]
         hi_row, lo_row, a_row = hi[start : start + w], lo[start : start + w], is_active[start : start + w]
+        k_row = k[start : start + w]
         for col in range(w):
             if c_row[col]:
                 u1 = np.log(eps + value_row[col])
@@ -103,7 +118,7 @@ def sensor_block(
             y1 = a * y_0
             y1 += b * u1
             y1 += c * u_row[col]
-            if y1 >= hi_row[col] or y1 <= lo_row[col]:
+            if outside_band(y1, hi_row[col], lo_row[col], k_row[col], to_end, to_start):
                 who[n_who] = start + col
                 before[n_who] = y_0
                 after[n_who] = y1
@@ -118,8 +133,8 @@ def sensor_block(
 
 @njit(cache=True, nogil=True)
 def sensor_list(
-    pixels, log_new, old_active, rect, width, mark, stamp, log_input, log_filtered, hi, lo, a, b, c, settle,
-    who, before, after, active,
+    pixels, log_new, old_active, rect, width, mark, stamp, log_input, log_filtered, hi, lo, k_all, to_end, to_start,
+    a, b, c, settle, who, before, after, active,
 ):  # type: ignore[no-untyped-def]
     """Low-pass update of scattered pixels (new log input ``log_new``) and of the still unsettled ones.
 
@@ -151,7 +166,7 @@ def sensor_list(
         y1 = a * y_0
         y1 += b * u1
         y1 += c * u0
-        if y1 >= hi[k] or y1 <= lo[k]:
+        if outside_band(y1, hi[k], lo[k], k_all[k], to_end, to_start):
             who[n_who] = k
             before[n_who] = y_0
             after[n_who] = y1
@@ -396,7 +411,7 @@ def crossings(
     The arithmetic of EventSensor's model (module docstring of labrig.sim.events),
     per pixel: D = Lf - R + k (t - t_start); a pixel whose D ends at or beyond
     C_on (or -C_off) moves its reference by the whole crossings, gets a fresh
-    no-crossing band (``hi``, ``lo``) for the epoch and emits the crossings its
+    no-crossing band (``hi``, ``lo``, see :func:`outside_band`) and emits the crossings its
     refractory period keeps (times linear in the step, floored to us, clipped
     to the step), updating ``last_event``. Events are written pixel by pixel
     (``out_*``, room for every crossing); with ``leak``, the pixels that may
@@ -426,8 +441,8 @@ def crossings(
         reference[p] += (count if rising else -count) * c
         r = reference[p]
         kk = k_all[p]
-        hi[p] = r + c_on - kk * (epoch_end - t_start) - 1e-9
-        lo[p] = r - c_off - kk * (epoch_start - t_start) + 1e-9
+        hi[p] = r + c_on - 1e-9
+        lo[p] = r - c_off + 1e-9
         step = max(abs(d1 - d0), 1e-12)
         first = c_on - d0 if rising else d0 + c_off
         t_first = t0 + first / step * dt
@@ -455,42 +470,33 @@ def crossings(
             n += 1
     m = 0
     if leak:
+        to_end = epoch_end - t_start
         for i in range(who.size):
-            if y1[i] >= hi[who[i]]:
+            if y1[i] + k_all[who[i]] * to_end >= hi[who[i]]:
                 leak_candidates[m] = who[i]
                 m += 1
     return n, m
 
 
 @njit(cache=True, nogil=True)
-def epoch_bands(k, neg_end, neg_start, c_on_margin, c_off_margin, reference, log_filtered, hi, lo, leak,
-                candidates):  # type: ignore[no-untyped-def]
-    """Every pixel's no-crossing band for a new leak epoch, in one pass (EventSensor._start_epoch's arithmetic):
-    ``hi = k neg_end + C_on margin + R``, ``lo = k neg_start + C_off margin + R`` (``neg_*``: minus the epoch's
-    ends since ``t_start``, us); with ``leak``, the pixels already at or above ``hi`` go to ``candidates``.
-    Returns how many."""
+def epoch_leak_candidates(k, to_end, log_filtered, hi, candidates):  # type: ignore[no-untyped-def]
+    """The pixels that may leak before a new leak epoch's end, in increasing order, into ``candidates``:
+    ``Lf + k to_end >= hi`` (:func:`outside_band`'s ON side; ``to_end``: the epoch's end minus
+    ``t_start``, us). Returns how many."""
     m = 0
     for i in range(k.size):
-        h = k[i] * neg_end
-        h += c_on_margin[i]
-        h += reference[i]
-        hi[i] = h
-        v = k[i] * neg_start
-        v += c_off_margin[i]
-        v += reference[i]
-        lo[i] = v
-        if leak and log_filtered[i] >= h:
+        if log_filtered[i] + k[i] * to_end >= hi[i]:
             candidates[m] = i
             m += 1
     return m
 
 
 @njit(cache=True, nogil=True)
-def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, is_candidate, out_due,
+def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, to_end, is_candidate, out_due,
              out_kept):  # type: ignore[no-untyped-def]
     """The candidates whose next leak time is at or before ``t1`` (as :func:`quiet_leak` finds it), into
-    ``out_due``; those still at or above their band's top ``hi`` (the only ones that may leak before the
-    epoch's end) into ``out_kept``, the others leave the candidates (``is_candidate``). Returns both counts."""
+    ``out_due``; those still at or above their band's top (the only ones that may leak before the
+    epoch's end, :func:`epoch_leak_candidates`) into ``out_kept``, the others leave the candidates (``is_candidate``). Returns both counts."""
     m = 0
     kept = 0
     for i in range(cand.size):
@@ -498,7 +504,7 @@ def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, is
         if t_start + (c_on_all[p] + reference[p] - log_filtered[p]) / k_all[p] <= t1:
             out_due[m] = p
             m += 1
-        if log_filtered[p] >= hi[p]:
+        if log_filtered[p] + k_all[p] * to_end >= hi[p]:
             out_kept[kept] = p
             kept += 1
         else:
@@ -508,12 +514,11 @@ def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, is
 
 @njit(cache=True, nogil=True)
 def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_filtered, last_event, refractory,
-               end_minus_start, start_minus_start, hi, lo, count_only, out_pix, out_t):  # type: ignore[no-untyped-def]
+               hi, lo, count_only, out_pix, out_t):  # type: ignore[no-untyped-def]
     """Leak events due by ``t1`` of the quiet candidate pixels ``cand`` (the leak of labrig.sim.events' model).
 
     A pixel leaks at ``t_start + (C_on + R - Lf) / k``; each leak moves R by C_on and
-    refreshes its band (``end_minus_start`` / ``start_minus_start``: the epoch's ends
-    minus ``t_start``, us); one that its refractory period keeps is written
+    refreshes its band (:func:`outside_band`); one that its refractory period keeps is written
     (``out_pix``, ``out_t``) and updates ``last_event``. ``count_only``: change nothing,
     return how many leaks are due (the room the writing pass needs). Returns the count
     of leaks (``count_only``) or of events written.
@@ -537,8 +542,8 @@ def quiet_leak(cand, t_start, t1, c_on_all, c_off_all, k_all, reference, log_fil
             t_int = np.int64(np.floor(t + 1e-6))
             r += c_on
             reference[p] = r
-            hi[p] = r + c_on - kk * end_minus_start - 1e-9
-            lo[p] = r - c_off_all[p] - kk * start_minus_start + 1e-9
+            hi[p] = r + c_on - 1e-9
+            lo[p] = r - c_off_all[p] + 1e-9
             if t >= last + refractory:
                 last = t_int
                 last_event[p] = t_int
@@ -662,6 +667,7 @@ def sensor_step(
     """
     dt = t1 - t0
     size = log_input.size
+    to_end, to_start = epoch_end - t_start, epoch_start - t_start
     # Low-pass updates: the block, then the scattered and unsettled pixels outside it.
     n_block = block_changed.size if has_block else 0
     b_who, b_before, b_after = np.empty(n_block, np.int64), np.empty(n_block), np.empty(n_block)
@@ -670,7 +676,8 @@ def sensor_step(
     ry0, ry1, rx0, rx1 = 0, 0, 0, 0
     if has_block:
         n_bw, n_ba = sensor_block(block_y0, block_x0, width, block_changed, block_values, eps, log_input, log_filtered,
-                                  hi, lo, is_active, a, b, c, settle, b_who, b_before, b_after, b_active)
+                                  hi, lo, k, to_end, to_start, is_active, a, b, c, settle, b_who, b_before, b_after,
+                                  b_active)
         h, w = block_changed.shape
         ry0, ry1, rx0, rx1 = block_y0, block_y0 + h, block_x0, block_x0 + w
     n_list = pixels.size + old_active.size
@@ -679,7 +686,8 @@ def sensor_step(
     n_lw, n_la = 0, 0
     if n_list:
         n_lw, n_la = sensor_list(pixels, log_new, old_active, (ry0, ry1, rx0, rx1), width, mark, stamp, log_input,
-                                 log_filtered, hi, lo, a, b, c, settle, l_who, l_before, l_after, l_active)
+                                 log_filtered, hi, lo, k, to_end, to_start, a, b, c, settle, l_who, l_before, l_after,
+                                 l_active)
     for i in range(old_active.size):
         is_active[old_active[i]] = False
     active = np.empty(n_ba + n_la, np.int64)
@@ -727,17 +735,17 @@ def sensor_step(
     leak_pix, leak_t = np.empty(0, np.int64), np.empty(0, np.int64)
     if leak and candidates.size:
         due, kept = np.empty(candidates.size, np.int64), np.empty(candidates.size, np.int64)
-        n_due, n_kept = leak_due(candidates, t_start, t1, c_on, k, reference, log_filtered, hi, is_candidate, due, kept)
+        n_due, n_kept = leak_due(candidates, t_start, t1, c_on, k, reference, log_filtered, hi, to_end, is_candidate, due,
+                                 kept)
         if n_kept < candidates.size:
             candidates = kept[:n_kept]
         if n_due:
-            end_minus_start, start_minus_start = epoch_end - t_start, epoch_start - t_start
             count = quiet_leak(due[:n_due], t_start, t1, c_on, c_off, k, reference, log_filtered, last_event, refractory,
-                               end_minus_start, start_minus_start, hi, lo, True, leak_pix, leak_t)
+                               hi, lo, True, leak_pix, leak_t)
             if count:
                 leak_pix, leak_t = np.empty(count, np.int64), np.empty(count, np.int64)
                 n_leak = quiet_leak(due[:n_due], t_start, t1, c_on, c_off, k, reference, log_filtered, last_event,
-                                    refractory, end_minus_start, start_minus_start, hi, lo, False, leak_pix, leak_t)
+                                    refractory, hi, lo, False, leak_pix, leak_t)
     # Signal and leak, then the shot noise that keeps clear of them.
     n_other = n_sig + n_leak
     other_pix, other_t = np.empty(n_other, np.int64), np.empty(n_other, np.int64)
@@ -780,21 +788,21 @@ def warm_up() -> None:
                   np.ones((2, 2)), np.zeros((4, 4)), 1, np.zeros((2, 2)), True, 1e-4,
                   np.zeros((1, 1), np.bool_), np.zeros((1, 1)))
     sensor_block(0, 0, 2, np.ones((1, 1), np.bool_), np.zeros((1, 1)), 1e-3, np.zeros(4), np.zeros(4), np.ones(4),
-                 -np.ones(4), np.zeros(4, np.bool_), 0.5, 0.25, 0.25, 1e-4, np.zeros(1, i8), np.zeros(1, f8),
-                 np.zeros(1, f8), np.zeros(1, i8))
+                 -np.ones(4), np.zeros(4), 10.0, 0.0, np.zeros(4, np.bool_), 0.5, 0.25, 0.25, 1e-4, np.zeros(1, i8),
+                 np.zeros(1, f8), np.zeros(1, f8), np.zeros(1, i8))
     sensor_list(np.zeros(1, i8), np.zeros(1), np.zeros(1, i8), (0, 0, 0, 0), 2, np.zeros(4, i8), 1, np.zeros(4),
-                np.zeros(4), np.ones(4), -np.ones(4), 0.5, 0.25, 0.25, 1e-4, np.zeros(2, i8), np.zeros(2, f8),
-                np.zeros(2, f8), np.zeros(2, i8))
+                np.zeros(4), np.ones(4), -np.ones(4), np.zeros(4), 10.0, 0.0, 0.5, 0.25, 0.25, 1e-4, np.zeros(2, i8),
+                np.zeros(2, f8), np.zeros(2, f8), np.zeros(2, i8))
     one = np.ones(1)
     crossings(0, 10, np.zeros(1, i8), 0 * one, one, 0 * one, 0.2 * one, 0.2 * one, 1e-9 * one, True, 0, 0.0, 10.0,
               one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
               np.zeros(1, i8))
-    epoch_bands(one, -1.0, 0.0, one, -one, 0 * one, one.copy(), one.copy(), one.copy(), True, np.zeros(1, i8))
-    leak_due(np.zeros(1, i8), 0, 10, 0.2 * one, 1e-9 * one, 0 * one, one, one.copy(), np.ones(1, np.bool_),
+    epoch_leak_candidates(one, 1.0, one, one.copy(), np.zeros(1, i8))
+    leak_due(np.zeros(1, i8), 0, 10, 0.2 * one, 1e-9 * one, 0 * one, one, one.copy(), 10.0, np.ones(1, np.bool_),
              np.zeros(1, i8), np.zeros(1, i8))
     for count_only in (True, False):
         quiet_leak(np.zeros(1, i8), 0, 10, 0.2 * one, 0.2 * one, 1e-9 * one, 0 * one, one.copy(), np.zeros(1, i8), 300,
-                   1e5, 0.0, one.copy(), -one, count_only, np.zeros(1, i8), np.zeros(1, i8))
+                   one.copy(), -one, count_only, np.zeros(1, i8), np.zeros(1, i8))
     rim_change(np.zeros(1, i8), np.full((1, 2), 2.0), np.zeros((1, 2), i8), np.ones((1, 2), i8), one, 0 * one, one,
                0 * one, 3 * one, 0, 4, 1.0, np.zeros((1, 4, 4)), np.zeros(1, i8), 4, np.zeros(16), np.zeros(16, i8),
                np.zeros(16))

@@ -122,9 +122,11 @@ class EventSensor:
       dense :class:`~labrig.sim.pixels.PixelBlock` of changed pixels is updated
       on contiguous slices of the state (no gathers).
     * The exact crossing arithmetic runs only on pixels whose filtered log
-      intensity left a per-pixel band ``(lo, hi)`` that no crossing can happen
-      inside until the end of the current leak epoch (the band is conservative
-      and refreshed once per epoch and at each event of the pixel).
+      intensity left a per-pixel band that no crossing can happen inside until
+      the end of the current leak epoch. The band is kept free of time
+      (``hi = R + C_on``, ``lo = R - C_off``, less a margin, refreshed at each
+      event of the pixel) and the leak up to the epoch's ends is added to the
+      pixel's value where it is compared, so a new epoch rewrites no band.
     * A quiet pixel's next leak time is ``t_start + (C_on + R - Lf) / k``; it
       is computed when needed (pixels that may leak within the epoch are
       candidates) instead of being stored and updated at every input change.
@@ -175,16 +177,14 @@ class EventSensor:
         self._scratch = np.zeros(n, dtype=np.int64)
         self._mark = np.zeros(n, dtype=np.int64)
         self._stamp = 0
-        # Leak epoch [start, end] (us): the band (lo, hi) of Lf holds no crossing until its end.
+        # Leak epoch [start, end] (us): no pixel inside its band crosses before the end (_k.outside_band).
         self._epoch_start_us = -np.inf
         self._epoch_end_us = -np.inf
-        self._hi = np.empty(n)
-        self._lo = np.empty(n)
         self._c_min = float(min(self.c_on.min(initial=1.0), self.c_off.min(initial=1.0)))
         self._c_max = float(max(self.c_on.max(initial=0.0), self.c_off.max(initial=0.0)))
         self._k_max = float(np.max(self._k, initial=0.0))
-        self._c_on_margin = self.c_on - 2e-9
-        self._c_off_margin = 2e-9 - self.c_off
+        self._hi = self.reference + (self.c_on - 2e-9)
+        self._lo = self.reference + (2e-9 - self.c_off)
         self._leak_candidates = np.empty(0, dtype=np.int64)
         self._is_candidate = np.zeros(n, dtype=bool)
         # Shot noise drawn ahead: (pixel, polarity, t) sorted by t, covering [_noise_from_us, _noise_until_us).
@@ -271,33 +271,19 @@ class EventSensor:
     # -- no-crossing band and leak of quiet pixels --------------------------------------------------
 
     def _start_epoch(self, t0_us: int, t1_us: int) -> None:
-        """At the first step past the epoch: a new epoch from t0_us, its bands and its leak candidates."""
+        """At the first step past the epoch: a new epoch from t0_us and its leak candidates."""
         if t1_us <= self._epoch_end_us:
             return
         self._epoch_start_us = float(t0_us)
         self._epoch_end_us = float(max(t0_us + self.params.leak_epoch_us, t1_us))
-        # The whole band, in place (the same bounds as _set_band up to rounding, inside its margin), in one pass.
-        leak = self.params.leak_rate_hz > 0
+        if self.params.leak_rate_hz <= 0:
+            return
         candidates = self._scratch  # as many as pixels, free between steps
-        m = _k.epoch_bands(self._k, -(self._epoch_end_us - self._t_start_us), -(self._epoch_start_us - self._t_start_us),
-                           self._c_on_margin, self._c_off_margin, self.reference, self.log_filtered, self._hi, self._lo,
-                           leak, candidates)
+        m = _k.epoch_leak_candidates(self._k, self._epoch_end_us - self._t_start_us, self.log_filtered, self._hi,
+                                     candidates)
         self._is_candidate[self._leak_candidates] = False
         self._leak_candidates = candidates[:m].copy()  # increasing, once each (an empty list without leak)
         self._is_candidate[self._leak_candidates] = True
-
-    def _set_band(self, who: Index | slice, c_on: Array | None = None, c_off: Array | None = None) -> None:
-        """Band of Lf with no crossing anywhere in the epoch: D = Lf - R + k (t - t_start) stays in (-C_off, C_on).
-
-        Above ``hi`` an ON crossing (or leak) may happen before the epoch's end;
-        below ``lo`` an OFF crossing may happen after its start. A 1e-9 margin
-        keeps the band conservative against rounding.
-        """
-        r, k = self.reference[who], self._k[who]
-        c_on = self.c_on[who] if c_on is None else c_on
-        c_off = self.c_off[who] if c_off is None else c_off
-        self._hi[who] = r + c_on - k * (self._epoch_end_us - self._t_start_us) - 1e-9
-        self._lo[who] = r - c_off - k * (self._epoch_start_us - self._t_start_us) + 1e-9
 
     # -- shot noise --------------------------------------------------------------------------------
 
