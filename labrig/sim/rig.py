@@ -429,7 +429,8 @@ class VirtualRig:
             self._solve_offsets = np.geomspace(self.min_solve_interval_us, self.max_solve_interval_us, 8).astype(np.int64)
             self._solve_offsets_key = (self.min_solve_interval_us, self.max_solve_interval_us)
         candidates = prev.t_us + self._solve_offsets
-        moved = np.linalg.norm(tool_path(candidates) - tool_path(prev.t_us)[0], axis=1)
+        tool = tool_path(np.concatenate(([prev.t_us], candidates)))  # one call: prev's position, then the candidates'
+        moved = np.linalg.norm(tool[1:] - tool[0], axis=1)
         ok = candidates[moved <= self.solve_step_mm]
         return int(ok[-1]) if ok.size else int(candidates[0])
 

@@ -10,7 +10,12 @@ compared with the finest setting given (the reference):
 * ``cpu_s_per_sim_s``: process CPU (writer thread included) per simulated second;
 * ``count_l1``: sum over pixels and polarities of |events - reference events|, over the reference's events;
 * ``dt_p50_us``, ``dt_p95_us``: per reference event, the time to the nearest event of the same
-  pixel and polarity in this setting's recording.
+  pixel and polarity in this setting's recording;
+* ``markers_mean_px``, ``markers_p999_px``: the true markers' image positions (``/truth/markers``,
+  1 kHz, interpolated linearly between solves as the rig renders them) against the reference's at
+  the same times: what the solve step trades; ``frames_over_0_2_px``: the samples with a marker
+  more than 0.2 px off (lift-off, where the contact lets go between two solves);
+* ``solves``: the mechanics solves (``/truth/depth`` maps).
 
 Coarser steps shift events within a step (the sensor ramps its input linearly between steps) and
 cost less only in the steps' fixed overheads: what a scene needs, charted against what it costs.
@@ -64,13 +69,15 @@ def run(settings: str, recordings: str, progress: bool = True) -> dict[str, Any]
         _record(campaign, index, rig, indenter, *pairs[-1])  # untimed: a process's first recording pays more
         reference = None
         for px, mm in pairs:
-            cpu_s, sim_s, events = _record(campaign, index, rig, indenter, px, mm)
+            cpu_s, sim_s, events, markers = _record(campaign, index, rig, indenter, px, mm)
             row: dict[str, Any] = {"index": index, "indenter": plan.spec.indenter, "max_step_px": px,
-                                   "solve_step_mm": mm, "cpu_s_per_sim_s": cpu_s / sim_s, "events": int(events[0].size)}
+                                   "solve_step_mm": mm, "cpu_s_per_sim_s": cpu_s / sim_s, "events": int(events[0].size),
+                                   "solves": markers[2]}
             if reference is None:
-                reference = events
+                reference = events, markers
             else:
-                row.update(_fidelity(events, reference))
+                row.update(_fidelity(events, reference[0]))
+                row.update(_marker_error(markers, reference[1]))
             rows.append(row)
             if progress:
                 print(f"recording {index} at {px} px, {mm} mm: {cpu_s / sim_s:.3f} CPU s per simulated s", flush=True)
@@ -78,8 +85,10 @@ def run(settings: str, recordings: str, progress: bool = True) -> dict[str, Any]
 
 
 def _record(campaign: Any, index: int, rig: Any, indenter: Any, px: float, mm: float
-            ) -> tuple[float, float, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]]:
-    """Record one recording at this resolution, noise and leak off: (CPU s, simulated s, (pixel keys, times))."""
+            ) -> tuple[float, float, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]],
+                       tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], int]]:
+    """Record one recording at this resolution, noise and leak off: (CPU s, simulated s, (pixel keys, times),
+    (true marker times, their image positions (T, N, 2) px, solves))."""
     from labrig.config import rig_with
     from labrig.protocol.virtual_campaign import recording_seed
     from labrig.protocol.virtual_run import record_virtual
@@ -104,11 +113,13 @@ def _record(campaign: Any, index: int, rig: Any, indenter: Any, px: float, mm: f
                 phases = rec.phases()
                 sim_s = (phases[-1].t_end_us - phases[0].t_start_us) / 1e6
                 ev = rec.stream("events")
+                markers = (rec.column("truth/markers", "t_host_us"),
+                           rec.column("truth/markers", "position_px").astype(np.float64), rec.rows("truth/depth"))
     finally:
         defaults.clear()
         defaults.update(saved)
     key = (ev["y"].astype(np.int64) * 4096 + ev["x"]) * 2 + ev["p"]
-    return cpu, sim_s, (key, ev["t_device_us"].astype(np.int64))
+    return cpu, sim_s, (key, ev["t_device_us"].astype(np.int64)), markers
 
 
 def _fidelity(events: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]],
@@ -134,15 +145,27 @@ def _fidelity(events: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]],
             "dt_p50_us": float(np.median(found)), "dt_p95_us": float(np.percentile(found, 95))}
 
 
+def _marker_error(markers: tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], int],
+                  reference: tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], int]) -> dict[str, float]:
+    """The true markers' image positions against the reference's at the times both have (px)."""
+    _, at, ref_at = np.intersect1d(markers[0], reference[0], return_indices=True)
+    error = np.hypot(*np.moveaxis(markers[1][at] - reference[1][ref_at], -1, 0))  # (T, N); NaN: a marker not printed
+    worst = np.nanmax(error, axis=1)
+    return {"markers_mean_px": float(np.nanmean(error)), "markers_p999_px": float(np.nanpercentile(error, 99.9)),
+            "frames_over_0_2_px": int(np.sum(worst > 0.2))}
+
+
 def render(figures: dict[str, Any]) -> None:
     rows = []
     for r in figures["rows"]:
-        fidelity = ("reference", "", "") if "count_l1" not in r else (
-            f"{100 * r['count_l1']:.1f} %", f"{r['dt_p50_us']:.0f}", f"{r['dt_p95_us']:.0f}")
+        fidelity = ("reference", "", "", "", "", "") if "count_l1" not in r else (
+            f"{100 * r['count_l1']:.1f} %", f"{r['dt_p50_us']:.0f}", f"{r['dt_p95_us']:.0f}",
+            f"{r['markers_mean_px']:.4f}", f"{r['markers_p999_px']:.3f}", f"{r['frames_over_0_2_px']}")
         rows.append([f"{r['index']} {r['indenter']}", f"{r['max_step_px']:g}", f"{r['solve_step_mm']:g}",
-                     f"{r['cpu_s_per_sim_s']:.3f}", f"{r['events']:,}", *fidelity])
-    emit("Virtual-rig resolution: cost and event fidelity (noise and leak off)",
-         ["recording", "max step px", "solve step mm", "CPU s / sim s", "events", "count |diff|", "dt p50 us", "dt p95 us"],
+                     f"{r['solves']}", f"{r['cpu_s_per_sim_s']:.3f}", f"{r['events']:,}", *fidelity])
+    emit("Virtual-rig resolution: cost and fidelity (noise and leak off)",
+         ["recording", "max step px", "solve step mm", "solves", "CPU s / sim s", "events", "count |diff|", "dt p50 us",
+          "dt p95 us", "markers mean px", "markers p99.9 px", "frames > 0.2 px"],
          rows, [f"bench wall {figures['bench_wall_s']:.0f} s; fidelity against each recording's first setting."])
 
 
