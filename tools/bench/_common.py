@@ -158,6 +158,28 @@ def file_size(path: Path) -> int:
     return os.stat(path).st_size
 
 
+def trees_to_compare(root: Path, baseline: Path | None) -> dict[str, Path]:
+    """This tree, and a baseline checkout to compare it with (its repository root), by name."""
+    trees = {"this_tree": root}
+    if baseline is not None:
+        if not (baseline / "labrig" / "__init__.py").exists():
+            raise SystemExit(f"--baseline {baseline} is not a labrig checkout (no labrig/__init__.py there)")
+        trees["baseline"] = baseline.resolve()
+    return trees
+
+
+def json_from_tree(tree: Path, script: Path, *args: str) -> Any:
+    """Run a benchmark script's internal mode with ``tree``'s labrig (one thread of BLAS); its last line, as JSON."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, str(script), *args], env=env, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"{script.name} {' '.join(args)} with {tree} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def emit(title: str, columns: list[str], rows: list[list[str]], notes: list[str]) -> None:
     """Print an aligned table (rich) and its notes."""
     from rich.console import Console

@@ -18,16 +18,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pickle
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from _common import bench_main, emit
+from _common import bench_main, emit, json_from_tree, trees_to_compare
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -112,21 +110,12 @@ def replay(inputs: Path, runs: int) -> dict[str, Any]:
 
 
 def _replay_in(tree: Path, inputs: Path, runs: int) -> dict[str, Any]:
-    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--replay", str(inputs), str(runs)], env=env,
-                          capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise SystemExit(f"the replay with {tree} failed:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return json_from_tree(tree, Path(__file__).resolve(), "--replay", str(inputs), str(runs))  # type: ignore[no-any-return]
 
 
 def run(baseline: Path | None = None, recording: int = 117, repeat: int = 5, replay: list[str] | None = None,
         progress: bool = True) -> dict[str, Any]:
-    trees = {"this_tree": ROOT}
-    if baseline is not None:
-        if not (baseline / "labrig" / "__init__.py").exists():
-            raise SystemExit(f"--baseline {baseline} is not a labrig checkout (no labrig/__init__.py there)")
-        trees["baseline"] = baseline.resolve()
+    trees = trees_to_compare(ROOT, baseline)
     with tempfile.TemporaryDirectory() as tmp:
         inputs = Path(tmp) / "sensor_inputs.pkl"
         n_steps = capture(recording, inputs)

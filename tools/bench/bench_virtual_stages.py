@@ -34,8 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import threading
@@ -44,7 +42,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from _common import bench_main, emit
+from _common import bench_main, emit, json_from_tree, trees_to_compare
 
 ROOT = Path(__file__).resolve().parents[2]
 STAGES = ("contact", "render", "ft", "other", "writer")
@@ -183,12 +181,7 @@ def probe(index: int) -> dict[str, Any]:
 
 
 def _run_probe(tree: Path, index: int) -> dict[str, Any]:
-    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--probe", str(index)], env=env,
-                          capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise SystemExit(f"recording {index} with {tree} failed:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return json_from_tree(tree, Path(__file__).resolve(), "--probe", str(index))  # type: ignore[no-any-return]
 
 
 def _default_indices() -> list[int]:
@@ -227,11 +220,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
 def run(baseline: Path | None = None, recordings: str = "", repeat: int = 1, probe: str | None = None,
         progress: bool = True) -> dict[str, Any]:
     indices = [int(i) for i in recordings.split(",") if i.strip()] or _default_indices()
-    trees = {"this_tree": ROOT}
-    if baseline is not None:
-        if not (baseline / "labrig" / "__init__.py").exists():
-            raise SystemExit(f"--baseline {baseline} is not a labrig checkout (no labrig/__init__.py there)")
-        trees["baseline"] = baseline.resolve()
+    trees = trees_to_compare(ROOT, baseline)
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in trees}
     for _ in range(max(1, repeat)):
         for index in indices:
