@@ -147,3 +147,16 @@ def test_a_ridge_shears_in_any_direction_through_a_table_per_direction(rig: RigC
         assert np.hypot(*shear) > 0.1
         along = shear @ (u / np.hypot(*u))
         assert along > 0.99 * np.hypot(*shear)  # the force follows the shear direction
+
+
+def test_the_epoch_counts_the_kinematics_fresh_starts(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
+    """Contact made, a new shear axis (the old residual dropped) and lift-off each start an epoch; pressing and
+    shearing along one axis do not (the fields may jump only between epochs: the rig solves on both sides)."""
+    kin = ContactKinematics(table, sphere.tool_offset_mm, true_gel_in_machine(rig).inverse())
+    epochs = [kin.step(t, _tool_at(rig, sphere, x, y, z)).epoch for t, (x, y, z) in enumerate([
+        (0.0, 0.0, -0.5), (0.0, 0.0, 0.5), (0.0, 0.0, 1.0),  # above, then in contact: one start
+        (0.1, 0.0, 1.0), (0.2, 0.0, 1.0), (0.1, 0.0, 1.0),  # shear along x and back: the same memory
+        (0.1, 0.3, 1.0),  # clearly across the x axis: a new axis, the residual dropped
+        (0.1, 0.3, -0.1),  # lifted off
+    ])]
+    assert epochs == [0, 1, 1, 1, 1, 1, 2, 3]

@@ -158,6 +158,25 @@ def test_markers_move_at_most_a_fifth_of_a_pixel_between_renders(standard: Run) 
     assert step.max() > 0.15  # the bound is what sets the render rate while moving
 
 
+def test_solves_sit_on_both_sides_of_each_contact_edge(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
+    """Where the contact begins or ends between two solves, the rig solves at the contact track's adjacent samples
+    (the F/T twin's, 800 Hz) on either side, not across the edge: lifting off lets go of the residual shear at once,
+    so the true markers would otherwise glide back over a whole solve interval."""
+    vr = VirtualRig(noiseless(rig), sphere, seed=1, table=table)
+    path = probing_path(rig, sphere, depth_mm=1.0, shear_mm=0.8)
+    track = vr.bind(path)
+    solves: list[Solve] = []
+    for t in range(0, int(path.duration_us) + 1, 1250):  # the F/T twin samples the track; the renderer lags 30 ms
+        track.sample(t)
+        if t - 30_000 >= vr.t_us + 10_000:
+            solves += vr.advance(t - 30_000, path).solves
+    edges = [(a, b) for a, b in zip(solves, solves[1:]) if (a.anchor_mm is None) != (b.anchor_mm is None)]
+    assert len(edges) == 2  # the contact begins, and ends
+    assert [b.t_us - a.t_us for a, b in edges] == [1250, 1250]
+    lift_off = edges[1][0]
+    assert lift_off.anchor_mm is not None and lift_off.depth_mm < 0.01  # the last sample still touching
+
+
 def test_same_seed_same_events(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
     path = probing_path(rig, sphere, depth_mm=0.6, shear_mm=0.2)
 

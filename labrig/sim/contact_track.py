@@ -19,7 +19,11 @@ in reference coordinates), and the tip's in-plane motion since then is the
 tangential shift, fed through a Masing :class:`ShearHistory` along one shear
 axis. In gross slip the anchor is dragged so the shift never exceeds the
 table's slip shift. Lifting off clears the anchor and the history (the
-residual traction after Shear and Shear Opposite stays until then).
+residual traction after Shear and Shear Opposite stays until then). Each such
+fresh start (contact made, lifted off, the shear memory dropped for a new axis
+or table) begins an epoch (:attr:`ContactState.epoch`): the fields change
+continuously within an epoch and may jump between two, so the virtual rig
+solves on both sides of an epoch's edge rather than interpolating across it.
 
 Beyond the gel model (deeper than the table's ``max_depth_mm``) the state is held at the
 table's deepest depth and the excursion is counted in :attr:`ContactKinematics.faults`: the
@@ -70,6 +74,9 @@ class ContactState:
     centre_of_pressure_mm: F64
     #: The table the state was computed with (non-axisymmetric indenters: one per shear direction).
     table: ContactTable | None = None
+    #: Counts the kinematics' fresh starts (contact made, lifted off, shear memory dropped for a new axis or
+    #: table): the contact fields may jump between two states of different epochs, never within one.
+    epoch: int = 0
 
     @property
     def in_contact(self) -> bool:
@@ -99,6 +106,7 @@ class ContactKinematics:
         #: One per excursion beyond the gel model's depth (appended when it starts; world us).
         self.faults: list[RigFault] = []
         self._beyond = False
+        self._epoch = 0
 
     def step(self, t_us: int, tool_machine_mm: npt.ArrayLike) -> ContactState:
         if isinstance(tool_machine_mm, tuple):
@@ -111,11 +119,14 @@ class ContactKinematics:
         tip = np.array([tx, ty, tz])
         depth = max(0.0, -tz)
         if depth <= 0.0:
+            if self._anchor is not None:
+                self._epoch += 1
             self._anchor = None
             self._shear_axis = None
             self._active = self.table
             self._history.reset()
-            return ContactState(int(t_us), tip, 0.0, None, (), 0.0, np.zeros(3), np.array([tx, ty, 0.0]))
+            return ContactState(int(t_us), tip, 0.0, None, (), 0.0, np.zeros(3), np.array([tx, ty, 0.0]),
+                                epoch=self._epoch)
         deepest = self._deepest_mm
         if depth > deepest:
             if not self._beyond:
@@ -128,6 +139,7 @@ class ContactKinematics:
             self._beyond = False
         if self._anchor is None:
             self._anchor = (tx, ty)
+            self._epoch += 1
         ax, ay = self._anchor
         sx, sy = self._shear_shift(tx - ax, ty - ay)
         if not self.table.axisymmetric and self._shear_axis is not None:
@@ -143,7 +155,7 @@ class ContactKinematics:
         fx, fy, fz = table.force_xyz_for_terms(depth, terms, angle)
         cx, cy = table.pressure_centre_xy(depth)
         return ContactState(int(t_us), tip, depth, np.array([ax, ay]), terms, angle,
-                            np.array([fx, fy, -fz]), np.array([ax + cx, ay + cy, 0.0]), table)
+                            np.array([fx, fy, -fz]), np.array([ax + cx, ay + cy, 0.0]), table, self._epoch)
 
     def _along_table(self, sx: float, sy: float) -> tuple[float, float]:
         """A non-axisymmetric indenter's shift, along the direction of the table that serves it.
@@ -157,6 +169,7 @@ class ContactKinematics:
             if table is not self._active:
                 self._active = table
                 self._history.reset()
+                self._epoch += 1
         dx, dy = (float(v) for v in self._active.direction)
         self._history.axis = (dx, dy)
         along = sx * dx + sy * dy
@@ -195,6 +208,8 @@ class ContactKinematics:
                 return along * axis[0], along * axis[1]
         if size < SHEAR_AXIS_MM:
             return 0.0, 0.0
+        if axis is not None:  # a new axis drops the old one's memory (the residual traction)
+            self._epoch += 1
         self._shear_axis = (sx / size, sy / size)
         self._history.reset()
         self._history.axis = self._shear_axis
@@ -254,6 +269,19 @@ class ContactTrack:
                 return self._states[i]
             j = bisect.bisect_right(self._times, int(t_us))
             return self._states[j] if j < len(self._states) else self.sample(max(int(t_us) + 1, self._times[-1] + 1))
+
+    def epoch_edge(self, t0_us: int, t1_us: int) -> tuple[ContactState, ContactState] | None:
+        """The first fresh start of the kinematics (:attr:`ContactState.epoch`) after ``t0_us``, up to ``t1_us``,
+        among the stored samples: (the last sample of the epoch at ``t0_us``, the first of the next), or None."""
+        with self._lock:
+            i = bisect.bisect_right(self._times, int(t0_us)) - 1
+            if i < 0:
+                return None
+            epoch = self._states[i].epoch
+            for j in range(i + 1, bisect.bisect_right(self._times, int(t1_us))):
+                if self._states[j].epoch != epoch:
+                    return self._states[j - 1], self._states[j]
+            return None
 
     def wrench_state(self, t_us: float) -> tuple[F64, F64, F64]:
         """(force on the gel N, centre of pressure mm, tip mm) at ``t_us``, gel frame:

@@ -13,7 +13,10 @@ Time stepping
   50 ms. Contact fields come from the precomputed
   :class:`~labrig.physics.mechanics.ContactTable` (one lookup per solve).
 * Marker 3D positions are interpolated linearly between the two solves that
-  bracket a render time.
+  bracket a render time. Where the kinematics start afresh between two solves
+  (contact made or lost, shear memory dropped for a new axis), the rig solves
+  at the contact track's samples on both sides of that edge instead (lifting
+  off lets go of the residual shear at once: the markers jump).
 * Renders (and event sensor steps) are adaptive: a step is as long as keeps
   every marker's image motion under ``max_step_px`` (0.2 px), estimated from the
   bracketing solves (once per solve pair). The slope shading of the membrane
@@ -386,7 +389,13 @@ class VirtualRig:
         if self._next is not None:
             self._prev, self._prev_px = self._next, self._next_px
         t_next = self._next_solve_time(self._prev, tool_path)
-        self._next = self.solve(self.track.first_after(self._prev.t_us, t_next))
+        state = self.track.first_after(self._prev.t_us, t_next)
+        # A fresh start of the kinematics in between (contact made or lost, shear memory dropped): solve on both
+        # sides of it, not across (the fields jump there: lifting off lets go of the residual shear at once).
+        edge = self.track.epoch_edge(self._prev.t_us, state.t_us)
+        if edge is not None:
+            state = edge[0] if edge[0].t_us > self._prev.t_us else edge[1]
+        self._next = self.solve(state)
         self.track.hold(self._prev.t_us)
         out.solves.append(self._next)
         self._depth_field = self._shading_field(self._prev)
