@@ -306,6 +306,30 @@ def test_table_rotation_and_directions(table) -> None:  # type: ignore[no-untype
         tab.fields(2.0, 0.0)
 
 
+def test_a_residual_traction_turned_slightly_keeps_its_shape(table) -> None:  # type: ignore[no-untyped-def]
+    """After Shear and Shear Opposite the traction has opposite zones whose net force can pass through zero;
+    turning it by a hair (the gel's yaw) must turn its field by a hair, not scale the resampling's error up."""
+    tab, _ = table
+    depth, first = 1.0, 0.3
+
+    def net_x(back: float) -> float:
+        return float(tab.force_for_terms(depth, ((1.0, first), (2.0, back)))[0])
+
+    lo, hi = -first, 0.0  # net_x(lo) < 0 < net_x(hi): the Masing branch back from +first
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if net_x(mid) < 0 else (lo, mid)
+    terms = ((1.0, first), (2.0, hi))
+    assert abs(net_x(hi)) < 1e-3 * net_x(0.0)  # nearly no net shear, though the field is far from zero
+    straight, turned = tab.fields_for_terms(depth, terms, 0.0), tab.fields_for_terms(depth, terms, 1e-3)
+    scale = np.abs(straight.ux_mm).max()
+    assert scale > 1e-3
+    assert np.abs(turned.ux_mm - straight.ux_mm).max() < 0.05 * scale  # the resampling's own smoothing
+    assert np.abs(turned.uy_mm - straight.uy_mm).max() < 0.05 * scale
+    field_force = turned.traction_mpa.sum(axis=(1, 2), dtype=np.float64) * tab.grid.cell_area_mm2
+    np.testing.assert_allclose(field_force, turned.force_n[:2], atol=1e-3 * net_x(0.0))
+
+
 def test_non_axisymmetric_table_is_per_direction(tmp_path) -> None:  # type: ignore[no-untyped-def]
     ridge = load_indenters()["ridge"]
     tab = ContactTable.build(ridge, GEL, spacing_mm=0.25, size_mm=16.0, max_depth_mm=0.5, direction_deg=90.0,
