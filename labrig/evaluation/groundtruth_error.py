@@ -3,7 +3,9 @@
 Beyond the paper (which could not measure it): for a simulated recording, the maps
 ``labrig groundtruth`` makes from what a lab has (CNC pose, registration, calibration,
 fitted modulus) are compared with ``/truth/depth`` on the same grid at the frames where
-the indenter touches the gel. The truth is read here only; the generator never reads it.
+the indenter touches the gel, the truth between two solves blended linearly in time
+(:func:`~labrig.pipeline.depth_sources.truth_between`). The truth is read here only; the
+generator never reads it.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 
 from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
+from labrig.pipeline.depth_sources import truth_between
 
 
 @dataclass(frozen=True)
@@ -69,9 +72,10 @@ def evaluate_groundtruth(task: GroundTruthErrorTask) -> GroundTruthErrorResult:
     elif task.pose != "lab":
         raise LabrigError(f"pose must be 'lab' or 'true', not {task.pose!r}")
     gt = generate(task.recording, elastic=task.elastic, lab=lab, calibration_dir=task.calibration_dir)
-    index = np.clip(np.searchsorted(truth["t_host_us"], gt.t_us, side="right") - 1, 0, None)
-    true_depth = truth["depth_mm"][index]
-    true_mask = truth["contact_mask"][index].astype(bool)
+    before, after, w = truth_between(truth["t_host_us"], gt.t_us)  # the sim's truth between its solves
+    maps = truth["depth_mm"].astype(np.float32)
+    true_depth = maps[before] * (1.0 - w[:, None, None]).astype(np.float32) + maps[after] * w[:, None, None].astype(np.float32)
+    true_mask = truth["contact_mask"][np.where(w < 0.5, before, after)].astype(bool)
     true_indentation = np.interp(gt.t_us, contact["t_host_us"], contact["indentation_mm"])
     frames = true_indentation > 0
     if not frames.any():
@@ -88,4 +92,4 @@ def evaluate_groundtruth(task: GroundTruthErrorTask) -> GroundTruthErrorResult:
         maps_per_s=float(gt.t_us.size / gt.seconds))
 
 
-evaluate_groundtruth.cache_version = "1"  # type: ignore[attr-defined]
+evaluate_groundtruth.cache_version = "2"  # type: ignore[attr-defined]  # 2: the truth between solves (was the last)

@@ -1,6 +1,7 @@
 """Depth sources: the normal-displacement map (90 x 112 network grid, mm into the gel) of each window.
 
-* :class:`TruthDepth`: the recording's ``/truth/depth`` nearest in time (virtual-rig recordings only);
+* :class:`TruthDepth`: the recording's ``/truth/depth`` at the window's end, between two solves linear in
+  time as the sim moves its markers (:func:`truth_between`; virtual-rig recordings only);
 * :class:`ModelDepth`: the ONNX depth network (:mod:`labrig.pipeline.depthnet`) on the SAE of the
   span it was trained on, ending at the window's end, and the state channels its card names
   (:mod:`labrig.pipeline.depth_inputs`), with the quiet-window hold of
@@ -56,8 +57,23 @@ class DepthSource(Protocol):
                  n_events: int) -> npt.NDArray[np.float32]: ...
 
 
+def truth_between(t_maps_us: npt.NDArray[np.int64], t_us: npt.ArrayLike
+                  ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.float64]]:
+    """The ``/truth/depth`` maps (times ``t_maps_us``, increasing) around each time: (before, after, weight of
+    after). The maps are the sim's quasi-static solves and its markers move linearly in time between two of
+    them, so the truth between is their linear blend; before the first map or after the last, that map."""
+    t = np.asarray(t_us, dtype=np.float64)
+    after = np.clip(np.searchsorted(t_maps_us, t, side="right"), 1, max(len(t_maps_us) - 1, 1))
+    before = after - 1
+    if len(t_maps_us) < 2:
+        zero = np.zeros(np.shape(t), np.intp)
+        return zero, zero, np.zeros(np.shape(t))
+    t0, t1 = t_maps_us[before].astype(np.float64), t_maps_us[after].astype(np.float64)
+    return before, after, np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+
+
 class TruthDepth:
-    """The recording's ``/truth/depth`` map nearest in time to the window's end (virtual rig only)."""
+    """The recording's ``/truth/depth`` at the window's end (:func:`truth_between`; virtual rig only)."""
 
     name = "truth"
     needs_sae = False
@@ -70,17 +86,14 @@ class TruthDepth:
         self.t_us = recording.column("truth/depth", "t_host_us")
         self.maps = np.asarray(recording.column("truth/depth", "depth_mm"), np.float32)  # ~40 kB per solve, loaded once
 
-    def index(self, t_us: int) -> int:
-        k = int(np.searchsorted(self.t_us, t_us))
-        if k == 0:
-            return 0
-        if k >= len(self.t_us):
-            return len(self.t_us) - 1
-        return k if self.t_us[k] - t_us < t_us - self.t_us[k - 1] else k - 1
-
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int = 0) -> npt.NDArray[np.float32]:
-        return self.maps[self.index(t1_us)]
+        before, after, w = truth_between(self.t_us, t1_us)
+        if w == 0.0:
+            return self.maps[before]
+        if w == 1.0:
+            return self.maps[after]
+        return (self.maps[before] * np.float32(1.0 - w) + self.maps[after] * np.float32(w)).astype(np.float32)
 
 
 class ModelDepth:
