@@ -9,10 +9,8 @@ positions, the depth field, per-marker forces).
 Time stepping
 -------------
 * Mechanics are quasi-static and solved as often as the motion needs: the next
-  solve comes when the tool has moved ``solve_step_mm`` (0.04 mm), within 2 to
-  50 ms (20 ms in virtual time: two thirds of the renderer's lag). Against a
-  four times finer step the true markers are off by 1e-4 px on average and
-  0.01 px at the 99.9th percentile (tools/bench/bench_sim_resolution.py). Contact fields come from the precomputed
+  solve comes when the tool has moved ``solve_step_mm`` (0.02 mm), within 2 to
+  50 ms. Contact fields come from the precomputed
   :class:`~labrig.physics.mechanics.ContactTable` (one lookup per solve).
 * Marker 3D positions are interpolated linearly between the two solves that
   bracket a render time. Where the kinematics start afresh between two solves
@@ -117,7 +115,7 @@ class VirtualRig:
         *,
         seed: int = 0,
         table: ContactTable | None = None,
-        solve_step_mm: float = 0.04,
+        solve_step_mm: float = 0.02,
         min_solve_interval_us: int = 2_000,
         max_solve_interval_us: int = 50_000,
         max_render_interval_us: int = 10_000,

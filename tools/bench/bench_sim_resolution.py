@@ -3,7 +3,7 @@
 The rig steps as finely as two knobs say: a render (and event-sensor) step moves no marker's
 image more than ``max_step_px`` (the rig file's ``[sim.events]``, 0.2 px), and the mechanics
 are solved each time the tool moves ``solve_step_mm`` (a :class:`~labrig.sim.rig.VirtualRig`
-argument, 0.04 mm). Each setting ``PX,MM`` records the same paper-campaign recordings in virtual
+argument, 0.02 mm). Each setting ``PX,MM`` records the same paper-campaign recordings in virtual
 time with the sensor's noise and leak off (so two settings differ only by their steps), and is
 compared with the finest setting given (the reference):
 
