@@ -63,11 +63,11 @@ def truth_between(t_maps_us: npt.NDArray[np.int64], t_us: npt.ArrayLike
     after). The maps are the sim's quasi-static solves and its markers move linearly in time between two of
     them, so the truth between is their linear blend; before the first map or after the last, that map."""
     t = np.asarray(t_us, dtype=np.float64)
-    after = np.clip(np.searchsorted(t_maps_us, t, side="right"), 1, max(len(t_maps_us) - 1, 1))
-    before = after - 1
     if len(t_maps_us) < 2:
         zero = np.zeros(np.shape(t), np.intp)
         return zero, zero, np.zeros(np.shape(t))
+    after = np.clip(np.searchsorted(t_maps_us, t, side="right"), 1, len(t_maps_us) - 1)
+    before = after - 1
     t0, t1 = t_maps_us[before].astype(np.float64), t_maps_us[after].astype(np.float64)
     return before, after, np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
 
