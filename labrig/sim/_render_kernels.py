@@ -403,7 +403,7 @@ def compose_list(pixels, n, roi_to_canvas, lum, shade, reported, led_on, rel, ou
 
 @njit(cache=True, nogil=True)
 def crossings(
-    t0, t1, who, y0, y1, reference, c_on_all, c_off_all, k_all, leak, t_start, epoch_start, epoch_end, hi, lo,
+    t0, t1, who, y0, y1, reference, c_on_all, c_off_all, k_all, leak, t_start, to_end, hi, lo,
     last_event, refractory, out_pix, out_pol, out_t, leak_candidates,
 ):  # type: ignore[no-untyped-def]
     """Threshold crossings of pixels ``who`` whose filtered log intensity went y0 -> y1 over [t0, t1] us.
@@ -415,8 +415,8 @@ def crossings(
     refractory period keeps (times linear in the step, floored to us, clipped
     to the step), updating ``last_event``. Events are written pixel by pixel
     (``out_*``, room for every crossing); with ``leak``, the pixels that may
-    leak before the epoch's end are written to ``leak_candidates``.
-    Returns (events, leak candidates).
+    leak before the epoch's end (``to_end``: its end minus ``t_start``, us) are
+    written to ``leak_candidates``. Returns (events, leak candidates).
     """
     dt = t1 - t0
     n = 0
@@ -470,7 +470,6 @@ def crossings(
             n += 1
     m = 0
     if leak:
-        to_end = epoch_end - t_start
         for i in range(who.size):
             if y1[i] + k_all[who[i]] * to_end >= hi[who[i]]:
                 leak_candidates[m] = who[i]
@@ -714,7 +713,7 @@ def sensor_step(
     found = np.empty(n_who, np.int64)
     n_sig, n_found = 0, 0
     if n_who:
-        n_sig, n_found = crossings(t0, t1, who, y0, y1, reference, c_on, c_off, k, leak, t_start, epoch_start, epoch_end,
+        n_sig, n_found = crossings(t0, t1, who, y0, y1, reference, c_on, c_off, k, leak, t_start, to_end,
                                    hi, lo, last_event, refractory, sig_pix, sig_pol, sig_t, found)
     candidates = leak_candidates
     if leak and n_found:  # new candidates, once each, in increasing pixel order
@@ -794,7 +793,7 @@ def warm_up() -> None:
                 np.zeros(4), np.ones(4), -np.ones(4), np.zeros(4), 10.0, 0.0, 0.5, 0.25, 0.25, 1e-4, np.zeros(2, i8),
                 np.zeros(2, f8), np.zeros(2, f8), np.zeros(2, i8))
     one = np.ones(1)
-    crossings(0, 10, np.zeros(1, i8), 0 * one, one, 0 * one, 0.2 * one, 0.2 * one, 1e-9 * one, True, 0, 0.0, 10.0,
+    crossings(0, 10, np.zeros(1, i8), 0 * one, one, 0 * one, 0.2 * one, 0.2 * one, 1e-9 * one, True, 0, 10.0,
               one.copy(), -one, np.zeros(1, i8), 300, np.zeros(8, i8), np.zeros(8, np.uint8), np.zeros(8, i8),
               np.zeros(1, i8))
     epoch_leak_candidates(one, 1.0, one, one.copy(), np.zeros(1, i8))
