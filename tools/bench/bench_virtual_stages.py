@@ -1,7 +1,8 @@
 """Virtual-time recordings per stage: CPU seconds per simulated second, this tree against a baseline, side by side.
 
 Each run records one recording of the paper campaign (``protocols/paper.toml``: by default the
-first recording of each of its four indenter groups) in virtual time
+first recording of each indenter at each of its depths, 12 recordings; deeper presses cost more
+per simulated second, so a sample of the shallowest alone flatters the campaign) in virtual time
 (:func:`labrig.protocol.virtual_run.record_virtual`) in a fresh process, and times it by
 stage, in thread CPU time of the recording's main thread (each stage exclusive of the stages it
 calls):
@@ -65,7 +66,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--baseline", type=Path, default=None, help="a labrig checkout to compare with (its repository root)")
     ap.add_argument("--recordings", default="", help="comma-separated indices into the paper campaign "
-                                                     "(default: the first of each indenter group)")
+                                                     "(default: the first of each indenter and depth)")
     ap.add_argument("--repeat", type=int, default=1, help="runs per recording and tree (the median is kept, and the fastest)")
     ap.add_argument("--probe", default=None, help=argparse.SUPPRESS)  # internal: one timed recording, JSON out
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
@@ -185,14 +186,15 @@ def _run_probe(tree: Path, index: int) -> dict[str, Any]:
 
 
 def _default_indices() -> list[int]:
+    """The first recording of each (indenter, depth) of the paper campaign: its range of presses."""
     from labrig.config import load_rig
     from labrig.indenters import load_indenters
     from labrig.protocol.files import load_campaign
 
     plans = load_campaign(ROOT / "protocols" / "paper.toml", load_rig(), load_indenters()).plans
-    first: dict[str, int] = {}
+    first: dict[tuple[str, float | None], int] = {}
     for i, plan in enumerate(plans):
-        first.setdefault(plan.spec.indenter, i)
+        first.setdefault((plan.spec.indenter, plan.spec.depth_mm), i)
     return sorted(first.values())
 
 
