@@ -45,7 +45,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-from scipy.optimize import lsq_linear, nnls
+from scipy.optimize import nnls
 
 from labrig.config import DEFAULT_RIG, load_rig
 from labrig.dataset import sidecar_path
@@ -143,14 +143,15 @@ class ParallaxDepth:
         for _ in range(3):
             g = self._normal_matrix(depth_at_markers)
             scale = np.linalg.norm(g) / np.sqrt(self.n) * self.ridge
+            target = y
             if shift_nodes.size:
-                b = self._shift_matrix(shift_nodes)
-                a = np.vstack([np.hstack([g, b]), np.hstack([scale * np.eye(self.n), np.zeros((self.n, 2))])])
-                lower = np.concatenate([np.zeros(self.n), [-np.inf, -np.inf]])
-                force = lsq_linear(a, np.concatenate([y, np.zeros(self.n)]), bounds=(lower, np.inf)).x[: self.n]
-            else:
-                force, _ = nnls(np.vstack([g, scale * np.eye(self.n)]), np.concatenate([y, np.zeros(self.n)]),
-                                maxiter=50 * self.n)
+                # The shift is free: the best one for any pressure leaves the residual's part outside the
+                # shift's column space, so project both sides onto its complement and solve for the pressure
+                # alone (the exact minimiser, as a bounded least squares over both would give when converged).
+                q, _ = np.linalg.qr(self._shift_matrix(shift_nodes))
+                g, target = g - q @ (q.T @ g), y - q @ (q.T @ y)
+            force, _ = nnls(np.vstack([g, scale * np.eye(self.n)]), np.concatenate([target, np.zeros(self.n)]),
+                            maxiter=50 * self.n)
             depth_at_markers = self.c_zz[self.markers] @ force
             if force.max() <= 0:
                 break
