@@ -209,13 +209,15 @@ class Row:
     depth_ms: float
 
 
-def study(path: Path, model: str) -> list[Row]:
-    """The four depth sources on one recording's 20,000-event windows (see the module docstring)."""
+def study(path: Path, model: str, max_windows: int | None = None) -> list[Row]:
+    """The four depth sources on one recording's 20,000-event windows (see the module docstring); with
+    ``max_windows``, on its first windows only (a quick look)."""
     rec = Recording(path)
     gt = load_groundtruth(sidecar_path(path))
     setup = setup_for_recording(rec)
     estimator = ParallaxDepth(setup)
     t0, t1 = window_ends_us(rec, window_events=PAPER_WINDOW_EVENTS)
+    t0, t1 = t0[:max_windows], t1[:max_windows]
     tm = rec.column("truth/markers", "t_host_us")
     true_px = rec.column("truth/markers", "position_px").astype(np.float64)
     index = np.atleast_1d(gt.nearest_index(t1.astype(np.float64)))
@@ -270,6 +272,7 @@ def main() -> None:
     parser.add_argument("--model", default=str(models.bundled_model_path()), help="the depth network to compare")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     parser.add_argument("--scenes", default="", help="comma-separated scene names (default: all)")
+    parser.add_argument("--max-windows", type=int, default=None, help="only each recording's first windows")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     wanted = set(filter(None, args.scenes.split(",")))
@@ -277,7 +280,7 @@ def main() -> None:
     for path in record_scenes(args.out):
         if wanted and path.stem not in wanted:
             continue
-        for row in study(path, args.model):
+        for row in study(path, args.model, args.max_windows):
             print(row, flush=True)
             rows.append(row)
     table = Table("recording", "depth source", "depth MAE total / contact (mm)", "force MAE x / y / z (N)",
