@@ -58,7 +58,6 @@ def test_off_axis_press_is_found_with_its_sign_place_and_depth(estimator) -> Non
     assert np.abs(estimate[far]).max() < 0.1
 
 
-
 def test_the_study_compares_its_four_depth_sources_on_a_recording(study_module, tmp_path: Path, rig, sphere) -> None:
     """The study's own run on a short virtual probe (its first windows): truth, the bundled network (built as
     the pipeline builds it, with the run's setup), and the estimator on tracked and on true pixels."""

@@ -226,7 +226,8 @@ def study(path: Path, model: str, max_windows: int | None = None) -> list[Row]:
     true_force = rec.column("truth/marker_forces", "force_n")[np.clip(np.searchsorted(t_forces, t1), 0, len(t_forces) - 1)].sum(1)
     centre = contact_centre_px(gt, t1, setup.camera)
     centre[~contact.reshape(len(t1), -1).any(1)] = np.nan
-    sources = {"truth": depth_sources.TruthDepth(rec), f"model:{Path(model).stem}": depth_sources.depth_source("model", setup, model_path=model),
+    network = depth_sources.depth_source("model", setup, model_path=model)  # as `labrig run` builds it
+    sources = {"truth": depth_sources.TruthDepth(rec), f"model:{Path(model).stem}": network,
                "physics (tracked px)": _Given("physics-tracked"), "physics (true px)": _Given("physics-true")}
     rows = []
     for label, source in sources.items():
