@@ -205,12 +205,12 @@ def test_a_slowly_growing_dent_stays_within_the_reported_change(rig: RigConfig) 
 def test_led_off_is_dark(rig: RigConfig) -> None:
     renderer = Renderer(rig)
     rest = rig.markers.rest_positions_mm()
-    update = renderer.render(rest, led_on=False)
+    update = renderer.render(rest, led=False)
     assert update.indices.size == rig.roi.width_px * rig.roi.height_px
     assert renderer.image.max() < 1e-6
-    assert renderer.render_full(rest, led_on=False).max() < 1e-6
-    renderer.render(rest, led_on=True)
-    assert np.abs(renderer.image - renderer.render_full(rest, led_on=True)).max() < 1e-12
+    assert renderer.render_full(rest, led=False).max() < 1e-6
+    renderer.render(rest, led=True)
+    assert np.abs(renderer.image - renderer.render_full(rest, led=True)).max() < 1e-12
     dark_rig = dataclasses.replace(
         rig, sim=dataclasses.replace(rig.sim, lighting=dataclasses.replace(rig.sim.lighting, led_on=False))
     )

@@ -57,9 +57,9 @@ def standard(rig: RigConfig, sphere: Indenter, table: ContactTable) -> Run:
     run = Run(vr, probing_path(rig, sphere, depth_mm=1.5, shear_mm=1.0))
     render = vr.renderer.render
 
-    def spy(markers_mm: np.ndarray, depth: DepthField | None = None, *, led_on: bool | None = None) -> RenderUpdate:
+    def spy(markers_mm: np.ndarray, depth: DepthField | None = None, *, led: float | None = None) -> RenderUpdate:
         run.render_px.append(vr.camera.project(markers_mm))
-        return render(markers_mm, depth, led_on=led_on)
+        return render(markers_mm, depth, led=led)
 
     vr.renderer.render = spy  # type: ignore[method-assign,assignment]
     total = int(run.path.duration_us)

@@ -1,10 +1,11 @@
 """Calibrate the default rig (the virtual one) end to end and write its files into calibration/.
 
 The same commands a lab runs on its own rig, in order: camera intrinsics (a blinking dot-grid
-target at many poses), extrinsics (the LED ring blinking), rig registration (touch-offs through
-the real drivers), gel modulus (stepped indentations). Each records its scene on the virtual rig
-first. The files (intrinsics.toml, extrinsics.toml, rig-registration.toml, gel.toml) ship with
-labrig; rerun this after changing calibration/rig.toml's [sim.*] truth.
+target at many poses), extrinsics (the LED ring blinking), contrast thresholds (the LED ring
+dimmed and brightened along ramps), rig registration (touch-offs through the real drivers), gel
+modulus (stepped indentations). Each records its scene on the virtual rig first. The files
+(intrinsics.toml, extrinsics.toml, events.toml with events-thresholds.npz, rig-registration.toml,
+gel.toml) ship with labrig; rerun this after changing calibration/rig.toml's [sim.*] truth.
 
 Usage: python tools/calibrate_default_rig.py [--plots DIR]
 """
@@ -28,6 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     steps = [
         ("intrinsics", ["--out", str(CALIBRATION / "intrinsics.toml")]),
         ("extrinsics", ["--intrinsics", str(CALIBRATION / "intrinsics.toml"), "--out", str(CALIBRATION / "extrinsics.toml")]),
+        ("events", ["--out", str(CALIBRATION / "events.toml")]),
         ("rig", ["--out", str(CALIBRATION / "rig-registration.toml")]),
         ("gel", ["--out", str(CALIBRATION / "gel.toml")]),
     ]

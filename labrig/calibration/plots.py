@@ -1,5 +1,5 @@
 """Figures of the calibrations: the camera's intrinsics and extrinsics (detections and reprojection
-residuals), the registration's touch-offs and residuals, the gel modulus fit.
+residuals), the registration's touch-offs and residuals, the gel modulus fit, the contrast thresholds.
 
 matplotlib (Agg) is imported by each function: only a plot needs it.
 """
@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
+from labrig.calibration.event_thresholds import EventThresholdFit
 from labrig.calibration.gel import GelFit
 from labrig.calibration.marker_map import MarkerMap
 from labrig.calibration.registration_file import RigRegistration
@@ -184,5 +185,37 @@ def plot_marker_residuals(marker_map: MarkerMap, path: str | Path, title: str = 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_event_thresholds(fit: EventThresholdFit, path: str | Path) -> Path:
+    """The ON and OFF contrast thresholds per grid cell over the ROI (sensor px), on one colour scale,
+    and their histograms with the medians."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    on, off, roi = fit.thresholds.on_ln, fit.thresholds.off_ln, fit.thresholds.roi
+    low, high = (float(v) for v in np.percentile(np.concatenate([on.ravel(), off.ravel()]), [0.5, 99.5]))
+    extent = (roi.x0_px, roi.x1_px, roi.y1_px, roi.y0_px)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1, 1, 0.9]})
+    for ax, values, name in ((axes[0], on, "ON"), (axes[1], off, "OFF")):
+        image = ax.imshow(values, extent=extent, vmin=low, vmax=high, cmap="viridis")
+        ax.set_title(f"{name}: median {float(np.median(values)):.3f} ln")
+        ax.set_xlabel("sensor x (px)")
+        ax.set_ylabel("sensor y (px)")
+    fig.colorbar(image, ax=axes[:2].tolist(), label="contrast threshold (ln intensity per event)", shrink=0.85)
+    bins = np.linspace(low, high, 60)
+    axes[2].hist(on.ravel(), bins=bins, alpha=0.6, color="tab:red", label=f"ON, median {fit.on_ln_median:.3f}")
+    axes[2].hist(off.ravel(), bins=bins, alpha=0.6, color="tab:blue", label=f"OFF, median {fit.off_ln_median:.3f}")
+    axes[2].set_xlabel("contrast threshold (ln)")
+    axes[2].set_ylabel("cells")
+    axes[2].set_title(f"ON / OFF = {fit.on_off_ratio:.3f}; {fit.ramps_used} ramps of ln {fit.schedule.ratio:g}")
+    axes[2].legend(fontsize=8)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

@@ -1,4 +1,4 @@
-"""``labrig calibrate``: camera intrinsics and gel-to-camera extrinsics from event recordings.
+"""``labrig calibrate``: camera intrinsics, gel-to-camera extrinsics and contrast thresholds from event recordings.
 
 Mount on the main app with :func:`add_calibrate_commands`, which also registers the rig
 calibrations (``rig``, ``gel``: :mod:`labrig.cli.calibrate_rig`) on :data:`calibrate_app`.
@@ -21,7 +21,8 @@ if TYPE_CHECKING:
     from labrig.calibration.marker_map import MarkerMap
 
 calibrate_app = typer.Typer(
-    help="Calibration from events: camera intrinsics, gel-to-camera extrinsics (and rig registration, gel modulus).",
+    help="Calibration from events: camera intrinsics, gel-to-camera extrinsics, contrast thresholds (and rig "
+         "registration, gel modulus).",
     no_args_is_help=True,
 )
 
@@ -30,7 +31,7 @@ SeedOption = Annotated[int, typer.Option(help="Seed of the virtual rig's scene (
 
 
 def add_calibrate_commands(app: typer.Typer) -> None:
-    """Mount the ``calibrate`` group (intrinsics, extrinsics, rig, gel) on the main app."""
+    """Mount the ``calibrate`` group (intrinsics, extrinsics, events, rig, gel) on the main app."""
     add_rig_calibration_commands(calibrate_app)
     app.add_typer(calibrate_app, name="calibrate")
 
@@ -155,6 +156,66 @@ def extrinsics_command(
                   f"{result.spurious} spurious blob(s) ignored, {result.blinks} blink(s)")
     _marker_rows(table, result.marker_map, worst)
     table.add_row("residual map", str(summary["residual_map"]))
+    console.print(table)
+
+
+@calibrate_app.command("events")
+def events_command(
+    recording: Annotated[Path | None, typer.Argument(help="Recording of the LED ring dimmed and brightened along ramps, gel at rest (default: record one on the virtual rig).")] = None,  # noqa: E501
+    out: Annotated[Path | None, typer.Option("--out", help="Thresholds file to write (default: events.toml beside the rig file; its map NAME-thresholds.npz goes beside it).")] = None,  # noqa: E501
+    force: Annotated[bool, typer.Option("--force", help="Replace the default events.toml if it exists.")] = False,
+    led_ratio: Annotated[float | None, typer.Option("--led-ratio", help="The LED's full / dimmed light (default: what the recording names).", min=1.0)] = None,  # noqa: E501
+    seed: SeedOption = 0,
+    rig_path: RigOption = None,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Draw the threshold maps and histograms to this PNG.")] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Contrast thresholds, ON and OFF, per cell of the network grid, from the LED ring dimmed and brightened.
+
+    Every command that reads the calibration folder uses them: the depth network's brightness input is
+    then the change of log intensity, not a count of events, whatever the camera's biases."""
+    from labrig.calibration.event_thresholds import fit_event_thresholds
+    from labrig.calibration.event_thresholds_file import EVENTS_FILE, write_event_thresholds
+    from labrig.calibration.files import provenance
+    from labrig.calibration.plots import plot_event_thresholds
+    from labrig.cache import sha256_of
+    from labrig.config import DEFAULT_RIG, load_rig
+    from labrig.errors import CalibrationError
+
+    rig = load_rig(rig_path or DEFAULT_RIG)
+    target = out or rig.path.parent / EVENTS_FILE
+    if out is None and target.exists() and not force:
+        raise CalibrationError(f"{target} exists: give --out FILE for a new calibration, or --force to replace it")
+    if recording is None:
+        from labrig.sim.calibration_scenes import record_led_ramps
+
+        recording = _scratch("led-ramps.h5")
+        err_console.print(f"no recording given: recording the LED ring's ramps on the virtual rig ({recording})")
+        record_led_ramps(recording, rig, seed=seed)
+    fit = fit_event_thresholds(recording, rig.roi, ratio=led_ratio)
+    summary = fit.summary()
+    path, map_path = write_event_thresholds(target, fit.thresholds, summary, provenance(recording, sha256_of(recording)))
+    result: dict[str, Any] = {"path": str(path), "map": str(map_path), "recording": str(recording),
+                              **summary["thresholds"], **summary["scene"], **summary["quality"]}
+    if plot is not None:
+        result["plot"] = str(plot_event_thresholds(fit, plot))
+    if as_json:
+        print_json(result)
+        return
+    table = Table(title=f"contrast thresholds -> {path}", show_header=False)
+    table.add_column(style="dim")
+    table.add_column()
+    t, q = summary["thresholds"], summary["quality"]
+    table.add_row("ON threshold", f"{t['on_ln_median']:.4f} ln (median; spread over cells {t['on_ln_cell_spread']:.4f})")
+    table.add_row("OFF threshold", f"{t['off_ln_median']:.4f} ln (median; spread over cells {t['off_ln_cell_spread']:.4f})")
+    table.add_row("ON / OFF", f"{t['on_off_ratio']:.3f}")
+    table.add_row("events per ramp", f"ON {q['events_per_ramp_on']:.2f}, OFF {q['events_per_ramp_off']:.2f} per pixel "
+                  f"({fit.ramps_used} ramps of ln {fit.schedule.ratio:g})")
+    table.add_row("background", f"{q['background_rate_hz']:.3f} Hz per pixel")
+    table.add_row("left out", f"{q['pixels_rejected']} pixels (hot or dead), {q['cells_filled']} cells given the median")
+    table.add_row("map", str(map_path))
+    if plot is not None:
+        table.add_row("plot", str(result["plot"]))
     console.print(table)
 
 

@@ -137,7 +137,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         markers_unobserved=int((~setup.observed).sum()), depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact)
 
 
-evaluate_forces.cache_version = "17"  # type: ignore[attr-defined]  # 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
+evaluate_forces.cache_version = "18"  # type: ignore[attr-defined]  # 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

@@ -162,7 +162,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
     return SceneMeasurement(facts, by_tracker, by_method, by_depth)
 
 
-measure_scene.cache_version = "13"  # type: ignore[attr-defined]  # 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
+measure_scene.cache_version = "14"  # type: ignore[attr-defined]  # 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
 
 
 def window_key(window_ms: float) -> str:

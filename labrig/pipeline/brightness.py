@@ -1,9 +1,15 @@
 """The membrane's brightness change since rest, integrated from the events' polarities: the gel's state.
 
 An event camera reports changes of log intensity: a pixel fires ON each time its log
-intensity rises by its contrast threshold C, OFF each time it falls by C. Summed over time,
-a pixel's signed event count (ON +1, OFF -1) is its log-intensity change since counting
-began, in units of C, to within one event. Under the LED ring a dented membrane is brighter
+intensity rises by its contrast threshold C_on, OFF each time it falls by C_off. Summed over
+time, ``C_on`` times its ON events less ``C_off`` times its OFF events is a pixel's
+log-intensity change since counting began, to within one threshold. The thresholds are the
+camera's (its biases, each pixel's mismatch): measured per grid cell by ``labrig calibrate
+events`` (:class:`~labrig.calibration.event_thresholds_file.ContrastThresholds`), they turn the
+counts into a unit that no camera setting moves. The unit here is the **reference event**: the
+change of log intensity over :data:`NOMINAL_THRESHOLD_LN` (0.22 ln, the IMX636's nominal 25 %),
+the events a reference sensor would have fired; an ON event counts ``C_on / 0.22`` of them, an
+OFF event ``-C_off / 0.22``. Uncalibrated, every event counts one (the nominal sensor). Under the LED ring a dented membrane is brighter
 where it slopes (the slope shading of :mod:`labrig.sim.shading`; a real gel does the same), and
 a marker that moved leaves an OFF patch where it was and an ON patch where it is. So the
 integrated count is the image's change since rest: a still dent, which a 10 ms SAE cannot
@@ -19,7 +25,7 @@ seconds). The leak forgets what a pixel's threshold mismatch and background nois
 minutes. :func:`brightness_channel` turns it into the network's channel: events per pixel
 (the count over the cell's pixel area) minus the map's median (the uniform drift of the
 sensor's leak events, which fire ON at a steady rate on every pixel), over
-``scale_events_per_px``, clipped (a hot pixel's count grows without bound).
+``scale_events_per_px`` (reference events), clipped (a hot pixel's count grows without bound).
 
 Training and run time build the channel with these functions (:mod:`labrig.training.state_data`,
 :mod:`labrig.pipeline.depth_sources`).
@@ -33,17 +39,19 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from labrig.calibration.event_thresholds_file import NOMINAL_THRESHOLD_LN, ContrastThresholds
 from labrig.config import Roi
 from labrig.errors import LabrigError
-from labrig.physics.grid import GRID_SHAPE
+from labrig.physics.grid import GRID_SHAPE, grid_cells_of_pixels
 
 F32 = npt.NDArray[np.float32]
 
 
 @dataclass(frozen=True)
 class BrightnessParams:
-    """The integrator's leak ``tau_s`` (s), the channel's unit ``scale_events_per_px`` (events per
-    pixel for one unit) and its clip ``clip`` (units, either sign)."""
+    """The integrator's leak ``tau_s`` (s), the channel's unit ``scale_events_per_px`` (reference events per
+    pixel for one unit: ``scale_events_per_px * 0.22`` ln of log-intensity change) and its clip ``clip``
+    (units, either sign)."""
 
     tau_s: float = 30.0
     scale_events_per_px: float = 2.0
@@ -61,27 +69,38 @@ class BrightnessParams:
         return cls(**{k: float(v) for k, v in (section or {}).items() if k in ("tau_s", "scale_events_per_px", "clip")})
 
 
-def signed_counts(events: npt.NDArray, roi: Roi, grid_shape: tuple[int, int] = GRID_SHAPE) -> F32:
-    """(rows, cols) float32: ON minus OFF events per grid cell (the cells of ``sae_grid``); events outside the ROI are dropped."""
+def signed_counts(events: npt.NDArray, roi: Roi, grid_shape: tuple[int, int] = GRID_SHAPE,
+                  thresholds: ContrastThresholds | None = None) -> F32:
+    """(rows, cols) float32: the log-intensity change per grid cell (the cells of ``sae_grid``) in reference
+    events, summed over its pixels: ON minus OFF events, each weighted by its cell's threshold over
+    :data:`NOMINAL_THRESHOLD_LN` when ``thresholds`` are given (else 1); events outside the ROI are dropped."""
     rows, cols = grid_shape
     if len(events) == 0:
         return np.zeros(grid_shape, np.float32)
-    x = events["x"].astype(np.int64) - roi.x0_px
-    y = events["y"].astype(np.int64) - roi.y0_px
-    c = ((x + 0.5) * (cols / roi.width_px)).astype(np.int64)
-    r = ((y + 0.5) * (rows / roi.height_px)).astype(np.int64)
-    keep = (x >= 0) & (y >= 0) & (c < cols) & (r < rows)
-    sign = np.where(events["p"][keep] > 0, 1.0, -1.0)
-    counts = np.bincount(r[keep] * cols + c[keep], weights=sign, minlength=rows * cols)
+    cell, inside = grid_cells_of_pixels(events["x"], events["y"], roi.x0_px, roi.y0_px, roi.width_px, roi.height_px,
+                                        grid_shape)
+    cell, on = cell[inside], events["p"][inside] > 0
+    if thresholds is None:
+        weight = np.where(on, 1.0, -1.0)
+    else:
+        if thresholds.on_ln.shape != grid_shape:
+            raise LabrigError(f"{thresholds.source}: thresholds on a {thresholds.on_ln.shape} grid, the channel's is "
+                              f"{grid_shape}")
+        on_weight, off_weight = thresholds.reference_weights
+        weight = np.where(on, on_weight[cell], off_weight[cell])
+    counts = np.bincount(cell, weights=weight, minlength=rows * cols)
     return counts.reshape(grid_shape).astype(np.float32)
 
 
 class BrightnessIntegrator:
-    """The leaky signed event count per grid cell (:func:`signed_counts`) since :meth:`reset`."""
+    """The leaky log-intensity change per grid cell in reference events (:func:`signed_counts`) since
+    :meth:`reset`; ``thresholds``: the camera's, else nominal."""
 
-    def __init__(self, roi: Roi, params: BrightnessParams | None = None, grid_shape: tuple[int, int] = GRID_SHAPE) -> None:
+    def __init__(self, roi: Roi, params: BrightnessParams | None = None, grid_shape: tuple[int, int] = GRID_SHAPE,
+                 thresholds: ContrastThresholds | None = None) -> None:
         self.roi = roi
         self.params = params or BrightnessParams()
+        self.thresholds = thresholds
         self.grid_shape = grid_shape
         self.pixels_per_cell = roi.width_px * roi.height_px / float(grid_shape[0] * grid_shape[1])
         self.counts = np.zeros(grid_shape, np.float32)
@@ -96,7 +115,7 @@ class BrightnessIntegrator:
         return self.counts
 
     def add_events(self, events: npt.NDArray, t1_us: float) -> F32:
-        return self.add(signed_counts(events, self.roi, self.grid_shape), t1_us)
+        return self.add(signed_counts(events, self.roi, self.grid_shape, self.thresholds), t1_us)
 
     def reset(self, t_us: float | None = None) -> None:
         """Forget the count (the gel is at rest)."""

@@ -148,7 +148,7 @@ class ModelDepth:
             if setup is None:
                 raise LabrigError(f"{self.model.path} takes the brightness change since rest: build it with "
                                   "depth_sources.depth_source(..., setup=...)")
-            self.integrator = BrightnessIntegrator(setup.rig.roi, self.inputs.brightness)
+            self.integrator = BrightnessIntegrator(setup.rig.roi, self.inputs.brightness, thresholds=setup.thresholds)
         self.camera = setup.camera if setup is not None else None
         self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
         self._positions_px: npt.NDArray[np.float64] | None = None
@@ -163,7 +163,8 @@ class ModelDepth:
         self.at_rest = self.gate(positions_px, rest_px) if self.gate is not None else False
 
     def counts(self, signed_counts: npt.NDArray[np.float32], t1_us: int) -> None:
-        """This window's ON minus OFF events per grid cell (:func:`labrig.pipeline.brightness.signed_counts`)."""
+        """This window's log-intensity change per grid cell in reference events
+        (:func:`labrig.pipeline.brightness.signed_counts` with the setup's thresholds)."""
         if self.integrator is not None:
             self.integrator.add(signed_counts, t1_us)
 

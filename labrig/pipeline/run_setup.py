@@ -1,11 +1,13 @@
-"""What is fixed for a run: the rig, the camera, the markers' rest pixels and the gel law, and where each came from.
+"""What is fixed for a run: the rig, the camera, the markers' rest pixels, the gel law and the camera's contrast
+thresholds, and where each came from.
 
 The gel modulus is the fitted one (``calibration/gel.toml``) when present, else the rig's;
 the camera is the calibrated one (``calibration/intrinsics.toml`` + ``extrinsics.toml``)
 when present, else the rig's. The markers' rest pixels are those the extrinsic calibration
 measured (its marker map: where each marker really is, the nominal lattice only where one is
 missing), with the missing markers flagged; without a calibration, the nominal lattice through
-the rig's camera. :func:`setup_for_recording` resolves both for a recording, :func:`setup_for_rig`
+the rig's camera. The contrast thresholds are the measured ones (``calibration/events.toml``) when
+present, else none (every event counts one: the nominal sensor). :func:`setup_for_recording` resolves both for a recording, :func:`setup_for_rig`
 for a live stream.
 """
 
@@ -19,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from labrig.calibration.event_thresholds_file import EVENTS_FILE, ContrastThresholds, load_event_thresholds
 from labrig.calibration.files import camera_from_calibration, load_extrinsics, load_intrinsics
 from labrig.calibration.gel import load_gel
 from labrig.config import DEFAULT_CALIBRATION_DIR, RigConfig, load_rig
@@ -40,6 +43,7 @@ class PipelineSetup:
     sources: dict[str, str]
     stiffening: float = 0.0  # E_eff = E (1 + stiffening * depth / thickness); 0: linear (the paper's)
     missing: npt.NDArray[np.bool_] | None = None  # (M,) markers the calibration found missing; None: none
+    thresholds: ContrastThresholds | None = None  # the camera's contrast thresholds per grid cell; None: nominal
 
     @property
     def observed(self) -> npt.NDArray[np.bool_]:
@@ -99,12 +103,13 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = DEFAUL
 
     Files: ``named`` ({file name: path}) first, else ``calibration_dir`` (None: none). Modulus
     and stiffening: the arguments, else gel.toml, else the rig's [gel] modulus and a linear gel
-    (stiffening 0). Camera: intrinsics.toml + extrinsics.toml, else the rig's.
+    (stiffening 0). Camera: intrinsics.toml + extrinsics.toml, else the rig's. Contrast thresholds:
+    events.toml, else nominal.
     """
     sources: dict[str, str] = {"rig": str(rig.path)}
     files = dict(named or {})
     if calibration_dir is not None:
-        for name in ("gel.toml", "intrinsics.toml", "extrinsics.toml"):
+        for name in ("gel.toml", "intrinsics.toml", "extrinsics.toml", EVENTS_FILE):
             candidate = Path(calibration_dir) / name
             if name not in files and candidate.exists():
                 files[name] = candidate
@@ -138,4 +143,9 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = DEFAUL
         sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
     if rest_px is None:
         rest_px = camera.project(rig.markers.rest_positions_mm())
-    return PipelineSetup(rig, camera, rest_px, e, nu, sources, stiffening=b, missing=missing)
+    thresholds, sources["thresholds"] = None, "nominal (no events.toml: every event counts one)"
+    if EVENTS_FILE in files:
+        thresholds = load_event_thresholds(files[EVENTS_FILE])
+        thresholds.check_roi(rig.roi)
+        sources["thresholds"] = str(files[EVENTS_FILE])
+    return PipelineSetup(rig, camera, rest_px, e, nu, sources, stiffening=b, missing=missing, thresholds=thresholds)

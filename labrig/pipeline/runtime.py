@@ -144,7 +144,8 @@ class Pipeline:
             self._depth_ran_us = t1_us
         if (self.depth.needs_sae and due) or self.keep_sae:
             grid = sae.sae_grid(d_events, d0_us, t1_us, self.setup.rig.roi)
-        counts = brightness.signed_counts(events, self.setup.rig.roi) if getattr(self.depth, "needs_counts", False) else None
+        counts = (brightness.signed_counts(events, self.setup.rig.roi, thresholds=self.setup.thresholds)
+                  if getattr(self.depth, "needs_counts", False) else None)
         seconds["sae"] = time.perf_counter() - start
         start = time.perf_counter()
         positions, updated = self.tracker.update(events, t1_us)

@@ -16,7 +16,7 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def shade_compose(
-    rect, shade_rect, nodes, nx, base, tx, ty, gain, shade, lum, pad, reported, led_on, rel, changed, values
+    rect, shade_rect, nodes, nx, base, tx, ty, gain, shade, lum, pad, reported, led, rel, changed, values
 ):  # type: ignore[no-untyped-def]
     """Re-shade ``shade_rect`` and compose ``rect`` (both x0, x1, y0, y1 in ROI pixels); return the changed count.
 
@@ -25,8 +25,8 @@ def shade_compose(
     ``nx`` per row, followed by at least nx + 2 zeros) at each pixel's
     lower-left node ``base`` (pixels off the grid point into the zeros) and
     fractional offsets ``tx``, ``ty`` (as :meth:`GridLookup.sample`).
-    Composition over ``rect``: ``min(shade * lum, 1)`` (0 with the LED off;
-    ``lum`` is the canvas, the ROI at offset ``pad``); a pixel whose intensity
+    Composition over ``rect``: ``led * min(shade * lum, 1)`` (``led`` the LED ring's level, 1 full,
+    0 off; ``lum`` is the canvas, the ROI at offset ``pad``); a pixel whose intensity
     moved by more than ``rel * (old + new + 1e-3)`` is updated in ``reported``
     and marked in ``changed`` (rect-shaped); ``values`` (rect-shaped) receives
     ``reported`` after the update.
@@ -53,7 +53,7 @@ def shade_compose(
         s_row, l_row, r_row = shade[i, x0:x1], lum[i + pad, x0 + pad : x1 + pad], reported[i, x0:x1]
         c_row, v_row = changed[i - y0], values[i - y0]
         for j in range(x1 - x0):
-            new = min(s_row[j] * l_row[j], 1.0) if led_on else 0.0
+            new = min(s_row[j] * l_row[j], 1.0) * led
             old = r_row[j]
             limit = old + new
             limit += 1e-3
@@ -381,14 +381,14 @@ def touch_luminance(pixels, scratch, cov, membrane, marker, cov_max, lum, canvas
 
 
 @njit(cache=True, nogil=True)
-def compose_list(pixels, n, roi_to_canvas, lum, shade, reported, led_on, rel, out_pix, out_val):
-    """Compose ROI pixels ``pixels[:n]`` (``min(shade * lum, 1)``, 0 with the LED off) and keep those whose
+def compose_list(pixels, n, roi_to_canvas, lum, shade, reported, led, rel, out_pix, out_val):
+    """Compose ROI pixels ``pixels[:n]`` (``led * min(shade * lum, 1)``, ``led`` the LED ring's level) and keep those whose
     intensity moved by more than ``rel * (old + new + 1e-3)`` (as :func:`shade_compose`): ``reported`` is
     updated there and they are written, in order, to ``out_pix`` / ``out_val``; returns their count."""
     m = 0
     for i in range(n):
         k = pixels[i]
-        new = min(shade[k] * lum[roi_to_canvas[k]], 1.0) if led_on else 0.0
+        new = min(shade[k] * lum[roi_to_canvas[k]], 1.0) * led
         old = reported[k]
         limit = old + new
         limit += 1e-3

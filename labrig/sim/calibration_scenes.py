@@ -1,7 +1,8 @@
-"""Calibration scenes recorded on the virtual rig: a blinking dot-grid target, and the LED ring blinking.
+"""Calibration scenes recorded on the virtual rig: a blinking dot-grid target, the LED ring blinking,
+and the LED ring dimmed and brightened along slow ramps.
 
-``labrig calibrate intrinsics`` and ``labrig calibrate extrinsics`` record them
-when no recording is given; :mod:`labrig.calibration` analyses them like any
+``labrig calibrate intrinsics``, ``labrig calibrate extrinsics`` and ``labrig calibrate events``
+record them when no recording is given; :mod:`labrig.calibration` analyses them like any
 recording.
 
 Both are written as ordinary labrig recordings (docs/recording-format.md):
@@ -41,6 +42,7 @@ PACKET_US = 5_000
 
 SCENE_TARGET = "dot_grid_target"
 SCENE_LED = "led_blink"
+SCENE_LED_RAMPS = "led_ramps"
 
 
 @dataclass(frozen=True)
@@ -218,6 +220,102 @@ def record_led_blink(
     with RecordingWriter(path, metadata) as writer:
         for t0 in range(0, end_us, period_us // 2):
             events = vr.advance(min(t0 + period_us // 2, end_us), still).events
+            _write_events(writer, rig, events, t0)
+            n += len(events)
+    return SceneResult(path, n, end_us / 1e6, 0)
+
+
+@dataclass(frozen=True)
+class LedRamps:
+    """The event-response scene's light: the LED ring dimmed from full to ``1 / ratio`` along a ramp of
+    ``ramp_ms``, held ``hold_ms``, brightened back along a ramp, held, ``cycles`` times, after a quiet
+    ``lead_ms`` at full light. Each ramp is ``steps`` equal steps of the log level (ln(ratio) / steps,
+    well below a contrast threshold, so no pixel fires twice on one step)."""
+
+    ratio: float = 3.0
+    cycles: int = 10
+    ramp_ms: float = 48.0
+    hold_ms: float = 52.0
+    lead_ms: float = 100.0
+    steps: int = 12
+
+    def __post_init__(self) -> None:
+        if not (self.ratio > 1.0 and self.cycles >= 1 and self.steps >= 1 and self.ramp_ms > 0 and self.hold_ms > 0
+                and self.lead_ms > 0):
+            raise ValueError("LED ramps need ratio > 1, cycles and steps >= 1, and positive ramp, hold and lead times")
+
+    def ramps_us(self) -> list[tuple[int, int, int]]:
+        """(start, end, direction) of every ramp, world us: direction -1 dims, +1 brightens."""
+        out, t = [], self.lead_ms * 1e3
+        for _ in range(self.cycles):
+            for direction in (-1, 1):
+                out.append((int(round(t)), int(round(t + self.ramp_ms * 1e3)), direction))
+                t += (self.ramp_ms + self.hold_ms) * 1e3
+        return out
+
+    def levels(self) -> list[tuple[int, float]]:
+        """(world us, LED level) of every step of every ramp."""
+        out = []
+        for t0, t1, direction in self.ramps_us():
+            for k in range(1, self.steps + 1):
+                frac = k / self.steps if direction < 0 else 1.0 - k / self.steps
+                out.append((int(round(t0 + (t1 - t0) * (k - 0.5) / self.steps)), float(self.ratio ** -frac)))
+        return out
+
+    @property
+    def duration_us(self) -> int:
+        return int(round((self.lead_ms * 2 + self.cycles * 2 * (self.ramp_ms + self.hold_ms)) * 1e3))
+
+
+def record_led_ramps(
+    path: str | Path,
+    rig: RigConfig,
+    seed: int = 0,
+    noise_scale: float = 1.0,
+    *,
+    ramps: LedRamps | None = None,
+    indenter: Indenter | None = None,
+    overwrite: bool = False,
+) -> SceneResult:
+    """Record the gel at rest while the LED ring is dimmed and brightened along slow ramps (virtual rig).
+
+    Every pixel sees its log intensity fall and rise by ln(ratio) per cycle, whatever its brightness:
+    the scene of ``labrig calibrate events``. The light's schedule (what a lab's LED driver is told)
+    goes into ``extra_led_*`` metadata: ``extra_led_ratio``, ``extra_led_cycles`` and
+    ``extra_led_ramps_json`` (start, end, direction of each ramp, host us = world us here); the true
+    thresholds ride along in ``extra_truth_thresholds_json`` for scoring only.
+    """
+    path = Path(path)
+    if overwrite and path.exists():
+        path.unlink()
+    ramps = ramps or LedRamps()
+    rig = noisy_rig(rig, noise_scale)
+    indenter = indenter or load_indenter("sphere")
+    vr = VirtualRig(rig, indenter, seed=seed)
+    above = vr.gel_in_machine.apply(np.array([[0.0, 0.0, 5.0]]))[0] - np.asarray(indenter.tool_offset_mm)
+
+    def still(t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        return np.tile(above, (np.atleast_1d(t_us).size, 1))
+
+    for t_us, level in ramps.levels():
+        vr.set_led(level, t_us)
+    ev = rig.sim.events
+    metadata = RecordingMetadata(
+        indenter=indenter.name,
+        protocol_toml="# calibration scene: the LED ring dimmed and brightened along slow ramps, gel at rest (virtual rig)\n",
+        rig_toml=rig.text,
+        extra={
+            "virtual_rig": True, "calibration_scene": SCENE_LED_RAMPS, "seed": seed, "noise_scale": float(noise_scale),
+            "led_ratio": float(ramps.ratio), "led_cycles": int(ramps.cycles),
+            "led_ramps_json": json.dumps([list(r) for r in ramps.ramps_us()]),
+            "truth_thresholds_json": json.dumps({"threshold_on": ev.threshold_on, "threshold_off": ev.threshold_off,
+                                                 "threshold_sigma": ev.threshold_sigma}),
+        },
+    )
+    n, end_us, chunk_us = 0, ramps.duration_us, 50_000
+    with RecordingWriter(path, metadata) as writer:
+        for t0 in range(0, end_us, chunk_us):
+            events = vr.advance(min(t0 + chunk_us, end_us), still).events
             _write_events(writer, rig, events, t0)
             n += len(events)
     return SceneResult(path, n, end_us / 1e6, 0)

@@ -14,9 +14,9 @@ Scene model (units: intensity relative to full scale, pixels of the sensor):
 * Everything is scaled by the slope shading S of :mod:`labrig.sim.shading`
   (1 on flat membrane), sampled at each pixel's rest back-projection
   onto z = 0 (small-displacement approximation), and clipped to [0, 1]:
-  ``I = led * clip(S * (m + min(coverage, 1) * (M - m)), 0, 1)``.
-  S is 1 outside the box of the depth field's nodes with slope above ``slope_tol``.
-* LED ring off: I = 0 everywhere (the extrinsic-calibration blink scene).
+  ``I = led * clip(S * (m + min(coverage, 1) * (M - m)), 0, 1)``, ``led`` the LED ring's level
+  (1 full, 0 off: the extrinsic-calibration blink scene; between them: the event-response scene's
+  dimming ramps). S is 1 outside the box of the depth field's nodes with slope above ``slope_tol``.
 
 :class:`Renderer` is incremental. It keeps the marker coverage, the
 luminance ``m + min(coverage, 1) (M - m)`` and the shading of the whole ROI
@@ -174,7 +174,7 @@ class Renderer:
         self._canvas_to_roi[self._roi_to_canvas] = np.arange(h * w)
         self._offsets = (np.arange(side)[:, None] * cw + np.arange(side)[None, :]).ravel()
         self._scratch = np.zeros(self._canvas_to_roi.size, dtype=np.int64)
-        self._led_on = bool(self.lighting.led_on)
+        self._led = 1.0 if self.lighting.led_on else 0.0
         # Canvas: marker coverage and luminance m + min(coverage, 1) (M - m); ROI: shading, reported intensity.
         self._cov = np.zeros(self._canvas_to_roi.size)
         self._lum = np.full(self._cov.size, float(self.lighting.membrane_level))
@@ -197,7 +197,7 @@ class Renderer:
         self._inner_px, self._outer_px = rim_radii(self._axes_px, edge_px)
 
         self._lum[:] = self._luminance(self._cov)
-        self._reported[:] = self._intensity(self._lum2d(), self._shade, self._led_on)
+        self._reported[:] = self._intensity(self._lum2d(), self._shade, self._led)
 
     # -- public ------------------------------------------------------------------------------------
 
@@ -213,17 +213,17 @@ class Renderer:
         return self._reported.copy()
 
     def render(
-        self, marker_xyz_mm: npt.ArrayLike, depth: DepthField | None = None, *, led_on: bool | None = None
+        self, marker_xyz_mm: npt.ArrayLike, depth: DepthField | None = None, *, led: float | None = None
     ) -> RenderUpdate:
         """Move the scene to new marker centres (N, 3, gel mm) and depth field; return the changed pixels.
 
         ``depth`` is compared by identity: pass the same object to mean "unchanged".
-        ``led_on`` None keeps the current LED state.
+        ``led``: the LED ring's level (1 full, 0 off; True and False mean those); None keeps it.
         """
         touched = self._move_markers(np.asarray(marker_xyz_mm, dtype=np.float64))
         rect, shade = self._reshade(depth) if depth is not self._depth else (None, None)
-        if led_on is not None and bool(led_on) != self._led_on:
-            self._led_on = bool(led_on)
+        if led is not None and _led_level(led) != self._led:
+            self._led = _led_level(led)
             rect = (0, self.roi.width_px, 0, self.roi.height_px)
         # The touched pixels' luminance first (the block reads it), then the block, then the rest of them.
         outside = np.empty(touched.size, dtype=np.int64)
@@ -234,7 +234,7 @@ class Renderer:
         pixels, values = self._compose_pixels(outside[:n])
         return RenderUpdate(pixels, values, block, self.roi.width_px)
 
-    def render_full(self, marker_xyz_mm: npt.ArrayLike, depth: DepthField | None = None, *, led_on: bool | None = None) -> Array:
+    def render_full(self, marker_xyz_mm: npt.ArrayLike, depth: DepthField | None = None, *, led: float | None = None) -> Array:
         """Render the ROI (height, width) from scratch, without touching the incremental state."""
         centres, axes = self._project(np.asarray(marker_xyz_mm, dtype=np.float64))
         origins = patch_origins(centres, self.half_px)
@@ -246,9 +246,8 @@ class Renderer:
         if box is not None and depth is not None:
             x0, x1, y0, y1 = box
             shade[y0:y1, x0:x1] = 1.0 + self.lighting.slope_gain * self._sample(depth, box)
-        led = self._led_on if led_on is None else bool(led_on)
         lum = self._luminance(cov)[self._roi_to_canvas].reshape(shade.shape)
-        return self._intensity(lum, shade, led)
+        return self._intensity(lum, shade, self._led if led is None else _led_level(led))
 
     # -- markers -----------------------------------------------------------------------------------
 
@@ -476,12 +475,12 @@ class Renderer:
 
     # -- composition -------------------------------------------------------------------------------
 
-    def _intensity(self, lum: Array, shade: Array, led_on: bool) -> Array:
-        """``clip(shade * lum, 0, 1)`` (both factors are positive), or 0 with the LED off."""
-        if not led_on:
-            return np.zeros(np.broadcast_shapes(lum.shape, shade.shape))
+    def _intensity(self, lum: Array, shade: Array, led: float) -> Array:
+        """``led * clip(shade * lum, 0, 1)`` (both factors are positive)."""
         out = np.multiply(shade, lum)
-        return np.minimum(out, 1.0, out=out)
+        out = np.minimum(out, 1.0, out=out)
+        out *= led
+        return out
 
     def _compose_block(self, rect: Rect, shade_rect: Rect | None) -> PixelBlock:
         """Re-shade ``shade_rect`` (inside ``rect``) from the current depth field, compose ``rect``, update the
@@ -498,7 +497,7 @@ class Renderer:
             shade_rect, nodes, nx = (0, 0, 0, 0), _NO_NODES, 2
             base, tx, ty = _NO_LOOKUP
         _k.shade_compose(rect, shade_rect, nodes, nx, base, tx, ty, float(self.lighting.slope_gain), self._shade,
-                         self._lum.reshape(self._canvas_shape), self._pad, self._reported, self._led_on,
+                         self._lum.reshape(self._canvas_shape), self._pad, self._reported, self._led,
                          float(self.min_rel_change), changed, values)
         return PixelBlock(y0, x0, changed, values)
 
@@ -509,8 +508,16 @@ class Renderer:
             return pixels, np.empty(0)
         out_pix, out_val = np.empty(pixels.size, dtype=np.int64), np.empty(pixels.size)
         m = _k.compose_list(pixels, pixels.size, self._roi_to_canvas, self._lum, self._shade.ravel(),
-                            self._reported.ravel(), self._led_on, float(self.min_rel_change), out_pix, out_val)
+                            self._reported.ravel(), self._led, float(self.min_rel_change), out_pix, out_val)
         return out_pix[:m], out_val[:m]
+
+
+def _led_level(led: float) -> float:
+    """The LED ring's level in [0, 1] (True: 1, False: 0)."""
+    level = float(led)
+    if not 0.0 <= level <= 1.0:
+        raise ValueError(f"the LED ring's level must be in [0, 1], not {level}")
+    return level
 
 
 def _union(a: Rect, b: Rect) -> Rect:

@@ -161,7 +161,7 @@ class VirtualRig:
         self._next: Solve | None = None
         self._pending_triggers: list[tuple[int, int]] = []
         self._trigger_lock = threading.Lock()
-        self._led_switches: list[tuple[int, bool]] = []
+        self._led_switches: list[tuple[int, float]] = []
         self._next_truth_us = 0
         # The solve intervals _next_solve_time tries (us), for these min and max intervals.
         self._solve_offsets = np.zeros(0, np.int64)
@@ -197,13 +197,16 @@ class VirtualRig:
         t = np.asarray(t_world_us, dtype=np.float64)
         return (clock.origin_us + np.floor(t * (1 + clock.drift_ppm * 1e-6))).astype(np.int64)
 
-    def set_led(self, on: bool, t_world_us: int | None = None) -> None:
-        """Switch the LED ring at ``t_world_us`` (default: now); LED off darkens the
-        membrane and markers (the extrinsic-calibration blink scene)."""
+    def set_led(self, level: float, t_world_us: int | None = None) -> None:
+        """Set the LED ring's level at ``t_world_us`` (default: now): 1 (or True) full, 0 (or False)
+        off, which darkens the membrane and markers (the extrinsic-calibration blink scene); a level
+        between them scales every pixel's light (the event-response scene's dimming ramps)."""
         t = self.t_us if t_world_us is None else int(t_world_us)
         if t < self.t_us:
             raise ValueError("the LED cannot be switched in the past")
-        self._led_switches.append((t, bool(on)))
+        if not 0.0 <= float(level) <= 1.0:
+            raise ValueError(f"the LED ring's level must be in [0, 1], not {level}")
+        self._led_switches.append((t, float(level)))
         self._led_switches.sort(key=lambda item: item[0])
 
     def trigger(self, t_world_us: int, polarity: int) -> None:
@@ -360,9 +363,9 @@ class VirtualRig:
             self.t_us = t1
             if self._led_switches and self._led_switches[0][0] <= t1 < t_end_us:
                 # The LED switches within LED_SWITCH_US; the photoreceptors' low-pass spreads the events.
-                _, on = self._led_switches.pop(0)
+                _, level = self._led_switches.pop(0)
                 t1 = min(t1 + LED_SWITCH_US, t_end_us)
-                update = self.renderer.render(self.printed.drawn(self._markers_at(t1)), self._depth_field, led_on=on)
+                update = self.renderer.render(self.printed.drawn(self._markers_at(t1)), self._depth_field, led=level)
                 self._rendered = None
                 chunks.append(self.sensor.step(self.t_us, t1, update.pixels, update.values, block=update.block))
                 out.renders += 1

@@ -20,8 +20,9 @@ the truth, a network learns to copy the channel and its errors compound in close
 trainer also feeds it its own answers (:func:`self_feed`).
 
 **Brightness change since rest.** The events' polarities integrated per grid cell
-(:class:`~labrig.pipeline.brightness.BrightnessIntegrator`), stepped over the whole recording
-in 10 ms windows from its start, as a run steps it, and kept at every step
+(:class:`~labrig.pipeline.brightness.BrightnessIntegrator`, weighted by the calibration's contrast
+thresholds as a run weighs them), stepped over the whole recording in 10 ms windows from its start,
+as a run steps it, and kept at every step
 (:class:`BrightnessTrack`, cached under ``$LABRIG_CACHE/brightness`` and memory-mapped); a
 window's channel is the step before its end plus the window's own events after that step.
 """
@@ -38,9 +39,10 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.cache import cache_folder, cache_key, sha256_of
+from labrig.calibration.event_thresholds_file import ContrastThresholds
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
-from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel, signed_counts
+from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel
 from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
 
@@ -49,7 +51,7 @@ F64 = npt.NDArray[np.float64]
 #: The tracker's windows over a recording (us).
 TRACK_WINDOW_US = 10_000
 TRACKS_VERSION = 1
-BRIGHTNESS_VERSION = 1
+BRIGHTNESS_VERSION = 2
 #: The most times a batch's previous-map channel is replaced by the network's own answer (:func:`self_feed`).
 SELF_FEED_MAX = 2
 
@@ -160,63 +162,73 @@ def track_recording(path: str | Path, calibration_dir: str | Path | None, cache_
 
 @dataclass(frozen=True)
 class BrightnessTrack:
-    """The integrated signed counts of one recording at every 10 ms step: step ends ``t_us`` (N,) host us,
-    ``counts`` (N, 90, 112) float16 (memory-mapped), the ROI and the integrator's settings."""
+    """The integrated signed counts (reference events) of one recording at every 10 ms step: step ends
+    ``t_us`` (N,) host us, ``counts`` (N, 90, 112) float16 (memory-mapped), the ROI, the integrator's
+    settings and the contrast thresholds that weigh the events (None: nominal)."""
 
     t_us: npt.NDArray[np.int64]
     counts: npt.NDArray[np.float16]
     roi: Any
     params: BrightnessParams
+    thresholds: ContrastThresholds | None = None
 
     def channel_at(self, t_end_us: float, events: npt.NDArray) -> F32:
         """The brightness channel at ``t_end_us``: the last step at or before it plus ``events``
         (the window's, host us) after that step."""
         k = int(np.searchsorted(self.t_us, t_end_us, side="right")) - 1
-        integrator = BrightnessIntegrator(self.roi, self.params)
+        integrator = BrightnessIntegrator(self.roi, self.params, thresholds=self.thresholds)
         if k >= 0:
             integrator.add(np.asarray(self.counts[k], np.float32), float(self.t_us[k]))
             events = events[events["t"] >= self.t_us[k]] if len(events) else events
-        integrator.add(signed_counts(events, self.roi), t_end_us)
+        integrator.add_events(events, t_end_us)
         return brightness_channel(integrator.counts, integrator.pixels_per_cell, self.params)
 
 
 def brightness_recording(path: str | Path, params: BrightnessParams, calibration_dir: str | Path | None,
                          cache_root: str | Path | None = None) -> BrightnessTrack:
-    """:class:`BrightnessTrack` of a recording, cached by the file's SHA-256, its ROI and the settings."""
+    """:class:`BrightnessTrack` of a recording, cached by the file's SHA-256, its ROI, the contrast
+    thresholds and the settings."""
     from labrig.pipeline import run_setup
     from labrig.recording import Recording
 
     path = Path(path)
     with Recording(path) as rec:
-        roi = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir).rig.roi
+        setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
+        roi, thresholds = setup.rig.roi, setup.thresholds
         key = cache_key({"recording": sha256_of(path), "roi": [roi.x0_px, roi.y0_px, roi.x1_px, roi.y1_px],
-                         "params": repr(params), "window_us": TRACK_WINDOW_US, "version": BRIGHTNESS_VERSION})
+                         "params": repr(params), "window_us": TRACK_WINDOW_US, "version": BRIGHTNESS_VERSION,
+                         "thresholds": thresholds.digest() if thresholds is not None else "nominal"})
         folder = cache_folder("brightness", cache_root)
         times, counts = folder / f"{key}.t.npy", folder / f"{key}.counts.npy"
         if not (times.exists() and counts.exists()):
-            ends, steps = _integrated_steps(rec, roi, params)
+            ends, steps = _integrated_steps(rec, roi, params, thresholds)
             folder.mkdir(parents=True, exist_ok=True)
             for target, array in ((counts, steps), (times, ends)):
                 tmp = target.with_name(f".{target.stem}.{os.getpid()}.tmp.npy")
                 np.save(tmp, array)
                 tmp.replace(target)
-    return BrightnessTrack(np.load(times), np.load(counts, mmap_mode="r"), roi, params)
+    return BrightnessTrack(np.load(times), np.load(counts, mmap_mode="r"), roi, params, thresholds)
 
 
 def integrated_noise(track: BrightnessTrack, t_end_us: float, rate_hz: float, rng: np.random.Generator) -> F32:
     """(90, 112) what background noise at ``rate_hz`` per pixel (half ON, half OFF, independent) adds to the
     brightness channel by ``t_end_us``: per cell a leaky random walk, Gaussian with variance
     ``rate P tau / 2 (1 - exp(-2 T / tau))`` events (P pixels per cell, T the time since the track's start),
-    in the channel's units. Its mean, zero, needs no median."""
+    each weighing its cell's reference-event weight (the thresholds', else 1), in the channel's units. Its
+    mean, zero, needs no median."""
     params = track.params
     integrator = BrightnessIntegrator(track.roi, params)
     elapsed_s = max(float(t_end_us - (track.t_us[0] - TRACK_WINDOW_US)), 0.0) * 1e-6
     variance = rate_hz * integrator.pixels_per_cell * params.tau_s / 2.0 * (1.0 - np.exp(-2.0 * elapsed_s / params.tau_s))
     std = np.sqrt(variance) / integrator.pixels_per_cell / params.scale_events_per_px
+    if track.thresholds is not None:
+        on_weight, off_weight = track.thresholds.reference_weights
+        std = std * np.sqrt(0.5 * (on_weight**2 + off_weight**2)).reshape(GRID_SHAPE)
     return (rng.normal(0.0, std, GRID_SHAPE)).astype(np.float32)
 
 
-def _integrated_steps(rec: Any, roi: Any, params: BrightnessParams) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float16]]:
+def _integrated_steps(rec: Any, roi: Any, params: BrightnessParams, thresholds: ContrastThresholds | None
+                      ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float16]]:
     """The integrator stepped over the recording's 10 ms windows (``recording_windows``' tiling from 0):
     window ends (N,) and the integrated counts (N, 90, 112) float16 after each, from one read of
     each 10 s slice of events rather than one read per window."""
@@ -225,7 +237,7 @@ def _integrated_steps(rec: Any, roi: Any, params: BrightnessParams) -> tuple[npt
     if n <= 0:
         raise LabrigError(f"{rec.path}: no camera windows to integrate")
     ends = np.minimum((np.arange(n, dtype=np.int64) + 1) * TRACK_WINDOW_US, end)
-    integrator = BrightnessIntegrator(roi, params)
+    integrator = BrightnessIntegrator(roi, params, thresholds=thresholds)
     out = np.empty((n, *GRID_SHAPE), np.float16)
     per_slice = 1000
     for first in range(0, n, per_slice):
@@ -237,7 +249,7 @@ def _integrated_steps(rec: Any, roi: Any, params: BrightnessParams) -> tuple[npt
             events, window = events[order], window[order]
         bounds = np.searchsorted(window, np.arange(last - first + 1))
         for k in range(last - first):
-            integrator.add(signed_counts(events[bounds[k]:bounds[k + 1]], roi), float(ends[first + k]))
+            integrator.add_events(events[bounds[k]:bounds[k + 1]], float(ends[first + k]))
             out[first + k] = integrator.counts
     return ends, out
 

@@ -1,0 +1,156 @@
+"""``events.toml``: the camera's contrast thresholds per grid cell, and their loader.
+
+An event fires each time a pixel's log intensity moves by its contrast threshold, ON and OFF
+each their own: :class:`ContrastThresholds` holds both, in ln units, per cell of the network
+grid (:mod:`labrig.physics.grid`, the cells of :func:`labrig.pipeline.sae.sae_grid`) over the
+ROI they were measured on. ``events.toml`` holds the summary and names the map file beside it
+(``events-thresholds.npz``: ``on_ln``, ``off_ln``, (rows, cols) float32) with its SHA-256.
+:func:`ContrastThresholds.nominal` is the uncalibrated sensor: every cell at
+:data:`NOMINAL_THRESHOLD_LN`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import io
+import tomllib
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from labrig import __version__
+from labrig.config import Roi
+from labrig.errors import CalibrationError
+from labrig.physics.grid import GRID_SHAPE
+
+F32 = npt.NDArray[np.float32]
+
+#: The IMX636's nominal contrast threshold, ln units (25 % Weber contrast: ln 1.25 = 0.223), and the
+#: reference sensor's; an uncalibrated sensor is taken to have it, ON and OFF, in every cell.
+NOMINAL_THRESHOLD_LN = 0.22
+EVENTS_FORMAT_VERSION = 1
+EVENTS_FILE = "events.toml"
+
+
+@dataclass(frozen=True, eq=False)
+class ContrastThresholds:
+    """ON and OFF contrast thresholds ``on_ln``, ``off_ln`` (rows, cols) float32, ln intensity per event,
+    per cell of the network grid over ``roi`` (sensor px); ``source``: where they came from."""
+
+    on_ln: F32
+    off_ln: F32
+    roi: Roi
+    source: str = "nominal"
+
+    def __post_init__(self) -> None:
+        if self.on_ln.shape != self.off_ln.shape or self.on_ln.ndim != 2:
+            raise CalibrationError(f"{self.source}: the ON and OFF threshold maps must be 2-D of one shape")
+        if not (np.isfinite(self.on_ln).all() and np.isfinite(self.off_ln).all()
+                and (self.on_ln > 0).all() and (self.off_ln > 0).all()):
+            raise CalibrationError(f"{self.source}: every contrast threshold must be finite and positive; "
+                                   "recalibrate with `labrig calibrate events`")
+
+    @classmethod
+    def nominal(cls, roi: Roi, grid_shape: tuple[int, int] = GRID_SHAPE,
+                threshold_ln: float = NOMINAL_THRESHOLD_LN) -> ContrastThresholds:
+        """Every cell at ``threshold_ln``, ON and OFF (no calibration)."""
+        full = np.full(grid_shape, threshold_ln, np.float32)
+        return cls(full, full.copy(), roi, f"nominal ({threshold_ln} ln, no events.toml)")
+
+    @property
+    def is_nominal(self) -> bool:
+        return self.source.startswith("nominal")
+
+    @cached_property
+    def reference_weights(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Flat per-cell weights of an ON and an OFF event in reference events: ``C_on / C_nominal`` and
+        ``-C_off / C_nominal`` (:data:`NOMINAL_THRESHOLD_LN`)."""
+        return (self.on_ln.ravel().astype(np.float64) / NOMINAL_THRESHOLD_LN,
+                -self.off_ln.ravel().astype(np.float64) / NOMINAL_THRESHOLD_LN)
+
+    def digest(self) -> str:
+        """A short SHA-256 of the maps and the ROI (cache keys)."""
+        h = hashlib.sha256(np.ascontiguousarray(self.on_ln).tobytes() + np.ascontiguousarray(self.off_ln).tobytes())
+        h.update(repr((self.roi.x0_px, self.roi.y0_px, self.roi.x1_px, self.roi.y1_px)).encode())
+        return h.hexdigest()[:16]
+
+    def check_roi(self, roi: Roi) -> None:
+        """Refuse a run whose ROI is not the one the thresholds were measured on."""
+        mine = (self.roi.x0_px, self.roi.y0_px, self.roi.x1_px, self.roi.y1_px)
+        theirs = (roi.x0_px, roi.y0_px, roi.x1_px, roi.y1_px)
+        if mine != theirs:
+            raise CalibrationError(f"{self.source}: measured on the ROI {mine}, the rig's is {theirs}; "
+                                   "recalibrate with `labrig calibrate events`")
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def write_event_thresholds(path: str | Path, thresholds: ContrastThresholds, summary: dict[str, Any],
+                           provenance: dict[str, Any]) -> tuple[Path, Path]:
+    """Write ``events.toml`` (``summary``: the [thresholds] and [quality] figures, flat) and its map file
+    beside it (``NAME-thresholds.npz``); returns both paths. Each goes through a temporary file."""
+    from labrig.calibration.files import save_text_atomic, toml_table
+
+    path = Path(path)
+    map_path = path.with_name(path.stem + "-thresholds.npz")
+    buffer = io.BytesIO()
+    np.savez(buffer, on_ln=thresholds.on_ln.astype(np.float32), off_ln=thresholds.off_ln.astype(np.float32))
+    data = buffer.getvalue()
+    map_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = map_path.with_name(f".{map_path.name}.tmp")
+    tmp.write_bytes(data)
+    tmp.replace(map_path)
+    roi = thresholds.roi
+    text = (
+        "# Contrast thresholds per network-grid cell, fitted by `labrig calibrate events` (labrig.calibration.event_thresholds)\n"
+        "# from the LED ring dimmed and brightened along ramps; ln intensity per event. docs/calibration.md.\n"
+        f"format_version = {EVENTS_FORMAT_VERSION}\n"
+        f'date = "{_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}"\n'
+        f'labrig_version = "{__version__}"\n\n'
+        + toml_table("thresholds", {**summary["thresholds"], "map": map_path.name, "map_sha256": _sha256(data),
+                                    "grid_shape": list(thresholds.on_ln.shape)})
+        + "\n" + toml_table("roi", {"x0_px": roi.x0_px, "y0_px": roi.y0_px, "x1_px": roi.x1_px, "y1_px": roi.y1_px})
+        + "\n" + toml_table("scene", summary["scene"])
+        + "\n" + toml_table("quality", summary["quality"])
+        + "\n" + toml_table("source", provenance)
+    )
+    return save_text_atomic(path, text), map_path
+
+
+def load_event_thresholds(path: str | Path) -> ContrastThresholds:
+    """The thresholds of an ``events.toml`` and its map file (checked against its SHA-256)."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationError(f"{path}: no event calibration; run `labrig calibrate events`") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise CalibrationError(f"{path}: not valid TOML ({exc})") from None
+    version = data.get("format_version")
+    if version != EVENTS_FORMAT_VERSION:
+        raise CalibrationError(f"{path}: format_version {version!r} is not one this labrig reads "
+                               f"({EVENTS_FORMAT_VERSION}); recalibrate with `labrig calibrate events`")
+    try:
+        section, r = data["thresholds"], data["roi"]
+        map_path = path.with_name(str(section["map"]))
+        roi = Roi(int(r["x0_px"]), int(r["y0_px"]), int(r["x1_px"]), int(r["y1_px"]))
+        expected = str(section["map_sha256"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CalibrationError(f"{path}: missing or malformed key {exc}; recalibrate with `labrig calibrate events`") from None
+    try:
+        raw = map_path.read_bytes()
+    except FileNotFoundError:
+        raise CalibrationError(f"{path}: its map file {map_path} is missing; keep the two files together") from None
+    if _sha256(raw) != expected:
+        raise CalibrationError(f"{path}: {map_path.name} does not match its SHA-256; recalibrate with "
+                               "`labrig calibrate events`")
+    with np.load(io.BytesIO(raw)) as maps:
+        on, off = np.asarray(maps["on_ln"], np.float32), np.asarray(maps["off_ln"], np.float32)
+    return ContrastThresholds(on, off, roi, str(path))
