@@ -70,17 +70,21 @@ def test_the_scene_gives_each_polarity_its_threshold(asymmetric_scene: tuple[Pat
     assert fit.ramps_used == 2 * SHORT_RAMPS.cycles - 2  # the first cycle settles the references
 
 
-def test_the_file_round_trips_and_refuses_a_changed_map(asymmetric_scene: tuple[Path, RigConfig], tmp_path: Path) -> None:
+def test_the_file_round_trips_and_refuses_a_malformed_map(asymmetric_scene: tuple[Path, RigConfig], tmp_path: Path) -> None:
     path, sensor = asymmetric_scene
     fit = fit_event_thresholds(path, sensor.roi)
-    toml_path, map_path = write_event_thresholds(tmp_path / "events.toml", fit.thresholds, fit.summary(), {"recording": str(path)})
+    toml_path = write_event_thresholds(tmp_path / "events.toml", fit.thresholds, fit.summary(), {"recording": str(path)})
     back = load_event_thresholds(toml_path)
-    assert np.array_equal(back.on_ln, fit.thresholds.on_ln) and np.array_equal(back.off_ln, fit.thresholds.off_ln)
-    assert back.roi == sensor.roi and back.digest() == fit.thresholds.digest()
+    assert np.allclose(back.on_ln, fit.thresholds.on_ln, rtol=1e-4) and np.allclose(back.off_ln, fit.thresholds.off_ln, rtol=1e-4)
+    assert back.roi == sensor.roi
     with pytest.raises(CalibrationError, match="ROI"):
         back.check_roi(Roi(0, 0, 1280, 720))
-    map_path.write_bytes(map_path.read_bytes() + b"\x00")
-    with pytest.raises(CalibrationError, match="SHA-256"):
+    text = toml_path.read_text()
+    toml_path.write_text(text.replace("grid_shape = [90, 112]", "grid_shape = [90, 111]"))
+    with pytest.raises(CalibrationError, match="grid_shape"):
+        load_event_thresholds(toml_path)
+    toml_path.write_text(text.replace("[map]", "[maps]"))
+    with pytest.raises(CalibrationError, match="malformed"):
         load_event_thresholds(toml_path)
 
 
@@ -99,7 +103,7 @@ def test_the_command_writes_the_files_and_never_replaces_the_default_unasked(
     first = _labrig("calibrate", "events", path, "--rig", rig_file, "--plot", tmp_path / "thresholds.png", "--json")
     assert first.returncode == 0, first.stderr
     summary = json.loads(first.stdout)
-    assert summary["path"] == str(folder / "events.toml") and Path(summary["map"]).exists()
+    assert summary["path"] == str(folder / "events.toml")
     assert Path(summary["plot"]).stat().st_size > 10_000
     assert {"on_ln_median", "off_ln_median", "on_off_ratio", "pixels_rejected", "cells_filled"} <= summary.keys()
     again = _labrig("calibrate", "events", path, "--rig", rig_file)

@@ -3,17 +3,16 @@
 An event fires each time a pixel's log intensity moves by its contrast threshold, ON and OFF
 each their own: :class:`ContrastThresholds` holds both, in ln units, per cell of the network
 grid (:mod:`labrig.physics.grid`, the cells of :func:`labrig.pipeline.sae.sae_grid`) over the
-ROI they were measured on. ``events.toml`` holds the summary and names the map file beside it
-(``events-thresholds.npz``: ``on_ln``, ``off_ln``, (rows, cols) float32) with its SHA-256.
-:func:`ContrastThresholds.nominal` is the uncalibrated sensor: every cell at
-:data:`NOMINAL_THRESHOLD_LN`.
+ROI they were measured on. ``events.toml`` holds the summary and the maps themselves (``[map]``
+``on_ln``, ``off_ln``: rows of the grid, 5 significant digits), so the file travels alone like
+every other calibration file. :func:`ContrastThresholds.nominal` is the uncalibrated sensor: every
+cell at :data:`NOMINAL_THRESHOLD_LN`.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import hashlib
-import io
 import tomllib
 from dataclasses import dataclass
 from functools import cached_property
@@ -88,44 +87,36 @@ class ContrastThresholds:
                                    "recalibrate with `labrig calibrate events`")
 
 
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
 def write_event_thresholds(path: str | Path, thresholds: ContrastThresholds, summary: dict[str, Any],
-                           provenance: dict[str, Any]) -> tuple[Path, Path]:
-    """Write ``events.toml`` (``summary``: the [thresholds] and [quality] figures, flat) and its map file
-    beside it (``NAME-thresholds.npz``); returns both paths. Each goes through a temporary file."""
+                           provenance: dict[str, Any]) -> Path:
+    """Write ``events.toml`` (``summary``: the [thresholds], [scene] and [quality] figures) with its maps,
+    through a temporary file."""
     from labrig.calibration.files import save_text_atomic, toml_table
 
-    path = Path(path)
-    map_path = path.with_name(path.stem + "-thresholds.npz")
-    buffer = io.BytesIO()
-    np.savez(buffer, on_ln=thresholds.on_ln.astype(np.float32), off_ln=thresholds.off_ln.astype(np.float32))
-    data = buffer.getvalue()
-    map_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = map_path.with_name(f".{map_path.name}.tmp")
-    tmp.write_bytes(data)
-    tmp.replace(map_path)
     roi = thresholds.roi
+
+    def rows(values: F32) -> str:
+        return "[\n" + "".join("    [" + ", ".join(f"{v:.5g}" for v in row) + "],\n" for row in values) + "]"
+
     text = (
         "# Contrast thresholds per network-grid cell, fitted by `labrig calibrate events` (labrig.calibration.event_thresholds)\n"
         "# from the LED ring dimmed and brightened along ramps; ln intensity per event. docs/calibration.md.\n"
         f"format_version = {EVENTS_FORMAT_VERSION}\n"
         f'date = "{_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}"\n'
         f'labrig_version = "{__version__}"\n\n'
-        + toml_table("thresholds", {**summary["thresholds"], "map": map_path.name, "map_sha256": _sha256(data),
-                                    "grid_shape": list(thresholds.on_ln.shape)})
+        + toml_table("thresholds", {**summary["thresholds"], "grid_shape": list(thresholds.on_ln.shape)})
         + "\n" + toml_table("roi", {"x0_px": roi.x0_px, "y0_px": roi.y0_px, "x1_px": roi.x1_px, "y1_px": roi.y1_px})
         + "\n" + toml_table("scene", summary["scene"])
         + "\n" + toml_table("quality", summary["quality"])
         + "\n" + toml_table("source", provenance)
+        + f"\n[map]  # per cell, row-major over the ROI: the ON and OFF thresholds, ln\non_ln = {rows(thresholds.on_ln)}\n"
+        + f"off_ln = {rows(thresholds.off_ln)}\n"
     )
-    return save_text_atomic(path, text), map_path
+    return save_text_atomic(path, text)
 
 
 def load_event_thresholds(path: str | Path) -> ContrastThresholds:
-    """The thresholds of an ``events.toml`` and its map file (checked against its SHA-256)."""
+    """The thresholds of an ``events.toml``."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
@@ -138,19 +129,13 @@ def load_event_thresholds(path: str | Path) -> ContrastThresholds:
         raise CalibrationError(f"{path}: format_version {version!r} is not one this labrig reads "
                                f"({EVENTS_FORMAT_VERSION}); recalibrate with `labrig calibrate events`")
     try:
-        section, r = data["thresholds"], data["roi"]
-        map_path = path.with_name(str(section["map"]))
+        r, shape = data["roi"], tuple(int(v) for v in data["thresholds"]["grid_shape"])
         roi = Roi(int(r["x0_px"]), int(r["y0_px"]), int(r["x1_px"]), int(r["y1_px"]))
-        expected = str(section["map_sha256"])
+        on = np.asarray(data["map"]["on_ln"], np.float32)
+        off = np.asarray(data["map"]["off_ln"], np.float32)
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationError(f"{path}: missing or malformed key {exc}; recalibrate with `labrig calibrate events`") from None
-    try:
-        raw = map_path.read_bytes()
-    except FileNotFoundError:
-        raise CalibrationError(f"{path}: its map file {map_path} is missing; keep the two files together") from None
-    if _sha256(raw) != expected:
-        raise CalibrationError(f"{path}: {map_path.name} does not match its SHA-256; recalibrate with "
-                               "`labrig calibrate events`")
-    with np.load(io.BytesIO(raw)) as maps:
-        on, off = np.asarray(maps["on_ln"], np.float32), np.asarray(maps["off_ln"], np.float32)
+    if on.shape != shape or off.shape != shape:
+        raise CalibrationError(f"{path}: [map] on_ln and off_ln must be {shape} (grid_shape), not {on.shape} and "
+                               f"{off.shape}; recalibrate with `labrig calibrate events`")
     return ContrastThresholds(on, off, roi, str(path))

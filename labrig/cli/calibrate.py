@@ -162,7 +162,7 @@ def extrinsics_command(
 @calibrate_app.command("events")
 def events_command(
     recording: Annotated[Path | None, typer.Argument(help="Recording of the LED ring dimmed and brightened along ramps, gel at rest (default: record one on the virtual rig).")] = None,  # noqa: E501
-    out: Annotated[Path | None, typer.Option("--out", help="Thresholds file to write (default: events.toml beside the rig file; its map NAME-thresholds.npz goes beside it).")] = None,  # noqa: E501
+    out: Annotated[Path | None, typer.Option("--out", help="Thresholds file to write (default: events.toml beside the rig file).")] = None,  # noqa: E501
     force: Annotated[bool, typer.Option("--force", help="Replace the default events.toml if it exists.")] = False,
     led_ratio: Annotated[float | None, typer.Option("--led-ratio", help="The LED's full / dimmed light (default: what the recording names).", min=1.0)] = None,  # noqa: E501
     seed: SeedOption = 0,
@@ -194,8 +194,8 @@ def events_command(
         record_led_ramps(recording, rig, seed=seed)
     fit = fit_event_thresholds(recording, rig.roi, ratio=led_ratio)
     summary = fit.summary()
-    path, map_path = write_event_thresholds(target, fit.thresholds, summary, provenance(recording, sha256_of(recording)))
-    result: dict[str, Any] = {"path": str(path), "map": str(map_path), "recording": str(recording),
+    path = write_event_thresholds(target, fit.thresholds, summary, provenance(recording, sha256_of(recording)))
+    result: dict[str, Any] = {"path": str(path), "recording": str(recording),
                               **summary["thresholds"], **summary["scene"], **summary["quality"]}
     if plot is not None:
         result["plot"] = str(plot_event_thresholds(fit, plot))
@@ -213,7 +213,6 @@ def events_command(
                   f"({fit.ramps_used} ramps of ln {fit.schedule.ratio:g})")
     table.add_row("background", f"{q['background_rate_hz']:.3f} Hz per pixel")
     table.add_row("left out", f"{q['pixels_rejected']} pixels (hot or dead), {q['cells_filled']} cells given the median")
-    table.add_row("map", str(map_path))
     if plot is not None:
         table.add_row("plot", str(result["plot"]))
     console.print(table)
