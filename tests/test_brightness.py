@@ -224,3 +224,60 @@ def test_the_noise_augmentation_adds_the_integrated_random_walk_of_that_noise() 
     ppc = ROI.width_px * ROI.height_px / (GRID_SHAPE[0] * GRID_SHAPE[1])
     expected = math.sqrt(1.0 * ppc * params.tau_s / 2.0) / ppc / params.scale_events_per_px
     assert late.std() == pytest.approx(expected, rel=0.03) and abs(late.mean()) < 0.05 * expected
+
+
+def _gated() -> BrightnessParams:
+    return BrightnessParams(tau_s=3600.0, rest_tau_s=0.5, floor_events_per_px=0.3)
+
+
+def _dent_events(n_per_px: int) -> np.ndarray:
+    """ON events filling a 60 x 60 px square (about 25 cells) ``n_per_px`` times: a still dent's shading."""
+    xs, ys = np.meshgrid(np.arange(600, 660), np.arange(300, 360))
+    x, y = np.tile(xs.ravel(), n_per_px), np.tile(ys.ravel(), n_per_px)
+    return _events(list(x), list(y), [1] * len(x))
+
+
+def test_a_gated_leak_holds_a_still_dent_and_forgets_the_quiet_cells() -> None:
+    """A dent two events per pixel deep is held for a minute (a one-leak integrator at 30 s keeps 13 %);
+    a quiet cell's lone events decay within seconds; the uniform drift of the sensor's leak events is removed."""
+    centres = np.rint(np.stack(np.meshgrid((np.arange(112) + 0.5) * ROI.width_px / 112 + ROI.x0_px - 0.5,
+                                           (np.arange(90) + 0.5) * ROI.height_px / 90 + ROI.y0_px - 0.5), -1)).astype(int)
+    every_cell = _events(list(centres[..., 0].ravel()), list(centres[..., 1].ravel()), [1] * centres[..., 0].size)
+    gated, plain = BrightnessIntegrator(ROI, _gated()), BrightnessIntegrator(ROI)
+    dent = _dent_events(2)
+    for integrator in (gated, plain):
+        integrator.add_events(dent, 10_000)
+    cell = (int((330 - ROI.y0_px + 0.5) * 90 / ROI.height_px), int((630 - ROI.x0_px + 0.5) * 112 / ROI.width_px))
+    pressed = float(gated.channel()[cell])  # about 1: 2 events per pixel / 2 per unit
+    lone = _events([900, 900], [600, 600], [1, 1])  # a noise pair in a quiet cell
+    gated.add_events(lone, 20_000)
+    leak = np.zeros(0, dtype=EVENT_DTYPE)
+    for k in range(3, 6001):  # 60 s of 10 ms windows; every pixel's leak fires ON now and then (uniform drift)
+        window = leak
+        if k % 200 == 0:  # one leak event in every cell every 2 s
+            window = every_cell
+        for integrator in (gated, plain):
+            integrator.add_events(window, k * 10_000)
+    held = gated.channel()[cell]
+    assert pressed == pytest.approx(1.0, rel=0.05)
+    assert held == pytest.approx(pressed * math.exp(-60 / 3600), rel=2e-3)  # only the loaded cells' own leak
+    assert plain.channel()[cell] < 0.2
+    lone_cell = (int((600 - ROI.y0_px + 0.5) * 90 / ROI.height_px), int((900 - ROI.x0_px + 0.5) * 112 / ROI.width_px))
+    assert abs(gated.counts[lone_cell]) < 1e-3  # the lone pair, long forgotten
+    assert abs(float(np.median(gated.counts))) < 0.5  # the leak's drift left every cell: no growing offset
+
+
+def test_a_gated_leak_is_stepped_at_most_every_10_ms_and_round_trips_the_card() -> None:
+    params = _gated()
+    spec = InputSpec(("sae", "brightness"), brightness=params)
+    assert InputSpec.from_card({"inputs": spec.to_card()}) == spec
+    assert BrightnessParams.from_card(BrightnessParams().to_card()).rest_tau_s is None  # older cards: one leak
+    integrator = BrightnessIntegrator(ROI, params)
+    integrator.add_events(_events([600], [300], [1]), 1_000)
+    for t in range(2_000, 11_000, 1_000):  # 1 ms windows: no step until 10 ms have passed
+        integrator.add(np.zeros(GRID_SHAPE, np.float32), t)
+    assert integrator.counts.sum() == pytest.approx(1.0)
+    integrator.add(np.zeros(GRID_SHAPE, np.float32), 11_000)
+    assert integrator.counts.sum() < 1.0
+    with pytest.raises(LabrigError, match="rest_tau_s"):
+        BrightnessParams(tau_s=1.0, rest_tau_s=2.0)

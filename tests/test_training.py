@@ -314,3 +314,24 @@ def test_state_inputs_train_export_and_run_in_the_pipeline(campaign: Path, tmp_p
     depth = evaluate_depth(DepthTask(str(campaign / "a.h5"), str(tmp_path / "s.onnx"), window_events=None,
                                      window_us=10_000))  # through the pipeline, window after window
     assert len(depth.t_us) == len(results) and np.isfinite(depth.total_mm).all()
+
+
+def test_the_held_brightness_input_trains_and_its_card_carries_the_gated_leak(campaign: Path, tmp_path: Path,
+                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """sae+bright-hold: the card's brightness section names the gated leak, and the exported network's depth
+    source integrates with it (a press held as long as it lasts)."""
+    from labrig.pipeline import depth_sources, run_setup, runtime
+    from labrig.pipeline.depth_inputs import HOLD_BRIGHTNESS
+    from labrig.recording import Recording
+
+    monkeypatch.setenv("LABRIG_CACHE", str(tmp_path / "cache"))
+    card = train(campaign, TrainConfig(steps=3, val_every=0, checkpoint_every=3, inputs="sae+bright-hold", **TINY),
+                 tmp_path / "h", command="test", show_progress=False)
+    assert card["inputs"]["brightness"]["rest_tau_s"] == HOLD_BRIGHTNESS.rest_tau_s
+    assert "--inputs sae+bright-hold" in card["reproduce"]
+    with Recording(campaign / "a.h5") as rec:
+        setup = run_setup.setup_for_recording(rec)
+        source = depth_sources.depth_source("model", setup, rec, tmp_path / "h.onnx")
+        assert source.integrator is not None and source.integrator.params == HOLD_BRIGHTNESS  # type: ignore[attr-defined]
+        results = list(runtime.Pipeline(setup, source).run(rec, window_us=10_000, concurrent=False))
+    assert results and all(np.isfinite(r.net_force_n).all() for r in results)

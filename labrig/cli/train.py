@@ -48,7 +48,8 @@ def train_command(
     inputs: Annotated[str, typer.Option(
         help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
              "sae+disp+prev (+ the previous depth map), sae+bright (+ the brightness change since rest, the events' "
-             "polarities integrated), sae+bright+disp; docs/depthnet.md.")] = "sae",
+             "polarities integrated), sae+bright+disp, sae+bright-hold (the brightness change with the gated leak: "
+             "a press held as long as it lasts); docs/depthnet.md.")] = "sae",
     calibration: Annotated[Path | None, typer.Option(
         help="Calibration folder (camera, marker map) for the tracker behind the displacement channels (default: "
              "the folder of labrig's default rig).")] = None,

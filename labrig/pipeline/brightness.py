@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy.ndimage import uniform_filter
 
 from labrig.calibration.event_thresholds_file import NOMINAL_THRESHOLD_LN, ContrastThresholds
 from labrig.config import Roi
@@ -45,28 +46,44 @@ from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE, grid_cells_of_pixels
 
 F32 = npt.NDArray[np.float32]
+#: A gated leak (``rest_tau_s``) is applied at most this often (us of stream time).
+LEAK_STEP_US = 10_000
 
 
 @dataclass(frozen=True)
 class BrightnessParams:
     """The integrator's leak ``tau_s`` (s), the channel's unit ``scale_events_per_px`` (reference events per
     pixel for one unit: ``scale_events_per_px * 0.22`` ln of log-intensity change) and its clip ``clip``
-    (units, either sign)."""
+    (units, either sign).
+
+    ``rest_tau_s`` (s; None: one leak for every cell): the leak of the cells that hold no change (the
+    gel at rest there), which bounds their noise; a cell whose change since rest, averaged over it and
+    its 8 neighbours, is at least ``floor_events_per_px`` (reference events per pixel) holds it and
+    leaks only with ``tau_s``, so a press is kept as long as it lasts."""
 
     tau_s: float = 30.0
     scale_events_per_px: float = 2.0
     clip: float = 4.0
+    rest_tau_s: float | None = None
+    floor_events_per_px: float = 0.3
 
     def __post_init__(self) -> None:
-        if not (self.tau_s > 0 and self.scale_events_per_px > 0 and self.clip > 0):
-            raise LabrigError("the brightness channel's tau_s, scale_events_per_px and clip must be positive")
+        if not (self.tau_s > 0 and self.scale_events_per_px > 0 and self.clip > 0 and self.floor_events_per_px > 0):
+            raise LabrigError("the brightness channel's tau_s, scale_events_per_px, clip and floor_events_per_px must "
+                              "be positive")
+        if self.rest_tau_s is not None and not 0 < self.rest_tau_s <= self.tau_s:
+            raise LabrigError("the brightness channel's rest_tau_s must be positive and at most tau_s")
 
     def to_card(self) -> dict[str, float]:
-        return {"tau_s": self.tau_s, "scale_events_per_px": self.scale_events_per_px, "clip": self.clip}
+        card = {"tau_s": self.tau_s, "scale_events_per_px": self.scale_events_per_px, "clip": self.clip}
+        if self.rest_tau_s is not None:
+            card.update(rest_tau_s=self.rest_tau_s, floor_events_per_px=self.floor_events_per_px)
+        return card
 
     @classmethod
     def from_card(cls, section: dict[str, float] | None) -> BrightnessParams:
-        return cls(**{k: float(v) for k, v in (section or {}).items() if k in ("tau_s", "scale_events_per_px", "clip")})
+        keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px")
+        return cls(**{k: float(v) for k, v in (section or {}).items() if k in keys})
 
 
 def signed_counts(events: npt.NDArray, roi: Roi, grid_shape: tuple[int, int] = GRID_SHAPE,
@@ -104,15 +121,43 @@ class BrightnessIntegrator:
         self.grid_shape = grid_shape
         self.pixels_per_cell = roi.width_px * roi.height_px / float(grid_shape[0] * grid_shape[1])
         self.counts = np.zeros(grid_shape, np.float32)
+        self._added = np.zeros(grid_shape, np.float32)  # gated leak: the counts since its last step
         self.t_us: float | None = None
 
     def add(self, counts: F32, t1_us: float) -> F32:
-        """Fold in one window's :func:`signed_counts` ending at ``t1_us``; returns the integrated counts."""
-        if self.t_us is not None and t1_us > self.t_us:
-            self.counts *= np.float32(math.exp(-(t1_us - self.t_us) * 1e-6 / self.params.tau_s))
+        """Fold in one window's :func:`signed_counts` ending at ``t1_us``; returns the integrated counts.
+
+        One leak (``rest_tau_s`` None): the counts decay before the window's are added. Gated leak: a step
+        of :meth:`_gated_leak` at most every :data:`LEAK_STEP_US` (a step reads the whole map)."""
+        if self.params.rest_tau_s is None:
+            if self.t_us is not None and t1_us > self.t_us:
+                self.counts *= np.float32(math.exp(-(t1_us - self.t_us) * 1e-6 / self.params.tau_s))
+            self.counts += counts
+            self.t_us = t1_us if self.t_us is None else max(self.t_us, t1_us)
+            return self.counts
         self.counts += counts
-        self.t_us = t1_us if self.t_us is None else max(self.t_us, t1_us)
+        self._added += counts
+        if self.t_us is None:
+            self.t_us = t1_us
+        elif t1_us - self.t_us >= LEAK_STEP_US:
+            self._gated_leak((t1_us - self.t_us) * 1e-6, self.params.rest_tau_s)
+            self.t_us = t1_us
         return self.counts
+
+    def _gated_leak(self, dt_s: float, rest_tau_s: float) -> None:
+        """One step of the gated leak over ``dt_s``: the step's uniform drift (the mean of what the quiet cells
+        gained: the sensor's leak events, a change of the light) leaves every cell, then the quiet cells
+        decay with ``rest_tau_s`` and the others with ``tau_s``. A cell is quiet when its change, less the
+        map's median and averaged with its 8 neighbours, is under ``floor_events_per_px``."""
+        change = self.counts - np.float32(np.median(self.counts))
+        floor = np.float32(self.params.floor_events_per_px * self.pixels_per_cell)
+        quiet = np.abs(uniform_filter(change, 3, mode="nearest")) < floor
+        drift = np.float32(self._added[quiet].mean() if quiet.any() else np.median(self._added))
+        self.counts -= drift
+        rest = np.float32(math.exp(-dt_s / rest_tau_s))
+        hold = np.float32(math.exp(-dt_s / self.params.tau_s))
+        self.counts *= np.where(quiet, rest, hold)
+        self._added[...] = 0.0
 
     def add_events(self, events: npt.NDArray, t1_us: float) -> F32:
         return self.add(signed_counts(events, self.roi, self.grid_shape, self.thresholds), t1_us)
@@ -120,6 +165,7 @@ class BrightnessIntegrator:
     def reset(self, t_us: float | None = None) -> None:
         """Forget the count (the gel is at rest)."""
         self.counts[...] = 0.0
+        self._added[...] = 0.0
         self.t_us = t_us
 
     def channel(self) -> F32:

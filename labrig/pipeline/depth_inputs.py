@@ -43,7 +43,12 @@ F64 = npt.NDArray[np.float64]
 CHANNELS = {"sae": 2, "displacement": 2, "previous": 1, "brightness": 1}
 #: The named input sets (``labrig train --inputs``), the comparison's variants.
 INPUT_SETS = {"sae": ("sae",), "sae+disp": ("sae", "displacement"), "sae+disp+prev": ("sae", "displacement", "previous"),
-              "sae+bright": ("sae", "brightness"), "sae+bright+disp": ("sae", "brightness", "displacement")}
+              "sae+bright": ("sae", "brightness"), "sae+bright+disp": ("sae", "brightness", "displacement"),
+              "sae+bright-hold": ("sae", "brightness")}
+#: The brightness change integrated with the gated leak: a press held as long as it lasts
+#: (:class:`~labrig.pipeline.brightness.BrightnessParams` ``rest_tau_s``); the other sets keep one 30 s leak.
+HOLD_BRIGHTNESS = BrightnessParams(tau_s=3600.0, rest_tau_s=0.5, floor_events_per_px=0.3)
+INPUT_BRIGHTNESS = {"sae+bright-hold": HOLD_BRIGHTNESS}
 #: Gel-plane displacement (mm) that makes one unit of a displacement channel.
 DEFAULT_DISPLACEMENT_SCALE_MM = 1.0
 
@@ -66,10 +71,11 @@ class InputSpec:
 
     @classmethod
     def named(cls, name: str) -> InputSpec:
-        """One of :data:`INPUT_SETS` (``sae``, ``sae+disp``, ``sae+disp+prev``)."""
+        """One of :data:`INPUT_SETS` (``sae``, ``sae+disp``, ``sae+disp+prev``, ``sae+bright``, ...), with its
+        brightness settings (:data:`INPUT_BRIGHTNESS`, else the defaults)."""
         if name not in INPUT_SETS:
             raise LabrigError(f"--inputs must be one of {', '.join(INPUT_SETS)}, not {name!r}")
-        return cls(INPUT_SETS[name])
+        return cls(INPUT_SETS[name], brightness=INPUT_BRIGHTNESS.get(name, BrightnessParams()))
 
     @classmethod
     def from_card(cls, card: dict[str, Any]) -> InputSpec:

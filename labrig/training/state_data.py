@@ -219,7 +219,8 @@ def integrated_noise(track: BrightnessTrack, t_end_us: float, rate_hz: float, rn
     params = track.params
     integrator = BrightnessIntegrator(track.roi, params)
     elapsed_s = max(float(t_end_us - (track.t_us[0] - TRACK_WINDOW_US)), 0.0) * 1e-6
-    variance = rate_hz * integrator.pixels_per_cell * params.tau_s / 2.0 * (1.0 - np.exp(-2.0 * elapsed_s / params.tau_s))
+    tau_s = params.rest_tau_s or params.tau_s  # a gated leak holds noise at its quiet cells' time constant
+    variance = rate_hz * integrator.pixels_per_cell * tau_s / 2.0 * (1.0 - np.exp(-2.0 * elapsed_s / tau_s))
     std = np.sqrt(variance) / integrator.pixels_per_cell / params.scale_events_per_px
     if track.thresholds is not None:
         on_weight, off_weight = track.thresholds.reference_weights
