@@ -7,6 +7,8 @@ sensor's axes are unit vectors. Pure numpy.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import numpy.typing as npt
 
@@ -24,6 +26,50 @@ def kabsch(gel_points: F64, machine_points: F64) -> Pose:
     d = np.sign(np.linalg.det(vt.T @ u.T))
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
     return Pose(r, cb - r @ ca)
+
+
+@dataclass(frozen=True)
+class LeftOut:
+    """The point whose removal fits the rest best: its index, its distance (mm) from the pose fitted to
+    the others, and the others' rms residual (mm) under that pose."""
+
+    index: int
+    residual_mm: float
+    others_rms_mm: float
+
+
+def most_inconsistent_point(gel_points: F64, machine_points: F64) -> LeftOut:
+    """Leave each point out in turn, fit the pose to the others (:func:`kabsch`) and keep the choice
+    whose others fit best (smallest rms): that point is the one the others disagree with most."""
+    a, b = np.asarray(gel_points, float), np.asarray(machine_points, float)
+    best: LeftOut | None = None
+    for i in range(len(a)):
+        others = np.arange(len(a)) != i
+        pose = kabsch(a[others], b[others])
+        rms = float(np.sqrt(np.mean(np.sum((pose.apply(a[others]) - b[others]) ** 2, axis=1))))
+        if best is None or rms < best.others_rms_mm:
+            best = LeftOut(i, float(np.linalg.norm(pose.apply(a[i]) - b[i])), rms)
+    assert best is not None
+    return best
+
+
+def reject_outliers(gel_points: F64, machine_points: F64, *, min_residual_mm: float, ratio: float,
+                    min_points: int) -> tuple[npt.NDArray[np.bool_], list[LeftOut]]:
+    """Drop, one at a time, the point the others disagree with most (:func:`most_inconsistent_point`)
+    while its distance from the others' pose exceeds both ``min_residual_mm`` and ``ratio`` times the
+    others' rms, and more than ``min_points`` remain. Returns (kept mask, the points dropped, indices
+    into the inputs)."""
+    a, b = np.asarray(gel_points, float), np.asarray(machine_points, float)
+    kept = np.ones(len(a), dtype=bool)
+    dropped: list[LeftOut] = []
+    while int(kept.sum()) > min_points:
+        index = np.flatnonzero(kept)
+        worst = most_inconsistent_point(a[kept], b[kept])
+        if worst.residual_mm <= max(min_residual_mm, ratio * worst.others_rms_mm):
+            break
+        kept[index[worst.index]] = False
+        dropped.append(LeftOut(int(index[worst.index]), worst.residual_mm, worst.others_rms_mm))
+    return kept, dropped
 
 
 def yaw_tilt_of(rotation: F64) -> tuple[float, tuple[float, float]]:

@@ -156,6 +156,54 @@ def contact_table(indenter: Indenter, rig: RigConfig, poisson_ratio: float | Non
                               stiffening=0.0)
 
 
+#: The gel calibration's file name, next to the rig file.
+GEL_FILE = "gel.toml"
+
+
+@dataclass(frozen=True)
+class GelModel:
+    """The gel a contact model is built for: thickness (mm), Young's modulus (MPa, small strain),
+    Poisson ratio, first-order stiffening b (``E_eff = E (1 + b depth / thickness)``) and where
+    these came from (the gel calibration's file, or the rig file's ``[gel]`` with b = 0)."""
+
+    thickness_mm: float
+    youngs_modulus_mpa: float
+    poisson_ratio: float
+    stiffening: float
+    source: str
+
+    def summary(self) -> dict[str, Any]:
+        return {"thickness_mm": self.thickness_mm, "youngs_modulus_mpa": round(self.youngs_modulus_mpa, 5),
+                "poisson_ratio": self.poisson_ratio, "stiffening": round(self.stiffening, 4), "source": self.source}
+
+
+def gel_model(rig: RigConfig, gel_path: str | Path | None = None) -> GelModel:
+    """The gel as the lab knows it: the gel calibration (``gel_path``, default ``gel.toml`` next to
+    the rig file, when it exists: its E, nu, thickness and stiffening), else the rig file's ``[gel]``
+    (nominal E, nu, thickness; no stiffening known). A ``gel_path`` given but missing is an error."""
+    path = Path(gel_path) if gel_path is not None else rig.path.parent / GEL_FILE
+    if gel_path is None and not path.exists():
+        return GelModel(rig.gel.thickness_mm, rig.gel.youngs_modulus_mpa, rig.gel.poisson_ratio, 0.0,
+                        f"{rig.path} [gel] (no gel calibration next to it)")
+    data = load_gel(path)
+    try:
+        return GelModel(float(data.get("thickness_mm", rig.gel.thickness_mm)), float(data["youngs_modulus_mpa"]),
+                        float(data.get("poisson_ratio", rig.gel.poisson_ratio)), float(data.get("stiffening", 0.0)),
+                        str(path))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CalibrationError(f"{path}: a gel calibration needs youngs_modulus_mpa (and thickness_mm, poisson_ratio, "
+                               f"stiffening); rerun `labrig calibrate gel` ({exc})") from None
+
+
+def model_contact_table(indenter: Indenter, rig: RigConfig, gel: GelModel) -> ContactTable:
+    """The normal-contact table of ``indenter`` on the gel ``gel`` (its thickness, E and nu; the rig's
+    mechanics mode and grid; no stiffening: models apply ``gel.stiffening`` themselves)."""
+    nominal = replace(rig.gel, thickness_mm=gel.thickness_mm, youngs_modulus_mpa=gel.youngs_modulus_mpa,
+                      poisson_ratio=gel.poisson_ratio)
+    return ContactTable.build(indenter, nominal, mode=rig.sim.mechanics.mode, spacing_mm=rig.sim.mechanics.grid_spacing_mm,
+                              stiffening=0.0)
+
+
 def _model(table: ContactTable, delta: F64, scale: float, stiffening: float, thickness_mm: float) -> F64:
     d = np.clip(delta, 0.0, float(table.depths_mm[-1]))
     base = np.interp(d, table.depths_mm, table.normal_force_n)

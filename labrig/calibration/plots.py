@@ -36,7 +36,8 @@ def plot_registration(reg: RigRegistration, path: str | Path) -> Path:
     left.plot(gel[:, 0], gel[:, 1], "o")
     left.quiver(gel[:, 0], gel[:, 1], res[:, 0], res[:, 1], angles="xy", scale_units="xy", scale=1 / 0.2, color="r")
     for p, g in zip(reg.points, gel, strict=True):
-        left.annotate(f"{p.location_mm}", g, fontsize=7, xytext=(4, 4), textcoords="offset points")
+        left.annotate(f"{p.location_mm}{' dropped' if p.rejected else ''}", g, fontsize=7, xytext=(4, 4),
+                      textcoords="offset points")
     left.set_aspect("equal")
     left.set_xlabel("gel x (mm)")
     left.set_ylabel("gel y (mm)")

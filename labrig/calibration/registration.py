@@ -41,8 +41,8 @@ from scipy.optimize import least_squares
 
 from labrig.cache import sha256_of
 from labrig.calibration.contact_location import PixelMap, locate_contact
-from labrig.calibration.fits import axis_map, fit_ft_axes, kabsch
-from labrig.calibration.gel import ForceDepthCurve, contact_table
+from labrig.calibration.fits import axis_map, fit_ft_axes, kabsch, reject_outliers
+from labrig.calibration.gel import ForceDepthCurve, GelModel, gel_model, model_contact_table
 from labrig.calibration.registration_file import PointResult, RigRegistration
 from labrig.config import RigConfig
 from labrig.errors import CalibrationError
@@ -60,6 +60,10 @@ MIN_POINTS = 3
 SURFACE_FIT_DEPTH_MM = 0.4
 #: A shear's force change under this (N) gives no direction for the F/T axes.
 MIN_SHEAR_FORCE_N = 0.05
+#: A touch-off is dropped from the pose when its distance from the pose fitted to the others exceeds
+#: this (mm) and OUTLIER_RATIO times the others' rms residual (a good touch-off is within ~0.02 mm).
+OUTLIER_MIN_RESIDUAL_MM = 0.05
+OUTLIER_RATIO = 5.0
 
 
 @dataclass(frozen=True)
@@ -104,12 +108,12 @@ class Press:
         return x, y, p
 
 
-def depth_offsets(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, table: ContactTable | None = None,
+def depth_offsets(presses: Sequence[Press], table: ContactTable, gel: GelModel,
                   max_depth_mm: float = SURFACE_FIT_DEPTH_MM) -> tuple[F64, float]:
     """Per press, the depth (mm) at which the approach detected contact, from its force-depth steps up to
-    ``max_depth_mm``: one force scale shared by the presses (same indenter), one offset each (the
-    table's curve shape fixes the zero). Returns (offsets, rms residual N)."""
-    table = table if table is not None else contact_table(indenter, rig)
+    ``max_depth_mm``: the model ``s F_table(d + d0) (1 + b (d + d0) / h)`` of the gel touched (``table``
+    built for ``gel``; b, h: ``gel``'s stiffening and thickness), one force scale s shared by the presses
+    (same indenter), one offset d0 each (the curve's shape fixes the zero). Returns (offsets, rms residual N)."""
     data = []
     for p in presses:
         keep = p.depth_mm <= max_depth_mm + 1e-9
@@ -118,9 +122,12 @@ def depth_offsets(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, 
                                    f"{max_depth_mm} mm; at least 3 are needed to find the surface")
         data.append((p.depth_mm[keep], p.force_n[keep, 2]))
 
+    def model_n(delta: F64) -> F64:
+        d = np.clip(delta, 0, None)
+        return np.interp(d, table.depths_mm, table.normal_force_n) * (1.0 + gel.stiffening * d / gel.thickness_mm)
+
     def residuals(x: F64) -> F64:
-        return np.concatenate([x[0] * np.interp(np.clip(d + d0, 0, None), table.depths_mm, table.normal_force_n) - f
-                               for (d, f), d0 in zip(data, x[1:], strict=True)])
+        return np.concatenate([x[0] * model_n(d + d0) - f for (d, f), d0 in zip(data, x[1:], strict=True)])
 
     n = len(presses)
     result = least_squares(residuals, np.r_[1.0, [0.05] * n], bounds=(np.r_[1e-3, [-0.5] * n], np.r_[1e3, [1.0] * n]),
@@ -129,14 +136,18 @@ def depth_offsets(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, 
 
 
 def solve_registration(presses: Sequence[Press], rig: RigConfig, indenter: Indenter, camera: CameraModel,
-                       camera_source: str = "", *, table: ContactTable | None = None,
+                       camera_source: str = "", *, gel: GelModel | None = None, table: ContactTable | None = None,
                        virtual_rig: bool = True) -> RigRegistration:
-    """Everything after the touch-offs: surface offsets, contact locations, the pose and the F/T axes."""
+    """Everything after the touch-offs: surface offsets, contact locations, the pose (touch-offs the
+    others disagree with dropped, see :func:`~labrig.calibration.fits.reject_outliers`) and the F/T axes.
+    ``gel``: the gel touched (default :func:`~labrig.calibration.gel.gel_model`: the gel calibration
+    next to the rig file, else its ``[gel]``); ``table``: its contact table for ``indenter``."""
     if len(presses) < MIN_POINTS:
         raise CalibrationError(f"{len(presses)} touch-off(s); the registration needs at least {MIN_POINTS} "
                                "at locations not on one line (a plane and an in-plane rotation)")
-    table = table if table is not None else contact_table(indenter, rig)
-    offsets, surface_rms = depth_offsets(presses, rig, indenter, table)
+    gel = gel if gel is not None else gel_model(rig)
+    table = table if table is not None else model_contact_table(indenter, rig, gel)
+    offsets, surface_rms = depth_offsets(presses, table, gel)
     pixels = PixelMap.build(rig, camera)
     contacts, surfaces = [], []
     for p, d0 in zip(presses, offsets, strict=True):
@@ -145,15 +156,18 @@ def solve_registration(presses: Sequence[Press], rig: RigConfig, indenter: Inden
         surfaces.append(p.contact_tip_mm - d0 * p.down)
     gel_pts = np.array([[*c.xy_mm, 0.0] for c in contacts])
     machine_pts = np.array(surfaces)
-    spread = np.linalg.svd(gel_pts[:, :2] - gel_pts[:, :2].mean(axis=0), compute_uv=False)
-    if spread[-1] < 1.0:
-        raise CalibrationError("the touch-off locations are (nearly) on one line: spread them over the gel "
-                               "(e.g. the four corners of a 14 x 12 mm rectangle)")
-    pose = kabsch(gel_pts, machine_pts)
+    _require_spread(gel_pts)
+    kept, dropped = reject_outliers(gel_pts, machine_pts, min_residual_mm=OUTLIER_MIN_RESIDUAL_MM, ratio=OUTLIER_RATIO,
+                                    min_points=MIN_POINTS)
+    _require_spread(gel_pts[kept])
+    pose = kabsch(gel_pts[kept], machine_pts[kept])
+    dropped_mm = {d.index: d.residual_mm for d in dropped}
     points = [PointResult(p.location_mm, c.xy_mm, m, float(d0), c.rms, residual_mm=pose.apply(g) - m,
                           recording=str(p.recording) if p.recording else "",
-                          sha256=sha256_of(p.recording) if p.recording else "")
-              for p, d0, c, g, m in zip(presses, offsets, contacts, gel_pts, machine_pts, strict=True)]
+                          sha256=sha256_of(p.recording) if p.recording else "",
+                          rejected=i in dropped_mm, rejected_residual_mm=dropped_mm.get(i, 0.0))
+              for i, (p, d0, c, g, m) in enumerate(zip(presses, offsets, contacts, gel_pts, machine_pts, strict=True))]
+    presses = [p for p, k in zip(presses, kept, strict=True) if k]
     # F/T axes: the normal force (gel +z on the indenter) and the shear force changes (against the shear).
     gel_dirs: list[F64] = []
     ft_dirs: list[F64] = []
@@ -183,4 +197,12 @@ def solve_registration(presses: Sequence[Press], rig: RigConfig, indenter: Inden
     cos = np.clip(np.sum(predicted * ft_dirs_a, axis=1), -1, 1)
     angle_rms = float(np.degrees(np.sqrt(np.mean(np.arccos(cos) ** 2))))
     return RigRegistration(pose, axes, names, residual, points, angle_rms, surface_rms, indenter.name, camera_source,
-                           str(rig.path), virtual_rig)
+                           str(rig.path), virtual_rig, surface_gel=gel)
+
+
+def _require_spread(gel_points: F64) -> None:
+    """Refuse touch-offs (nearly) on one line: they fix no in-plane rotation."""
+    spread = np.linalg.svd(gel_points[:, :2] - gel_points[:, :2].mean(axis=0), compute_uv=False)
+    if spread[-1] < 1.0:
+        raise CalibrationError("the touch-off locations used are (nearly) on one line: spread them over the gel "
+                               "(e.g. the four corners of a 14 x 12 mm rectangle)")

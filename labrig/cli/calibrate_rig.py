@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
+import numpy as np
 import typer
 from rich.table import Table
 
@@ -40,7 +41,10 @@ def rig_command(
     out: Annotated[Path | None, typer.Option("--out", help="Registration file (default: rig-registration.toml next to the rig file).")] = None,  # noqa: E501
     plot: Annotated[Path | None, typer.Option("--plot", help="Draw the touch-offs and residuals to this PNG.")] = None,
     data: Annotated[Path, typer.Option("--data", help="Directory for the touch-off recordings.")] = Path("recordings/calibration"),  # noqa: E501
-    points: Annotated[int, typer.Option(help="Touch-offs (3 or 4: corners of a 14 x 12 mm rectangle).")] = 4,
+    points: Annotated[int, typer.Option(help="Touch-offs, 3 to 9: the corners of a 14 x 12 mm rectangle, its centre, "
+                                        "its edges' midpoints (5 or more: a bad one can be dropped).")] = 5,
+    gel: Annotated[Path | None, typer.Option("--gel", help="Gel calibration the surface fit models (default: gel.toml "
+                                             "next to the rig file if any, else the rig file's [gel]).")] = None,
     shear_mm: Annotated[float, typer.Option(help="Shear at each touch-off for the F/T axes, mm.")] = 0.3,
     seed: SeedOption = 0,
     rig_path: RigOption = None,
@@ -50,25 +54,27 @@ def rig_command(
     """Where the gel is for the CNC (origin, yaw, tilt, surface height) and the F/T sensor's axes in the gel frame."""
     from labrig.calibration.plots import plot_registration
     from labrig.calibration.registration_file import default_registration_path
-    from labrig.protocol.calibration_runs import DEFAULT_LOCATIONS, register_rig
+    from labrig.protocol.calibration_runs import register_rig, touchoff_locations
 
     rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
     _say_where(rig, as_json)
-    if not 3 <= points <= len(DEFAULT_LOCATIONS):
-        raise typer.BadParameter(f"--points must be 3 or 4, not {points}")
+    locations = touchoff_locations(points)
     started = time.monotonic()
 
     def progress(message: str) -> None:
         if not as_json:
             err_console.print(f"[dim]{time.monotonic() - started:6.1f} s[/] {message}")
 
-    reg = register_rig(rig, indenters, data_dir=data, locations=DEFAULT_LOCATIONS[:points], shear_mm=shear_mm,
+    reg = register_rig(rig, indenters, data_dir=data, locations=locations, shear_mm=shear_mm, gel_path=gel,
                        seed=seed, indenters_path=indenters_path, progress=progress)
     path = reg.save(out or default_registration_path(rig))
     if plot is not None:
         plot_registration(reg, plot)
     summary = {"path": str(path), "plot": None if plot is None else str(plot), **reg.summary(),
                "wall_s": round(time.monotonic() - started, 2)}
+    quality = reg.quality
+    if quality.verdict != "good":
+        err_console.print(f"[yellow]warning:[/] {quality.message()}")
     if as_json:
         print_json(summary)
         return
@@ -81,12 +87,20 @@ def rig_command(
     table.add_row("yaw / tilt", f"{yaw:+.4f} deg / {tilt[0]:+.4f}, {tilt[1]:+.4f} deg")
     table.add_row("F/T axes", f"sensor x, y, z along gel {', '.join(reg.ft_axis_map)}; small rotation "
                   + " ".join(f"{v:+.5f}" for v in reg.ft_residual_rotvec_rad) + " rad")
-    table.add_row("residuals", f"{reg.residual_rms_mm * 1e3:.1f} um rms over {len(reg.points)} touch-offs; "
-                  f"F/T directions {reg.ft_angle_rms_deg:.2f} deg rms; surface fit {reg.surface_fit_rms_n * 1e3:.1f} mN rms")
+    table.add_row("residuals", f"{reg.residual_rms_mm * 1e3:.1f} um rms over {quality.points_used} touch-offs "
+                  f"(worst {quality.worst_residual_mm * 1e3:.1f} um, touch-off {quality.worst_index}; "
+                  f"{quality.points_rejected} dropped; fit {quality.verdict}); F/T directions "
+                  f"{reg.ft_angle_rms_deg:.2f} deg rms; surface fit {reg.surface_fit_rms_n * 1e3:.1f} mN rms")
+    if reg.surface_gel is not None:
+        g = reg.surface_gel
+        table.add_row("gel modelled", f"{g.thickness_mm:g} mm, E {g.youngs_modulus_mpa:.3f} MPa, nu {g.poisson_ratio:g}, "
+                      f"stiffening {g.stiffening:.2f} ({g.source})")
     table.add_row("camera", reg.camera_source)
     for i, p in enumerate(reg.points):
+        dropped = f"; DROPPED ({p.rejected_residual_mm * 1e3:.0f} um from the others' pose)" if p.rejected else ""
         table.add_row(f"touch-off {i}", f"at {p.location_mm} -> gel {p.contact_gel_mm[0]:+.3f}, {p.contact_gel_mm[1]:+.3f} mm, "
-                      f"contact {p.depth_offset_mm * 1e3:.0f} um below the surface; {Path(p.recording).name}")
+                      f"contact {p.depth_offset_mm * 1e3:.0f} um below the surface, residual "
+                      f"{float(np.linalg.norm(p.residual_mm)) * 1e3:.1f} um; {Path(p.recording).name}{dropped}")
     console.print(table)
 
 

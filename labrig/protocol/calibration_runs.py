@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from labrig.calibration.files import camera_model
-from labrig.calibration.gel import ForceDepthCurve
+from labrig.calibration.gel import ForceDepthCurve, gel_model
 from labrig.calibration.registration import MIN_POINTS, Press, solve_registration
 from labrig.calibration.registration_file import RigRegistration, gel_pose
 from labrig.config import RigConfig
@@ -28,8 +28,15 @@ from labrig.protocol.rigfile import safety_limits
 from labrig.protocol.session import RigSession
 from labrig.protocol.touchoff import lift, press
 
-#: Default touch-off locations (gel mm, nominal frame): the sphere's footprint inside the gel.
-DEFAULT_LOCATIONS: tuple[tuple[float, float], ...] = ((-7.0, -6.0), (7.0, -6.0), (7.0, 6.0), (-7.0, 6.0))
+#: Touch-off locations in the order a registration uses them (gel mm, nominal frame; the sphere's
+#: footprint inside the gel): the corners of a 14 x 12 mm rectangle, its centre, its edges' midpoints.
+TOUCHOFF_LOCATIONS: tuple[tuple[float, float], ...] = ((-7.0, -6.0), (7.0, -6.0), (7.0, 6.0), (-7.0, 6.0), (0.0, 0.0),
+                                                       (0.0, -6.0), (7.0, 0.0), (0.0, 6.0), (-7.0, 0.0))
+#: Touch-offs by default: one more than the four corners, so that a touch-off the others disagree
+#: with can be dropped and the rest still checked against each other.
+DEFAULT_TOUCHOFFS = 5
+#: Default touch-off locations (gel mm, nominal frame).
+DEFAULT_LOCATIONS: tuple[tuple[float, float], ...] = TOUCHOFF_LOCATIONS[:DEFAULT_TOUCHOFFS]
 #: Depths below the detected contact for the touch-offs' quasi-static steps, mm.
 SPHERE_DEPTHS_MM: tuple[float, ...] = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)
 #: Default indentations for the modulus: indenter -> (locations in gel mm, depths below contact in mm).
@@ -39,6 +46,14 @@ DEFAULT_PLAN: dict[str, tuple[tuple[tuple[float, float], ...], tuple[float, ...]
 }
 
 Progress = Callable[[str], None]
+
+
+def touchoff_locations(count: int) -> tuple[tuple[float, float], ...]:
+    """The first ``count`` of :data:`TOUCHOFF_LOCATIONS` (gel mm, nominal frame); 3 to 9."""
+    if not MIN_POINTS <= count <= len(TOUCHOFF_LOCATIONS):
+        raise CalibrationError(f"{count} touch-offs asked; the registration takes {MIN_POINTS} to "
+                               f"{len(TOUCHOFF_LOCATIONS)} (default {DEFAULT_TOUCHOFFS})")
+    return TOUCHOFF_LOCATIONS[:count]
 
 
 def register_rig(
@@ -51,22 +66,26 @@ def register_rig(
     indenter_name: str = "sphere",
     shear_mm: float = 0.3,
     extrinsics_path: str | Path | None = None,
+    gel_path: str | Path | None = None,
     session: RigSession | None = None,
     seed: int = 0,
     indenters_path: Path | None = None,
     progress: Progress | None = None,
 ) -> RigRegistration:
     """Touch off at ``locations`` (nominal gel frame), recording each to ``data_dir``, and solve the
-    registration. Opens a :class:`RigSession` from the rig file's devices (the virtual rig when none)
-    unless ``session`` (open, with the indenter mounted) is given."""
+    registration for the gel of :func:`~labrig.calibration.gel.gel_model` (``gel_path``, default the gel
+    calibration next to the rig file, else its ``[gel]``). Opens a :class:`RigSession` from the rig
+    file's devices (the virtual rig when none) unless ``session`` (open, with the indenter mounted) is
+    given. Raises CalibrationError when the fit is refused (:func:`require_usable_fit`)."""
     if len(locations) < MIN_POINTS:
         raise CalibrationError(f"{len(locations)} touch-off location(s) given; the registration needs at least {MIN_POINTS}")
     indenter = indenters[indenter_name]
     camera, source = camera_model(rig, extrinsics_path)
+    gel = gel_model(rig, gel_path)
     nominal = nominal_gel_in_machine(rig)
     data_dir = Path(data_dir)
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    shear_directions_deg = [90.0 * i for i in range(len(locations))]
+    shear_directions_deg = [90.0 * (i % 4) for i in range(len(locations))]
     presses: list[Press] = []
     own = session is None
     if session is None:
@@ -85,7 +104,19 @@ def register_rig(
             session.close()
     if progress:
         progress("solving")
-    return solve_registration(presses, rig, indenter, camera, source, virtual_rig=virtual)
+    registration = solve_registration(presses, rig, indenter, camera, source, gel=gel, virtual_rig=virtual)
+    require_usable_fit(registration, data_dir)
+    return registration
+
+
+def require_usable_fit(registration: RigRegistration, data_dir: str | Path) -> None:
+    """Raise CalibrationError (one line: the figures and what to do) when the registration's residuals
+    pass a REFUSE threshold (:func:`~labrig.calibration.registration_file.assess_fit`)."""
+    quality = registration.quality
+    if quality.verdict == "refused":
+        raise CalibrationError(
+            f"{quality.message()}. Not written: check that intrinsics.toml and extrinsics.toml next to the rig file "
+            f"were calibrated on this gel, and the touch-off recordings in {data_dir}; then rerun with more --points")
 
 
 def measure_curves(
