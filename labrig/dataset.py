@@ -5,6 +5,8 @@ Layout (``labrig campaign FILE --out FOLDER``)::
     FOLDER/manifest.csv   one row per planned recording, columns MANIFEST_COLUMNS
     FOLDER/ID.h5          a recording (a crash leaves ID.h5.partial, set aside as ID.h5.partial.N)
     FOLDER/ID.gt.h5       its ground truth (``labrig groundtruth FOLDER``), never inside the recording
+    FOLDER/ID.events.toml the contrast thresholds of the camera that made it, where they are its own (a
+                          virtual-time campaign that varies them: ``labrig calibrate events`` on that camera)
 
 The campaign writes the manifest (:func:`write_manifest`, atomically after each recording);
 ``labrig groundtruth``, ``labrig train`` and ``labrig evaluate`` read it through
@@ -38,6 +40,7 @@ ALL_SPLITS = "all"
 COMPLETE = "complete"
 RECORDING_SUFFIX = ".h5"
 SIDECAR_SUFFIX = ".gt.h5"
+EVENTS_SIDECAR_SUFFIX = ".events.toml"
 _NAMES_LISTED = 3  # recordings named one by one in an error message
 
 
@@ -50,6 +53,13 @@ def sidecar_path(recording: str | Path) -> Path:
     path = Path(recording)
     stem = path.name[: -len(RECORDING_SUFFIX)] if path.name.endswith(RECORDING_SUFFIX) else path.name
     return path.with_name(f"{stem}{SIDECAR_SUFFIX}")
+
+
+def events_sidecar_path(recording: str | Path) -> Path:
+    """The contrast-threshold calibration ``NAME.events.toml`` of the camera that made ``NAME.h5``, beside it."""
+    path = Path(recording)
+    stem = path.name[: -len(RECORDING_SUFFIX)] if path.name.endswith(RECORDING_SUFFIX) else path.name
+    return path.with_name(f"{stem}{EVENTS_SIDECAR_SUFFIX}")
 
 
 def read_manifest(path: Path) -> list[dict[str, str]]:

@@ -131,3 +131,33 @@ def test_an_error_line_keeps_its_brackets(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "-m", "labrig.cli", "campaign", str(path), "--out", str(tmp_path / "o")],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 2 and "[campaign]: missing; start the file with [campaign]" in done.stderr
+
+
+def test_a_campaign_that_varies_the_thresholds_calibrates_each_recordings_camera(tmp_path: Path) -> None:
+    """Each recording gets ID.events.toml (its own camera's thresholds, fitted as `labrig calibrate events` fits
+    them), and the pipeline's setup for that recording reads it before the calibration folder's; a campaign that
+    leaves the thresholds alone writes none."""
+    from labrig.dataset import events_sidecar_path
+    from labrig.pipeline.run_setup import setup_for_recording
+    from labrig.recording import Recording
+
+    text = CAMPAIGN.replace('"sim.markers.seed" = "recording"', '"sim.markers.seed" = "recording"\n'
+                            '"sim.events.threshold_on" = [0.30, 0.30]\n"sim.events.threshold_off" = [0.18, 0.18]')
+    path = _campaign(tmp_path, text)
+    done = subprocess.run([sys.executable, "-m", "labrig.cli", "campaign", str(path), "--out", str(tmp_path / "v"),
+                           "--virtual-time", "--limit", "1"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    recording = next((tmp_path / "v").glob("*[0-9].h5"))
+    sidecar = events_sidecar_path(recording)
+    assert sidecar.exists()
+    with Recording(recording) as rec:
+        setup = setup_for_recording(rec)
+    assert setup.sources["thresholds"] == str(sidecar) and setup.thresholds is not None
+    assert float(setup.thresholds.on_ln.mean()) == pytest.approx(0.30, rel=0.05)
+    assert float(setup.thresholds.off_ln.mean()) == pytest.approx(0.18, rel=0.05)
+    (tmp_path / "p").mkdir()
+    plain = subprocess.run([sys.executable, "-m", "labrig.cli", "campaign", str(_campaign(tmp_path / "p")),
+                            "--out", str(tmp_path / "w"), "--virtual-time", "--limit", "1"],
+                           capture_output=True, text=True, timeout=600)
+    assert plain.returncode == 0, plain.stderr
+    assert not list((tmp_path / "w").glob("*.events.toml"))

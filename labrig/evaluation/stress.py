@@ -16,6 +16,11 @@ the virtual rig with one knob pushed; the methods are measured on it against the
 * depth (the imperfect sensor's axes, given a network): the network's mean error over the
   contact cells ("depth-model", mm), :func:`labrig.evaluation.depth.evaluate_depth`.
 
+On a scene whose camera's contrast thresholds differ from the rig's, the lab recalibrates them
+(:func:`labrig.evaluation.stress_calibration.calibrate_event_thresholds`): "forces-model" runs on
+that calibration, and "forces-model-uncalibrated" on the rig's own (the thresholds of the reference
+camera), so each such axis shows what the calibration buys.
+
 On a scene whose gel is printed imperfectly (placement errors, missing markers) the methods
 do not see the sim's markers: the scene is calibrated first, as a lab would
 (:func:`labrig.evaluation.stress_calibration.calibrate_printed_markers`), and every method
@@ -48,7 +53,7 @@ from labrig.evaluation.depth import DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.stress_axes import AXES, StressAxis
-from labrig.evaluation.stress_calibration import calibrate_printed_markers
+from labrig.evaluation.stress_calibration import calibrate_event_thresholds, calibrate_printed_markers
 from labrig.evaluation.stress_scene import SceneFacts, StressScene, record_scene, stressed_rig
 from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
@@ -56,6 +61,7 @@ from labrig.executor import Run
 #: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
 TRACKERS = {"paper": 3.0, "paper-published": 1.0, "circle-fit": 1.0, "evetac": 1.0}  # evetac: scale unused
 FORCES_TRUTH, FORCES_LINEAR, FORCES_MODEL = "forces-truth", "forces-linear", "forces-model"
+FORCES_MODEL_UNCALIBRATED = "forces-model-uncalibrated"
 DEPTH_MODEL = "depth-model"
 FACTOR = 2.0
 
@@ -134,6 +140,9 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
             facts = replace(facts, markers_missing_found=len(found & set(calibrated.missing_true)),
                             markers_missing_false=len(found - set(calibrated.missing_true)),
                             rest_error_rms_px=calibrated.rest_error_rms_px)
+        uncalibrated_dir = calibration_dir
+        if scene.changes_event_response:
+            calibration_dir = calibrate_event_thresholds(rig, calibration_dir, Path(folder) / "calibration", seed=scene.seed)
         for window_ms in task.windows_ms:
             window_us = round(window_ms * 1000)
             tracking = {}
@@ -143,12 +152,16 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
                 tracking[tracker] = TrackerStress(tracked.error_p95_px, tracked.error_median_px, tracked.lost_by_truth,
                                                   tracked.lost_tracks)
             by_tracker[window_key(window_ms)] = tracking
-            depths = ([("truth", FORCES_TRUTH, None), ("truth", FORCES_LINEAR, 0.0)] if task.forces else []) + (
-                [(task.model, FORCES_MODEL, None)] if task.forces and task.model else [])
+            depths = ([("truth", FORCES_TRUTH, None, calibration_dir), ("truth", FORCES_LINEAR, 0.0, calibration_dir)]
+                      if task.forces else [])
+            if task.forces and task.model:
+                depths.append((task.model, FORCES_MODEL, None, calibration_dir))
+                if scene.changes_event_response:
+                    depths.append((task.model, FORCES_MODEL_UNCALIBRATED, None, uncalibrated_dir))
             forces = {}
-            for depth, method, stiffening in depths:
+            for depth, method, stiffening, folder_used in depths:
                 pipeline = evaluate_forces(ForceTask(recording, depth, window_events=None, window_us=window_us,
-                                                     calibration_dir=calibration_dir, stiffening=stiffening,
+                                                     calibration_dir=folder_used, stiffening=stiffening,
                                                      sidecar=str(sidecar_path(recording))))
                 forces[method] = force_errors(pipeline)
             by_method[window_key(window_ms)] = forces
@@ -162,7 +175,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
     return SceneMeasurement(facts, by_tracker, by_method, by_depth)
 
 
-measure_scene.cache_version = "14"  # type: ignore[attr-defined]  # 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
+measure_scene.cache_version = "15"  # type: ignore[attr-defined]  # 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
 
 
 def window_key(window_ms: float) -> str:
@@ -266,7 +279,7 @@ def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | Non
         values = list(axis.values(grid))
         facts[axis.key] = [_scene_facts(measured[(axis.key, v)][0]) for v in values]
         for metric in axis.metrics:
-            for method in _methods(metric, model):
+            for method in _methods(metric, model, axis):
                 curve = _curve(axis, metric, method, values, measured)
                 curves.append(curve)
                 breakdowns.append(breakdown_of(curve, log_x=axis.log_x))
@@ -279,12 +292,13 @@ def rig_file(calibration_dir: str | None) -> str:
     return str(candidate.resolve()) if candidate is not None and candidate.exists() else str(DEFAULT_RIG)
 
 
-def _methods(metric: str, model: str | None) -> list[str]:
+def _methods(metric: str, model: str | None, axis: StressAxis) -> list[str]:
     if metric == "tracking":
         return list(TRACKERS)
     if metric == "depth":
         return [DEPTH_MODEL] if model else []
-    return [FORCES_TRUTH, FORCES_LINEAR] + ([FORCES_MODEL] if model else [])
+    with_model = [FORCES_MODEL] + ([FORCES_MODEL_UNCALIBRATED] if axis.event_calibration else []) if model else []
+    return [FORCES_TRUTH, FORCES_LINEAR] + with_model
 
 
 def _scene_facts(measurement: SceneMeasurement | None) -> SceneFacts | None:

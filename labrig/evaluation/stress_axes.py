@@ -23,6 +23,9 @@ DEFAULT_WINDOW_MS = 10.0
 METRICS = ("tracking", "forces", "depth")
 #: The imperfect sensor's axes (issue 19): the printed markers and the camera's USB delivery.
 SENSOR_AXES = ("marker_position", "missing_near", "missing_far", "usb_bursts")
+#: Another lab's camera and light: the contrast thresholds, their ON/OFF asymmetry, the LED's slope gain,
+#: the membrane's brightness, and how long a press is held.
+RESPONSE_AXES = ("contrast_threshold", "on_off_ratio", "led_slope_gain", "membrane_level", "hold")
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,7 @@ class StressAxis:
     metrics: tuple[str, ...]
     what: str  # how a value changes the scene, one sentence
     log_x: bool = False
+    event_calibration: bool = False  # the scenes change the camera's thresholds: measured with and without recalibrating
 
     def values(self, grid: str) -> tuple[float, ...]:
         if grid not in GRIDS:
@@ -116,6 +120,32 @@ AXES: tuple[StressAxis, ...] = (
         full=(0.0, 10.0, 20.0, 50.0, 100.0), reduced=(0.0, 20.0, 100.0), metrics=("tracking", "forces", "depth"),
         what="hands the camera's data to the host in USB bursts this far apart (jitter 20 % of the period); the "
              "recording's clock fit rests on the prompt pairs (lower envelope) and the trigger edges"),
+    StressAxis(
+        "contrast_threshold", "Contrast threshold (a less sensitive bias setting)", "contrast threshold, ON and OFF",
+        "ln", "ln", "contrast_threshold", full=(0.22, 0.26, 0.30, 0.35, 0.40), reduced=(0.22, 0.30, 0.40),
+        metrics=("forces",), event_calibration=True,
+        what="raises both contrast thresholds (the reference camera's 0.22 ln); fewer events for the same change, "
+             "measured with the thresholds recalibrated (labrig calibrate events) and with the reference camera's"),
+    StressAxis(
+        "on_off_ratio", "ON/OFF threshold asymmetry", "C_on / C_off", "x", "x", "on_off_ratio",
+        full=(1.0, 1.2, 1.4, 1.6), reduced=(1.0, 1.3, 1.6), metrics=("forces",), event_calibration=True,
+        what="splits the thresholds about their geometric mean (0.22 ln): a change and its reversal fire unequal "
+             "ON and OFF counts; measured recalibrated and with the reference camera's thresholds"),
+    StressAxis(
+        "led_slope_gain", "LED ring slope gain", "brightening per unit surface slope", "x", "x", "slope_gain",
+        full=(2.5, 3.0, 3.5, 4.0), reduced=(2.5, 3.25, 4.0), metrics=("forces",),
+        what="raises how much brighter a sloped membrane looks under the LED ring (the reference 2.5): the same dent "
+             "changes the log intensity more; no calibration measures it yet"),
+    StressAxis(
+        "membrane_level", "Membrane brightness", "membrane level", "of full scale", "level", "membrane_level",
+        full=(0.08, 0.12, 0.16, 0.24), reduced=(0.08, 0.16, 0.24), metrics=("forces",),
+        what="brightens the black membrane (the reference 0.08, markers 0.9): the markers' contrast against it falls, "
+             "and so do their edges' events"),
+    StressAxis(
+        "hold", "Press held", "each wait", "s", "s", "wait_s",
+        full=(0.1, 1.0, 5.0, 20.0, 60.0), reduced=(0.1, 5.0, 60.0), metrics=("forces",), log_x=True,
+        what="holds the press still this long at each of the three waits (after the press and each shear); the "
+             "brightness change since rest must hold the dent that a still gel no longer signals"),
 )
 
 

@@ -1,4 +1,5 @@
-"""What a lab would calibrate before a stressed run: the extrinsics of an imperfectly printed gel.
+"""What a lab would calibrate before a stressed run: the extrinsics of an imperfectly printed gel, and the
+contrast thresholds of a camera whose biases changed.
 
 On a gel whose markers sit off their lattice sites or are missing, the pipeline must not be
 told by the sim where they are: it learns it as a lab does, from an extrinsic calibration of
@@ -26,6 +27,7 @@ from labrig.errors import LabrigError
 from labrig.physics.camera import CameraModel
 
 EXTRINSICS = "extrinsics.toml"
+EVENTS = "events.toml"
 
 
 @dataclass(frozen=True)
@@ -80,3 +82,28 @@ def calibrate_printed_markers(rig: RigConfig, calibration_dir: str | Path | None
     return MarkerCalibration(str(out), tuple(int(i) for i in printed.missing), tuple(marker_map.missing_indices),
                              float(np.sqrt(np.mean(error**2))) if error.size else float("nan"),
                              float(summary["residual_rms_mm"]))  # type: ignore[arg-type]
+
+
+def calibrate_event_thresholds(rig: RigConfig, calibration_dir: str | Path | None, out_dir: str | Path,
+                               seed: int = 0) -> str:
+    """Calibrate the contrast thresholds of ``rig``'s camera into ``out_dir`` as a lab would after changing its
+    biases (:func:`labrig.sim.calibration_scenes.record_led_ramps`, then
+    :func:`labrig.calibration.event_thresholds.fit_event_thresholds`); the other ``*.toml`` of
+    ``calibration_dir`` (or of ``out_dir`` when it is already a calibrated copy) stay. Returns ``out_dir``."""
+    from labrig.calibration.event_thresholds import fit_event_thresholds
+    from labrig.calibration.event_thresholds_file import write_event_thresholds
+    from labrig.sim.calibration_scenes import record_led_ramps
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    source = Path(calibration_dir) if calibration_dir is not None else None
+    if source is not None and source.resolve() != out.resolve():
+        for path in source.glob("*.toml"):
+            if path.name != EVENTS and not (out / path.name).exists():
+                shutil.copy2(path, out / path.name)
+    recording = out / "led-ramps.h5"
+    record_led_ramps(recording, rig, seed=seed, overwrite=True)
+    fit = fit_event_thresholds(recording, rig.roi)
+    write_event_thresholds(out / EVENTS, fit.thresholds, fit.summary(), {"recording": "stress scene", "seed": seed})
+    recording.unlink()
+    return str(out)

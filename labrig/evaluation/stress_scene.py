@@ -26,7 +26,12 @@ ground-truth sidecar. Each knob is the sim's own:
   calibration of that gel (:mod:`labrig.evaluation.stress_calibration`);
 * ``burst_period_ms``: the camera's data reaches the host in USB bursts this far apart, with
   a jitter of :data:`BURST_JITTER` of the period (``[sim.camera_delivery]``); the recording's
-  clock fit must see through them.
+  clock fit must see through them;
+* the camera's response (``[sim.events]``): ``contrast_threshold`` (ln, ON and OFF alike; None: the
+  rig's) and ``on_off_ratio``, C_on / C_off about the same geometric mean (1: as the rig has them);
+  the light (``[sim.lighting]``): ``slope_gain``, the membrane's brightening per unit of surface
+  slope under the LED ring, and ``membrane_level``, the black membrane's brightness (the markers'
+  contrast against it falls as it rises); None: the rig's.
 """
 
 from __future__ import annotations
@@ -74,7 +79,16 @@ class StressScene:
     missing_near_pct: float = 0.0
     missing_far_pct: float = 0.0
     burst_period_ms: float = 0.0
+    contrast_threshold: float | None = None
+    on_off_ratio: float = 1.0
+    slope_gain: float | None = None
+    membrane_level: float | None = None
     seed: int = 3
+
+    @property
+    def changes_event_response(self) -> bool:
+        """Whether the camera's thresholds differ from the rig's (a lab recalibrates them: ``labrig calibrate events``)."""
+        return self.contrast_threshold is not None or self.on_off_ratio != 1.0
 
     def check(self) -> None:
         if self.depth_mm <= 0 or self.speed_mm_s <= 0 or self.shear_mm < 0 or self.wait_s < 0:
@@ -89,13 +103,18 @@ class StressScene:
         if min(self.position_error_mm, self.missing_near_pct, self.missing_far_pct, self.burst_period_ms) < 0:
             raise LabrigError("stress scene: position_error_mm, missing_near_pct, missing_far_pct and burst_period_ms "
                               "must not be negative")
+        if (self.contrast_threshold is not None and not 0.02 <= self.contrast_threshold <= 2.0) or self.on_off_ratio <= 0:
+            raise LabrigError("stress scene: contrast_threshold must be in [0.02, 2] ln and on_off_ratio positive")
+        if (self.slope_gain is not None and self.slope_gain < 0) or (
+                self.membrane_level is not None and not 0 < self.membrane_level < 1):
+            raise LabrigError("stress scene: slope_gain must not be negative and membrane_level must be in (0, 1)")
         if self.missing_near_pct + self.missing_far_pct > 50:
             raise LabrigError("stress scene: at most 50 % of the markers missing (missing_near_pct + missing_far_pct)")
 
 
 def stressed_rig(scene: StressScene) -> RigConfig:
-    """The scene's rig: the rig file with the scene's noise rate, marker brightness, stiffening, printed markers and
-    USB bursts (its text says so)."""
+    """The scene's rig: the rig file with the scene's noise rate, marker brightness, stiffening, printed markers,
+    USB bursts, contrast thresholds and light (its text says so)."""
     rig = load_rig(scene.rig)
     changes: dict[str, float | int | list[int]] = {}
     if scene.stiffening is not None:
@@ -113,6 +132,16 @@ def stressed_rig(scene: StressScene) -> RigConfig:
     if scene.burst_period_ms > 0:
         changes["sim.camera_delivery.burst_period_ms"] = float(scene.burst_period_ms)
         changes["sim.camera_delivery.burst_jitter_ms"] = BURST_JITTER * float(scene.burst_period_ms)
+    if scene.changes_event_response:
+        events = rig.sim.events
+        mean = (float(scene.contrast_threshold) if scene.contrast_threshold is not None
+                else float(np.sqrt(events.threshold_on * events.threshold_off)))
+        changes["sim.events.threshold_on"] = mean * float(np.sqrt(scene.on_off_ratio))
+        changes["sim.events.threshold_off"] = mean / float(np.sqrt(scene.on_off_ratio))
+    if scene.slope_gain is not None:
+        changes["sim.lighting.slope_gain"] = float(scene.slope_gain)
+    if scene.membrane_level is not None:
+        changes["sim.lighting.membrane_level"] = float(scene.membrane_level)
     return rig_with(rig, changes) if changes else rig
 
 

@@ -25,6 +25,7 @@ from labrig.calibration.event_thresholds_file import EVENTS_FILE, ContrastThresh
 from labrig.calibration.files import camera_from_calibration, load_extrinsics, load_intrinsics
 from labrig.calibration.gel import load_gel
 from labrig.config import DEFAULT_CALIBRATION_DIR, RigConfig, load_rig
+from labrig.dataset import events_sidecar_path
 from labrig.physics.camera import CameraModel
 from labrig.recording import Recording
 
@@ -89,11 +90,17 @@ def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
     """Rig, camera, rest pixels and gel modulus for ``recording``.
 
     Rig: ``rig``, else the one the recording carries, else calibration/rig.toml. Files: those
-    the recording names, else ``calibration_dir`` (None: none); then as :func:`setup_for_rig`.
+    the recording names, else ``calibration_dir`` (None: none); the contrast thresholds of its own
+    camera (``NAME.events.toml`` beside it, :func:`labrig.dataset.events_sidecar_path`) before
+    either; then as :func:`setup_for_rig`.
     """
     rig = rig or rig_from_recording(recording) or load_rig()
+    named = _named_calibration(recording)
+    own_events = events_sidecar_path(recording.path)
+    if own_events.exists():
+        named[EVENTS_FILE] = own_events
     return setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=youngs_modulus_mpa,
-                         poisson_ratio=poisson_ratio, stiffening=stiffening, named=_named_calibration(recording))
+                         poisson_ratio=poisson_ratio, stiffening=stiffening, named=named)
 
 
 def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR,

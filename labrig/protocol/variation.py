@@ -63,6 +63,10 @@ class SensorVariation:
                 values[k.key] = float(k.low + u * (k.high - k.low))
         return values
 
+    def varies(self, prefix: str) -> bool:
+        """Whether some varied key starts with ``prefix`` (e.g. ``sim.events.threshold``)."""
+        return any(k.key.startswith(prefix) for k in self.keys)
+
     def rig_for(self, rig: RigConfig, seed: int) -> RigConfig:
         """``rig`` with the values of the recording whose seed is ``seed``."""
         return rig_with(rig, self.draw(seed))

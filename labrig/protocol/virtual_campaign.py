@@ -8,17 +8,24 @@ cluster's workers, which must see the same paths); it writes its own file and re
 :class:`~labrig.protocol.campaign.Outcome`, and the caller writes the manifest as outcomes come
 back (:func:`run_virtual_campaign`). A recording's seed is the campaign's seed and its index,
 so the same campaign gives the same recordings wherever and in whatever order they run.
+
+A campaign whose ``[vary]`` changes the camera's contrast thresholds gives each recording a camera
+of its own, which a lab would calibrate: the task then records the event-response scene on that
+camera (:func:`labrig.sim.calibration_scenes.record_led_ramps`, :data:`CAMPAIGN_RAMPS`), fits it
+(:func:`labrig.calibration.event_thresholds.fit_event_thresholds`) and writes ``ID.events.toml``
+beside the recording, which every later step reads for it (:func:`labrig.dataset.events_sidecar_path`).
 """
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from labrig.cache import sha256_of
-from labrig.config import load_rig
-from labrig.dataset import Dataset
+from labrig.config import RigConfig, load_rig
+from labrig.dataset import Dataset, events_sidecar_path
 from labrig.errors import LabrigError
 from labrig.executor import run_tasks
 from labrig.indenters import load_indenters
@@ -27,7 +34,11 @@ from labrig.protocol.files import load_campaign
 from labrig.protocol.spec import Campaign, RecordingPlan
 from labrig.protocol.virtual_run import MADE_BY_VIRTUAL_TIME, record_virtual
 from labrig.recording.layout import partial_path
+from labrig.sim.calibration_scenes import LedRamps, record_led_ramps
 from labrig.sim.world_process import prepare_contact_tables
+
+#: The event-response scene of a campaign recording's own camera: fewer cycles than the command's (5, 8 ramps used).
+CAMPAIGN_RAMPS = LedRamps(cycles=5)
 
 
 @dataclass(frozen=True)
@@ -68,7 +79,23 @@ def record_task(task: VirtualTask) -> Outcome:
                                 protocol_toml=protocol_toml, extra=extra)
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
+    if campaign.variation is not None and campaign.variation.varies("sim.events.threshold"):
+        calibrate_own_camera(rig, path, seed)
     return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
+
+
+def calibrate_own_camera(rig: RigConfig, recording: Path, seed: int) -> Path:
+    """Calibrate the contrast thresholds of the camera that made ``recording`` (``rig``'s) into its
+    ``ID.events.toml`` sidecar, as ``labrig calibrate events`` would."""
+    from labrig.calibration.event_thresholds import fit_event_thresholds
+    from labrig.calibration.event_thresholds_file import write_event_thresholds
+
+    with tempfile.TemporaryDirectory(prefix="labrig-events-") as folder:
+        scene = Path(folder) / "led-ramps.h5"
+        record_led_ramps(scene, rig, seed=seed, ramps=CAMPAIGN_RAMPS)
+        fit = fit_event_thresholds(scene, rig.roi)
+    return write_event_thresholds(events_sidecar_path(recording), fit.thresholds, fit.summary(),
+                                  {"recording": "the event-response scene of this recording's camera", "seed": seed})
 
 
 def _set_aside_partial(path: Path) -> None:

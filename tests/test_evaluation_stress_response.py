@@ -1,0 +1,59 @@
+"""The stress axes of another lab's camera and light: the scene's knobs, and the contrast-threshold axis measured
+with the thresholds recalibrated and with the reference camera's."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from labrig.errors import LabrigError
+from labrig.evaluation.stress import FORCES_MODEL, FORCES_MODEL_UNCALIBRATED, StressResult, run_stress
+from labrig.evaluation.stress_axes import RESPONSE_AXES, axis_named
+from labrig.evaluation.stress_scene import StressScene, stressed_rig
+from labrig.executor import run_tasks
+from labrig.models import bundled_model_path
+
+
+def test_the_scene_sets_the_cameras_thresholds_and_the_light() -> None:
+    rig = stressed_rig(StressScene(contrast_threshold=0.30, on_off_ratio=1.44, slope_gain=4.0, membrane_level=0.16))
+    assert rig.sim.events.threshold_on == pytest.approx(0.36) and rig.sim.events.threshold_off == pytest.approx(0.25)
+    assert rig.sim.lighting.slope_gain == 4.0 and rig.sim.lighting.membrane_level == 0.16
+    reference = stressed_rig(StressScene())
+    assert (reference.sim.events.threshold_on, reference.sim.lighting.slope_gain) == (0.22, 2.5)
+    asymmetric = stressed_rig(StressScene(on_off_ratio=1.6))  # about the rig's own geometric mean
+    assert np.sqrt(asymmetric.sim.events.threshold_on * asymmetric.sim.events.threshold_off) == pytest.approx(0.22)
+    assert StressScene(on_off_ratio=1.6).changes_event_response and not StressScene(slope_gain=3.0).changes_event_response
+    for bad in ({"contrast_threshold": 0.0}, {"on_off_ratio": 0.0}, {"membrane_level": 1.5}, {"slope_gain": -1.0}):
+        with pytest.raises(LabrigError, match="stress scene"):
+            StressScene(**bad).check()  # type: ignore[arg-type]
+    assert set(RESPONSE_AXES) <= {axis_named(k).key for k in RESPONSE_AXES}
+
+
+class Runner:
+    def __init__(self, cache: Path) -> None:
+        self.cache = cache
+
+    def __call__(self, kind: str, fn: Any, tasks: list[Any]) -> list[Any]:
+        return list(run_tasks(fn, tasks, workers=1, cache_dir=self.cache))
+
+
+@pytest.fixture(scope="module")
+def threshold_axis(tmp_path_factory: pytest.TempPathFactory) -> StressResult:
+    """The contrast-threshold axis at the reference camera's 0.22 and at 0.35, on the default probe."""
+    axis = replace(axis_named("contrast_threshold"), reduced=(0.22, 0.35))
+    return run_stress(Runner(tmp_path_factory.mktemp("response-stress")), grid="reduced", axes=[axis],
+                      model=str(bundled_model_path()))
+
+
+def test_recalibrating_the_thresholds_keeps_the_network_where_the_reference_cameras_lose_it(
+        threshold_axis: StressResult) -> None:
+    curves = {c.method: c for c in threshold_axis.curves}
+    assert {FORCES_MODEL, FORCES_MODEL_UNCALIBRATED} <= set(curves)
+    calibrated, uncalibrated = curves[FORCES_MODEL].error, curves[FORCES_MODEL_UNCALIBRATED].error
+    assert calibrated[0] == pytest.approx(uncalibrated[0], rel=0.15)  # the reference camera: both about the same
+    assert uncalibrated[1] > 1.5 * calibrated[1]  # 0.35 ln: counted in the reference camera's events, the dent shrinks
+    assert calibrated[1] < 2.0 * calibrated[0]  # recalibrated: no breakdown
