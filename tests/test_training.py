@@ -324,9 +324,14 @@ def test_the_held_brightness_input_trains_and_its_card_carries_the_gated_leak(ca
     from labrig.pipeline.depth_inputs import HOLD_BRIGHTNESS
     from labrig.recording import Recording
 
+    from labrig.pipeline.depth_inputs import InputSpec
+    from labrig.training.state_data import prepare_states
+
     monkeypatch.setenv("LABRIG_CACHE", str(tmp_path / "cache"))
-    card = train(campaign, TrainConfig(steps=3, val_every=0, checkpoint_every=3, inputs="sae+bright-hold", **TINY),
-                 tmp_path / "h", command="test", show_progress=False)
+    prepare_states([campaign / "a.h5"], InputSpec.named("sae+bright-hold"), None, workers=2)  # worker processes
+    assert len(list((tmp_path / "cache" / "brightness").glob("*.counts.npy"))) == 1
+    card = train(campaign, TrainConfig(steps=3, val_every=0, checkpoint_every=3, inputs="sae+bright-hold", workers=2,
+                                       **TINY), tmp_path / "h", command="test", show_progress=False)
     assert card["inputs"]["brightness"]["rest_tau_s"] == HOLD_BRIGHTNESS.rest_tau_s
     assert "--inputs sae+bright-hold" in card["reproduce"]
     with Recording(campaign / "a.h5") as rec:

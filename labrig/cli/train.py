@@ -53,6 +53,9 @@ def train_command(
     calibration: Annotated[Path | None, typer.Option(
         help="Calibration folder (camera, marker map) for the tracker behind the displacement channels (default: "
              "the folder of labrig's default rig).")] = None,
+    workers: Annotated[int | None, typer.Option(
+        help="Processes that build the recordings' state channels (tracks, brightness) before training "
+             "(default: one per core).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the model card as JSON.")] = False,
 ) -> None:
     """Train the depth U-Net on a campaign's train split; validate on its val split; export ONNX + model card."""
@@ -62,7 +65,7 @@ def train_command(
                          time_budget_min=time_budget_min, batch_size=batch_size, lr=lr, seed=seed,
                          checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows,
                          phases=phases, device=device, threads=threads, noise_hz=noise_hz, inputs=inputs,
-                         calibration_dir=str(calibration_folder(calibration)))
+                         calibration_dir=str(calibration_folder(calibration)), workers=workers)
     config.check()
     if out is None:
         out = Path("models") / f"depth-w{width}-{loss}-{window_ms:g}ms"

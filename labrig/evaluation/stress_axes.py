@@ -128,12 +128,12 @@ AXES: tuple[StressAxis, ...] = (
              "measured with the thresholds recalibrated (labrig calibrate events) and with the reference camera's"),
     StressAxis(
         "on_off_ratio", "ON/OFF threshold asymmetry", "C_on / C_off", "x", "x", "on_off_ratio",
-        full=(1.0, 1.2, 1.4, 1.6), reduced=(1.0, 1.3, 1.6), metrics=("forces",), event_calibration=True,
+        full=(1.0, 1.15, 1.3, 1.45, 1.6), reduced=(1.0, 1.3, 1.6), metrics=("forces",), event_calibration=True,
         what="splits the thresholds about their geometric mean (0.22 ln): a change and its reversal fire unequal "
              "ON and OFF counts; measured recalibrated and with the reference camera's thresholds"),
     StressAxis(
         "led_slope_gain", "LED ring slope gain", "brightening per unit surface slope", "x", "x", "slope_gain",
-        full=(2.5, 3.0, 3.5, 4.0), reduced=(2.5, 3.25, 4.0), metrics=("forces",),
+        full=(2.5, 3.0, 3.5, 4.0), reduced=(2.5, 3.0, 4.0), metrics=("forces",),
         what="raises how much brighter a sloped membrane looks under the LED ring (the reference 2.5): the same dent "
              "changes the log intensity more; no calibration measures it yet"),
     StressAxis(

@@ -319,3 +319,35 @@ def self_feed(model: Any, x: Any, channel: int, steps: int) -> Any:
             rows = x.shape[-2] - own.shape[-2]
             x[:, channel] = functional.pad(own, (0, 0, rows // 2, rows - rows // 2))
     return x
+
+
+@dataclass(frozen=True)
+class StateTask:
+    """One recording whose state channels to build and cache ahead of training (plain values: a task)."""
+
+    recording: str
+    inputs: dict[str, Any]  # the input spec's card (:meth:`InputSpec.to_card`)
+    calibration_dir: str | None
+
+
+def build_state(task: StateTask) -> int:
+    """Build ``task``'s state channels (the tracker's tracks, the brightness steps), filling their caches;
+    returns how many 10 ms steps the recording has."""
+    channels = StateChannels(task.recording, InputSpec.from_card({"inputs": task.inputs}), task.calibration_dir)
+    steps = channels.brightness.t_us if channels.brightness is not None else (
+        channels.tracks.t_us if channels.tracks is not None else np.zeros(0))
+    return int(len(steps))
+
+
+def prepare_states(recordings: list[Path], spec: InputSpec, calibration_dir: str | Path | None, *,
+                   workers: int | None) -> None:
+    """Build every recording's state channels in parallel (``workers`` processes; None: one per core) so that
+    training samples from warm caches: a campaign's first pass would otherwise integrate each recording whole,
+    one after another, in the sampler's process."""
+    from labrig.executor import run_tasks
+
+    if not spec.stateful or not recordings:
+        return
+    tasks = [StateTask(str(path), spec.to_card(), None if calibration_dir is None else str(calibration_dir))
+             for path in recordings]
+    run_tasks(build_state, tasks, workers=workers, use_cache=False)

@@ -63,6 +63,8 @@ class TrainConfig:
     inputs: str = "sae"  # the network's inputs (labrig.pipeline.depth_inputs.INPUT_SETS): sae, sae+disp, sae+disp+prev
     #: The camera and markers the tracker's displacement channels need.
     calibration_dir: str | None = DEFAULT_CALIBRATION_DIR
+    #: Processes that build the recordings' state channels before training (None: one per core; 1: this one).
+    workers: int | None = None
 
     def check(self) -> None:
         if self.loss not in LOSSES:
@@ -81,6 +83,8 @@ class TrainConfig:
             raise LabrigError("--phases must be probing or all")
         if self.noise_hz < 0:
             raise LabrigError("--noise-hz must be 0 (off) or a positive rate in Hz per pixel")
+        if self.workers is not None and self.workers < 1:
+            raise LabrigError("--workers must be at least 1")
         self.input_spec  # noqa: B018  (checks --inputs)
 
     @property
@@ -143,6 +147,7 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
     from labrig import __version__
     from labrig.pipeline.depthnet import UNetConfig, build_unet, export_onnx, parameter_count
     from labrig.training.data import WindowSampler, fixed_set, open_campaign
+    from labrig.training.state_data import prepare_states
 
     config.check()
     paths = output_paths(out)
@@ -162,6 +167,8 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
         unet = UNetConfig(width=config.width, pools=config.pools, in_channels=spec.channels)
         model = build_unet(unet).to(device)
         optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+        prepare_states([src.path for split in ("train", "val") for src in data.sources.get(split, [])], spec,
+                       config.calibration_dir, workers=config.workers)
         sampler = WindowSampler(data.sources["train"], window_us, config.seed, config.noise, spec, config.calibration_dir)
         val_sources = data.sources.get("val", [])
         val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET, spec,
