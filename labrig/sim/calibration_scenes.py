@@ -21,6 +21,7 @@ and the per-pixel threshold spread (``threshold_sigma``), see
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -197,12 +198,7 @@ def record_led_blink(
         path.unlink()
     rig = noisy_rig(rig, noise_scale)
     indenter = indenter or load_indenter("sphere")
-    vr = VirtualRig(rig, indenter, seed=seed)
-    above = vr.gel_in_machine.apply(np.array([[0.0, 0.0, 5.0]]))[0] - np.asarray(indenter.tool_offset_mm)
-
-    def still(t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
-        return np.tile(above, (np.atleast_1d(t_us).size, 1))
-
+    vr, still = _gel_at_rest(rig, indenter, seed)
     for k in range(blinks):
         vr.set_led(False, lead_us + k * period_us)
         vr.set_led(True, lead_us + k * period_us + period_us // 2)
@@ -291,12 +287,7 @@ def record_led_ramps(
     ramps = ramps or LedRamps()
     rig = noisy_rig(rig, noise_scale)
     indenter = indenter or load_indenter("sphere")
-    vr = VirtualRig(rig, indenter, seed=seed)
-    above = vr.gel_in_machine.apply(np.array([[0.0, 0.0, 5.0]]))[0] - np.asarray(indenter.tool_offset_mm)
-
-    def still(t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
-        return np.tile(above, (np.atleast_1d(t_us).size, 1))
-
+    vr, still = _gel_at_rest(rig, indenter, seed)
     for t_us, level in ramps.levels():
         vr.set_led(level, t_us)
     ev = rig.sim.events
@@ -319,6 +310,18 @@ def record_led_ramps(
             _write_events(writer, rig, events, t0)
             n += len(events)
     return SceneResult(path, n, end_us / 1e6, 0)
+
+
+def _gel_at_rest(rig: RigConfig, indenter: Indenter, seed: int
+                 ) -> tuple[VirtualRig, Callable[[npt.ArrayLike], npt.NDArray[np.float64]]]:
+    """A virtual rig and the tool path that holds the indenter 5 mm above the gel centre (the gel at rest)."""
+    vr = VirtualRig(rig, indenter, seed=seed)
+    above = vr.gel_in_machine.apply(np.array([[0.0, 0.0, 5.0]]))[0] - np.asarray(indenter.tool_offset_mm)
+
+    def still(t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        return np.tile(above, (np.atleast_1d(t_us).size, 1))
+
+    return vr, still
 
 
 def _write_events(writer: RecordingWriter, rig: RigConfig, events: npt.NDArray[np.void], t0_us: int) -> None:
