@@ -211,3 +211,9 @@ def test_labrig_evaluate_stress_adds_the_section_and_the_summary(
     assert summary["stress_breakdown"]["force_range_mm"]["forces-truth"] == pytest.approx(
         breaks(suite, "force_range", "forces-truth"))
     assert "Stability where methods fail" in (out / "index.html").read_text()
+
+
+def test_the_command_line_names_the_axes_there_are(tmp_path: Path) -> None:
+    result = CliRunner().invoke(app, ["evaluate", str(tmp_path), "--stress-axes", "contrast_threshold,nope"])
+    assert isinstance(result.exception, LabrigError)  # `labrig` prints it, exit 2
+    assert "no stress axis 'nope'" in str(result.exception) and "hold" in str(result.exception)

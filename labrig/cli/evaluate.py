@@ -53,8 +53,11 @@ def evaluate_command(
     sweep_recordings: Annotated[int, typer.Option(help="Recordings the sweep uses (spread over the split; 0: all).")] = 4,
     stress: Annotated[bool, typer.Option("--stress", help="Also push each method along stress axes on the virtual rig "
                                          "until it breaks (force range, speed, slip, noise, contrast, window, clock, "
-                                         "dead pixels, marker placement, missing markers, USB bursts).")] = False,
+                                         "dead pixels, marker placement, missing markers, USB bursts, contrast "
+                                         "threshold, ON/OFF ratio, LED slope gain, membrane level, hold).")] = False,
     stress_grid: Annotated[str, typer.Option(help="The stress axes' values: full, or reduced (3 per axis).")] = "full",
+    stress_axes: Annotated[str | None, typer.Option(
+        help="Only these stress axes, comma-separated keys (e.g. contrast_threshold,hold; default: every axis).")] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Evaluate the pipeline on DATA: Tables I-III, errors per range, runtime, dense and label errors; a report."""
@@ -69,7 +72,8 @@ def evaluate_command(
         cache_dir=cache,
         use_cache=not no_cache, table1=table1, trackers=tuple(t.strip() for t in trackers.split(",") if t.strip()),
         sweep=sweep, sweep_recordings=sweep_recordings or None,
-        stress=stress, stress_grid=stress_grid)
+        stress=stress or stress_axes is not None, stress_grid=stress_grid,
+        stress_axes=tuple(a.strip() for a in stress_axes.split(",") if a.strip()) if stress_axes else None)
     if sweep_recordings < 0:
         from labrig.errors import LabrigError
 

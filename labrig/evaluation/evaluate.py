@@ -33,6 +33,7 @@ from labrig.evaluation.depth import DepthResult, DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.groundtruth_error import GroundTruthErrorResult, GroundTruthErrorTask, evaluate_groundtruth
 from labrig.evaluation.stress import StressResult
+from labrig.evaluation.stress_axes import axis_named
 from labrig.evaluation.sweep import SweepResult, run_sweep
 from labrig.evaluation.tracking import (
     FIXED_BAND_TRACKERS,
@@ -79,6 +80,7 @@ class EvaluationSettings:
     sweep_recordings: int | None = 4  # the sweep's recordings: the first N of the split (None: all)
     stress: bool = False  # the stress suite on the virtual rig (labrig.evaluation.stress)
     stress_grid: str = "full"  # or "reduced"
+    stress_axes: tuple[str, ...] | None = None  # the axes' keys (labrig.evaluation.stress_axes); None: every axis
 
     def check(self) -> None:
         if self.split not in SPLIT_CHOICES:
@@ -92,6 +94,8 @@ class EvaluationSettings:
                               f"{', '.join(TABLE1_TRACKERS)}")
         if self.stress_grid not in ("full", "reduced"):
             raise LabrigError(f"--stress-grid must be full or reduced, not {self.stress_grid!r}")
+        for key in self.stress_axes or ():
+            axis_named(key)  # one line naming the axes there are
         if self.model is not None and not model_path(self.model).exists():
             raise LabrigError(f"--model {self.model}: no such file (give a depth network .onnx with its .json card, "
                               f"or a bundled one: {', '.join(BUNDLED)})")
@@ -195,7 +199,9 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
         chosen = paths if settings.sweep_recordings is None else _spread(paths, settings.sweep_recordings)
         ev.sweep = run_sweep(chosen, model, settings.models_dir, run, calibration, **windows)
     if settings.stress:
-        ev.stress = stress_suite.run_stress(run, grid=settings.stress_grid, model=str(model), calibration_dir=calibration)
+        axes = [axis_named(key) for key in settings.stress_axes] if settings.stress_axes else None
+        ev.stress = stress_suite.run_stress(run, grid=settings.stress_grid, axes=axes, model=str(model),
+                                            calibration_dir=calibration)
     ev.summary = headline(ev)
     return ev
 
