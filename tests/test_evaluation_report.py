@@ -259,6 +259,16 @@ def test_breakdown_point() -> None:
         charts.breakdown_point(x, [0.0, 1.0, 2.0, 3.0])
 
 
+def test_a_breakdown_chart_draws_a_method_whose_baseline_failed() -> None:
+    """A method with no error at the least stress (its scene failed) is drawn without a breakdown, not refused."""
+    figure = charts.breakdown(np.array([1.0, 2.0, 3.0]), {"ok": np.array([1.0, 1.5, 3.0]),
+                                                          "failed": np.array([np.nan, 2.0, 2.5])},
+                              x_name="x", x_unit="u", error_name="e", error_unit="%")
+    labels = [t.get_text() for t in figure.axes[0].get_legend().get_texts()]
+    assert any(label.startswith("failed: no baseline") for label in labels)
+    assert any(label.startswith("ok: breaks at") for label in labels)
+
+
 def test_group_by_range() -> None:
     groups = charts.group_by_range([0.5, 1.0, 2.0, 3.0, -1.0, np.nan], [1, 2, 3, 4, 5, 6], [0.0, 1.0, 2.0])
     assert [g.tolist() for g in groups] == [[1.0], [2.0, 3.0]]

@@ -57,3 +57,19 @@ def test_recalibrating_the_thresholds_keeps_the_network_where_the_reference_came
     assert calibrated[0] == pytest.approx(uncalibrated[0], rel=0.15)  # the reference camera: both about the same
     assert uncalibrated[1] > 1.5 * calibrated[1]  # 0.35 ln: counted in the reference camera's events, the dent shrinks
     assert calibrated[1] < 2.0 * calibrated[0]  # recalibrated: no breakdown
+
+
+def test_the_uncalibrated_curve_starts_from_the_rigs_own_thresholds() -> None:
+    """At the ON/OFF axis' baseline (ratio 1: the rig's camera) nothing is recalibrated, so the uncalibrated method's
+    error there is the calibrated one's (a curve with no baseline could not break)."""
+    from labrig.evaluation.stress import ForceStress, SceneMeasurement, _curve
+    from labrig.evaluation.stress_scene import SceneFacts
+
+    facts = SceneFacts(1.0, 10, 1.0, 1.0, 0.1, 0.0)
+    base = SceneMeasurement(facts, {}, {"10ms": {FORCES_MODEL: ForceStress(5.0, 0.1, 0.1, 2.0, 10)}})
+    pushed = SceneMeasurement(facts, {}, {"10ms": {FORCES_MODEL: ForceStress(6.0, 0.1, 0.1, 2.0, 10),
+                                                   FORCES_MODEL_UNCALIBRATED: ForceStress(30.0, 0.6, 0.6, 2.0, 10)}})
+    axis = replace(axis_named("on_off_ratio"), reduced=(1.0, 1.6))
+    measured = {("on_off_ratio", 1.0): (base, "10ms"), ("on_off_ratio", 1.6): (pushed, "10ms")}
+    curve = _curve(axis, "forces", FORCES_MODEL_UNCALIBRATED, [1.0, 1.6], measured)
+    assert curve.error == [5.0, 30.0]

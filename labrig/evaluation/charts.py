@@ -356,13 +356,17 @@ def breakdown(
         xm = xs[name]
         order = np.argsort(xm, kind="stable")
         base = baseline.get(name) if isinstance(baseline, Mapping) else baseline
-        point = breakdown_point(xm, e, factor, base, log_x)
-        threshold = factor * (e[order][0] if base is None else base)
+        reference = float(e[order][0] if base is None else base)
+        measurable = bool(np.isfinite(reference) and reference > 0)  # no baseline (its scene failed): no breakdown
+        point = breakdown_point(xm, e, factor, base, log_x) if measurable else None
+        threshold = factor * reference
         where = (
-            f"breaks at {point:.3g} {x_unit}".rstrip() if point is not None else f"no breakdown up to {np.max(xm):.3g} {x_unit}"
+            f"breaks at {point:.3g} {x_unit}".rstrip() if point is not None
+            else f"no breakdown up to {np.max(xm):.3g} {x_unit}" if measurable else "no baseline error"
         )
         ax.plot(xm[order], e[order], marker="o", ms=4, color=color, label=f"{name}: {where}".lstrip(": "))
-        ax.axhline(threshold, color=color, ls=":", lw=1, alpha=0.8)
+        if measurable:
+            ax.axhline(threshold, color=color, ls=":", lw=1, alpha=0.8)
         failed = ~np.isfinite(e)
         if failed.any():
             ax.plot(xm[failed], np.full(failed.sum(), 0.97), "x", color=color, ms=7, transform=top, clip_on=False)

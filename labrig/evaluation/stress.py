@@ -320,7 +320,10 @@ def _curve(axis: StressAxis, metric: str, method: str, values: list[float],
             depth = result.depth.get(window, {}).get(method) if result is not None else None
             error.append(depth.contact_mm if depth else float("nan"))
         else:
-            forces = result.forces.get(window, {}).get(method) if result is not None else None
+            by_method = result.forces.get(window, {}) if result is not None else {}
+            forces = by_method.get(method)
+            if forces is None and method == FORCES_MODEL_UNCALIBRATED:  # the rig's own thresholds: nothing to recalibrate
+                forces = by_method.get(FORCES_MODEL)
             error.append(forces.error_pct if forces else float("nan"))
             newtons.append(forces.error_n if forces else float("nan"))
     return StressCurve(axis.key, metric, method, values, error, lost if metric == "tracking" else None,
