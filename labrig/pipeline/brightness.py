@@ -22,7 +22,9 @@ cells of :func:`labrig.pipeline.sae.sae_grid`), per window:
 
 (the leak's decay within one window is neglected: windows are 3-400 ms, ``tau`` tens of
 seconds). The leak forgets what a pixel's threshold mismatch and background noise add up over
-minutes. :func:`brightness_channel` turns it into the network's channel: events per pixel
+minutes, and with them a press held that long. The gated leak (``BrightnessParams.rest_tau_s``)
+leaks only where the gel is at rest: each 10 ms step removes the uniform drift and decays the
+quiet cells quickly, while the cells that hold a change keep it (:meth:`BrightnessIntegrator._gated_leak`). :func:`brightness_channel` turns it into the network's channel: events per pixel
 (the count over the cell's pixel area) minus the map's median (the uniform drift of the
 sensor's leak events, which fire ON at a steady rate on every pixel), over
 ``scale_events_per_px`` (reference events), clipped (a hot pixel's count grows without bound).
