@@ -205,7 +205,7 @@ def test_labrig_evaluate_stress_adds_the_section_and_the_summary(
                                       "--no-table1", "--stress", "--stress-grid", "reduced", "--workers", "1",
                                       "--cache", str(tmp_path / "cache"), "--out", str(out), "--json"])
     assert result.exit_code == 0, result.output
-    assert asked == {"grid": "reduced", "model": str(model), "calibration_dir": DEFAULT_CALIBRATION_DIR}
+    assert asked == {"grid": "reduced", "axes": None, "model": str(model), "calibration_dir": DEFAULT_CALIBRATION_DIR}
     summary = json.loads(result.stdout)
     assert summary["report_problems"] == []
     assert summary["stress_breakdown"]["force_range_mm"]["forces-truth"] == pytest.approx(
@@ -217,3 +217,26 @@ def test_the_command_line_names_the_axes_there_are(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["evaluate", str(tmp_path), "--stress-axes", "contrast_threshold,nope"])
     assert isinstance(result.exception, LabrigError)  # `labrig` prints it, exit 2
     assert "no stress axis 'nope'" in str(result.exception) and "hold" in str(result.exception)
+
+
+def test_stress_axes_narrows_the_suite_to_the_axes_named(suite: StressResult, short_probe: Path, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    asked: dict[str, Any] = {}
+
+    def fake_run_stress(run: Any, **kwargs: Any) -> StressResult:
+        asked.update(kwargs)
+        return suite
+
+    from labrig.pipeline.depthnet import build_unet, export_onnx
+
+    torch.manual_seed(0)
+    model = tmp_path / "w2.onnx"
+    export_onnx(build_unet(width=2).eval(), model, {"name": "w2", "scale_mm": 2.5, "window_ms": 10.0,
+                                                   "loss": {"name": "contact"}, "architecture": {"width": 2}})
+    monkeypatch.setattr(stress, "run_stress", fake_run_stress)
+    result = CliRunner().invoke(app, ["evaluate", str(short_probe), "--model", str(model), "--window-ms", "20",
+                                      "--no-table1", "--stress-axes", "hold,contrast_threshold", "--stress-grid",
+                                      "reduced", "--workers", "1", "--cache", str(tmp_path / "cache"),
+                                      "--out", str(tmp_path / "report"), "--json"])
+    assert result.exit_code == 0, result.output
+    assert [a.key for a in asked["axes"]] == ["hold", "contrast_threshold"]  # --stress-axes implies --stress
