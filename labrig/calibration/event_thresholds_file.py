@@ -5,8 +5,8 @@ each their own: :class:`ContrastThresholds` holds both, in ln units, per cell of
 grid (:mod:`labrig.physics.grid`, the cells of :func:`labrig.pipeline.sae.sae_grid`) over the
 ROI they were measured on. ``events.toml`` holds the summary and the maps themselves (``[map]``
 ``on_ln``, ``off_ln``: rows of the grid, 5 significant digits), so the file travels alone like
-every other calibration file. :func:`ContrastThresholds.nominal` is the uncalibrated sensor: every
-cell at :data:`NOMINAL_THRESHOLD_LN`.
+every other calibration file. Without one every event counts as one of a sensor at
+:data:`NOMINAL_THRESHOLD_LN` (the pipeline's thresholds are then None).
 """
 
 from __future__ import annotations
@@ -25,12 +25,11 @@ import numpy.typing as npt
 from labrig import __version__
 from labrig.config import Roi
 from labrig.errors import CalibrationError
-from labrig.physics.grid import GRID_SHAPE
 
 F32 = npt.NDArray[np.float32]
 
 #: The IMX636's nominal contrast threshold, ln units (25 % Weber contrast: ln 1.25 = 0.223), and the
-#: reference sensor's; an uncalibrated sensor is taken to have it, ON and OFF, in every cell.
+#: reference sensor's: the unit of the brightness channel's reference events.
 NOMINAL_THRESHOLD_LN = 0.22
 EVENTS_FORMAT_VERSION = 1
 EVENTS_FILE = "events.toml"
@@ -53,17 +52,6 @@ class ContrastThresholds:
                 and (self.on_ln > 0).all() and (self.off_ln > 0).all()):
             raise CalibrationError(f"{self.source}: every contrast threshold must be finite and positive; "
                                    "recalibrate with `labrig calibrate events`")
-
-    @classmethod
-    def nominal(cls, roi: Roi, grid_shape: tuple[int, int] = GRID_SHAPE,
-                threshold_ln: float = NOMINAL_THRESHOLD_LN) -> ContrastThresholds:
-        """Every cell at ``threshold_ln``, ON and OFF (no calibration)."""
-        full = np.full(grid_shape, threshold_ln, np.float32)
-        return cls(full, full.copy(), roi, f"nominal ({threshold_ln} ln, no events.toml)")
-
-    @property
-    def is_nominal(self) -> bool:
-        return self.source.startswith("nominal")
 
     @cached_property
     def reference_weights(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:

@@ -62,11 +62,7 @@ def calibrate_printed_markers(rig: RigConfig, calibration_dir: str | Path | None
         raise LabrigError("the marker stress axes calibrate the printed gel as a lab would and need the camera's "
                           f"intrinsics: {source or 'no calibration folder'} has no intrinsics.toml "
                           "(run `labrig calibrate intrinsics`, or pass --calibration with one)")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    for path in source.glob("*.toml"):
-        if path.name != EXTRINSICS:
-            shutil.copy2(path, out / path.name)
+    out = _calibration_copy(source, out_dir, but=EXTRINSICS)
     intrinsics = load_intrinsics(out / "intrinsics.toml")
     recording = out / "led-blink.h5"
     record_led_blink(recording, rig, seed=seed, overwrite=True)
@@ -94,16 +90,22 @@ def calibrate_event_thresholds(rig: RigConfig, calibration_dir: str | Path | Non
     from labrig.calibration.event_thresholds_file import write_event_thresholds
     from labrig.sim.calibration_scenes import record_led_ramps
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    source = Path(calibration_dir) if calibration_dir is not None else None
-    if source is not None and source.resolve() != out.resolve():
-        for path in source.glob("*.toml"):
-            if path.name != EVENTS and not (out / path.name).exists():
-                shutil.copy2(path, out / path.name)
+    out = _calibration_copy(Path(calibration_dir) if calibration_dir is not None else None, out_dir, but=EVENTS)
     recording = out / "led-ramps.h5"
     record_led_ramps(recording, rig, seed=seed, overwrite=True)
     fit = fit_event_thresholds(recording, rig.roi)
     write_event_thresholds(out / EVENTS, fit.thresholds, fit.summary(), {"recording": "stress scene", "seed": seed})
     recording.unlink()
     return str(out)
+
+
+def _calibration_copy(source: Path | None, out_dir: str | Path, *, but: str) -> Path:
+    """``out_dir`` (made) holding every ``*.toml`` of ``source`` but ``but``, the file about to be calibrated;
+    files already there (an earlier calibration of the same scene) are kept."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if source is not None and source.resolve() != out.resolve():
+        for path in source.glob("*.toml"):
+            if path.name != but and not (out / path.name).exists():
+                shutil.copy2(path, out / path.name)
+    return out
