@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.errors import LabrigError
+from labrig.indenter_shapes import FAMILIES, draw_shape
 
 DEFAULT_INDENTERS = Path(__file__).resolve().parent.parent / "protocols" / "indenters.toml"
 
@@ -33,6 +34,10 @@ GEOMETRY_KEYS: dict[str, tuple[str, ...]] = {
     "ridge": ("width_mm", "length_mm"),
     "heightmap": ("file", "spacing_mm"),
 }
+#: The top-level key of an indenters file that names the file it adds to.
+EXTENDS_KEY = "extends"
+#: A height map drawn from a shape family and a seed (:mod:`labrig.indenter_shapes`): keys ``family``, ``seed``.
+PROCEDURAL_KIND = "procedural"
 #: A height map given inline (a recording's own copy of its indenter) instead of as a file.
 INLINE_HEIGHTMAP_KEY = "heights_mm"
 COMMON_KEYS = ("kind", "tool_offset_mm", "max_normal_force_n", "max_shear_force_n", "max_depth_mm")
@@ -116,9 +121,9 @@ class Indenter:
         if self.kind == "ridge":
             return float(g["length_mm"]) / 2
         assert self._heightmap is not None
-        ny, nx = self._heightmap.shape
+        rows, cols = np.nonzero(np.isfinite(self._heightmap))  # the samples with a surface
         col, row = self.axis_sample()
-        return float(np.hypot(max(col, nx - 1 - col), max(row, ny - 1 - row)) * g["spacing_mm"])
+        return float(np.hypot(cols - col, rows - row).max() * g["spacing_mm"])
 
     def height_mm(self, x_mm: npt.ArrayLike, y_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Height of the indenter surface above its tip at (x, y) from the tip; inf outside."""
@@ -176,8 +181,11 @@ def _filleted(d: npt.NDArray[np.float64], fillet: float, inside: npt.NDArray[np.
     return h
 
 
-def load_indenters(path: str | Path = DEFAULT_INDENTERS) -> dict[str, Indenter]:
-    """All indenters in a TOML file, validated; errors name the file and the field."""
+def load_indenters(path: str | Path = DEFAULT_INDENTERS, *, _seen: tuple[Path, ...] = ()) -> dict[str, Indenter]:
+    """All indenters in a TOML file, validated; errors name the file and the field.
+
+    A file may begin with ``extends = "other.toml"`` (relative to it): the other file's indenters
+    come first, and this file adds to them (a name defined twice is an error)."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
@@ -185,7 +193,20 @@ def load_indenters(path: str | Path = DEFAULT_INDENTERS) -> dict[str, Indenter]:
         raise IndenterError(f"{path}: no such indenter file") from None
     except tomllib.TOMLDecodeError as exc:
         raise IndenterError(f"{path}: not valid TOML ({exc})") from None
-    return {name: _parse(path, name, entry) for name, entry in data.items()}
+    indenters: dict[str, Indenter] = {}
+    base = data.pop(EXTENDS_KEY, None)
+    if base is not None:
+        if not isinstance(base, str):
+            raise IndenterError(f'{path}: {EXTENDS_KEY} must name another indenters file in quotes, e.g. "indenters.toml"')
+        base_path = (path.parent / base).resolve()
+        if base_path in _seen or base_path == path.resolve():
+            raise IndenterError(f"{path}: {EXTENDS_KEY} = {base!r} leads back to itself")
+        indenters = load_indenters(base_path, _seen=(*_seen, path.resolve()))
+    for name, entry in data.items():
+        if name in indenters:
+            raise IndenterError(f"{path}: [{name}] is already defined in {base}; give it another name")
+        indenters[name] = _parse(path, name, entry)
+    return indenters
 
 
 def indenter_toml(indenter: Indenter) -> str:
@@ -233,9 +254,11 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
     where = f"{path}: [{name}]"
     if not isinstance(entry, dict):
         raise IndenterError(f"{where} must be a table")
+    if entry.get("kind") == PROCEDURAL_KIND:
+        entry = _procedural_entry(where, entry)
     kind = entry.get("kind")
     if kind not in GEOMETRY_KEYS:
-        raise IndenterError(f"{where} kind must be one of {', '.join(GEOMETRY_KEYS)}, not {kind!r}")
+        raise IndenterError(f"{where} kind must be one of {', '.join((*GEOMETRY_KEYS, PROCEDURAL_KIND))}, not {kind!r}")
     geometry_keys = GEOMETRY_KEYS[kind]
     if kind == "heightmap" and INLINE_HEIGHTMAP_KEY in entry:
         geometry_keys = ("spacing_mm",)
@@ -288,6 +311,22 @@ def _parse(path: Path, name: str, entry: Any) -> Indenter:
         yaw_deg=float(yaw),
         axis_mm=axis,
     )
+
+
+def _procedural_entry(where: str, entry: dict[str, Any]) -> dict[str, Any]:
+    """A ``kind = "procedural"`` entry as the inline height map it draws (:mod:`labrig.indenter_shapes`)."""
+    family, seed = entry.get("family"), entry.get("seed")
+    if family not in FAMILIES:
+        raise IndenterError(f"{where} family must be one of {', '.join(FAMILIES)}, not {family!r}")
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise IndenterError(f"{where} seed must be a whole number >= 0, not {seed!r}")
+    shape = draw_shape(family, seed)
+    rest = {k: v for k, v in entry.items() if k not in ("kind", "family", "seed")}
+    if "axis_mm" in rest:
+        raise IndenterError(f"{where} a procedural shape's tool axis is the centre of its map: leave out axis_mm")
+    centre = shape.half_width_mm
+    return {**rest, "kind": "heightmap", "spacing_mm": shape.spacing_mm, INLINE_HEIGHTMAP_KEY: shape.heights_mm,
+            "axis_mm": [centre, centre]}
 
 
 def _axis_mm(

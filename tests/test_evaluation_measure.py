@@ -124,6 +124,19 @@ def test_table3_on_hand_made_results() -> None:
     assert by_range[1]["under_prediction_n"] == pytest.approx(2.0)  # predicted 10 N against 12 N: 2 N under
 
 
+def test_force_errors_per_indenter_pool_each_indenters_recordings() -> None:
+    def result(indenter: str, error_z: float, windows: int) -> SimpleNamespace:
+        return SimpleNamespace(predicted_n=np.tile([0.0, 0.0, -5.0 + error_z], (windows, 1)),
+                               measured_n=np.tile([0.0, 0.0, -5.0], (windows, 1)),
+                               contact_error_px=np.tile([3.0, 4.0], (windows, 1)), probing=np.ones(windows, bool),
+                               indenter=indenter)
+
+    rows = tables.force_by_indenter([result("sphere", 1.0, 2), result("edge-100", 3.0, 4), result("sphere", 2.0, 2)])
+    assert [(r["indenter"], r["recordings"]) for r in rows] == [("sphere", 2), ("edge-100", 1)]
+    assert rows[0]["force_z_mae_n"] == pytest.approx(1.5) and rows[1]["force_z_mae_n"] == pytest.approx(3.0)
+    assert rows[0]["force_x_mae_n"] == 0.0 and rows[1]["position_total_mae_px"] == pytest.approx(5.0)
+
+
 def test_layer_labels_beat_the_half_space_out_of_contact(probe: Path) -> None:
     from labrig.evaluation.groundtruth_error import GroundTruthErrorTask, evaluate_groundtruth
 

@@ -117,7 +117,8 @@ def campaign(
     limit: Annotated[int | None, typer.Option(help="Record at most this many of the pending recordings.")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="Hardware: do not ask before each indenter change.")] = False,
     rig_path: RigOption = None,
-    indenters_path: IndentersOption = None,
+    indenters_path: Annotated[Path | None, typer.Option("--indenters", help=(
+        "Indenter TOML (default: the campaign's [campaign] indenters, else protocols/indenters.toml)."))] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Record a whole campaign with a manifest; rerun to resume after an interruption or a crash."""
@@ -128,7 +129,9 @@ def campaign(
 
     if workers < 1:
         raise LabrigError("--workers must be at least 1")
-    rig, indenters, ind_path = load_rig_and_indenters(rig_path, indenters_path)
+    from labrig.protocol.files import campaign_indenters_file
+
+    rig, indenters, ind_path = load_rig_and_indenters(rig_path, indenters_path or campaign_indenters_file(file))
     plan = load_campaign(file, rig, indenters)
     devices = device_config(rig)
     if scheduler is not None and not virtual_time:

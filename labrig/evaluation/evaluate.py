@@ -260,6 +260,7 @@ def headline(ev: Evaluation) -> dict[str, Any]:
         "depth_noncontact_mm": depth["noncontact_mm"],
         "pipeline_ms": runtime["total_ms"], "pipeline_rate_hz": runtime["rate_hz"],
         "paper": PAPER, "cache": ev.cache, "camera_stream_short_s": ev.camera_short_s,
+        "force_by_indenter": tables.force_by_indenter(ev.forces),
     }
     if ev.forces_truth:
         truth = {row["axis"]: row for row in tables.table3(ev.forces_truth)}

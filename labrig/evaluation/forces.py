@@ -80,6 +80,7 @@ class ForceResult:
     # in time: mean |error| over the grid and over the true contact cells, mm; nan without a sidecar or contact.
     depth_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
     depth_contact_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
+    indenter: str = ""  # the recording's indenter (its name in the indenters file)
 
 
 def evaluate_forces(task: ForceTask) -> ForceResult:
@@ -108,6 +109,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         measured = measured_force_on_gel_n(rec, t1 - depth_window_us, t1, rotation)
         truth_n, marker_mae, missing = _truth(rec, t1, np.array([r.forces_n for r in rows]))
         probing = _in_phases(rec, t1)
+        indenter = str(rec.attrs.get("indenter", ""))
     predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
     contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
     side = Path(task.sidecar) if task.sidecar else sidecar_path(path)
@@ -134,10 +136,11 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         total_ms=float(np.median([sum(r.seconds.values()) for r in rows]) * 1e3) if rows else 0.0,
         drift_px=np.linalg.norm(final - setup.rest_px, axis=1), ft_axes=ft_source, depth_source=source.name,
         youngs_modulus_mpa=setup.youngs_modulus_mpa, markers_missing=missing,
-        markers_unobserved=int((~setup.observed).sum()), depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact)
+        markers_unobserved=int((~setup.observed).sum()), depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact,
+        indenter=indenter)
 
 
-evaluate_forces.cache_version = "18"  # type: ignore[attr-defined]  # 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
+evaluate_forces.cache_version = "19"  # type: ignore[attr-defined]  # 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

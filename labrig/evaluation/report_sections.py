@@ -86,6 +86,13 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
                       for r in tables.force_by_range(ev.forces)],
                      caption="Under-prediction: mean of |measured| - |predicted| along the axis (positive: too small).",
                      units={"range": "N", "mae": "N", "under-prediction": "N"})
+    report.add_table("force_by_indenter", "Force error per indenter",
+                     ["indenter", "recordings", "x", "y", "z", "total", "position"],
+                     [[r["indenter"], r["recordings"], r["force_x_mae_n"], r["force_y_mae_n"], r["force_z_mae_n"],
+                       r["force_total_mae_n"], r["position_total_mae_px"]] for r in tables.force_by_indenter(ev.forces)],
+                     caption="Table III's errors per indenter (the recording's own indenter name): shapes the network "
+                             "never saw against the ones it trained on.",
+                     units={"x": "N", "y": "N", "z": "N", "total": "N", "position": "px"})
     example = max(ev.forces, key=lambda r: float(np.max(np.abs(r.measured_n[:, 2]))) if len(r.measured_n) else 0)
     t_s = example.t1_us / 1e6
     report.add_figure("force_series", "Net force over a recording (largest normal force)",

@@ -110,6 +110,18 @@ def table3(results: Sequence[ForceResult], probing_only: bool = True) -> list[di
     return rows
 
 
+def force_by_indenter(results: Sequence[ForceResult], probing_only: bool = True) -> list[dict[str, Any]]:
+    """Force MAE (N) per axis and contact position error (px) per indenter, in the order they first appear."""
+    rows = []
+    for name in dict.fromkeys(r.indenter for r in results):
+        mine = [r for r in results if r.indenter == name]
+        by_axis = {row["axis"]: row for row in table3(mine, probing_only)}
+        rows.append({"indenter": name or "unknown", "recordings": len(mine),
+                     **{f"force_{a}_mae_n": by_axis[a]["force_mae_n"] for a in ("x", "y", "z", "total")},
+                     "position_total_mae_px": by_axis["total"]["position_mae_px"]})
+    return rows
+
+
 def force_by_range(results: Sequence[ForceResult], ranges_n: dict[str, tuple[float, ...]] = FORCE_RANGES_N,
                    probing_only: bool = True) -> list[dict[str, Any]]:
     """Absolute force error per axis and per measured-force range (|F| on that axis), the paper's Fig. 3."""

@@ -474,7 +474,7 @@ def apply_overrides(
 # ----------------------------------------------------------------------------- campaign files
 
 CAMPAIGN_KEYS: dict[str, tuple[str, ...]] = {
-    "campaign": ("name", "seed", "protocol", "repetitions", "description"),
+    "campaign": ("name", "seed", "protocol", "indenters", "repetitions", "description"),
     "split": SPLITS,
     "vary": (),  # any sim.* rig key (labrig.protocol.variation)
     "group": (
@@ -534,6 +534,18 @@ def _grid_locations(grid: Any, where: tuple[str, int], label: str, problems: _Pr
     return [(round(x, 9), round(y, 9)) for y in ys for x in xs]
 
 
+def campaign_indenters_file(path: str | Path) -> Path | None:
+    """The indenters file a campaign names (``[campaign] indenters``, relative to the campaign file), or None
+    (the default file, or the one given on the command line). An unreadable campaign gives None: loading it
+    reports the problem."""
+    path = Path(path)
+    try:
+        value = tomllib.loads(path.read_text()).get("campaign", {}).get("indenters")
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, AttributeError):
+        return None
+    return path.parent / value if isinstance(value, str) else None
+
+
 def load_campaign(
     path: str | Path,
     rig: RigConfig | None,
@@ -578,6 +590,12 @@ def load_campaign(
     if not isinstance(repetitions, int) or isinstance(repetitions, bool) or repetitions < 1:
         problems.add(at("repetitions"), "campaign.repetitions", f"must be a whole number >= 1, not {repetitions!r}")
         repetitions = 1
+
+    indenters_value = head.get("indenters")
+    if indenters_value is not None and not (isinstance(indenters_value, str) and (path.parent / indenters_value).is_file()):
+        problems.add(at("indenters"), "campaign.indenters",
+                     f"must name an indenters file relative to {path.name} in quotes, e.g. \"shapes.toml\", "
+                     f"not {indenters_value!r}")
 
     # The base protocol: its values are every group's defaults.
     protocol_value = head.get("protocol")
