@@ -321,10 +321,8 @@ def test_the_held_brightness_input_trains_and_its_card_carries_the_gated_leak(ca
     """sae+bright-hold: the card's brightness section names the gated leak, and the exported network's depth
     source integrates with it (a press held as long as it lasts)."""
     from labrig.pipeline import depth_sources, run_setup, runtime
-    from labrig.pipeline.depth_inputs import HOLD_BRIGHTNESS
+    from labrig.pipeline.depth_inputs import HOLD_BRIGHTNESS, InputSpec
     from labrig.recording import Recording
-
-    from labrig.pipeline.depth_inputs import InputSpec
     from labrig.training.state_data import prepare_states
 
     monkeypatch.setenv("LABRIG_CACHE", str(tmp_path / "cache"))
@@ -340,3 +338,31 @@ def test_the_held_brightness_input_trains_and_its_card_carries_the_gated_leak(ca
         assert source.integrator is not None and source.integrator.params == HOLD_BRIGHTNESS  # type: ignore[attr-defined]
         results = list(runtime.Pipeline(setup, source).run(rec, window_us=10_000, concurrent=False))
     assert results and all(np.isfinite(r.net_force_n).all() for r in results)
+
+
+def test_fine_tuning_starts_from_the_network_and_says_what_it_gained(campaign: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from labrig.cli import app
+
+    base = train(campaign, TrainConfig(steps=24, val_every=0, checkpoint_every=24, **TINY), tmp_path / "base",
+                 show_progress=False)
+    config = TrainConfig.from_init(str(tmp_path / "base.onnx"), steps=4, val_every=0, checkpoint_every=4,
+                                   **{k: v for k, v in TINY.items() if k != "width"})
+    assert (config.width, config.window_ms, config.inputs) == (4, 10.0, "sae")
+    tuned = train(campaign, config, tmp_path / "tuned", show_progress=False)
+    fresh = train(campaign, TrainConfig(steps=4, val_every=0, checkpoint_every=4, **TINY), tmp_path / "fresh",
+                  show_progress=False)
+    init = tuned["init"]
+    assert init["model"] == "base" and init["val_before"] == base["val"]  # the same val windows, the same weights
+    first = {name: card["training"]["loss_history"][0][1] for name, card in (("tuned", tuned), ("fresh", fresh))}
+    assert first["tuned"] < 0.5 * first["fresh"]
+    assert f"--init {tmp_path / 'base.onnx'}" in tuned["reproduce"] and "--width" not in tuned["reproduce"]
+    runner = CliRunner()
+    both = runner.invoke(app, ["train", str(campaign), "--init", str(tmp_path / "base.onnx"), "--width", "8"])
+    assert isinstance(both.exception, LabrigError) and "leave out --width" in str(both.exception)
+    output_paths(tmp_path / "fresh")["checkpoint"].unlink()
+    bare = runner.invoke(app, ["train", str(campaign), "--init", str(tmp_path / "fresh.onnx")])
+    assert isinstance(bare.exception, LabrigError) and "no torch weights" in str(bare.exception)
+    nothing = runner.invoke(app, ["train", str(campaign), "--init", str(tmp_path / "nothing.onnx")])
+    assert isinstance(nothing.exception, LabrigError) and "no network" in str(nothing.exception)

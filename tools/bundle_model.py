@@ -1,6 +1,8 @@
-"""Ship a trained depth network as the bundled model (labrig/models/): the .onnx and its card, with provenance.
+"""Ship a trained depth network as the bundled model (labrig/models/): the .onnx, its card and weights, with provenance.
 
-Copies ``MODEL.onnx`` and its card to ``labrig/models/NAME.{onnx,json}`` (``--as``: the slot in
+Copies ``MODEL.onnx`` and its card to ``labrig/models/NAME.{onnx,json}``, and the torch weights of
+its checkpoint (``MODEL.ckpt.pt``, the ``state_dict`` alone) to ``NAME.weights.pt`` for
+``labrig train --init`` (``--as``: the slot in
 ``labrig.models.BUNDLED``, ``default`` or ``sae-only``), adding to
 the card a ``bundled`` section: the sweep it was chosen from (``sweep.json`` beside it: each
 width's val/test errors and latency), why it was chosen, the campaign's manifest digest and
@@ -21,7 +23,7 @@ from pathlib import Path
 
 from labrig.cache import sha256_of
 from labrig.dataset import Dataset
-from labrig.models import BUNDLED, FOLDER
+from labrig.models import BUNDLED, FOLDER, WEIGHTS_SUFFIX
 from labrig.pipeline.depthnet import read_card, write_card
 
 MAX_BYTES = 10_000_000
@@ -54,9 +56,16 @@ def main(argv: list[str] | None = None) -> int:
         "rebuild": [args.campaign_command, args.groundtruth_command or f"labrig groundtruth {data}",
                     card.get("command", ""), f"python tools/bundle_model.py {onnx} ..."],
     }
+    checkpoint = onnx.with_name(onnx.stem + ".ckpt.pt")
+    if not checkpoint.exists():
+        ap.error(f"{onnx}: needs its checkpoint {checkpoint.name} (the weights that labrig train --init fine-tunes)")
     target = FOLDER / f"{BUNDLED[args.slot]}.onnx"
     shutil.copyfile(onnx, target)
     write_card(card, target.with_suffix(".json"))
+    import torch
+
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)["model"]
+    torch.save(state, target.with_name(target.stem + WEIGHTS_SUFFIX))
     print(f"{target} ({target.stat().st_size / 1e6:.1f} MB) and its card", file=sys.stderr)
     return 0
 

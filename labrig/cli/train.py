@@ -21,9 +21,10 @@ from labrig.cli.console import calibration_folder, console, print_json
 def train_command(
     data: Annotated[list[Path], typer.Argument(
         help="Campaign output folder(s): manifest.csv, recordings and NAME.gt.h5 sidecars; several pool their splits.")],
-    width: Annotated[int, typer.Option(help="U-Net base width (channels at full resolution; 32 = the paper's 7.8 M).")] = 8,
-    pools: Annotated[int, typer.Option(help="Number of 2x2 poolings (96 x 112 allows up to 4).")] = 4,
-    window_ms: Annotated[float, typer.Option(help="Event window accumulated into the SAE (ms).")] = 10.0,
+    width: Annotated[int | None, typer.Option(
+        help="U-Net base width (channels at full resolution; 32 = the paper's 7.8 M; default 8).")] = None,
+    pools: Annotated[int | None, typer.Option(help="Number of 2x2 poolings (96 x 112 allows up to 4; default 4).")] = None,
+    window_ms: Annotated[float | None, typer.Option(help="Event window accumulated into the SAE (ms; default 10).")] = None,
     loss: Annotated[str, typer.Option(help="contact (contact-aware L1, the paper's) or uniform (plain L1).")] = "contact",
     lambda_c: Annotated[float, typer.Option(help="Weight of the contact term of the contact-aware loss.")] = 0.5,
     steps: Annotated[int | None, typer.Option(help="Training steps (default 2000 unless --time-budget-min).")] = None,
@@ -45,11 +46,15 @@ def train_command(
     noise_hz: Annotated[float, typer.Option(
         help="Background-noise augmentation: half the windows get extra noise events up to this rate "
              "(Hz per pixel, log-uniform from 0.02); 0: off.")] = 0.0,
-    inputs: Annotated[str, typer.Option(
+    inputs: Annotated[str | None, typer.Option(
         help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
              "sae+disp+prev (+ the previous depth map), sae+bright (+ the brightness change since rest, the events' "
              "polarities integrated), sae+bright+disp, sae+bright-hold (the brightness change with the gated leak: "
-             "a press held as long as it lasts); docs/depthnet.md.")] = "sae",
+             "a press held as long as it lasts); docs/depthnet.md. Default: sae.")] = None,
+    init: Annotated[str | None, typer.Option(
+        help="Fine-tune this network instead of starting from fresh weights: a bundled one (default) or the .onnx of "
+             "one you trained (its card and NAME.ckpt.pt beside it). Its width, pools, window and inputs are kept; "
+             "the card says what it gained on the data's val split.")] = None,
     calibration: Annotated[Path | None, typer.Option(
         help="Calibration folder (camera, marker map) for the tracker behind the displacement channels (default: "
              "the folder of labrig's default rig).")] = None,
@@ -59,16 +64,26 @@ def train_command(
     as_json: Annotated[bool, typer.Option("--json", help="Print the model card as JSON.")] = False,
 ) -> None:
     """Train the depth U-Net on a campaign's train split; validate on its val split; export ONNX + model card."""
+    from labrig.errors import LabrigError
     from labrig.training import TrainConfig, train
 
-    config = TrainConfig(width=width, pools=pools, window_ms=window_ms, loss=loss, lambda_c=lambda_c, steps=steps,
-                         time_budget_min=time_budget_min, batch_size=batch_size, lr=lr, seed=seed,
-                         checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows,
-                         phases=phases, device=device, threads=threads, noise_hz=noise_hz, inputs=inputs,
-                         calibration_dir=str(calibration_folder(calibration)), workers=workers)
+    settings: dict[str, Any] = dict(
+        loss=loss, lambda_c=lambda_c, steps=steps, time_budget_min=time_budget_min, batch_size=batch_size, lr=lr,
+        seed=seed, checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows, phases=phases,
+        device=device, threads=threads, noise_hz=noise_hz, calibration_dir=str(calibration_folder(calibration)),
+        workers=workers)
+    shape: dict[str, Any] = {"width": width, "pools": pools, "window_ms": window_ms, "inputs": inputs}
+    if init is not None:
+        given = [f"--{k.replace('_', '-')}" for k, v in shape.items() if v is not None]
+        if given:
+            raise LabrigError(f"--init keeps the network's shape and inputs: leave out {', '.join(given)}")
+        config = TrainConfig.from_init(init, **settings)
+    else:
+        config = TrainConfig(**{k: v for k, v in shape.items() if v is not None}, **settings)
     config.check()
     if out is None:
-        out = Path("models") / f"depth-w{width}-{loss}-{window_ms:g}ms"
+        tuned = "-tuned" if init is not None else ""
+        out = Path("models") / f"depth-w{config.width}-{loss}-{config.window_ms:g}ms{tuned}"
     command = "labrig " + shlex.join(sys.argv[1:]) if sys.argv and "train" in sys.argv else ""
     card = train(data[0] if len(data) == 1 else data, config, out, resume=resume, command=command,
                  show_progress=not as_json)
@@ -99,6 +114,13 @@ def _print_card(c: dict[str, Any]) -> None:
                                          f"non-contact {v['noncontact_mm'] or float('nan'):.4f} mm ({v['maps']} windows)")
     else:
         table.add_row("val depth error", "[yellow]no val recordings[/]")
+    init = c.get("init")
+    if init and v and init.get("val_before"):
+        before, after = init["val_before"], v
+        nan = float("nan")
+        table.add_row("fine-tuned from", f"{init['model']}: val depth error in contact "
+                                         f"{before['contact_mm'] or nan:.4f} -> {after['contact_mm'] or nan:.4f} mm, "
+                                         f"total {before['total_mm']:.4f} -> {after['total_mm']:.4f} mm")
     table.add_row("inference", f"{c['inference_ms_ort_1thread']:.2f} ms per window (onnxruntime, 1 thread)")
     table.add_row("files", f"{c['onnx']}\n{c['card']}\n{c['checkpoint']}")
     table.add_row("reproduce", c["reproduce"])

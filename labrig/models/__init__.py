@@ -1,7 +1,8 @@
 """The bundled depth networks: trained on virtual-rig campaigns, shipped with their model cards.
 
 ``NAME.onnx`` + ``NAME.json`` (the card: architecture, inputs, training data, window, loss,
-augmentation, val and test errors, and the exact command that reproduces it).
+augmentation, val and test errors, and the exact command that reproduces it), and
+``NAME.weights.pt`` (its torch weights, which ``labrig train --init`` fine-tunes).
 ``labrig evaluate`` and ``labrig run --depth model`` use ``default`` unless given another model:
 the SAE and the brightness change since rest (:mod:`labrig.pipeline.brightness`), the gel's
 state. ``--model sae-only`` picks the paper's network, the SAE alone, kept as the baseline it
@@ -20,6 +21,8 @@ from labrig.errors import LabrigError
 BUNDLED = {"default": "depth-w4-bright-10ms", "sae-only": "depth-w4-contact-10ms"}
 BUNDLED_NAME = BUNDLED["default"]
 FOLDER = Path(__file__).resolve().parent
+#: A network's torch weights (its ``state_dict``) beside its ``.onnx``: ``NAME`` + this.
+WEIGHTS_SUFFIX = ".weights.pt"
 
 
 def bundled_model_path(name: str = "default") -> Path:

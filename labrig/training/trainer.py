@@ -34,9 +34,9 @@ DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
 #: Settings that must match for a resume.
 RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases", "noise_hz",
-               "inputs")
+               "inputs", "init")
 #: Resume keys a checkpoint may predate, with the value it then had.
-RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae"}
+RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae", "init": None}
 #: Lowest extra noise rate of the augmentation (Hz per pixel): below the sensor's own.
 NOISE_MIN_HZ = 0.02
 
@@ -65,6 +65,18 @@ class TrainConfig:
     calibration_dir: str | None = DEFAULT_CALIBRATION_DIR
     #: Processes that build the recordings' state channels before training (None: one per core; 1: this one).
     workers: int | None = None
+    #: The network to fine-tune (:func:`labrig.training.init.initial_network`: a bundled name or an .onnx), or None
+    #: (fresh weights). Its width, pools, window and inputs must be this config's (:meth:`from_init` sets them).
+    init: str | None = None
+
+    @classmethod
+    def from_init(cls, init: str, **settings: Any) -> TrainConfig:
+        """A config that fine-tunes ``init``: its architecture, window and inputs, the other ``settings`` as given."""
+        from labrig.training.init import initial_network
+
+        net = initial_network(init)
+        return cls(width=net.width, pools=net.pools, window_ms=net.window_ms, inputs=net.inputs, init=str(init),
+                   **settings)
 
     def check(self) -> None:
         if self.loss not in LOSSES:
@@ -166,6 +178,9 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
         spec = config.input_spec
         unet = UNetConfig(width=config.width, pools=config.pools, in_channels=spec.channels)
         model = build_unet(unet).to(device)
+        init = _initial(config, data.scale_mm)
+        if init is not None and not resume:
+            model.load_state_dict(init.state_dict(device))
         optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
         prepare_states([src.path for split in ("train", "val") for src in data.sources.get(split, [])], spec,
                        config.calibration_dir, workers=config.workers)
@@ -203,7 +218,8 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
             torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
                         "elapsed_s": elapsed_s, "samples_s": samples_s, "sampler_rng": sampler.state(),
                         "torch_rng": torch.get_rng_state(), "config": dataclasses.asdict(config),
-                        "history": history, "val_history": val_history}, tmp)
+                        "history": history, "val_history": val_history,
+                        "val_before": init_card["val_before"] if init_card else None}, tmp)
             os.replace(tmp, paths["checkpoint"])
 
         budget_s = config.time_budget_min * 60.0 if config.time_budget_min else None
@@ -212,6 +228,9 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
         def done() -> bool:
             return (max_steps is not None and step >= max_steps) or (budget_s is not None and elapsed_s >= budget_s)
 
+        init_card = None
+        if init is not None:
+            init_card = {**init.describe(), "val_before": validate() if not resume else ckpt.get("val_before")}
         model.train()
         last_val = val_history[-1][1] if val_history else None
         with _Progress(show_progress, max_steps, budget_s) as bar:
@@ -264,6 +283,7 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
             "sampling": f"uniform recording, uniform start time within its {config.phases} phases; ground truth "
                         "nearest to the window's last event",
             "augmentation": _augmentation(config),
+            "init": init_card,
             "training": {"steps": step, "batch_size": config.batch_size, "samples": n_samples, "optimizer": "Adam",
                          "lr": config.lr, "seed": config.seed, "seconds": round(elapsed_s, 1),
                          "samples_per_s": round(n_samples / elapsed_s, 1) if elapsed_s > 0 else None,
@@ -291,6 +311,25 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
                 "checkpoint": str(paths["checkpoint"])}
     finally:
         data.close()
+
+
+def _initial(config: TrainConfig, scale_mm: float) -> Any:
+    """The network ``config.init`` names (:class:`~labrig.training.init.InitialNetwork`), checked against the
+    config and the data, or None."""
+    if config.init is None:
+        return None
+    from labrig.training.init import initial_network
+
+    net = initial_network(config.init)
+    mismatched = [f"{key} {getattr(net, key)!r} (not {getattr(config, key)!r})"
+                  for key in ("width", "pools", "window_ms", "inputs") if getattr(net, key) != getattr(config, key)]
+    if mismatched:
+        raise LabrigError(f"--init {config.init}: the network has {', '.join(mismatched)}; fine-tuning keeps them")
+    if abs(net.scale_mm - scale_mm) > 1e-9:
+        raise LabrigError(f"--init {config.init}: the network reads depth in units of {net.scale_mm:g} mm, the data's "
+                          f"ground truth of {scale_mm:g} mm; regenerate it with labrig groundtruth --scale-mm "
+                          f"{net.scale_mm:g}")
+    return net
 
 
 def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
@@ -323,10 +362,11 @@ def _smooth(history: list[tuple[int, float]], n: int = 20) -> float | None:
 def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out: Path, steps: int) -> str:
     """A command that gives this model again (deterministic on CPU): the step count reached, not the budget."""
     folders = [str(data_dir)] if isinstance(data_dir, (str, Path)) else [str(d) for d in data_dir]
-    parts = ["labrig", "train", *folders, "--width", str(c.width), "--window-ms", f"{c.window_ms:g}",
+    shape = ["--init", c.init] if c.init is not None else ["--width", str(c.width), "--window-ms", f"{c.window_ms:g}"]
+    parts = ["labrig", "train", *folders, *shape,
              "--loss", c.loss, "--steps", str(steps), "--seed", str(c.seed), "--batch-size", str(c.batch_size),
              "--lr", f"{c.lr:g}", "--out", str(out)]
-    if c.pools != 4:
+    if c.pools != 4 and c.init is None:
         parts += ["--pools", str(c.pools)]
     if c.loss == "contact" and c.lambda_c != DEFAULT_LAMBDA_C:
         parts += ["--lambda-c", f"{c.lambda_c:g}"]
@@ -335,7 +375,8 @@ def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out:
     if c.noise_hz > 0:
         parts += ["--noise-hz", f"{c.noise_hz:g}"]
     if c.inputs != "sae":
-        parts += ["--inputs", c.inputs]
+        if c.init is None:
+            parts += ["--inputs", c.inputs]
         if c.calibration_dir not in (None, "calibration", DEFAULT_CALIBRATION_DIR) and "disp" in c.inputs:
             parts += ["--calibration", str(c.calibration_dir)]
     if c.val_every != 200 or c.val_windows != 128:
