@@ -111,3 +111,38 @@ def test_sim_probe_records_a_run_and_reports_json(tmp_path: Path) -> None:
 def test_sim_probe_rejects_bad_input(tmp_path: Path, args: list[str], expected: str) -> None:
     result = labrig("sim", "probe", tmp_path / "x.h5", *args)
     assert result.returncode == 2 and expected in result.stderr and "Traceback" not in result.stderr
+
+
+def one_error_line(result: subprocess.CompletedProcess[str]) -> str:
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:"), result.stderr
+    return lines[0]
+
+
+def test_output_paths_in_the_way_are_one_line_before_any_work(small_recording: Path, tmp_path: Path) -> None:
+    a_file = tmp_path / "taken"
+    a_file.write_text("not a folder")
+    assert "--out" in one_error_line(labrig("campaign", "protocols/demo.toml", "--out", a_file))
+    assert "is a file, not a folder" in one_error_line(labrig("inspect", small_recording, "--plot", a_file / "x.png"))
+    assert "is a folder" in one_error_line(labrig("groundtruth", small_recording, "--plot", tmp_path))
+
+
+def test_a_plot_into_a_missing_folder_makes_the_folder(small_recording: Path, tmp_path: Path) -> None:
+    plot = tmp_path / "new" / "deeper" / "overview.png"
+    result = labrig("inspect", small_recording, "--plot", plot)
+    assert result.returncode == 0, result.stderr
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("kind", ["intrinsics", "extrinsics", "events", "rig", "gel"])
+def test_calibrate_never_replaces_the_calibration_beside_the_rig_unasked(kind: str, tmp_path: Path) -> None:
+    """Refused before anything is recorded or fitted: the default target exists and neither --out nor --force."""
+    from labrig.config import DEFAULT_RIG
+
+    shutil.copy(DEFAULT_RIG, tmp_path / "rig.toml")
+    default = {"rig": "rig-registration.toml"}.get(kind, f"{kind}.toml")
+    (tmp_path / default).write_text("# a lab's calibration\n")
+    line = one_error_line(labrig("calibrate", kind, "--rig", tmp_path / "rig.toml"))
+    assert str(tmp_path / default) in line and "--out" in line and "--force" in line
+    assert (tmp_path / default).read_text() == "# a lab's calibration\n"

@@ -111,6 +111,8 @@ def test_the_command_writes_the_files_and_never_replaces_the_default_unasked(
     assert len(again.stderr.strip().splitlines()) == 1
     forced = _labrig("calibrate", "events", path, "--rig", rig_file, "--force", "--json")
     assert forced.returncode == 0, forced.stderr
+    assert json.loads(forced.stdout)["backup"] == str(folder / "events.toml.bak")
+    assert (folder / "events.toml.bak").read_text() == (folder / "events.toml").read_text()  # the same recording
     setup = run_setup.setup_for_rig(sensor, calibration_dir=folder)
     assert setup.thresholds is not None and setup.sources["thresholds"] == str(folder / "events.toml")
 

@@ -15,7 +15,18 @@ import typer
 from rich.table import Table
 
 from labrig.cli.calibrate_rig import add_rig_calibration_commands
-from labrig.cli.console import JsonOption, RigOption, console, err_console, print_json
+from labrig.cli.console import (
+    ForceOption,
+    JsonOption,
+    RigOption,
+    calibration_file_rows,
+    calibration_output,
+    console,
+    err_console,
+    keep_backup,
+    output_file,
+    print_json,
+)
 
 if TYPE_CHECKING:
     from labrig.calibration.marker_map import MarkerMap
@@ -26,7 +37,8 @@ calibrate_app = typer.Typer(
     no_args_is_help=True,
 )
 
-PlotOption = Annotated[Path | None, typer.Option("--plot", help="Draw detections and reprojection residuals to this PNG.")]
+PlotOption = Annotated[Path | None, typer.Option(
+    "--plot", help="Draw detections and reprojection residuals to this PNG.", callback=output_file)]
 SeedOption = Annotated[int, typer.Option(help="Seed of the virtual rig's scene (when no recording is given).")]
 
 
@@ -43,7 +55,8 @@ def _scratch(name: str) -> Path:
 @calibrate_app.command("intrinsics")
 def intrinsics_command(
     recording: Annotated[Path | None, typer.Argument(help="Recording of a blinking dot-grid target (default: record one on the virtual rig).")] = None,  # noqa: E501
-    out: Annotated[Path, typer.Option("--out", help="Intrinsics file to write.")] = Path("calibration/intrinsics.toml"),
+    out: Annotated[Path | None, typer.Option("--out", help="Intrinsics file to write (default: intrinsics.toml beside the rig file).")] = None,  # noqa: E501
+    force: ForceOption = False,
     rows: Annotated[int | None, typer.Option(help="Target dot rows (default: from the recording, else 9).")] = None,
     cols: Annotated[int | None, typer.Option(help="Target dot columns (default: from the recording, else 15).")] = None,
     pitch_mm: Annotated[float | None, typer.Option(help="Target dot pitch, mm (default: from the recording, else 2).")] = None,
@@ -57,28 +70,31 @@ def intrinsics_command(
     """Camera matrix and distortion from a recording of a blinking dot-grid target at many poses."""
     from labrig.calibration.intrinsics import calibrate_intrinsics, write_intrinsics
     from labrig.calibration.plots import plot_intrinsics
+    from labrig.config import DEFAULT_RIG, load_rig
     from labrig.physics.target import DotGridTarget
 
+    rig = load_rig(rig_path or DEFAULT_RIG)
+    target_file = calibration_output(out, rig.path.parent / "intrinsics.toml", force)
     if recording is None:
-        from labrig.config import DEFAULT_RIG, load_rig
         from labrig.sim.calibration_scenes import record_target_scene
 
         recording = _scratch("target-scene.h5")
         err_console.print(f"no recording given: recording a {views}-view dot-grid target scene on the virtual rig ({recording})")
-        record_target_scene(recording, load_rig(rig_path or DEFAULT_RIG), n_views=views, seed=seed)
+        record_target_scene(recording, rig, n_views=views, seed=seed)
     target = None
     if rows is not None or cols is not None or pitch_mm is not None:
         base = DotGridTarget()
         target = DotGridTarget(rows=rows or base.rows, cols=cols or base.cols, pitch_mm=pitch_mm or base.pitch_mm)
     result = calibrate_intrinsics(recording, target, fix_k3=not fit_k3)
-    path = write_intrinsics(result, out)
+    backup = keep_backup(target_file)
+    path = write_intrinsics(result, target_file)
     k = result.camera_matrix
     summary: dict[str, Any] = {
         "path": str(path), "recording": str(recording), "fx_px": float(k[0, 0]), "fy_px": float(k[1, 1]),
         "cx_px": float(k[0, 2]), "cy_px": float(k[1, 2]), "distortion": [float(d) for d in result.distortion],
         "rms_px": result.rms_px, "views_found": len(result.views), "views_used": len(result.used),
         "views_rejected": {str(v.index): v.rejected for v in result.views if v.rejected},
-        "per_view_rms_px": result.per_view_rms_px,
+        "per_view_rms_px": result.per_view_rms_px, "backup": None if backup is None else str(backup),
     }
     if plot is not None:
         summary["plot"] = str(plot_intrinsics(result, plot))
@@ -95,6 +111,7 @@ def intrinsics_command(
     table.add_row("views", f"{len(result.used)} used of {len(result.views)}")
     for index, reason in summary["views_rejected"].items():
         table.add_row(f"view {index}", f"[yellow]rejected[/]: {reason}")
+    calibration_file_rows(table, summary)
     console.print(table)
 
 
@@ -102,7 +119,8 @@ def intrinsics_command(
 def extrinsics_command(
     recording: Annotated[Path | None, typer.Argument(help="Recording of the LED ring blinking, gel at rest (default: record one on the virtual rig).")] = None,  # noqa: E501
     intrinsics: Annotated[Path | None, typer.Option("--intrinsics", help="Intrinsics file (default: calibration/intrinsics.toml).")] = None,  # noqa: E501
-    out: Annotated[Path, typer.Option("--out", help="Extrinsics file to write.")] = Path("calibration/extrinsics.toml"),
+    out: Annotated[Path | None, typer.Option("--out", help="Extrinsics file to write (default: extrinsics.toml beside the rig file).")] = None,  # noqa: E501
+    force: ForceOption = False,
     seed: SeedOption = 0,
     rig_path: RigOption = None,
     plot: PlotOption = None,
@@ -120,6 +138,7 @@ def extrinsics_command(
     from labrig.config import DEFAULT_RIG, load_rig
 
     rig = load_rig(rig_path or DEFAULT_RIG)
+    target_file = calibration_output(out, rig.path.parent / "extrinsics.toml", force)
     intr = load_intrinsics(intrinsics or DEFAULT_INTRINSICS)
     if recording is None:
         from labrig.sim.calibration_scenes import record_led_blink
@@ -128,14 +147,15 @@ def extrinsics_command(
         err_console.print(f"no recording given: recording the LED ring blinking on the virtual rig ({recording})")
         record_led_blink(recording, rig, seed=seed)
     result = calibrate_extrinsics(recording, intr, rig.markers, nominal_rotvec_rad=rig.camera.nominal_rotvec_rad)
-    path = write_extrinsics(result, out, intr)
+    backup = keep_backup(target_file)
+    path = write_extrinsics(result, target_file, intr)
     summary: dict[str, Any] = {
         "path": str(path), "recording": str(recording), "intrinsics": str(intr.path),
         "rotation_rotvec_rad": result.rotvec_rad.tolist(), "translation_mm": result.translation_mm.tolist(),
         "reprojection_mean_px": result.mean_error_px, "reprojection_std_px": result.std_error_px,
         "reprojection_max_px": result.max_error_px, "markers_detected": int(result.detected.sum()),
         "markers": len(result.rest_gel_mm), "blobs_spurious": result.spurious, "blinks": result.blinks,
-        **result.marker_map.summary(worst),
+        **result.marker_map.summary(worst), "backup": None if backup is None else str(backup),
     }
     residual_map = residual_map or path.with_name(path.stem + "-residuals.png")
     summary["residual_map"] = str(plot_marker_residuals(result.marker_map, residual_map, f"{path.name}"))
@@ -155,7 +175,7 @@ def extrinsics_command(
     table.add_row("markers", f"{int(result.detected.sum())} of {len(result.rest_gel_mm)} detected, "
                   f"{result.spurious} spurious blob(s) ignored, {result.blinks} blink(s)")
     _marker_rows(table, result.marker_map, worst)
-    table.add_row("residual map", str(summary["residual_map"]))
+    calibration_file_rows(table, summary)
     console.print(table)
 
 
@@ -163,29 +183,27 @@ def extrinsics_command(
 def events_command(
     recording: Annotated[Path | None, typer.Argument(help="Recording of the LED ring dimmed and brightened along ramps, gel at rest (default: record one on the virtual rig).")] = None,  # noqa: E501
     out: Annotated[Path | None, typer.Option("--out", help="Thresholds file to write (default: events.toml beside the rig file).")] = None,  # noqa: E501
-    force: Annotated[bool, typer.Option("--force", help="Replace the default events.toml if it exists.")] = False,
+    force: ForceOption = False,
     led_ratio: Annotated[float | None, typer.Option("--led-ratio", help="The LED's full / dimmed light (default: what the recording names).", min=1.0)] = None,  # noqa: E501
     seed: SeedOption = 0,
     rig_path: RigOption = None,
-    plot: Annotated[Path | None, typer.Option("--plot", help="Draw the threshold maps and histograms to this PNG.")] = None,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="Draw the threshold maps and histograms to this PNG.", callback=output_file)] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Contrast thresholds, ON and OFF, per cell of the network grid, from the LED ring dimmed and brightened.
 
     Every command that reads the calibration folder uses them: the depth network's brightness input is
     then the change of log intensity, not a count of events, whatever the camera's biases."""
+    from labrig.cache import sha256_of
     from labrig.calibration.event_thresholds import fit_event_thresholds
     from labrig.calibration.event_thresholds_file import EVENTS_FILE, write_event_thresholds
     from labrig.calibration.files import provenance
     from labrig.calibration.plots import plot_event_thresholds
-    from labrig.cache import sha256_of
     from labrig.config import DEFAULT_RIG, load_rig
-    from labrig.errors import CalibrationError
 
     rig = load_rig(rig_path or DEFAULT_RIG)
-    target = out or rig.path.parent / EVENTS_FILE
-    if out is None and target.exists() and not force:
-        raise CalibrationError(f"{target} exists: give --out FILE for a new calibration, or --force to replace it")
+    target = calibration_output(out, rig.path.parent / EVENTS_FILE, force)
     if recording is None:
         from labrig.sim.calibration_scenes import record_led_ramps
 
@@ -194,8 +212,9 @@ def events_command(
         record_led_ramps(recording, rig, seed=seed)
     fit = fit_event_thresholds(recording, rig.roi, ratio=led_ratio)
     summary = fit.summary()
+    backup = keep_backup(target)
     path = write_event_thresholds(target, fit.thresholds, summary, provenance(recording, sha256_of(recording)))
-    result: dict[str, Any] = {"path": str(path), "recording": str(recording),
+    result: dict[str, Any] = {"path": str(path), "recording": str(recording), "backup": None if backup is None else str(backup),
                               **summary["thresholds"], **summary["scene"], **summary["quality"]}
     if plot is not None:
         result["plot"] = str(plot_event_thresholds(fit, plot))
@@ -213,8 +232,7 @@ def events_command(
                   f"({fit.ramps_used} ramps of ln {fit.schedule.ratio:g})")
     table.add_row("background", f"{q['background_rate_hz']:.3f} Hz per pixel")
     table.add_row("left out", f"{q['pixels_rejected']} pixels (hot or dead), {q['cells_filled']} cells given the median")
-    if plot is not None:
-        table.add_row("plot", str(result["plot"]))
+    calibration_file_rows(table, result)
     console.print(table)
 
 

@@ -13,7 +13,19 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from labrig.cli.console import JsonOption, RigOption, console, err_console, load_rig_and_indenters, print_json
+from labrig.cli.console import (
+    ForceOption,
+    JsonOption,
+    RigOption,
+    calibration_file_rows,
+    calibration_output,
+    console,
+    err_console,
+    keep_backup,
+    load_rig_and_indenters,
+    output_file,
+    print_json,
+)
 
 if TYPE_CHECKING:
     from labrig.config import RigConfig
@@ -39,7 +51,9 @@ def add_rig_calibration_commands(calibrate_app: typer.Typer) -> None:
 
 def rig_command(
     out: Annotated[Path | None, typer.Option("--out", help="Registration file (default: rig-registration.toml next to the rig file).")] = None,  # noqa: E501
-    plot: Annotated[Path | None, typer.Option("--plot", help="Draw the touch-offs and residuals to this PNG.")] = None,
+    force: ForceOption = False,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="Draw the touch-offs and residuals to this PNG.", callback=output_file)] = None,
     data: Annotated[Path, typer.Option("--data", help="Directory for the touch-off recordings.")] = Path("recordings/calibration"),  # noqa: E501
     points: Annotated[int, typer.Option(help="Touch-offs, 3 to 9: the corners of a 14 x 12 mm rectangle, its centre, "
                                         "its edges' midpoints (5 or more: a bad one can be dropped).")] = 5,
@@ -57,6 +71,7 @@ def rig_command(
     from labrig.protocol.calibration_runs import register_rig, touchoff_locations
 
     rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
+    target = calibration_output(out, default_registration_path(rig), force)
     _say_where(rig, as_json)
     locations = touchoff_locations(points)
     started = time.monotonic()
@@ -67,10 +82,12 @@ def rig_command(
 
     reg = register_rig(rig, indenters, data_dir=data, locations=locations, shear_mm=shear_mm, gel_path=gel,
                        seed=seed, indenters_path=indenters_path, progress=progress)
-    path = reg.save(out or default_registration_path(rig))
+    backup = keep_backup(target)
+    path = reg.save(target)
     if plot is not None:
         plot_registration(reg, plot)
-    summary = {"path": str(path), "plot": None if plot is None else str(plot), **reg.summary(),
+    summary = {"path": str(path), "plot": None if plot is None else str(plot),
+               "backup": None if backup is None else str(backup), **reg.summary(),
                "wall_s": round(time.monotonic() - started, 2)}
     quality = reg.quality
     if quality.verdict != "good":
@@ -101,12 +118,15 @@ def rig_command(
         table.add_row(f"touch-off {i}", f"at {p.location_mm} -> gel {p.contact_gel_mm[0]:+.3f}, {p.contact_gel_mm[1]:+.3f} mm, "
                       f"contact {p.depth_offset_mm * 1e3:.0f} um below the surface, residual "
                       f"{float(np.linalg.norm(p.residual_mm)) * 1e3:.1f} um; {Path(p.recording).name}{dropped}")
+    calibration_file_rows(table, summary)
     console.print(table)
 
 
 def gel_command(
     out: Annotated[Path | None, typer.Option("--out", help="Gel file (default: gel.toml next to the rig file).")] = None,
-    plot: Annotated[Path | None, typer.Option("--plot", help="Draw force against depth with the fit to this PNG.")] = None,
+    force: ForceOption = False,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="Draw force against depth with the fit to this PNG.", callback=output_file)] = None,
     stiffening: Annotated[bool, typer.Option("--stiffening/--linear", help="Fit a first-order strain stiffening with E "
                                              "(default), or a plain linear model.")] = True,
     max_depth: Annotated[float | None, typer.Option("--max-depth", help="Fit steps up to this depth below contact, mm.")] = None,
@@ -123,6 +143,7 @@ def gel_command(
     from labrig.protocol.calibration_runs import DEFAULT_PLAN, measure_curves
 
     rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
+    target = calibration_output(out, rig.path.parent / "gel.toml", force)
     _say_where(rig, as_json)
     started = time.monotonic()
 
@@ -134,10 +155,12 @@ def gel_command(
                             registration_path=registration, progress=progress)
     tables = {name: contact_table(indenters[name], rig) for name in DEFAULT_PLAN}
     fit = fit_modulus(curves, rig, indenters, stiffening=stiffening, max_depth_mm=max_depth, tables=tables)
-    path = fit.save(out or rig.path.parent / "gel.toml")
+    backup = keep_backup(target)
+    path = fit.save(target)
     if plot is not None:
         plot_fit(fit, tables, plot)
-    summary = {"path": str(path), "plot": None if plot is None else str(plot), **fit.summary(),
+    summary = {"path": str(path), "plot": None if plot is None else str(plot),
+               "backup": None if backup is None else str(backup), **fit.summary(),
                "wall_s": round(time.monotonic() - started, 2)}
     if as_json:
         print_json(summary)
@@ -153,4 +176,5 @@ def gel_command(
     table.add_row("residual", f"{fit.residual_rms_n * 1e3:.1f} mN rms ({fit.residual_rel * 100:.2f} % of the rms force)")
     for c, d0 in zip(fit.curves, fit.depth_offsets_mm, strict=True):
         table.add_row(c.source, f"{len(c.depth_mm)} steps to {c.depth_mm.max():.2f} mm, contact detected {d0 * 1e3:.0f} um deep")
+    calibration_file_rows(table, summary)
     console.print(table)

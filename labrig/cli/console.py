@@ -54,6 +54,75 @@ def calibration_folder(calibration: Path | None) -> Path:
     return calibration
 
 
+def output_file(value: Path | None) -> Path | None:
+    """An output file option (``--plot``, ``--view``), checked as it is parsed, before any work: its folder is
+    made; a folder in its place, or a file where its folder should be, is one clear line."""
+    from labrig.errors import LabrigError
+
+    if value is None:
+        return None
+    if value.is_dir():
+        raise LabrigError(f"{value} is a folder; give a file name in it (e.g. {value / 'plot.png'})")
+    try:
+        value.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise LabrigError(f"cannot write {value}: {value.parent} is a file, not a folder") from None
+    except OSError as exc:
+        raise LabrigError(f"cannot write {value}: {exc.strerror or exc}") from None
+    return value
+
+
+def output_folder(value: Path, option: str) -> Path:
+    """An output folder option (``--out``), made if missing; a file in its place is one clear line."""
+    from labrig.errors import LabrigError
+
+    if value.exists() and not value.is_dir():
+        raise LabrigError(f"{option} {value} is a file; give a folder (it is made if missing)")
+    try:
+        value.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise LabrigError(f"{option} {value}: a file is in the way of the folder") from None
+    except OSError as exc:
+        raise LabrigError(f"{option} {value}: cannot make the folder ({exc.strerror or exc})") from None
+    return value
+
+
+def calibration_output(out: Path | None, default: Path, force: bool) -> Path:
+    """Where a calibration is written: ``--out``, else ``default`` (the file beside the rig file, which the
+    commands read). An existing default is replaced only with ``--force``; checked before any work."""
+    from labrig.errors import CalibrationError
+
+    if out is not None:
+        return out
+    if default.exists() and not force:
+        raise CalibrationError(f"{default} exists: give --out FILE for a new calibration, or --force to replace it "
+                               f"(the old one is kept as {default.name}.bak)")
+    return default
+
+
+ForceOption = Annotated[bool, typer.Option("--force", help=(
+    "Replace the calibration beside the rig file when no --out is given (the old file is kept as NAME.bak)."))]
+
+
+def calibration_file_rows(table: Any, summary: dict[str, Any]) -> None:
+    """Rows of a calibration's rich table for the files it wrote besides its own (named in the title): plots,
+    maps, the kept previous file."""
+    for key, label in (("plot", "plot"), ("residual_map", "residual map"), ("backup", "previous file kept as")):
+        if summary.get(key):
+            table.add_row(label, str(summary[key]))
+
+
+def keep_backup(path: Path) -> Path | None:
+    """Copy ``path`` to ``NAME.bak`` beside it before it is replaced; None if there is nothing to keep."""
+    import shutil
+
+    if not path.is_file():
+        return None
+    backup = path.with_name(path.name + ".bak")
+    shutil.copyfile(path, backup)
+    return backup
+
+
 def json_default(value: Any) -> Any:
     """numpy scalars and arrays as plain JSON values."""
     if hasattr(value, "item"):  # numpy scalars

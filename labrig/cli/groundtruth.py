@@ -22,6 +22,7 @@ from labrig.cli.console import (
     calibration_folder,
     console,
     err_console,
+    output_file,
     print_json,
     progress_bar,
 )
@@ -38,7 +39,8 @@ def groundtruth(
     calibration: CalibrationOption = None,
     rig_path: Annotated[Path | None, typer.Option("--rig", help="Rig TOML (default: the one stored in each recording).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Redo sidecars that are already current.")] = False,
-    plot: Annotated[Path | None, typer.Option(help="PNG of a few maps of the first recording beside its events.")] = None,
+    plot: Annotated[Path | None, typer.Option(
+        help="PNG of a few maps of the first recording beside its events.", callback=output_file)] = None,
     indenters_path: Annotated[Path | None, typer.Option("--indenters", help=(
         "Indenter TOML for recordings that do not carry their indenter's definition (default: "
         "protocols/indenters.toml); recordings that carry one use it."))] = None,

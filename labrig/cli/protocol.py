@@ -23,6 +23,8 @@ from labrig.cli.console import (
     load_rig_and_indenters,
     on_ctrl_c,
     on_terminate,
+    output_file,
+    output_folder,
     print_json,
     progress_bar,
     stop_probing_run,
@@ -40,7 +42,8 @@ def record(
     out: Annotated[Path, typer.Option("--out", help="Directory for the recording.")] = Path("recordings"),
     name: Annotated[str | None, typer.Option(help="File name (default: INDENTER-YYYYmmdd-HHMMSS.h5).")] = None,
     seed: Annotated[int, typer.Option(help="Seed of the virtual rig's noise (virtual rig only).")] = 0,
-    plot: Annotated[Path | None, typer.Option("--plot", help="Also draw events, forces and Z to this PNG.")] = None,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="Also draw events, forces and Z to this PNG.", callback=output_file)] = None,
     rig_path: RigOption = None,
     indenters_path: IndentersOption = None,
     as_json: JsonOption = False,
@@ -61,7 +64,7 @@ def record(
         err_console.print("no hardware configured: recording on the virtual rig (embedded)")
     session = RigSession.for_rig(rig, indenters[spec.indenter], seed=seed, indenters_path=ind_path,
                                  shear_directions_deg=[spec.shear_direction_deg])
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out, "--out")
     path = out / (name or f"{spec.indenter}-{time.strftime('%Y%m%d-%H%M%S')}.h5")
     if path.suffix != ".h5":
         path = path.with_suffix(".h5")
@@ -141,7 +144,7 @@ def campaign(
                           "campaign makes: add --virtual-time")
     if workers > 1 and not devices.virtual and not virtual_time:
         raise LabrigError("--workers > 1 needs the virtual rig: a hardware campaign runs one recording at a time")
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out, "--out")
     manifest = Manifest(out, plan)
     if virtual_time:
         _virtual_campaign(plan, manifest, out, rig.path, ind_path, workers=workers, scheduler=scheduler, limit=limit,

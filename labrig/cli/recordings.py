@@ -8,12 +8,13 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from labrig.cli.console import JsonOption, console, print_json
+from labrig.cli.console import JsonOption, console, output_file, print_json
 
 
 def inspect(
     file: Annotated[Path, typer.Argument(help="Recording file (.h5) or a crashed NAME.h5.partial.")],
-    plot: Annotated[Path | None, typer.Option("--plot", help="Also draw event rate, forces and CNC Z to this PNG.")] = None,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="Also draw event rate, forces and CNC Z to this PNG.", callback=output_file)] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Summarize a recording: duration, events, forces, phases, clocks, warnings."""

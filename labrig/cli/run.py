@@ -15,7 +15,7 @@ from typing import Annotated
 
 import typer
 
-from labrig.cli.console import JsonOption, WindowEventsOption, WindowMsOption, calibration_folder, print_json
+from labrig.cli.console import JsonOption, WindowEventsOption, WindowMsOption, calibration_folder, output_file, print_json
 from labrig.cli.run_report import check_view, print_run
 from labrig.errors import LabrigError
 
@@ -43,7 +43,8 @@ def run(
         help="Depth network: an .onnx with its card, or a bundled one (default, sae-only); "
              "default: newest in models/, else bundled.")] = None,
     out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
-    view: Annotated[Path | None, typer.Option(help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.")] = None,
+    view: Annotated[Path | None, typer.Option(
+        help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.", callback=output_file)] = None,
     view_every: Annotated[int, typer.Option(help="Every n-th window in the animation.")] = 3,
     calibration: Annotated[Path | None, typer.Option(
         help="Folder with gel.toml, intrinsics.toml, extrinsics.toml (default: the folder of labrig's default rig; "
