@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS := 1
 
 venv: $(STAMP)
 
-# torch is pinned to the CPU build that pip finds locally (see DEVELOPERS.md);
+# torch is pinned to its CPU build (README.md, Install);
 # installing it first keeps pip from resolving a multi-GB CUDA build.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)

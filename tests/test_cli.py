@@ -146,3 +146,13 @@ def test_calibrate_never_replaces_the_calibration_beside_the_rig_unasked(kind: s
     line = one_error_line(labrig("calibrate", kind, "--rig", tmp_path / "rig.toml"))
     assert str(tmp_path / default) in line and "--out" in line and "--force" in line
     assert (tmp_path / default).read_text() == "# a lab's calibration\n"
+
+
+def test_run_refuses_a_result_file_that_is_not_hdf5_and_names_the_rig_it_used(small_recording: Path,
+                                                                             tmp_path: Path) -> None:
+    line = one_error_line(labrig("run", small_recording, "--out", tmp_path / "res.csv"))
+    assert "HDF5" in line and ".h5" in line and not (tmp_path / "res.csv").exists()
+    result = labrig("run", small_recording, "--depth", "model", "--json")
+    assert result.returncode == 0, result.stderr
+    rig = json.loads(result.stdout)["sources"]["rig"]
+    assert rig.startswith(str(small_recording)) or Path(rig).exists()  # never a deleted temporary copy

@@ -16,7 +16,7 @@ from typing import Annotated
 import typer
 
 from labrig.cli.console import JsonOption, WindowEventsOption, WindowMsOption, calibration_folder, output_file, print_json
-from labrig.cli.run_report import check_view, print_run
+from labrig.cli.run_report import check_out, check_view, print_run
 from labrig.errors import LabrigError
 
 
@@ -65,6 +65,7 @@ def run(
     from labrig.pipeline.windows import WindowSpec
     from labrig.recording import Recording
 
+    check_out(out)
     if live:
         if recording is not None:
             raise LabrigError(f"give a recording ({recording}) or --live, not both")

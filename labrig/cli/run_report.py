@@ -1,4 +1,4 @@
-"""What ``labrig run REC`` and ``labrig run --live`` share: the --view check and the printed summaries."""
+"""What ``labrig run REC`` and ``labrig run --live`` share: the --view and --out checks and the printed summaries."""
 
 from __future__ import annotations
 
@@ -16,6 +16,13 @@ def check_view(view: Path | None) -> None:
     """Refuse a --view that is not a GIF before anything runs."""
     if view is not None and view.suffix.lower() != ".gif":
         raise LabrigError("--view writes a GIF: give a path ending in .gif")
+
+
+def check_out(out: Path | None) -> None:
+    """Refuse an --out that does not name an HDF5 file before anything runs."""
+    if out is not None and out.suffix.lower() not in (".h5", ".hdf5"):
+        raise LabrigError(f"--out {out}: the results are written as HDF5 (per-window markers, displacements, forces); "
+                          "give a path ending in .h5")
 
 
 def stage_table(stage_median_ms: dict[str, float], title: str | None = None) -> Table:

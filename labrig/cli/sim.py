@@ -165,14 +165,19 @@ def sim_tables(
 
     from labrig.physics.mechanics import ContactTable, table_cache_dir
 
+    from rich.progress import MofNCompleteColumn, TimeElapsedColumn
+
     rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
     rows = []
-    for name, ind in indenters.items():
-        t0 = time.perf_counter()
-        with err_console.status(f"contact table for {name}"):
+    with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), disable=as_json) as bar:
+        task = bar.add_task("contact tables", total=len(indenters))
+        for name, ind in indenters.items():
+            bar.update(task, description=f"contact table: {name} (a new one takes a minute or two)")
+            t0 = time.perf_counter()
             table = ContactTable.from_rig(ind, rig)
-        rows.append({"indenter": name, "seconds": time.perf_counter() - t0, "max_depth_mm": float(table.depths_mm[-1]),
-                     "footprint_yaw_deg": table.yaw_deg})
+            rows.append({"indenter": name, "seconds": time.perf_counter() - t0,
+                         "max_depth_mm": float(table.depths_mm[-1]), "footprint_yaw_deg": table.yaw_deg})
+            bar.advance(task)
     if as_json:
         print_json({"cache_dir": str(table_cache_dir()), "tables": rows})
         return

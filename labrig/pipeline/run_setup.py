@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -94,13 +94,17 @@ def setup_for_recording(recording: Recording, *, rig: RigConfig | None = None,
     camera (``NAME.events.toml`` beside it, :func:`labrig.dataset.events_sidecar_path`) before
     either; then as :func:`setup_for_rig`.
     """
-    rig = rig or rig_from_recording(recording) or load_rig()
+    stored = None if rig is not None else rig_from_recording(recording)
+    rig = rig or stored or load_rig()
     named = _named_calibration(recording)
     own_events = events_sidecar_path(recording.path)
     if own_events.exists():
         named[EVENTS_FILE] = own_events
-    return setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=youngs_modulus_mpa,
-                         poisson_ratio=poisson_ratio, stiffening=stiffening, named=named)
+    setup = setup_for_rig(rig, calibration_dir=calibration_dir, youngs_modulus_mpa=youngs_modulus_mpa,
+                          poisson_ratio=poisson_ratio, stiffening=stiffening, named=named)
+    if stored is not None:  # read from a temporary copy: name where it lives
+        setup = replace(setup, sources={**setup.sources, "rig": f"{recording.path} (the rig file it carries)"})
+    return setup
 
 
 def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR,
