@@ -163,9 +163,9 @@ def sim_tables(
     """Build (or load from cache) the contact tables of every indenter."""
     import time
 
-    from labrig.physics.mechanics import ContactTable, table_cache_dir
-
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
+
+    from labrig.physics.mechanics import ContactTable, table_cache_dir
 
     rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
     rows = []

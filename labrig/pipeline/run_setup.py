@@ -7,8 +7,8 @@ when present, else the rig's. The markers' rest pixels are those the extrinsic c
 measured (its marker map: where each marker really is, the nominal lattice only where one is
 missing), with the missing markers flagged; without a calibration, the nominal lattice through
 the rig's camera. The contrast thresholds are the measured ones (``calibration/events.toml``) when
-present, else none (every event counts one: the nominal sensor). :func:`setup_for_recording` resolves both for a recording, :func:`setup_for_rig`
-for a live stream.
+present, else none (every event counts one: the nominal sensor). :func:`setup_for_recording`
+resolves both for a recording, :func:`setup_for_rig` for a live stream.
 """
 
 from __future__ import annotations
