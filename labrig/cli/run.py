@@ -11,11 +11,19 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
-from labrig.cli.console import JsonOption, WindowEventsOption, WindowMsOption, calibration_folder, output_file, print_json
+from labrig.cli.console import (
+    JsonOption,
+    WindowEventsOption,
+    WindowMsOption,
+    calibration_folder,
+    output_file,
+    print_json,
+    progress_bar,
+)
 from labrig.cli.run_report import check_out, check_view, print_run
 from labrig.errors import LabrigError
 
@@ -45,7 +53,9 @@ def run(
     out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
     view: Annotated[Path | None, typer.Option(
         help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.", callback=output_file)] = None,
-    view_every: Annotated[int, typer.Option(help="Every n-th window in the animation.")] = 3,
+    view_every: Annotated[int | None, typer.Option(help=(
+        "Every n-th window in the animation (default: the probing phases' windows thinned to at most 200 frames; "
+        "live: every 3rd)."))] = None,
     calibration: Annotated[Path | None, typer.Option(
         help="Folder with gel.toml, intrinsics.toml, extrinsics.toml (default: the folder of labrig's default rig; "
              "live: the rig file's folder).")] = None,
@@ -61,7 +71,7 @@ def run(
     from labrig.config import load_rig
     from labrig.pipeline import depth_sources, results, run_setup, runtime
     from labrig.pipeline.run_summary import WindowLog, window_summary
-    from labrig.pipeline.view import write_view
+    from labrig.pipeline.view import ViewFrames, probing_span_us
     from labrig.pipeline.windows import WindowSpec
     from labrig.recording import Recording
 
@@ -73,7 +83,7 @@ def run(
             raise LabrigError("--serial applies to a recording; the live pipeline always runs its two stages in two threads")
         from labrig.cli.run_live import LiveOptions, run_live  # the live pipeline's modules load only for --live
 
-        run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every, calibration, rig_path,
+        run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every or 3, calibration, rig_path,
                              youngs_modulus_mpa, seconds, indenter, protocol, at, depth_mm, save_recording, max_lag_ms,
                              as_json))
         return
@@ -89,8 +99,8 @@ def run(
     if not recording.exists():
         raise LabrigError(f"{recording}: no such recording")
     window_us = windows.window_us
-    frames: list[runtime.WindowResult] = []
     with Recording(recording) as rec:
+        shown = ViewFrames(probing_span_us(rec), view_every)
         setup = run_setup.setup_for_recording(
             rec, rig=load_rig(rig_path) if rig_path else None,
             calibration_dir=calibration_folder(calibration),
@@ -107,9 +117,8 @@ def run(
             for r in pipe.run(rec, window_us=window_us, window_events=window_events, concurrent=not serial):
                 if writer is not None:
                     writer.write(r)
-                if view is not None and r.index % max(view_every, 1) == 0:
-                    frames.append(r)
-                r.sae = None if view is None or r.index % max(view_every, 1) else r.sae
+                if view is None or not shown.offer(r):
+                    r.sae = None
                 log.add(r)
         finally:
             if writer is not None:
@@ -119,11 +128,22 @@ def run(
         raise LabrigError(f"{recording}: no windows (no events?)")
     summary = window_summary(str(recording), log, wall, source.name, setup, window_us, window_events, out, view)
     if view is not None:
-        write_view(frames, setup, view)
+        _write_view(shown.frames, setup, view, as_json)
     if as_json:
         print_json(summary)
     else:
         print_run(summary)
+
+
+def _write_view(frames: list[Any], setup: Any, view: Path, as_json: bool) -> None:
+    """The animation, with a progress bar (none with --json)."""
+    from rich.progress import MofNCompleteColumn, TimeElapsedColumn
+
+    from labrig.pipeline.view import write_view
+
+    with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), disable=as_json) as bar:
+        task = bar.add_task(f"animation {view.name}", total=len(frames))
+        write_view(frames, setup, view, progress=lambda done, _total: bar.update(task, completed=done))
 
 
 def add_run_commands(app: typer.Typer) -> None:

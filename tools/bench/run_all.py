@@ -22,7 +22,7 @@ from _common import print_json
 BENCHES = (
     "bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live",
     "bench_campaign", "bench_groundtruth", "bench_training", "bench_tracker", "bench_depth_state", "bench_ifem",
-    "bench_pipeline", "bench_clock",
+    "bench_pipeline", "bench_clock", "bench_view",
 )
 QUICK: dict[str, dict[str, Any]] = {
     "bench_writer": {"duration_s": 3.0, "repeat": 1, "codecs": "bitshuffle-lz4,lz4,gzip"},
