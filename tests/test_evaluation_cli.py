@@ -73,9 +73,19 @@ def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path
         assert table in results["tables"], table
         assert (out / "tables" / f"{table}.csv").exists()
     table2 = (out / "tables" / "table2.csv").read_text()
-    assert table2.count("missing") == 4  # 5, 50, 70 ms contact-aware and the uniform loss have no model here
+    assert "missing" not in table2 and table2.count("\n") == 3  # header + the two networks that exist
+    assert list(results["tables"])[0] == "headline"  # the answer first
+    columns = [c["key"] for c in results["tables"]["headline"]["columns"]]
+    headline = {row[columns[0]]: [row[c] for c in columns] for row in results["tables"]["headline"]["rows"]}
+    assert headline["force z on the gel"][1] == pytest.approx(summary["force_z_mae_n"])
+    assert headline["force z on the gel"][2] == 0.93 and headline["force z on the gel"][3] in ("better", "worse")
+    assert summary["pipeline_window_ms_p95"] >= summary["pipeline_window_ms_median"] > 0
+    assert summary["runtime_cores"] >= 1 and summary["runtime_load_1min"] >= 0
+    for table in ("force_by_range", "depth_by_range"):
+        assert ",0," not in (out / "tables" / f"{table}.csv").read_text().replace(" ", "")  # no empty rows
     html = (out / "index.html").read_text()
     assert "Table III" in html and "figures/force_by_range_plot.png" in html
+    assert html.index("The answer") < html.index("Forces (Table III)")
 
     again = runner.invoke(app, args)  # every task from the cache
     assert again.exit_code == 0, again.output

@@ -435,7 +435,7 @@ def time_series(
             ax.text(0.01, 0.95, f"MAE {err.mean():.3g} {unit}", transform=ax.transAxes, va="top", fontsize=8)
         ax.set_ylabel(axis_label(f"{quantity}{name}", unit))
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, loc="upper right", ncol=2)
+        ax.legend(fontsize=8, loc="upper right", ncol=2)  # each panel's own colours
     axes[-1].set_xlabel("time (s)")
     return _finish(fig, title, out)
 

@@ -259,6 +259,8 @@ def headline(ev: Evaluation) -> dict[str, Any]:
         "depth_total_mm": depth["total_mm"], "depth_contact_mm": depth["contact_mm"],
         "depth_noncontact_mm": depth["noncontact_mm"],
         "pipeline_ms": runtime["total_ms"], "pipeline_rate_hz": runtime["rate_hz"],
+        "pipeline_window_ms_median": runtime["window_ms_median"], "pipeline_window_ms_p95": runtime["window_ms_p95"],
+        "runtime_cores": runtime["cores"], "runtime_load_1min": runtime["load_1min_median"],
         "paper": PAPER, "cache": ev.cache, "camera_stream_short_s": ev.camera_short_s,
         "force_by_indenter": tables.force_by_indenter(ev.forces),
     }

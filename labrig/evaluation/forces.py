@@ -17,6 +17,7 @@ the calibration's missing markers, whose forces the inverse FEM condenses out).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,6 +82,10 @@ class ForceResult:
     depth_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
     depth_contact_mae_mm: F64 = field(default_factory=lambda: np.zeros(0))  # (W,)
     indenter: str = ""  # the recording's indenter (its name in the indenters file)
+    window_ms: F64 = field(default_factory=lambda: np.zeros(0))  # (W,) processing time of each window, all stages
+    #: The machine while the windows were timed: its cores and its 1-minute load average at the end.
+    cores: int = 0
+    load_1min: float = float("nan")
 
 
 def evaluate_forces(task: ForceTask) -> ForceResult:
@@ -137,10 +142,11 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         drift_px=np.linalg.norm(final - setup.rest_px, axis=1), ft_axes=ft_source, depth_source=source.name,
         youngs_modulus_mpa=setup.youngs_modulus_mpa, markers_missing=missing,
         markers_unobserved=int((~setup.observed).sum()), depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact,
-        indenter=indenter)
+        indenter=indenter, window_ms=np.array([sum(r.seconds.values()) * 1e3 for r in rows]),
+        cores=os.cpu_count() or 0, load_1min=os.getloadavg()[0])
 
 
-evaluate_forces.cache_version = "19"  # type: ignore[attr-defined]  # 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
+evaluate_forces.cache_version = "20"  # type: ignore[attr-defined]  # 20: per-window times, the machine's load; 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

@@ -156,9 +156,17 @@ def dense_errors(results: Sequence[ForceResult], probing_only: bool = True) -> d
 
 
 def runtime_row(results: Sequence[ForceResult], stages: tuple[str, ...]) -> dict[str, Any]:
-    """Median per-stage time (ms) over recordings, the per-window total and the achieved rate (Hz)."""
+    """Median per-stage time (ms) over recordings, the per-window total and the achieved rate (Hz); the median
+    and 95th percentile of every window's processing time (ms) pooled; the machine's cores and its 1-minute load
+    average (median over recordings) while they were timed."""
     row: dict[str, Any] = {f"{s}_ms": float(np.median([r.stage_ms[s] for r in results])) for s in stages}
     total = float(np.median([r.total_ms for r in results]))
     row["total_ms"] = total
     row["rate_hz"] = 1000.0 / total if total > 0 else None
+    windows = np.concatenate([r.window_ms for r in results]) if results else np.zeros(0)
+    row["window_ms_median"] = float(np.median(windows)) if windows.size else None
+    row["window_ms_p95"] = float(np.percentile(windows, 95)) if windows.size else None
+    loads = [r.load_1min for r in results if np.isfinite(r.load_1min)]
+    row["cores"] = max((r.cores for r in results), default=0)
+    row["load_1min_median"] = float(np.median(loads)) if loads else None
     return row
