@@ -18,8 +18,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
+# DEMO=--through-drivers: the real drivers instead of virtual time; DEMO=--fresh: start over.
 demo: $(STAMP)
-	$(BIN)/python tools/demo.py demo-out
+	$(BIN)/python tools/demo.py demo-out $(DEMO)
 
 test: $(STAMP)
 	$(BIN)/lint-imports --no-cache

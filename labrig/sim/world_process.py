@@ -44,6 +44,10 @@ def prepare_contact_tables(rig: RigConfig, indenter: Indenter, shear_directions_
         ContactTable.from_rig(indenter, rig, direction_deg=direction)
 
 
+#: How long :meth:`WorldProcess.start` waits for a living world process to serve (s).
+START_TIMEOUT_S = 900.0
+
+
 class WorldProcess:
     """Start with :meth:`start` (or ``with``); :attr:`paths`, :attr:`origin_us`, :meth:`truth`."""
 
@@ -67,12 +71,23 @@ class WorldProcess:
         self._faults: list[RigFault] = []
         self._conn_lock = threading.Lock()
 
-    def start(self, timeout_s: float = 60.0) -> WorldProcess:
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> WorldProcess:
+        """Start the world's process and wait until it serves (it may first build contact tables, which on a
+        busy machine takes minutes): as long as the process lives, up to ``timeout_s``."""
         self.args.update(parent_pid=os.getpid(), death_signal=started_from_main_thread())
         self._process.start()
-        if not self._conn.poll(timeout_s):
-            self.stop()
-            raise LabrigError(f"the virtual rig did not start within {timeout_s:.0f} s")
+        waited_s = 0.0
+        while not self._conn.poll(1.0):
+            waited_s += 1.0
+            if not self._process.is_alive():
+                code = self._process.exitcode
+                self.stop()
+                raise LabrigError(f"the virtual rig's process ended while starting (exit code {code}); rerun the "
+                                  "command (a campaign resumes where it stopped)")
+            if waited_s >= timeout_s:
+                self.stop()
+                raise LabrigError(f"the virtual rig did not start within {timeout_s:.0f} s: the machine is too busy; "
+                                  "close other programs or rerun later (a campaign resumes where it stopped)")
         kind, payload = self._conn.recv()
         if kind == "error":
             self.stop()
