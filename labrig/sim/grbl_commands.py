@@ -4,7 +4,7 @@ jogs, homing and G-code blocks, as generators that yield what they wait for (see
 
 They act on the firmware state (:class:`~labrig.sim.grbl_machine.GrblMachine`): machine
 coordinates in mm, feeds in mm/min, host times in us. G-code is parsed and validated by
-:mod:`labrig.sim.grbl_gcode`; motion is planned by :mod:`labrig.devices.motion_profile`.
+:mod:`labrig.devices.grbl_gcode`; motion is planned by :mod:`labrig.devices.motion_profile`.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ import re
 from collections.abc import Generator
 from dataclasses import replace
 
+from labrig.devices.grbl_gcode import GcodeError, g_code, interpret, parser_state_words
+from labrig.devices.grbl_gcode import words as split_words
 from labrig.devices.grbl_protocol import (
     PLANNER_BLOCKS,
     RX_BUFFER_BYTES,
@@ -29,8 +31,6 @@ from labrig.devices.grbl_protocol import (
     format_version,
 )
 from labrig.devices.motion_profile import make_block
-from labrig.sim.grbl_gcode import GcodeError, g_code, interpret, parser_state_words
-from labrig.sim.grbl_gcode import words as split_words
 from labrig.sim.grbl_machine import GrblMachine, Job, Wait
 from labrig.sim.grbl_settings import DEFAULT_SETTINGS, setting_lines, write_setting
 

@@ -12,9 +12,9 @@ from collections import deque
 from collections.abc import Callable, Generator, Mapping, Sequence
 from typing import Literal
 
+from labrig.devices.grbl_gcode import Coordinates, ModalState
 from labrig.devices.grbl_protocol import format_alarm, format_message
 from labrig.devices.motion_profile import MachineLimits, MotionTimeline, quantize_mm
-from labrig.sim.grbl_gcode import Coordinates, ModalState
 from labrig.sim.grbl_settings import initial_settings
 from labrig.sim.grbl_uart import TwinUart
 

@@ -2,7 +2,7 @@
 
 It answers like the firmware on a 328P at 115200 baud, on the host time it is given (no sleeping,
 deterministic). Its parts mirror the firmware's: the UART and RX ring (:mod:`labrig.sim.grbl_uart`),
-the G-code parser (:mod:`labrig.sim.grbl_gcode`), the EEPROM settings (:mod:`labrig.sim.grbl_settings`),
+the G-code parser (:mod:`labrig.devices.grbl_gcode`), the EEPROM settings (:mod:`labrig.sim.grbl_settings`),
 the planner (:mod:`labrig.devices.motion_profile`) and the reports, written with the formatters
 beside the driver's parser (:mod:`labrig.devices.grbl_protocol`); this module is the main loop:
 
@@ -51,6 +51,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
+from labrig.devices.grbl_gcode import ModalState
 from labrig.devices.grbl_protocol import (
     PLANNER_BLOCKS,
     RX_BUFFER_BYTES,
@@ -62,7 +63,6 @@ from labrig.devices.grbl_protocol import (
 )
 from labrig.devices.motion_profile import MotionTimeline, Segment
 from labrig.sim.grbl_commands import GrblCommands
-from labrig.sim.grbl_gcode import ModalState
 from labrig.sim.grbl_machine import GrblMachine, Job, OutputHook, Wait
 from labrig.sim.grbl_uart import TwinUart
 

@@ -1,9 +1,11 @@
-"""G-code as GRBL 1.1h parses it, for the twin: words, modal groups, the parser state, and the
-validation of a block into what to execute (or GRBL's ``error:N``). Pure: no time, no motion.
+"""G-code as GRBL 1.1h parses it: words, modal groups, the parser state, and the validation of a
+block into what to execute (or GRBL's ``error:N``). Pure: no time, no motion. The GRBL twin
+(:mod:`labrig.sim.grbl_twin`) executes what it returns; the hand tools (``labrig cnc``) follow
+the position through the lines they send with it before sending them.
 
 Frames and units: machine coordinates (MPos) in mm, feeds in mm/min, dwell in s; inch words
-(G20) are converted on reading. Arcs and probing are recognised but not executable here (the
-twin answers ``error:20``).
+(G20) are converted on reading. Arcs and probing are recognised but not executable here
+(:func:`interpret` answers ``error:20``, as the twin does).
 """
 
 from __future__ import annotations
