@@ -352,6 +352,7 @@ class GrblCommands:
                 while self._m.tl.state in ("run", "hold"):
                     yield ("rest",)
             self._m.tl.stop(self._m.t)
+            self._m.stop_outputs()
             self._m.alarm(2, critical=True)
             self._m.deferred_ok = True
             return False
