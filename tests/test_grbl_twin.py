@@ -213,6 +213,23 @@ def test_soft_limit_alarm_locks_until_reset() -> None:
     assert host.send(b"$X\n") == b"[MSG:Caution: Unlocked]\r\nok\r\n"
 
 
+def test_limit_alarms_switch_spindle_and_coolant_off_at_the_alarm() -> None:
+    """GRBL's mc_reset stops the spindle, then the coolant, as a soft or hard limit trips, not at the reset after it."""
+    twin = GrblTwin(settings={**FAST, **HOMING, 20: 1}, power_on_physical_mm=(-2, -2, -2))
+    host = Host(twin)
+    host.send(b"$H\n")
+    host.until(b"ok\r\n")
+    assert host.send(b"M3S1000\nM8\n") == b"ok\r\nok\r\n"
+    assert host.send(b"G1X-10F600\nG0X10\n", 2_000_000).endswith(b"ALARM:2\r\n[MSG:Reset to continue]\r\n")
+    off = [(name, level) for t_us, name, level in twin.outputs if level == 0 and t_us < host.t]
+    assert off == [("spindle", 0), ("flood", 0)]  # while locked, before any reset
+    host.send(b"\x18")
+    host.send(b"$X\nM8\n")
+    assert twin.outputs[-1][1:] == ("flood", 1)
+    twin.trip_hard_limit(host.t)
+    assert twin.outputs[-1] == (host.t, "flood", 0)
+
+
 def test_reset_in_motion_is_alarm_3_and_keeps_position() -> None:
     twin = GrblTwin(settings=FAST)
     host = Host(twin)

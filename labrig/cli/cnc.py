@@ -2,9 +2,17 @@
 
 Mounted on the main app by :func:`labrig.cli.devices.add_device_commands`.
 
+``move``, ``jog``, ``send`` and ``stream`` check every straight move they would command against the
+motion envelope of the rig file and the mounted indenter (:mod:`labrig.protocol.envelope`), from
+where the controller stands (its machine position, ``$G`` and ``$#``), and refuse before sending
+anything: a move outside it, or one whose path cannot be known beforehand (arcs, probing,
+``G28``/``G30``, anything after homing or a reset in a program). ``--outside-envelope`` sends it
+anyway, with a warning. ``status``, ``unlock`` and ``home`` are not checked.
+
 Exit codes: 0 done; 1 the controller answered ``error:N`` to G-code you gave (``send``, ``move``,
 ``jog``, ``stream``; each error is printed with its meaning and line number); 2 a user error
-(port cannot be opened, no answer, alarm, bad arguments), printed as one line by ``labrig``'s main.
+(port cannot be opened, no answer, alarm, bad arguments, a refused move), printed as one line by
+``labrig``'s main.
 """
 
 from __future__ import annotations
@@ -21,10 +29,22 @@ import typer
 from rich.markup import escape
 from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 
-from labrig.cli.console import JsonResultOption, console, err_console, print_json, progress_bar
+from labrig.cli.console import (
+    IndentersOption,
+    JsonResultOption,
+    RigOption,
+    console,
+    err_console,
+    print_json,
+    progress_bar,
+)
 from labrig.errors import LabrigError
 
 DEVICES_HINT = "run `labrig devices` to list the serial ports"
+OVERRIDE_HINT = "pass --outside-envelope to send it anyway"
+OutsideEnvelopeOption = Annotated[bool, typer.Option(
+    "--outside-envelope", help="Send it even where it leaves the motion envelope (maintenance: nothing is checked; "
+    "prints a warning).")]
 
 
 def _axes(text: str) -> tuple[float | None, float | None, float | None]:
@@ -45,7 +65,11 @@ def _axes(text: str) -> tuple[float | None, float | None, float | None]:
 
 # -- labrig cnc --------------------------------------------------------------------------------
 
-cnc_app = typer.Typer(help="Drive the CNC (GRBL) by hand: status, unlock, home, moves, jogs, lines, programs.",
+cnc_app = typer.Typer(help="Drive the CNC (GRBL) by hand: status, unlock, home, moves, jogs, lines, programs.\n\n"
+                      "move, jog, send and stream refuse, before sending anything, motion that leaves the rig's "
+                      "envelope: outside the \\[safety] workspace, deeper into the gel than the indenter's max_depth_mm, "
+                      "below the gel surface beside it (the sensor body), or a straight path through them; and motion "
+                      "they cannot follow (arcs, probing, G28/G30). --outside-envelope sends it anyway (docs/running.md).",
                       no_args_is_help=True)
 
 
@@ -54,6 +78,9 @@ class _CncTarget:
     port: str
     baud: int
     reset: str
+    rig: Path | None
+    indenters: Path | None
+    indenter: str | None
 
 
 @cnc_app.callback()
@@ -64,11 +91,16 @@ def _cnc(
     reset: Annotated[str, typer.Option(
         "--reset", help="none: keep the controller as it is (homed, offsets); soft: 0x18 first; auto: DTR pulse or soft.",
     )] = "none",
+    rig: RigOption = None,
+    indenters: IndentersOption = None,
+    indenter: Annotated[str | None, typer.Option(
+        "--indenter", help="The mounted indenter (a name in --indenters), for the motion envelope of move, jog, send "
+        "and stream (default: the one whose tip reaches lowest, the most conservative).")] = None,
 ) -> None:
     """Talk to a GRBL 1.1 controller on PORT."""
     if reset not in ("none", "soft", "auto"):
         raise LabrigError(f"--reset must be none, soft or auto, got {reset!r}")
-    ctx.obj = _CncTarget(port, baud, reset)
+    ctx.obj = _CncTarget(port, baud, reset, rig, indenters, indenter)
 
 
 @contextmanager
@@ -88,6 +120,57 @@ def _grbl(ctx: typer.Context, *, read_settings: bool = False) -> Iterator[Any]:
         yield grbl
     finally:
         grbl.close()
+
+
+def _envelope(target: _CncTarget) -> tuple[Any, str]:
+    """The motion envelope of the rig file and the mounted indenter, and what it was built from (text)."""
+    from labrig.cli.console import load_rig_and_indenters
+    from labrig.protocol.envelope import MotionEnvelope, most_conservative_indenter
+
+    rig, indenters, path = load_rig_and_indenters(target.rig, target.indenters)
+    if target.indenter is None:
+        indenter = most_conservative_indenter(indenters)
+        chosen = (f"indenter {indenter.name}, the default: the one in {path.name} whose tip reaches lowest; name the "
+                  "mounted one with --indenter")
+    elif target.indenter in indenters:
+        indenter = indenters[target.indenter]
+        chosen = f"indenter {indenter.name}"
+    else:
+        raise LabrigError(f"--indenter {target.indenter!r} is not in {path}; give one of {', '.join(indenters)}")
+    return MotionEnvelope.of(rig, indenter), f"envelope of {rig.path} with {chosen}"
+
+
+def _check_motion(grbl: Any, target: _CncTarget, lines: list[str], labels: list[str], outside_envelope: bool) -> None:
+    """Refuse (:class:`~labrig.protocol.envelope.EnvelopeError`, before anything is sent) lines whose
+    motion leaves the envelope or cannot be known beforehand; ``labels`` name them in the refusal.
+
+    The controller is asked for its position, ``$G`` and ``$#`` only when a line could move.
+    """
+    from labrig.devices.grbl_program import ProgramTracker, may_move
+    from labrig.protocol.envelope import EnvelopeError
+
+    if outside_envelope:
+        err_console.print("[yellow]warning:[/] --outside-envelope: this motion is not checked against the rig's "
+                          "workspace, gel and sensor body", highlight=False, soft_wrap=True)
+        return
+    if not any(may_move(line) for line in lines):
+        return
+    envelope, built_from = _envelope(target)
+    state = grbl.status().state
+    if state not in ("Idle", "Alarm"):
+        raise EnvelopeError(f"the CNC is {state}: the motion envelope check starts from the parser's position and "
+                            "offsets, which GRBL gives only while Idle or in Alarm; wait until it is Idle (leave check "
+                            f"mode with `send '$C'`), or {OVERRIDE_HINT}")
+    tracker = ProgramTracker(*grbl.gcode_state(), alarm=state == "Alarm")
+    for line, label in zip(lines, labels, strict=True):
+        motion = tracker.line(line)
+        if motion.unchecked is not None:
+            raise EnvelopeError(f"refused before sending anything: {label}: {motion.unchecked}, so its motion cannot be "
+                                f"checked against the {built_from}; {OVERRIDE_HINT}")
+        for start, end in motion.segments:
+            problem = envelope.segment_problem(start, end)
+            if problem is not None:
+                raise EnvelopeError(f"refused before sending anything: {label}: {problem} ({built_from}); {OVERRIDE_HINT}")
 
 
 def _status_dict(port: str, sample: Any) -> dict[str, Any]:
@@ -118,11 +201,13 @@ def _print_error(e: dict[str, Any]) -> None:
     err_console.print(f"[red]{where}error:{e['code']}[/] {escape(e['meaning'])}{escape(line)}", highlight=False)
 
 
-def _commanded(ctx: typer.Context, as_json: bool, line_hint: str | None, action: Any) -> None:
-    """Run ``action(grbl) -> line sent``; then report state (exit 0) or the ``error:N`` (exit 1)."""
+def _commanded(ctx: typer.Context, as_json: bool, line_hint: str | None, action: Any, check: Any = None) -> None:
+    """Run ``check(grbl)`` (refusing raises), then ``action(grbl)``; then report state (exit 0) or the ``error:N`` (exit 1)."""
     from labrig.devices.grbl import GrblCommandError
 
     with _grbl(ctx) as grbl:
+        if check is not None:
+            check(grbl)
         errors = []
         try:
             action(grbl)
@@ -177,12 +262,20 @@ def cnc_move(
     feed: FeedOption = None,
     relative: Annotated[bool, typer.Option("--relative", help="Move by X,Y,Z instead of to it.")] = False,
     timeout_s: Annotated[float, typer.Option("--timeout-s", help="Allow the move this long.")] = 600.0,
+    outside_envelope: OutsideEnvelopeOption = False,
     as_json: JsonResultOption = False,
 ) -> None:
-    """Move (G1 at --feed, or rapid G0 without it) and wait until the machine is Idle."""
+    """Move (G1 at --feed, or rapid G0 without it) and wait until the machine is Idle.
+
+    Refused before sending if the straight move leaves the motion envelope (see `labrig cnc --help`).
+    """
+    from labrig.devices.grbl_protocol import motion_line
+
     x, y, z = _axes(target)
     if feed is not None and not feed > 0:
         raise LabrigError(f"--feed must be positive (mm/min), got {feed}")
+    line = ("G91" if relative else "G90") + motion_line(x, y, z, feed)  # what the driver sends
+    label = f"move {'by' if relative else 'to'} {target} ({line})"
 
     def action(grbl: Any) -> None:
         if relative:
@@ -193,7 +286,7 @@ def cnc_move(
         else:
             grbl.move_to(x, y, z, feed_mm_min=feed, wait=True, timeout_s=timeout_s)
 
-    _commanded(ctx, as_json, None, action)
+    _commanded(ctx, as_json, None, action, lambda grbl: _check_motion(grbl, ctx.obj, [line], [label], outside_envelope))
 
 
 @cnc_app.command("jog", context_settings={"ignore_unknown_options": True})
@@ -201,27 +294,40 @@ def cnc_jog(
     ctx: typer.Context,
     delta: Annotated[str, typer.Argument(help="X,Y,Z in mm to jog by (empty part: axis kept, e.g. ,,-0.5).")],
     feed: Annotated[float, typer.Option("--feed", help="Feed rate, mm/min.")] = 300.0,
+    outside_envelope: OutsideEnvelopeOption = False,
     as_json: JsonResultOption = False,
 ) -> None:
-    """$J=: a relative jog (GRBL refuses it with error:15 if it would leave the travel); waits until Idle."""
+    """$J=: a relative jog (GRBL refuses it with error:15 if it would leave the travel); waits until Idle.
+
+    Refused before sending if the jog leaves the motion envelope (see `labrig cnc --help`).
+    """
+    from labrig.devices.grbl_protocol import jog_line
+
     x, y, z = _axes(delta)
     if not feed > 0:
         raise LabrigError(f"--feed must be positive (mm/min), got {feed}")
+    line = jog_line(x, y, z, feed_mm_min=feed)  # what the driver sends
 
     def action(grbl: Any) -> None:
         grbl.jog(x, y, z, feed_mm_min=feed)
         grbl.wait_idle(600.0)
 
-    _commanded(ctx, as_json, None, action)
+    _commanded(ctx, as_json, None, action,
+               lambda grbl: _check_motion(grbl, ctx.obj, [line], [f"jog by {delta} ({line})"], outside_envelope))
 
 
 @cnc_app.command("send")
 def cnc_send(
     ctx: typer.Context,
     line: Annotated[str, typer.Argument(help="One line: G-code or a $ command (e.g. '$$', '$G', 'G0 X5').")],
+    outside_envelope: OutsideEnvelopeOption = False,
     as_json: JsonResultOption = False,
 ) -> None:
-    """Send one line, wait for its answer, print what the controller said."""
+    """Send one line, wait for its answer, print what the controller said.
+
+    A line that moves is refused before sending if it leaves the motion envelope or its path cannot be
+    known beforehand (arcs, probing, G28/G30; see `labrig cnc --help`).
+    """
     from labrig.devices.grbl import GrblCommandError
 
     received: list[str] = []
@@ -232,6 +338,7 @@ def cnc_send(
             received.append(text)
 
     with _grbl(ctx) as grbl:
+        _check_motion(grbl, ctx.obj, [line], [repr(line)], outside_envelope)
         grbl.on_gcode = on_gcode
         errors = []
         try:
@@ -279,12 +386,15 @@ def cnc_stream(
         "--send-response", help="One line at a time instead of character counting (slower, simplest).")] = False,
     keep_going: Annotated[bool, typer.Option(
         "--keep-going", help="Send the rest of the program after an error (default: stop at the first).")] = False,
+    outside_envelope: OutsideEnvelopeOption = False,
     as_json: JsonResultOption = False,
 ) -> None:
     """Stream a program with character counting and a progress bar; report every error with its line number.
 
     Waits until the machine is Idle at the end. ``duration_s`` and ``lines_per_s`` cover the streaming (until the
     last line was answered). With character counting the lines already in GRBL's buffer still run after an error.
+    The whole program is checked against the motion envelope first, following the position from line to line
+    (see `labrig cnc --help`); a refused line stops it before any line is sent.
     """
     from labrig.devices.grbl import GrblCommandError
 
@@ -301,24 +411,27 @@ def cnc_stream(
             if match:
                 answers.append(int(match.group(2)) if match.group(2) else None)
 
-    with _grbl(ctx) as grbl, progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), disable=as_json) as bar:
-        task = bar.add_task(f"streaming {file.name}", total=len(program))
-        grbl.on_gcode = on_gcode
-        start = 0
-        t0 = time.perf_counter()
-        while start < len(program):
-            try:
-                grbl.stream(program[start:], mode=mode,
-                            progress=lambda done, _total, offset=start: bar.update(task, completed=offset + done))
-                start = len(program)
-            except GrblCommandError:
-                start = len(answers)  # every line sent so far was answered before stream() raised
-                if not keep_going:
-                    break
-        duration_s = time.perf_counter() - t0
-        grbl.on_gcode = None
-        bar.update(task, description=f"{file.name}: waiting for the motion to finish")
-        final = grbl.wait_idle(timeout_s=3600.0)
+    labels = [f"{file.name} line {n} {text!r}" for n, text in zip(numbers, program, strict=True)]
+    with _grbl(ctx) as grbl:
+        _check_motion(grbl, ctx.obj, program, labels, outside_envelope)
+        with progress_bar(MofNCompleteColumn(), TimeElapsedColumn(), disable=as_json) as bar:
+            task = bar.add_task(f"streaming {file.name}", total=len(program))
+            grbl.on_gcode = on_gcode
+            start = 0
+            t0 = time.perf_counter()
+            while start < len(program):
+                try:
+                    grbl.stream(program[start:], mode=mode,
+                                progress=lambda done, _total, offset=start: bar.update(task, completed=offset + done))
+                    start = len(program)
+                except GrblCommandError:
+                    start = len(answers)  # every line sent so far was answered before stream() raised
+                    if not keep_going:
+                        break
+            duration_s = time.perf_counter() - t0
+            grbl.on_gcode = None
+            bar.update(task, description=f"{file.name}: waiting for the motion to finish")
+            final = grbl.wait_idle(timeout_s=3600.0)
     errors = [_error_entry(code, numbers[i], program[i]) for i, code in enumerate(answers) if code is not None]
     result = {
         **_status_dict(ctx.obj.port, final),

@@ -32,6 +32,7 @@ import numpy.typing as npt
 
 from labrig.clock import HostClock, MonotonicClock
 from labrig.devices.grbl_channel import GrblChannel, Reply, StatusSample
+from labrig.devices.grbl_gcode import Coordinates, ModalState, coordinates_from_parameters, modal_state_from_report
 from labrig.devices.grbl_protocol import (
     GrblAlarm,
     GrblCommandError,
@@ -41,6 +42,8 @@ from labrig.devices.grbl_protocol import (
     GrblResetError,
     GrblTimeout,
     GrblUsageError,
+    Parameter,
+    ParserState,
     Realtime,
     Setting,
     format_number,
@@ -359,6 +362,25 @@ class Grbl:
         with self._io.cond:
             self.settings[number] = float(value)
             self._pose.limits = MachineLimits.from_settings(self.settings)
+
+    def gcode_state(self, timeout_s: float | None = None) -> tuple[ModalState, Coordinates]:
+        """``$G`` and ``$#``: the G-code parser's modal state and its offsets (machine mm), with the
+        parser at the machine position of a fresh status report (the parser's own position while
+        Idle or in Alarm; GRBL refuses ``$#`` with error:8 otherwise).
+
+        Raises :class:`GrblError` when an answer lacks its report or holds one GRBL 1.1 does not send.
+        """
+        modal_reply = self.send("$G", timeout_s)
+        parameter_reply = self.send("$#", timeout_s)
+        sample = self.status(timeout_s)
+        reports = [e.words for e in modal_reply.pushed if isinstance(e, ParserState)]
+        parameters = {e.name: e.values for e in parameter_reply.pushed if isinstance(e, Parameter)}
+        try:
+            if not reports:
+                raise ValueError("$G answered without a [GC:...] report")
+            return modal_state_from_report(reports[-1]), coordinates_from_parameters(parameters, sample.position_mm)
+        except ValueError as exc:
+            raise GrblError(f"cannot read the controller's G-code state: {exc}") from None
 
     def unlock(self, timeout_s: float | None = None) -> None:
         """``$X``: leave Alarm without homing (position as GRBL has it)."""

@@ -84,8 +84,9 @@ def safety_limits(rig: RigConfig) -> SafetyLimits:
     for key in ("max_normal_force_n", "max_shear_force_n", "clearance_mm"):
         if getattr(limits, key) <= 0:
             raise ConfigError(f"{rig.path}: [safety] {key} must be positive")
-    if limits.gel_margin_mm < 0:
-        raise ConfigError(f"{rig.path}: [safety] gel_margin_mm must not be negative")
+    for key in ("gel_margin_mm", "body_margin_mm"):
+        if getattr(limits, key) < 0:
+            raise ConfigError(f"{rig.path}: [safety] {key} must not be negative")
     return limits
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -60,7 +60,12 @@ def depth_problem(depth_mm: float, indenter_name: str, max_depth_mm: float) -> s
 
 @dataclass(frozen=True)
 class SafetyLimits:
-    """Machine-coordinate workspace (mm), gel margin (mm) and force limits (N, tared, sensor axes)."""
+    """Machine-coordinate workspace (mm), gel margin (mm) and force limits (N, tared, sensor axes).
+
+    ``body_margin_mm``: how far beyond the gel (grown by the indenter's footprint) the sensor body
+    that carries it is solid below the gel surface, for the hand tools' motion envelope
+    (:mod:`labrig.protocol.envelope`).
+    """
 
     workspace_min_mm: tuple[float, float, float] = (-200.0, -200.0, -200.0)
     workspace_max_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -68,13 +73,12 @@ class SafetyLimits:
     clearance_mm: float = 5.0
     max_normal_force_n: float = 25.0
     max_shear_force_n: float = 6.0
+    body_margin_mm: float = 10.0
 
     def for_indenter(self, max_normal_force_n: float, max_shear_force_n: float) -> SafetyLimits:
         """These limits capped by an indenter's own."""
-        return SafetyLimits(
-            self.workspace_min_mm, self.workspace_max_mm, self.gel_margin_mm, self.clearance_mm,
-            min(self.max_normal_force_n, max_normal_force_n), min(self.max_shear_force_n, max_shear_force_n),
-        )
+        return replace(self, max_normal_force_n=min(self.max_normal_force_n, max_normal_force_n),
+                       max_shear_force_n=min(self.max_shear_force_n, max_shear_force_n))
 
 
 def check_targets(targets: Sequence[tuple[str, npt.ArrayLike]], limits: SafetyLimits) -> None:

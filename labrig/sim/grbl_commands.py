@@ -4,7 +4,7 @@ jogs, homing and G-code blocks, as generators that yield what they wait for (see
 
 They act on the firmware state (:class:`~labrig.sim.grbl_machine.GrblMachine`): machine
 coordinates in mm, feeds in mm/min, host times in us. G-code is parsed and validated by
-:mod:`labrig.sim.grbl_gcode`; motion is planned by :mod:`labrig.devices.motion_profile`.
+:mod:`labrig.devices.grbl_gcode`; motion is planned by :mod:`labrig.devices.motion_profile`.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ import re
 from collections.abc import Generator
 from dataclasses import replace
 
+from labrig.devices.grbl_gcode import GcodeError, interpret, interpret_jog, parser_state_words
+from labrig.devices.grbl_gcode import words as split_words
 from labrig.devices.grbl_protocol import (
     PLANNER_BLOCKS,
     RX_BUFFER_BYTES,
@@ -29,8 +31,6 @@ from labrig.devices.grbl_protocol import (
     format_version,
 )
 from labrig.devices.motion_profile import make_block
-from labrig.sim.grbl_gcode import GcodeError, g_code, interpret, parser_state_words
-from labrig.sim.grbl_gcode import words as split_words
 from labrig.sim.grbl_machine import GrblMachine, Job, Wait
 from labrig.sim.grbl_settings import DEFAULT_SETTINGS, setting_lines, write_setting
 
@@ -183,48 +183,16 @@ class GrblCommands:
     def _jog(self, body: str) -> Job:
         assert self._m.t is not None
         try:
-            words = split_words(body)
+            jog = interpret_jog(split_words(body), self._m.modal, self._m.coords)
         except GcodeError as exc:
             return format_error(exc.code)
-        inches, incremental, machine = self._m.modal.inches, self._m.modal.incremental, False
-        values: dict[int, float] = {}
-        feed = None
-        for letter, value in words:
-            if letter == "G":
-                code = g_code(value)
-                if code == (20, 0) or code == (21, 0):
-                    inches = code == (20, 0)
-                elif code == (90, 0) or code == (91, 0):
-                    incremental = code == (91, 0)
-                elif code == (53, 0):
-                    machine = True
-                else:
-                    return format_error(16)
-            elif letter in "XYZ":
-                axis = "XYZ".index(letter)
-                if axis in values:
-                    return format_error(25)
-                values[axis] = value
-            elif letter == "F":
-                if feed is not None:
-                    return format_error(25)
-                feed = value
-            else:
-                return format_error(16)
-        if feed is None:
-            return format_error(22)
-        if not values:
-            return format_error(26)
-        if feed < 0:
-            return format_error(4)
-        unit = 25.4 if inches else 1.0
-        target = self._m.coords.target_mm({a: v * unit for a, v in values.items()}, incremental, machine, self._m.modal.wcs)
+        target = list(jog.target_mm)
         if self._m.settings[20] and self._m.beyond_travel(target):
             return format_error(15)
         self._m.coords.position_mm = target
         while len(self._m.tl.queue) >= PLANNER_BLOCKS:
             yield ("slot",)
-        block = make_block(self._m.tl.tail_mm, self._m.quantize(target), feed * unit, self._m.tl.limits, tag="jog")
+        block = make_block(self._m.tl.tail_mm, self._m.quantize(target), jog.feed_mm_min, self._m.tl.limits, tag="jog")
         if block is not None:
             self._m.tl.append(block, self._m.t)
             if self._m.state == "Idle":
@@ -352,6 +320,7 @@ class GrblCommands:
                 while self._m.tl.state in ("run", "hold"):
                     yield ("rest",)
             self._m.tl.stop(self._m.t)
+            self._m.stop_outputs()
             self._m.alarm(2, critical=True)
             self._m.deferred_ok = True
             return False

@@ -12,9 +12,9 @@ from collections import deque
 from collections.abc import Callable, Generator, Mapping, Sequence
 from typing import Literal
 
+from labrig.devices.grbl_gcode import Coordinates, ModalState
 from labrig.devices.grbl_protocol import format_alarm, format_message
 from labrig.devices.motion_profile import MachineLimits, MotionTimeline, quantize_mm
-from labrig.sim.grbl_gcode import Coordinates, ModalState
 from labrig.sim.grbl_settings import initial_settings
 from labrig.sim.grbl_uart import TwinUart
 
@@ -131,6 +131,14 @@ class GrblMachine:
     def beyond_travel(self, target: Sequence[float]) -> bool:
         """Whether a machine target (mm) leaves the travel ``[-$13x, 0]`` (soft limits)."""
         return any(target[i] > 0.0 or target[i] < -self.settings[130 + i] for i in range(3))
+
+    def stop_outputs(self) -> None:
+        """Spindle, then coolant, off now, as GRBL's ``mc_reset`` does when a soft or hard limit trips:
+        the outputs switch at the alarm, not at the reset that follows it. Not in check mode, where
+        the parser's M3/M8 never reached the outputs."""
+        if self.state != "Check":
+            self.set_spindle(5)
+            self.set_flood(False)
 
     def set_spindle(self, mode: int) -> None:
         """M3/M4/M5 now; an edge on the spindle output when it turns on or off."""

@@ -2,7 +2,7 @@
 
 It answers like the firmware on a 328P at 115200 baud, on the host time it is given (no sleeping,
 deterministic). Its parts mirror the firmware's: the UART and RX ring (:mod:`labrig.sim.grbl_uart`),
-the G-code parser (:mod:`labrig.sim.grbl_gcode`), the EEPROM settings (:mod:`labrig.sim.grbl_settings`),
+the G-code parser (:mod:`labrig.devices.grbl_gcode`), the EEPROM settings (:mod:`labrig.sim.grbl_settings`),
 the planner (:mod:`labrig.devices.motion_profile`) and the reports, written with the formatters
 beside the driver's parser (:mod:`labrig.devices.grbl_protocol`); this module is the main loop:
 
@@ -20,8 +20,10 @@ beside the driver's parser (:mod:`labrig.devices.grbl_protocol`); this module is
   A cycle starts automatically when the ring has no more bytes or the planner is full.
 * **Motion.** Trapezoidal profiles with junction-deviation corners and look-ahead replanning
   (:mod:`labrig.devices.motion_profile`), step-quantised targets (``$100-$102``), feed and rapid
-  overrides, feed hold and resume, jog cancel, soft limits (``ALARM:2`` locks until reset,
-  ``error:15`` for jogs), homing against simulated switches, check mode, sleep.
+  overrides, feed hold and resume, jog cancel, soft limits (``$20=1``, travel ``[-$13x, 0]``: a
+  target beyond it stops the cycle with a feed hold, switches spindle and coolant off and gives
+  ``ALARM:2``, locked until reset; a jog beyond it is refused with ``error:15``), homing against
+  simulated switches, check mode, sleep.
 * **States.** Idle, Run, Hold:0/Hold:1, Jog, Alarm, Check, Home, Sleep. With ``$22=1`` it powers
   up in Alarm. A soft reset in motion gives ``ALARM:3`` (``ALARM:6`` while homing); a reset
   keeps the position.
@@ -51,6 +53,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
+from labrig.devices.grbl_gcode import ModalState
 from labrig.devices.grbl_protocol import (
     PLANNER_BLOCKS,
     RX_BUFFER_BYTES,
@@ -62,7 +65,6 @@ from labrig.devices.grbl_protocol import (
 )
 from labrig.devices.motion_profile import MotionTimeline, Segment
 from labrig.sim.grbl_commands import GrblCommands
-from labrig.sim.grbl_gcode import ModalState
 from labrig.sim.grbl_machine import GrblMachine, Job, OutputHook, Wait
 from labrig.sim.grbl_uart import TwinUart
 
@@ -187,14 +189,16 @@ class GrblTwin:
     def trip_hard_limit(self, now_us: int) -> None:
         """A limit switch fires at ``now_us`` (a crash, or noise on its wire), as with ``$21=1``.
 
-        Motion stops dead, ``ALARM:1`` and ``[MSG:Reset to continue]`` go out, and everything
-        (even ``?``) is ignored until a soft reset, after which the twin stays in Alarm. The line
-        the main loop was busy with is answered only after that reset, as by the firmware.
+        Motion stops dead, spindle and coolant switch off, ``ALARM:1`` and ``[MSG:Reset to continue]``
+        go out, and everything (even ``?``) is ignored until a soft reset, after which the twin stays
+        in Alarm. The line the main loop was busy with is answered only after that reset, as by the
+        firmware.
         """
         with self._lock:
             self._run_until(now_us)
             assert self._m.t is not None
             self._m.tl.stop(self._m.t)
+            self._m.stop_outputs()
             self._m.deferred_ok = self._job is not None
             self._m.alarm(1, critical=True)
 

@@ -1,16 +1,18 @@
-"""G-code as GRBL 1.1h parses it, for the twin: words, modal groups, the parser state, and the
-validation of a block into what to execute (or GRBL's ``error:N``). Pure: no time, no motion.
+"""G-code as GRBL 1.1h parses it: words, modal groups, the parser state, and the validation of a
+block into what to execute (or GRBL's ``error:N``). Pure: no time, no motion. The GRBL twin
+(:mod:`labrig.sim.grbl_twin`) executes what it returns; the hand tools (``labrig cnc``) follow
+the position through the lines they send with it before sending them.
 
 Frames and units: machine coordinates (MPos) in mm, feeds in mm/min, dwell in s; inch words
-(G20) are converted on reading. Arcs and probing are recognised but not executable here (the
-twin answers ``error:20``).
+(G20) are converted on reading. Arcs and probing are recognised but not executable here
+(:func:`interpret` answers ``error:20``, as the twin does).
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)")
@@ -47,6 +49,23 @@ class GcodeError(Exception):
     def __init__(self, code: int) -> None:
         super().__init__(code)
         self.code = code
+
+
+def preparse(line: str) -> str:
+    """A line as GRBL's pre-parser keeps it: spaces, control bytes, ``/`` and comments (``(...)``,
+    ``;`` to the end) dropped, letters upper case (the 79-character limit is the sender's)."""
+    out = []
+    in_paren = False
+    for c in line:
+        if in_paren:
+            in_paren = c != ")"
+        elif c == "(":
+            in_paren = True
+        elif c == ";":
+            break
+        elif c > " " and c < "\x7f" and c != "/":
+            out.append(c.upper() if "a" <= c <= "z" else c)
+    return "".join(out)
 
 
 def words(text: str) -> list[tuple[str, float]]:
@@ -301,6 +320,146 @@ def interpret(words: list[tuple[str, float]], modal_state: ModalState, coordinat
     if set(vals) - used:
         raise GcodeError(36)
     return plan
+
+
+@dataclass(frozen=True)
+class JogBlock:
+    """A validated ``$J=`` jog: its machine target (mm) and feed (mm/min)."""
+
+    target_mm: tuple[float, float, float]
+    feed_mm_min: float
+
+
+def interpret_jog(words: list[tuple[str, float]], modal_state: ModalState, coordinates: Coordinates) -> JogBlock:
+    """Validate the words after ``$J=`` against the parser state (left unchanged): the jog, or
+    :class:`GcodeError` with the GRBL error code. ``G20``/``G21`` and ``G90``/``G91`` apply to this jog
+    only (the modal ones otherwise), ``G53`` makes the axis words machine coordinates; ``F`` is
+    required, ``N`` allowed."""
+    inches, incremental, machine = modal_state.inches, modal_state.incremental, False
+    values: dict[int, float] = {}
+    feed = None
+    line_number = None
+    for letter, value in words:
+        if letter == "G":
+            code = g_code(value)
+            if code == (20, 0) or code == (21, 0):
+                inches = code == (20, 0)
+            elif code == (90, 0) or code == (91, 0):
+                incremental = code == (91, 0)
+            elif code == (53, 0):
+                machine = True
+            else:
+                raise GcodeError(16)
+        elif letter in "XYZ":
+            axis = "XYZ".index(letter)
+            if axis in values:
+                raise GcodeError(25)
+            values[axis] = value
+        elif letter == "F":
+            if feed is not None:
+                raise GcodeError(25)
+            feed = value
+        elif letter == "N":
+            if line_number is not None:
+                raise GcodeError(25)
+            line_number = value
+        else:
+            raise GcodeError(16)
+    if line_number is not None and line_number < 0:
+        raise GcodeError(4)
+    if line_number is not None and line_number > 9_999_999:
+        raise GcodeError(27)
+    if feed is None:
+        raise GcodeError(22)
+    if not values:
+        raise GcodeError(26)
+    if feed < 0:
+        raise GcodeError(4)
+    unit = 25.4 if inches else 1.0
+    x, y, z = coordinates.target_mm({a: v * unit for a, v in values.items()}, incremental, machine, modal_state.wcs)
+    return JogBlock((x, y, z), feed * unit)
+
+
+def modal_state_from_report(report: Sequence[str]) -> ModalState:
+    """The modal state of a ``$G`` report's words (``G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0``; F in mm/min).
+
+    ValueError naming the word for a word that is not a modal state GRBL reports, or when one of
+    the motion, coordinate system, units and distance modes is missing.
+    """
+    modal = ModalState()
+    seen: set[str] = set()
+    for word in report:
+        if len(word) < 2 or NUMBER.fullmatch(word, 1) is None:
+            raise ValueError(f"{word!r} is not a G-code word")
+        letter, value = word[0], float(word[1:])
+        if not math.isfinite(value):
+            raise ValueError(f"{word!r} is not a G-code word")
+        if letter == "G":
+            code = g_code(value)
+            group = _G_GROUPS.get(code)
+            if group == "motion":
+                modal.motion = code
+            elif group == "wcs":
+                modal.wcs = code[0] - 54
+            elif group == "plane":
+                modal.plane = code[0]
+            elif group == "units":
+                modal.inches = code == (20, 0)
+            elif group == "distance":
+                modal.incremental = code == (91, 0)
+            elif group == "feed_mode":
+                modal.inverse_time = code == (93, 0)
+            elif group not in ("arc_distance", "cutter", "tlo", "path"):
+                raise ValueError(f"{word!r} is not a modal state")
+            if group is not None:
+                seen.add(group)
+        elif letter == "M" and value in (3, 4, 5):
+            modal.spindle = int(value)
+        elif letter == "M" and value in (8, 9):
+            modal.flood = value == 8
+        elif letter == "M" and value in (0, 1, 2, 7, 30, 56):
+            pass  # program flow, mist, parking override: nothing the parser's motion depends on
+        elif letter == "T" and value == int(value) and 0 <= value <= 255:
+            modal.tool = int(value)
+        elif letter == "F" and value >= 0:
+            modal.feed_mm_min = value
+        elif letter == "S" and value >= 0:
+            modal.spindle_rpm = value
+        else:
+            raise ValueError(f"{word!r} is not a modal state")
+    missing = [name for name, group in (("motion", "motion"), ("coordinate system", "wcs"), ("units", "units"),
+                                        ("distance", "distance")) if group not in seen]
+    if missing:
+        raise ValueError(f"no {' or '.join(missing)} mode among {' '.join(report)!r}")
+    return modal
+
+
+#: The ``$#`` parameters a GRBL 1.1 controller reports with three values (mm); ``TLO`` has one.
+COORDINATE_PARAMETERS = ("G54", "G55", "G56", "G57", "G58", "G59", "G28", "G30", "G92")
+
+
+def coordinates_from_parameters(parameters: Mapping[str, Sequence[float]], position_mm: Sequence[float]) -> Coordinates:
+    """The offsets of a ``$#`` report (name -> values, machine mm) with the parser at ``position_mm``.
+
+    ValueError naming the parameter when one is missing or is not finite numbers (three, one for ``TLO``).
+    """
+    def values(name: str, count: int) -> list[float]:
+        found = parameters.get(name)
+        if found is None or len(found) != count or not all(math.isfinite(v) for v in found):
+            raise ValueError(f"no {name} with {count} finite value{'s' if count > 1 else ''} in the $# report")
+        return [float(v) for v in found]
+
+    stored = {name: values(name, 3) for name in COORDINATE_PARAMETERS}
+    if len(position_mm) != 3 or not all(math.isfinite(v) for v in position_mm):
+        raise ValueError(f"the position {tuple(position_mm)} is not three finite values")
+    return Coordinates(
+        position_mm=[float(v) for v in position_mm],
+        wcs_mm=[stored[f"G{54 + n}"] for n in range(6)],
+        g28_mm=stored["G28"],
+        g30_mm=stored["G30"],
+        g92_mm=stored["G92"],
+        tlo_mm=values("TLO", 1)[0],
+    )
 
 
 def parser_state_words(m: ModalState) -> list[str]:
