@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from hypothesis import given
 from hypothesis import strategies as st
 
-from labrig.protocol.realtime import REALTIME_RETRIES, SHORT, Shortfall, record_in_real_time
+from labrig.protocol.realtime import DEGRADED, REALTIME_RETRIES, SHORT, Shortfall, record_in_real_time
 from labrig.protocol.safety import StopRequest
 
 
@@ -17,6 +17,7 @@ class Run:
     reason: str = ""
     fell_behind: str = ""
     late_twin: str = ""
+    degraded: str = ""
 
 
 def _recorder(results: list[Run]) -> tuple[list[int], object, object]:
@@ -91,3 +92,13 @@ def test_a_grbl_timeout_before_the_recording_is_a_late_twin_only_on_the_virtual_
         outcome = _record_one(runner, plan, tmp_path, "")  # type: ignore[arg-type]
         assert outcome.status == "failed" and "no status report" in outcome.reason
         assert bool(outcome.late_twin) == virtual and bool(outcome.fell_behind) == virtual
+
+
+def test_a_run_with_damaged_data_is_recorded_again_and_kept_marked_degraded_if_it_stays_damaged() -> None:
+    damaged = Run("complete", degraded="the camera's events stop 9.3 s before the protocol ends")
+    calls, record, ready = _recorder([damaged, Run("complete")])
+    assert record_in_real_time(record, ready) == Run("complete") and len(calls) == 2  # type: ignore[arg-type]
+    calls, record, ready = _recorder([damaged])
+    outcome = record_in_real_time(record, ready)  # type: ignore[arg-type]
+    assert len(calls) == 1 + REALTIME_RETRIES and outcome.status == DEGRADED
+    assert "9.3 s" in outcome.reason and "degraded" in outcome.reason

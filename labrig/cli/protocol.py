@@ -91,8 +91,12 @@ def record(
 
         with Recording(result.path) as rec:
             plot_overview(rec, plot)
+    from labrig.protocol.campaign import degraded_reasons
+
+    damage = degraded_reasons(result.path) if result.path.exists() else ""
     summary = {
         "path": str(result.path), "exit_status": result.exit_status, "reason": result.reason,
+        "quality": "degraded" if damage else "clean", "quality_reasons": damage.split("; ") if damage else [],
         "indenter": spec.indenter, "virtual_rig": session.virtual, "phases": result.phases,
         "contact_machine_mm": result.contact_mm, "peak_force_n": result.peak_force_n, "wall_s": round(result.wall_s, 3),
         "plot": None if plot is None else str(plot),
@@ -104,7 +108,9 @@ def record(
         console.print(f"[{style}]{result.exit_status}[/] {result.path}" + (f": {result.reason}" if result.reason else ""))
         peak = result.peak_force_n
         console.print(f"peak |F| (N): x {peak[0]:.2f}  y {peak[1]:.2f}  z {peak[2]:.2f};  {result.wall_s:.1f} s")
-    if result.exit_status != "complete":
+        if damage:
+            err_console.print(f"[yellow]degraded data[/]: {damage}; record it again")
+    if result.exit_status != "complete" or damage:
         raise typer.Exit(1)
 
 
@@ -162,7 +168,7 @@ def campaign(
         err_console.print(f"no hardware configured: {todo} recordings on the virtual rig ({workers} in parallel)")
     nominal = {p.id: p.spec.nominal_duration_s() + 3.0 for j in jobs for p in j.plans}
     t0 = time.monotonic()
-    counts = {"complete": 0, "aborted": 0, "failed": 0, "short": 0}
+    counts = {"complete": 0, "aborted": 0, "failed": 0, "short": 0, "degraded": 0}
     stop = StopRequest()
     count = TextColumn("{task.completed:.0f}/{task.fields[n]}")
     with progress_bar(count, TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
@@ -199,7 +205,7 @@ def campaign(
     summary = {
         "campaign": plan.name, "out": str(out), "manifest": str(manifest.path), "recordings": len(plan.plans),
         "skipped_complete": skipped, "recorded": counts["complete"], "aborted": counts["aborted"], "failed": counts["failed"],
-        "short": counts["short"],
+        "short": counts["short"], "degraded": counts["degraded"],
         "pending": sum(1 for r in manifest.rows.values() if r["status"] not in ("complete",)),
         "workers": workers, "wall_s": round(wall, 2),
         "recordings_per_min": round(60 * done / wall, 3) if done and wall > 0 else 0.0,
@@ -241,7 +247,7 @@ def _virtual_campaign(plan: Any, manifest: Any, out: Path, rig_path: Path, inden
     if not as_json:
         where = f"on the Dask cluster at {scheduler}" if scheduler else f"{workers} in parallel"
         err_console.print(f"{len(tasks)} recordings in virtual time ({where})")
-    counts = {"complete": 0, "aborted": 0, "failed": 0}
+    counts = {"complete": 0, "aborted": 0, "failed": 0, "degraded": 0}
     simulated_s = 0.0
     t0 = time.monotonic()
     with progress_bar(TimeElapsedColumn(), TimeRemainingColumn(), disable=as_json) as bar:
@@ -264,7 +270,7 @@ def _virtual_campaign(plan: Any, manifest: Any, out: Path, rig_path: Path, inden
     summary = {
         "campaign": plan.name, "out": str(out), "manifest": str(manifest.path), "made_by": "virtual-time",
         "recordings": len(plan.plans), "skipped_complete": skipped, "recorded": counts["complete"],
-        "aborted": counts["aborted"], "failed": counts["failed"],
+        "aborted": counts["aborted"], "failed": counts["failed"], "degraded": counts["degraded"],
         "pending": sum(1 for r in manifest.rows.values() if r["status"] != "complete"),
         "workers": None if scheduler else workers, "scheduler": scheduler, "wall_s": round(wall, 2),
         "recordings_per_min": round(60 * len(outcomes) / wall, 3) if outcomes and wall > 0 else 0.0,

@@ -96,18 +96,3 @@ def contact_centre_px(groundtruth: Any, t_us: npt.ArrayLike, camera: Any) -> F64
     if inside.any():
         out[inside] = np.asarray(camera.project(surface[inside]), np.float64)
     return out
-
-
-def camera_shortfall_s(recording: Recording) -> float:
-    """How long before the protocol's last phase ends the camera's events stop (s; 0 when they do not).
-
-    A camera stream that stalls (a lagging renderer on a loaded host, a cable) leaves windows
-    without events: the evaluation says so rather than score them.
-    """
-    phases = recording.phases()
-    if not phases:
-        return 0.0
-    end_us = recording.events_end_us()
-    stops_us = phases[0].t_start_us if end_us is None else end_us
-    return max(0.0, (phases[-1].t_end_us - stops_us) / 1e6)
-

@@ -40,7 +40,9 @@ from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import Campaign, RecordingPlan
+from labrig.recording import Recording
 from labrig.recording.layout import partial_path
+from labrig.recording.quality import assess, stored_quality
 from labrig.sim.parent_watch import exit_with_parent
 
 
@@ -58,6 +60,8 @@ class Outcome:
     fell_behind: str = ""
     #: The virtual rig's twin that missed a driver's deadline and so ended the run ("" when none).
     late_twin: str = ""
+    #: What damaged the recording's data ("" when clean; labrig.recording.quality).
+    degraded: str = ""
 
 
 class Manifest:
@@ -174,7 +178,14 @@ def _record_one(runner: ProbeRunner, plan: RecordingPlan, out_dir: Path, protoco
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
     return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s,
-                   result.shortfall.describe(), result.shortfall.late_twin)
+                   result.shortfall.describe(), result.shortfall.late_twin, degraded_reasons(result.path))
+
+
+def degraded_reasons(path: Path) -> str:
+    """What damaged a recording's data, in one line ("" when clean): its stored verdict, else assessed now."""
+    with Recording(path) as rec:
+        quality = stored_quality(rec) or assess(rec)
+    return "; ".join(quality.reasons)
 
 
 def _worker(job: CampaignJob, outcomes: Any, stop_level: Any) -> None:

@@ -27,6 +27,9 @@ FT_GAP_LIMIT_S = 0.1
 REALTIME_RETRIES = 2
 #: The manifest status of a run that fell behind in every try: kept, marked, redone by a rerun.
 SHORT = "short"
+#: The manifest status of a run whose data was damaged in every try (labrig.recording.quality): kept, marked,
+#: redone by a rerun.
+DEGRADED = "degraded"
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,8 @@ class Attempt(Protocol):
     def fell_behind(self) -> str: ...
     @property
     def late_twin(self) -> str: ...
+    @property
+    def degraded(self) -> str: ...
 
 
 OutcomeT = TypeVar("OutcomeT", bound=Attempt)
@@ -78,15 +83,17 @@ OutcomeT = TypeVar("OutcomeT", bound=Attempt)
 
 def record_in_real_time(record: Callable[[], OutcomeT], before_each: Callable[[], object],
                         stop: StopRequest | None = None, retries: int = REALTIME_RETRIES) -> OutcomeT:
-    """Record (``before_each`` readies the rig first) until a run kept real time, at most
-    ``1 + retries`` times. A complete run that fell behind every time comes back with status
-    :data:`SHORT`; a run that a late twin of the virtual rig ended every time (``late_twin``) keeps
-    its status (aborted, failed); both say so in their reason. Runs aborted or failed for any other
-    reason, and a stop, end the tries."""
+    """Record (``before_each`` readies the rig first) until a run kept real time with undamaged data,
+    at most ``1 + retries`` times. A complete run that fell behind every time comes back with status
+    :data:`SHORT`, one whose data was damaged (``degraded``) every time with :data:`DEGRADED`; a run
+    that a late twin of the virtual rig ended every time (``late_twin``) keeps its status (aborted,
+    failed); each says so in its reason. Runs aborted or failed for any other reason, and a stop, end
+    the tries."""
     tries = 0
 
     def again(outcome: OutcomeT) -> bool:
-        return bool(outcome.late_twin) or (outcome.status == COMPLETE and bool(outcome.fell_behind))
+        damaged = bool(outcome.fell_behind or outcome.degraded)
+        return bool(outcome.late_twin) or (outcome.status == COMPLETE and damaged)
 
     while True:
         before_each()
@@ -96,6 +103,10 @@ def record_in_real_time(record: Callable[[], OutcomeT], before_each: Callable[[]
             break
     if not again(outcome):
         return outcome
+    if outcome.status == COMPLETE and not outcome.fell_behind:
+        reason = (f"its data was damaged in {tries} of {tries} tries ({outcome.degraded}): the recording is kept but "
+                  "degraded; rerun the campaign on a quieter machine to record it again")
+        return replace(outcome, status=DEGRADED, reason=reason)  # type: ignore[type-var]
     if outcome.status == COMPLETE:
         reason = (f"fell behind real time in {tries} of {tries} tries ({outcome.fell_behind}): the recording is kept but "
                   "short; rerun the campaign on a quieter machine to record it again")

@@ -25,12 +25,13 @@ from pathlib import Path
 
 from labrig.cache import sha256_of
 from labrig.config import RigConfig, load_rig
-from labrig.dataset import Dataset, events_sidecar_path
+from labrig.dataset import COMPLETE, Dataset, events_sidecar_path
 from labrig.errors import LabrigError
 from labrig.executor import run_tasks
 from labrig.indenters import load_indenters
-from labrig.protocol.campaign import Manifest, Outcome
+from labrig.protocol.campaign import Manifest, Outcome, degraded_reasons
 from labrig.protocol.files import load_campaign
+from labrig.protocol.realtime import DEGRADED
 from labrig.protocol.spec import Campaign, RecordingPlan
 from labrig.protocol.virtual_run import MADE_BY_VIRTUAL_TIME, record_virtual
 from labrig.recording.layout import partial_path
@@ -81,6 +82,10 @@ def record_task(task: VirtualTask) -> Outcome:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
     if campaign.variation is not None and campaign.variation.varies("sim.events.threshold"):
         calibrate_own_camera(rig, path, seed)
+    damage = degraded_reasons(result.path)
+    if result.exit_status == COMPLETE and damage:  # virtual time is deterministic: trying again gives the same
+        return Outcome(plan.id, DEGRADED, f"its data is damaged: {damage}", result.path.name, sha256_of(result.path),
+                       result.wall_s, degraded=damage)
     return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
 
 

@@ -19,6 +19,7 @@ from labrig.errors import RecordingError
 from labrig.recording import schema
 from labrig.recording.finalize import committed_rows, finalize_file
 from labrig.recording.layout import PARTIAL_SUFFIX, final_path, stream_path
+from labrig.recording.quality import store_quality
 from labrig.recording.reader import Recording, TruncatedRecording, open_h5
 
 
@@ -62,6 +63,7 @@ def recover(path: str | os.PathLike[str], *, keep_partial: bool = False) -> Reco
         got = {name: check.rows(name) for name in rows}
     if got != rows:
         raise RecordingError(f"recovered copy of {source} holds {got}, expected {rows}; the partial file was kept")
+    store_quality(work)
     os.replace(work, target)
     if not keep_partial:
         source.unlink()

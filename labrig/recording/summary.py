@@ -10,13 +10,10 @@ from typing import Any
 import numpy as np
 
 from labrig.clock import unwrap_counter
+from labrig.recording.quality import assess, dropped_rows, stored_quality
 from labrig.recording.reader import Recording
 
 AXES = ("x", "y", "z")
-#: Residual latency above which a clock is reported as suspicious, us.
-HIGH_LATENCY_US = 10_000.0
-#: A gap between F/T samples longer than this many nominal periods is reported.
-FT_GAP_PERIODS = 5
 
 
 def summarize(rec: Recording) -> dict[str, Any]:
@@ -65,7 +62,7 @@ def summarize(rec: Recording) -> dict[str, Any]:
         }
         for device, m in sorted(rec.clock_models.items())
     }
-    summary["dropped"] = _dropped(rec)
+    summary["dropped"] = dropped_rows(rec)
 
     if not rec.finalized:
         warnings.append(f"not finalized: the recorder stopped unexpectedly; run `labrig recover {rec.path}`")
@@ -73,9 +70,10 @@ def summarize(rec: Recording) -> dict[str, Any]:
         warnings.append(f"aborted: {summary['exit_reason'] or 'no reason given'}")
     for stream, rows in summary["dropped"].items():
         warnings.append(f"{rows} {stream} rows dropped by the recorder")
-    for device, clock in summary["clock"].items():
-        if clock["residual_p99_us"] > HIGH_LATENCY_US:
-            warnings.append(f"{device}: 99 % of samples arrived more than {clock['residual_p99_us'] / 1000:.1f} ms late")
+    quality = stored_quality(rec) or assess(rec)
+    summary["quality"] = quality.verdict
+    summary["quality_reasons"] = list(quality.reasons)
+    warnings += [reason for reason in quality.reasons if not reason.endswith("rows dropped by the recorder")]
     summary["warnings"] = warnings
     return summary
 
@@ -99,10 +97,6 @@ def _ft_summary(rec: Recording, warnings: list[str]) -> dict[str, Any]:
     steps = np.diff(device_us)
     period_us = float(np.median(steps)) if steps.size else 0.0
     out["ft_rate_hz"] = 1e6 / period_us if period_us > 0 else 0.0
-    if steps.size and period_us > 0:
-        gaps = steps > FT_GAP_PERIODS * period_us
-        if gaps.any():
-            warnings.append(f"{int(gaps.sum())} gaps in F/T data, longest {steps.max() / 1000:.1f} ms")
     flagged = int((rec.column("ft", "status") != 0).sum())
     if flagged:
         warnings.append(f"{flagged} F/T samples flagged by the sensor (overrange, invalid or throttled)")
@@ -116,11 +110,3 @@ def _cnc_summary(rec: Recording) -> dict[str, Any]:
         out[f"cnc_{axis}_min_mm"] = float(position[:, i].min()) if len(position) else None
         out[f"cnc_{axis}_max_mm"] = float(position[:, i].max()) if len(position) else None
     return out
-
-
-def _dropped(rec: Recording) -> dict[str, int]:
-    drops = rec.stream("drops")
-    totals: dict[str, int] = {}
-    for stream, rows in zip(drops["stream"], drops["rows"]):
-        totals[stream.decode()] = totals.get(stream.decode(), 0) + int(rows)
-    return totals

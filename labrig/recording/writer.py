@@ -44,6 +44,7 @@ from labrig.recording import schema
 from labrig.recording.codecs import DEFAULT_BULK_CODEC, PORTABLE_CODEC, codec_kwargs
 from labrig.recording.finalize import finalize_file
 from labrig.recording.layout import create_layout, partial_path, stream_group
+from labrig.recording.quality import Quality, store_quality
 
 Columns = dict[str, npt.NDArray[Any]]
 
@@ -105,6 +106,7 @@ class RecordingResult:
     rows: dict[str, int]
     dropped: dict[str, int]
     fault: str = ""
+    quality: Quality | None = None  # the data's verdict (labrig.recording.quality); None when not finalized
 
 
 class _PhaseTable:
@@ -295,9 +297,10 @@ class RecordingWriter:
         if self._fault_reason:  # stopped cleanly by the disk-space guard
             exit_status, reason = schema.EXIT_ABORTED, self._fault_reason
         finalize_file(self.partial, exit_status, reason, online_models=self.online_models(), attrs=attrs)
+        quality = store_quality(self.partial)
         os.replace(self.partial, self.path)
         _fsync_dir(self.path.parent)
-        return RecordingResult(self.path, exit_status, reason, rows, dropped)
+        return RecordingResult(self.path, exit_status, reason, rows, dropped, quality=quality)
 
     def abort(self, reason: str) -> RecordingResult:
         return self.close(schema.EXIT_ABORTED, reason)
