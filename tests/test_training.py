@@ -178,8 +178,8 @@ def test_cli_train_json_and_errors(campaign: Path, tmp_path: Path) -> None:
 
 def test_windows_are_drawn_only_where_the_camera_has_events(campaign: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A camera that stalled leaves a dented gel without events: those windows would teach a dimple from nothing."""
-    from labrig.recording.quality import camera_shortfall_s
     from labrig.recording import Recording
+    from labrig.recording.quality import camera_shortfall_s
 
     with Recording(campaign / "a.h5") as rec:
         end_us = rec.events_end_us()

@@ -227,8 +227,8 @@ def _runner(settings: EvaluationSettings, ev: Evaluation, progress: Progress | N
 def _scan_recordings(paths: list[str], tolerance_s: float = 0.1) -> tuple[list[str], dict[str, float]]:
     """One look at each recording: those with the sim's truth (virtual rig), and those whose camera
     stream stops more than ``tolerance_s`` before the protocol ends (name -> seconds missing)."""
-    from labrig.recording.quality import camera_shortfall_s
     from labrig.recording import Recording
+    from labrig.recording.quality import camera_shortfall_s
 
     simulated, short = [], {}
     for path in paths:
