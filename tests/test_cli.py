@@ -13,7 +13,8 @@ import pytest
 
 SUMMARY_KEYS = {
     "duration_s", "events", "event_rate_hz", "ft_samples", "phases", "exit_status", "dropped", "warnings", "clock",
-    "fx_min_n", "fx_max_n", "fy_min_n", "fy_max_n", "fz_min_n", "fz_max_n",
+    "ft_sensor_fx_min_n", "ft_sensor_fx_max_n", "ft_sensor_fz_min_n", "ft_sensor_fz_max_n", "force_on_gel_x_min_n",
+    "force_on_gel_z_min_n", "force_on_gel_z_max_n", "force_on_gel_ft_axes", "quality", "quality_reasons",
 }
 
 
@@ -34,7 +35,8 @@ def test_inspect_prints_a_summary_and_json(small_recording: Path, tmp_path: Path
     assert summary["exit_status"] == "complete" and summary["dropped"] == {} and summary["warnings"] == []
     assert summary["events"] > 1_000_000 and summary["ft_samples"] == 2400
     assert 2.9 < summary["duration_s"] < 3.1
-    assert summary["fz_min_n"] < -10 < summary["fz_max_n"]
+    assert summary["ft_sensor_fz_min_n"] < -10 < summary["ft_sensor_fz_max_n"]
+    assert summary["force_on_gel_z_min_n"] == pytest.approx(-summary["ft_sensor_fz_max_n"], abs=0.2)  # the opposite
     assert [p["name"] for p in summary["phases"]][:2] == ["approach", "normal_down"]
     assert summary["clock"]["camera"]["method"] == "triggers"
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and plot.stat().st_size > 20_000
@@ -96,7 +98,12 @@ def test_sim_probe_records_a_run_and_reports_json(tmp_path: Path) -> None:
     assert summary["exit_status"] == "complete" and summary["events"] > 1000
     assert {"sim_duration_s", "wall_s", "real_time_factor", "event_rate_hz", "max_lag_ms"} <= set(summary)
     inspected = json.loads(labrig("inspect", out, "--json").stdout)
-    assert inspected["fz_max_n"] > 0.5 and [p["name"] for p in inspected["phases"]][1] == "normal_down"
+    assert inspected["ft_sensor_fz_max_n"] > 0.5 and [p["name"] for p in inspected["phases"]][1] == "normal_down"
+    # One convention: inspect's force on the gel (gel frame) presses as the pipeline's does, Fz < 0.
+    assert inspected["force_on_gel_z_min_n"] < -0.5 < inspected["force_on_gel_z_max_n"] + 1.0
+    ran = json.loads(labrig("run", out, "--json").stdout)
+    assert ran["peak_net_force_on_gel_n"][2] < -0.5
+    assert ran["peak_net_force_on_gel_n"][2] == pytest.approx(inspected["force_on_gel_z_min_n"], rel=0.5)
 
 
 @pytest.mark.parametrize(

@@ -90,7 +90,7 @@ def test_labrig_run_writes_results_and_an_animation(recording: Path, tmp_path: P
                      "--calibration", str(tmp_path), "--json")
     assert result.exit_code == 0, result.output
     summary = json.loads(result.output)
-    assert summary["windows"] > 50 and summary["real_time_factor"] > 0 and summary["peak_normal_force_n"] > 1.0
+    assert summary["windows"] > 50 and summary["real_time_factor"] > 0 and summary["peak_normal_force_on_gel_n"] > 1.0
     data = results.load_result(out)
     m = 156
     assert data["forces_n"].shape == (summary["windows"], m, 3) and data["positions_px"].shape[1:] == (m, 2)

@@ -8,22 +8,27 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from labrig.cli.console import JsonOption, console, output_file, print_json
+from labrig.cli.console import JsonOption, calibration_folder, console, output_file, print_json
 
 
 def inspect(
     file: Annotated[Path, typer.Argument(help="Recording file (.h5) or a crashed NAME.h5.partial.")],
     plot: Annotated[Path | None, typer.Option(
         "--plot", help="Also draw event rate, forces and CNC Z to this PNG.", callback=output_file)] = None,
+    calibration: Annotated[Path | None, typer.Option(
+        help="Calibration folder whose rig-registration.toml turns the F/T axes into the gel frame (default: the "
+             "folder of labrig's default rig; the registration the recording names comes first).")] = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Summarize a recording: duration, events, forces, phases, clocks, warnings."""
+    """Summarize a recording: duration, events, forces (on the gel, gel frame), phases, clocks, data quality."""
+    from labrig.calibration.ft_frame import force_on_gel_ranges
     from labrig.recording import Recording
     from labrig.recording.plot import plot_overview
     from labrig.recording.summary import summarize
 
     with Recording(file) as rec:
         summary = summarize(rec)
+        summary.update(force_on_gel_ranges(rec, calibration_folder(calibration)))
         if plot is not None:
             summary["plot"] = str(plot_overview(rec, plot))
     if as_json:
@@ -49,14 +54,22 @@ def _print_summary(s: dict[str, Any]) -> None:
     console.print(overview)
 
     if s["ft_samples"]:
-        forces = Table(title="force-torque range", title_justify="left")
+        forces = Table(title=f"force on the gel, gel frame (F/T axes: {s['force_on_gel_ft_axes']}; a press: Fz < 0)",
+                       title_justify="left")
         for col in ("axis", "min", "max"):
             forces.add_column(col, justify="right")
         for axis in "xyz":
-            forces.add_row(f"F{axis} (N)", f"{s[f'f{axis}_min_n']:.3f}", f"{s[f'f{axis}_max_n']:.3f}")
-        for axis in "xyz":
-            forces.add_row(f"T{axis} (N m)", f"{s[f't{axis}_min_nm']:.4f}", f"{s[f't{axis}_max_nm']:.4f}")
+            forces.add_row(f"F{axis} (N)", f"{s[f'force_on_gel_{axis}_min_n']:.3f}", f"{s[f'force_on_gel_{axis}_max_n']:.3f}")
         console.print(forces)
+        sensor = Table(title="F/T sensor reading: the force on the indenter, sensor axes", title_justify="left")
+        for col in ("axis", "min", "max"):
+            sensor.add_column(col, justify="right")
+        for axis in "xyz":
+            sensor.add_row(f"F{axis} (N)", f"{s[f'ft_sensor_f{axis}_min_n']:.3f}", f"{s[f'ft_sensor_f{axis}_max_n']:.3f}")
+        for axis in "xyz":
+            sensor.add_row(f"T{axis} (N m)", f"{s[f'ft_sensor_t{axis}_min_nm']:.4f}", f"{s[f'ft_sensor_t{axis}_max_nm']:.4f}")
+        console.print(sensor)
+    console.print(f"data quality: {s['quality']}" + (f" ({'; '.join(s['quality_reasons'])})" if s["quality_reasons"] else ""))
 
     if s["phases"]:
         phases = Table(title="phases", title_justify="left")

@@ -26,7 +26,7 @@ from labrig.cli.live_view import LiveView, showing
 from labrig.cli.run_report import check_view, print_live_run
 from labrig.config import DEFAULT_RIG, RigConfig, load_rig
 from labrig.errors import LabrigError
-from labrig.evaluation.measured import ft_axes_in_gel
+from labrig.calibration.ft_frame import ft_axes_in_gel
 from labrig.indenters import DEFAULT_INDENTERS, load_indenters
 from labrig.live import rig as live_rig
 from labrig.live.runner import MAX_LAG_MS

@@ -42,9 +42,10 @@ def print_run(s: dict[str, Any]) -> None:
     console.print(f"{s['windows']} windows of {mode} over {s['duration_s']:.2f} s in {s['wall_s']:.2f} s; "
                   f"processing {s['processing_per_window_ms']:.2f} ms per window (real-time factor "
                   f"{s['real_time_factor']:.2f})")
-    f = s["peak_net_force_n"]
-    console.print(f"peak normal force {s['peak_normal_force_n']:.2f} N at {s['peak_at_us'] / 1e6:.3f} s "
-                  f"(net {f[0]:+.2f}, {f[1]:+.2f}, {f[2]:+.2f} N); E = {s['youngs_modulus_mpa']:.3g} MPa "
+    f = s["peak_net_force_on_gel_n"]
+    console.print(f"peak normal force {s['peak_normal_force_on_gel_n']:.2f} N at {s['peak_at_us'] / 1e6:.3f} s "
+                  f"(net force on the gel, gel frame: {f[0]:+.2f}, {f[1]:+.2f}, {f[2]:+.2f} N); "
+                  f"E = {s['youngs_modulus_mpa']:.3g} MPa "
                   f"from {escape(s['sources']['modulus'])}; camera: {escape(s['sources']['camera'])}")
     for key in ("out", "view"):
         if s[key]:
@@ -63,9 +64,10 @@ def print_live_run(s: dict[str, Any]) -> None:
     console.print(f"[{style}]processing {s['processing_per_window_ms']:.2f} ms per window (real-time factor "
                   f"{s['real_time_factor']:.2f}); latency median {s['latency_median_ms']:.1f} ms, p95 "
                   f"{s['latency_p95_ms']:.1f} ms; dropped chunks {s['dropped_chunks']}[/]")
-    f = s["peak_net_force_n"]
-    console.print(f"peak normal force {s['peak_normal_force_n']:.2f} N (net {f[0]:+.2f}, {f[1]:+.2f}, {f[2]:+.2f} N, "
-                  f"on the gel); E = {s['youngs_modulus_mpa']:.3g} MPa from {escape(s['sources']['modulus'])}")
+    f = s["peak_net_force_on_gel_n"]
+    console.print(f"peak normal force {s['peak_normal_force_on_gel_n']:.2f} N (net force on the gel, gel frame: "
+                  f"{f[0]:+.2f}, {f[1]:+.2f}, {f[2]:+.2f} N); E = {s['youngs_modulus_mpa']:.3g} MPa "
+                  f"from {escape(s['sources']['modulus'])}")
     if s["camera_error"]:
         console.print(f"[yellow]the camera stream ended with an error: {escape(s['camera_error'])}[/]")
     c, p = s["ft_comparison"], s["probe"]

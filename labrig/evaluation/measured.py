@@ -7,53 +7,18 @@ windows of 20,000 events per test recording; each window's end is an evaluation 
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from labrig.calibration.registration_file import REGISTRATION_FILE, load_registration
-from labrig.config import DEFAULT_CALIBRATION_DIR
+from labrig.calibration.ft_frame import ft_axes_in_gel, ft_on_gel_n
 from labrig.errors import LabrigError
-from labrig.frames import rotvec_to_matrix
 from labrig.recording import Recording
 
+__all__ = ["contact_centre_px", "ft_axes_in_gel", "ft_on_gel_n", "measured_force_on_gel_n"]
+
 F64 = npt.NDArray[np.float64]
-
-
-# -- the F/T sensor in the gel frame ------------------------------------------------------------
-
-
-def ft_axes_in_gel(recording: Recording | None,
-                   calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR) -> tuple[F64, str]:
-    """Rotation (3, 3) from the F/T sensor's axes to the gel frame, and where it came from.
-
-    The rig registration the recording names (``extra_calibration``; None: no recording yet, as
-    in a live run), else ``calibration_dir/rig-registration.toml``, else identity (the nominal
-    mounting).
-    """
-    named = recording.attrs.get("extra_calibration", "") if recording is not None else ""
-    candidates = [Path(p) for p in (json.loads(named) if isinstance(named, str) and named else {})
-                  if Path(p).name == REGISTRATION_FILE]
-    if calibration_dir is not None:
-        candidates.append(Path(calibration_dir) / REGISTRATION_FILE)
-    for path in candidates:
-        if path.exists():
-            section = load_registration(path).get("ft_axes", {})
-            if "rotvec_rad" in section:
-                return rotvec_to_matrix(np.asarray(section["rotvec_rad"], np.float64)), str(path)
-    return np.eye(3), "nominal (no rig registration)"
-
-
-def ft_on_gel_n(force_sensor_n: Sequence[float] | F64, ft_to_gel: F64) -> F64:
-    """Tared F/T forces (on the indenter, sensor axes, N; (3,) or (n, 3)) as the forces on the gel in the gel frame.
-
-    The sensor carries the indenter and reads the force on it; the gel feels the opposite.
-    """
-    return -(np.asarray(force_sensor_n, np.float64) @ ft_to_gel.T)
 
 
 def measured_force_on_gel_n(recording: Recording, t0_us: npt.ArrayLike, t1_us: npt.ArrayLike,

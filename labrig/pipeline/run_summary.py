@@ -53,6 +53,7 @@ def window_summary(recording: str | None, log: WindowLog, wall: float, depth: st
         "wall_s": wall, "processing_per_window_ms": float(np.median(busy) * 1000),
         "real_time_factor": float(np.median(busy / np.maximum(t1 - t0, 1) * 1e6)),
         "stage_median_ms": stages, "youngs_modulus_mpa": setup.youngs_modulus_mpa, "sources": setup.sources,
-        "peak_normal_force_n": float(-net[k, 2]) + 0.0, "peak_at_us": int(t1[k]),
-        "peak_net_force_n": [float(v) for v in net[k]], "out": str(out) if out else None, "view": str(view) if view else None,
+        "peak_normal_force_on_gel_n": float(-net[k, 2]) + 0.0, "peak_at_us": int(t1[k]),
+        "peak_net_force_on_gel_n": [float(v) for v in net[k]], "out": str(out) if out else None,
+        "view": str(view) if view else None,
     }

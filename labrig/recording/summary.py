@@ -1,6 +1,9 @@
 """A recording's summary as plain data (what ``labrig inspect`` prints).
 
-Keys are stable and carry their units; ``--json`` prints this dict as is.
+Keys are stable and carry their units and frames: ``ft_sensor_*`` is the F/T sensor's own reading
+(the force on the indenter, in the sensor's axes); ``labrig inspect`` adds the same force as the
+force on the gel in the gel frame (``force_on_gel_*``, :mod:`labrig.calibration.ft_frame`), labrig's
+one convention. ``--json`` prints this dict as is.
 """
 
 from __future__ import annotations
@@ -82,17 +85,17 @@ def _ft_summary(rec: Recording, warnings: list[str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if rec.rows("ft") == 0:
         for axis in AXES:
-            out[f"f{axis}_min_n"] = out[f"f{axis}_max_n"] = None
-            out[f"t{axis}_min_nm"] = out[f"t{axis}_max_nm"] = None
+            out[f"ft_sensor_f{axis}_min_n"] = out[f"ft_sensor_f{axis}_max_n"] = None
+            out[f"ft_sensor_t{axis}_min_nm"] = out[f"ft_sensor_t{axis}_max_nm"] = None
         out["ft_rate_hz"] = 0.0
         return out
     force = rec.column("ft", "force_n")
     torque = rec.column("ft", "torque_nm")
-    for i, axis in enumerate(AXES):
-        out[f"f{axis}_min_n"] = float(force[:, i].min())
-        out[f"f{axis}_max_n"] = float(force[:, i].max())
-        out[f"t{axis}_min_nm"] = float(torque[:, i].min())
-        out[f"t{axis}_max_nm"] = float(torque[:, i].max())
+    for i, axis in enumerate(AXES):  # the sensor's own reading: the force on the indenter, sensor axes
+        out[f"ft_sensor_f{axis}_min_n"] = float(force[:, i].min())
+        out[f"ft_sensor_f{axis}_max_n"] = float(force[:, i].max())
+        out[f"ft_sensor_t{axis}_min_nm"] = float(torque[:, i].min())
+        out[f"ft_sensor_t{axis}_max_nm"] = float(torque[:, i].max())
     device_us = unwrap_counter(rec.column("ft", "t_device_us"), 32)
     steps = np.diff(device_us)
     period_us = float(np.median(steps)) if steps.size else 0.0
