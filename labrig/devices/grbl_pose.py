@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from labrig.devices.grbl_gcode import preparse as preparse_text
 from labrig.devices.grbl_protocol import Status
 from labrig.devices.motion_profile import MachineLimits, MotionTimeline, Segment, Vec3, make_block, quantize_mm
 
@@ -69,18 +70,7 @@ class LineEffect:
 
 def preparse(line: bytes) -> str:
     """The line as GRBL's pre-parser keeps it (no spaces or comments, upper case)."""
-    out = []
-    depth = False
-    for ch in line.decode("ascii", "replace"):
-        if depth:
-            depth = ch != ")"
-        elif ch == "(":
-            depth = True
-        elif ch == ";":
-            break
-        elif " " < ch < "\x7f":
-            out.append(ch.upper())
-    return "".join(out)
+    return preparse_text(line.decode("ascii", "replace"))
 
 
 class GcodeFollower:
