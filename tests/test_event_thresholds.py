@@ -104,6 +104,7 @@ def test_the_command_writes_the_files_and_never_replaces_the_default_unasked(
     assert first.returncode == 0, first.stderr
     summary = json.loads(first.stdout)
     assert summary["path"] == str(folder / "events.toml")
+    first_text = (folder / "events.toml").read_text()
     assert Path(summary["plot"]).stat().st_size > 10_000
     assert {"on_ln_median", "off_ln_median", "on_off_ratio", "pixels_rejected", "cells_filled"} <= summary.keys()
     again = _labrig("calibrate", "events", path, "--rig", rig_file)
@@ -112,7 +113,7 @@ def test_the_command_writes_the_files_and_never_replaces_the_default_unasked(
     forced = _labrig("calibrate", "events", path, "--rig", rig_file, "--force", "--json")
     assert forced.returncode == 0, forced.stderr
     assert json.loads(forced.stdout)["backup"] == str(folder / "events.toml.bak")
-    assert (folder / "events.toml.bak").read_text() == (folder / "events.toml").read_text()  # the same recording
+    assert (folder / "events.toml.bak").read_text() == first_text  # the previous calibration, kept
     setup = run_setup.setup_for_rig(sensor, calibration_dir=folder)
     assert setup.thresholds is not None and setup.sources["thresholds"] == str(folder / "events.toml")
 
