@@ -46,8 +46,10 @@ THICK_GEL_EDITS = {
 #: What `labrig calibrate gel` fitted on the thick-gel rig (seed 0).
 THICK_GEL_CALIBRATION = ("youngs_modulus_mpa = 0.251107\npoisson_ratio = 0.49\nthickness_mm = 5\n"
                          "stiffening = 0.578604\nstiffening_fitted = true\n")
-#: Tolerances against the truth: origin per axis (mm), yaw (deg).
-ORIGIN_TOLERANCE_MM = 0.006
+#: Tolerances against the truth: origin per axis (mm), yaw (deg). The touch-offs run in real time, so on a
+#: loaded machine the contact is detected a few um deeper or shallower (6.9 um in z seen in a clean-clone CI
+#: run); the outlier these tests plant is 0.76 mm off.
+ORIGIN_TOLERANCE_MM = 0.01
 YAW_TOLERANCE_DEG = 0.05
 
 
