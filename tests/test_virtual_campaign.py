@@ -123,7 +123,7 @@ def test_virtual_time_recording_looks_like_a_through_driver_one(campaign_file: P
     """Phases with trigger edges at their starts, F/T at 800 Hz on the sensor's drifting clock with
     its bias tared away, CNC status at 10 Hz following trapezoids, the G-code conversation."""
     from labrig.config import load_rig
-    from labrig.indenters import load_indenters
+    from labrig.indenters import indenter_from_toml, load_indenters
     from labrig.protocol import load_campaign
     from labrig.protocol.virtual_run import record_virtual
     from labrig.recording import Recording
@@ -154,4 +154,5 @@ def test_virtual_time_recording_looks_like_a_through_driver_one(campaign_file: P
         lines = rec.stream("gcode")["line"].tolist()
         assert any(line.startswith(b"$J=") for line in lines) and b"M8" in lines and b"M9" in lines
         assert rec.attrs["extra_made_by"] == "virtual-time"
+        assert indenter_from_toml(str(rec.attrs["indenter_definition"]), "recording") == indenters["sphere"]  # ground truth needs no file
         assert rec.clock_model("camera").method == "triggers"

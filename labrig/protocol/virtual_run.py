@@ -23,13 +23,13 @@ import numpy.typing as npt
 from labrig.calibration.registration_file import gel_pose
 from labrig.config import RigConfig
 from labrig.devices.bota_stream import FtSample
-from labrig.indenters import Indenter
+from labrig.indenters import Indenter, indenter_toml
 from labrig.physics.grid import network_grid_gel_mm
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.rigfile import safety_limits
 from labrig.protocol.routing import put_chunk, put_ft_rows, put_gcode
 from labrig.protocol.runner import APPROACH_FRACTION, DETECT_SAMPLES, FINE_SPEED_MM_S, MOVE_MARGIN_S, ProbeRunner, RunResult
-from labrig.protocol.safety import ForceMonitor, SafetyLimits, SpeedLimits
+from labrig.protocol.safety import ForceMonitor, SafetyLimits, SpeedLimits, deepest_press_mm
 from labrig.protocol.session import NS_PER_US, RigSession
 from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
@@ -137,7 +137,7 @@ class _VirtualRun:
         info = {"virtual_rig": True, "made_by": MADE_BY_VIRTUAL_TIME, "seed": self.seed,
                 "location_mm": list(self.plan.spec.location_mm), "tare_n_nm": list(tare), **extra}
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
-                                     extra=info)
+                                     indenter_toml=indenter_toml(self.indenter), extra=info)
         writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S, wake_on_put=False,
                                  extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))).open()
         self.writer = writer
@@ -224,7 +224,8 @@ class _VirtualRun:
             self._move(plan.bottom_mm(contact), spec.normal_speed_mm_s)
             return plan.bottom_mm(contact)
         assert spec.force_n is not None
-        max_depth = min(spec.max_depth_mm or self.indenter.max_depth_mm, self.indenter.max_depth_mm)
+        cap = deepest_press_mm(self.indenter.max_depth_mm)
+        max_depth = min(spec.max_depth_mm or cap, cap)
         deepest = plan.max_bottom_mm(contact, max_depth)
         for threshold, speed in ((APPROACH_FRACTION * spec.force_n, spec.normal_speed_mm_s),
                                  (spec.force_n, min(spec.normal_speed_mm_s, FINE_SPEED_MM_S))):
