@@ -1,7 +1,8 @@
 """Run one probing sequence through the real drivers into one recording, safely.
 
-Approach (search for contact), Normal Down (to a depth or a force), Wait,
-Shear, Wait, Shear Opposite, Wait, Normal Up, Retract. At each phase start the
+:class:`ProbeRunner` plays the probing procedure (:mod:`labrig.protocol.procedure`: Approach,
+Normal Down to a depth or a force, Wait, Shear, Wait, Shear Opposite, Wait, Normal Up, Retract)
+on the drivers of an open :class:`RigSession`. At each phase start the
 CNC output wired to the camera's trigger input toggles (M8/M9), so the
 recording carries hardware sync edges, and the phase is logged on the host
 clock. Before any move every target is checked against the workspace and every
@@ -37,16 +38,27 @@ from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter, indenter_toml
 from labrig.protocol.plan import ProbePlan
-from labrig.protocol.realtime import CAMERA_BEHIND_LIMIT_S, Shortfall
-from labrig.protocol.safety import (
-    SafetyError,
-    SpeedLimits,
-    StopRequest,
-    check_location,
-    check_targets,
-    deepest_press_mm,
-    depth_problem,
+from labrig.protocol.preflight import checked_plan
+from labrig.protocol.procedure import (
+    Contact,
+    Dwell,
+    Halt,
+    Move,
+    MoveUntil,
+    Phase,
+    Point,
+    Position,
+    Procedure,
+    ProcedureAbort,
+    Retreat,
+    Step,
+    move_limit_s,
+    play,
+    probe,
+    recovery,
 )
+from labrig.protocol.realtime import CAMERA_BEHIND_LIMIT_S, Shortfall
+from labrig.protocol.safety import SafetyError, SpeedLimits, StopRequest
 from labrig.protocol.session import NS_PER_US, TWIN_PATIENCE_S, RigSession
 from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
@@ -55,12 +67,7 @@ from labrig.sim.faults import RigFault
 
 F64 = npt.NDArray[np.float64]
 
-#: Extra time allowed on top of a move's nominal duration, s.
-MOVE_MARGIN_S = 5.0
 CAMERA_SHORTFALL_US = round(CAMERA_BEHIND_LIMIT_S * 1e6)  # a camera stream ending this much before the run's end is reported
-#: A force target is approached at the normal speed up to this fraction, then at FINE_SPEED_MM_S.
-APPROACH_FRACTION = 0.7
-FINE_SPEED_MM_S = 0.3
 #: A controller's time from receiving an output line to switching the output, us (GRBL's parse).
 OUTPUT_EXECUTE_US = 250.0
 #: While the machine dwells, the camera trigger output toggles this often, s (in pairs, so each
@@ -68,8 +75,6 @@ OUTPUT_EXECUTE_US = 250.0
 #: host some lines reach the controller late and their edges lie below the fit; the more edges,
 #: the more prompt ones for the fit to rest on (a 4 s wait adds 14).
 SYNC_EDGE_INTERVAL_S = 0.25
-#: F/T samples averaged for contact and force-target detection (noise 0.02 N -> 0.005 N).
-DETECT_SAMPLES = 16
 
 
 @dataclass(frozen=True)
@@ -121,22 +126,26 @@ class ProbeRunner:
         gel_in_machine: Pose,
         stop: StopRequest | None = None,
         progress: Callable[[RunProgress], None] | None = None,
+        on_step: Callable[[Step], None] | None = None,
     ) -> None:
+        """``on_step`` sees every step of the procedure before it is played (a log, a test)."""
         self.session = session
         self.rig = rig
         self.indenter = indenter
         self.gel_in_machine = gel_in_machine
         self.stop = stop or StopRequest()
         self.progress = progress
+        self.on_step = on_step
         self.limits = session.limits.for_indenter(indenter.max_normal_force_n, indenter.max_shear_force_n)
         self._writer: RecordingWriter | None = None
         self._phases: list[str] = []
         self._output_level = 0
         self._plan: ProbePlan | None = None
         self._contact: F64 | None = None
+        self._hold_on_halt = False
         self._last_report = (0.0, 0)
         # A twin on a loaded host may stall for seconds; a real machine's moves keep their margin.
-        self._move_margin_s = MOVE_MARGIN_S + (TWIN_PATIENCE_S if session.virtual else 0.0)
+        self._patience_s = TWIN_PATIENCE_S if session.virtual else 0.0
         self._rig_faults_from_us = 0  # host us: the virtual rig's faults from then on abort the run
 
     @classmethod
@@ -158,19 +167,7 @@ class ProbeRunner:
 
     def check(self, spec: ProbeSpec) -> ProbePlan:
         """Everything that can be refused before moving (raises SafetyError with all problems)."""
-        if spec.indenter != self.indenter.name:
-            raise SafetyError(f"the run needs the {spec.indenter} indenter but {self.indenter.name} is mounted")
-        check_location(spec.location_mm, (self.rig.gel.size_x_mm, self.rig.gel.size_y_mm),
-                       self.indenter.footprint_radius_mm, self.limits.gel_margin_mm)
-        for value in (spec.depth_mm, spec.max_depth_mm):
-            problem = None if value is None else depth_problem(value, self.indenter.name, self.indenter.max_depth_mm)
-            if problem is not None:
-                raise SafetyError(f"depth {problem}")
-        if spec.force_n is not None and spec.force_n > self.limits.max_normal_force_n:
-            raise SafetyError(f"force target {spec.force_n} N is over the normal force limit {self.limits.max_normal_force_n} N")
-        plan = ProbePlan.build(spec, self.gel_in_machine, self.indenter, self.limits.clearance_mm)
-        check_targets(plan.nominal_targets(self.indenter.max_depth_mm), self.limits)
-        return plan
+        return checked_plan(spec, self.rig, self.indenter, self.gel_in_machine, self.limits)
 
     def _check_speeds(self, spec: ProbeSpec) -> None:
         """The run's speeds against the controller's max rates (``$110-$112``, read at connect): a
@@ -195,17 +192,21 @@ class ProbeRunner:
         writer = self._open_writer(out, spec, protocol_toml, extra)
         result = RunResult(out, EXIT_COMPLETE)
         late_twin = ""
+        self._plan, self._contact = plan, None
         try:
-            result.contact_mm = self._sequence(plan, result)
+            self._play(probe(plan, self.indenter.max_depth_mm))
         except _Abort as abort:
             result.exit_status, result.reason = EXIT_ABORTED, abort.reason
             if abort.late and self.session.virtual:
                 late_twin = abort.reason
+            self._hold_on_halt = abort.hold
             try:
-                self._recover(plan, hold=abort.hold)
+                self._play(recovery(plan))
             except (GrblError, _Abort) as exc:
                 result.reason += f"; the retract failed too ({exc}): check the machine before the next run"
         finally:
+            if self._contact is not None:
+                result.contact_mm = (float(self._contact[0]), float(self._contact[1]), float(self._contact[2]))
             end_ns = self.session.clock.now_ns()
             writer.phase_end((end_ns - writer.t0_host_ns) // NS_PER_US)
             behind_us = self.session.end(end_ns)
@@ -222,84 +223,60 @@ class ProbeRunner:
             result.wall_s = time.perf_counter() - t_start
         return result
 
-    # -- the sequence -----------------------------------------------------------------------------
+    # -- playing the procedure on the drivers ------------------------------------------------------
 
-    def _sequence(self, plan: ProbePlan, result: RunResult) -> tuple[float, float, float]:
-        spec = plan.spec
-        self._plan, self._contact = plan, None
-        self._phase("approach")
-        contact = self._approach(plan)
-        self._contact = contact
-        result.contact_mm = (float(contact[0]), float(contact[1]), float(contact[2]))
-        if self.stop.level >= 1:
-            raise _Abort("stopped by the user (Ctrl-C)", hold=False)
-        self._phase("normal_down")
-        bottom = self._normal_down(plan, contact)
-        steps: list[tuple[str, F64 | None, float]] = [("wait", None, spec.wait_s)]
-        if spec.shear_mm > 0:
-            steps += [("shear", plan.sheared_mm(bottom), spec.shear_speed_mm_s), ("wait", None, spec.wait_s),
-                      ("shear_opposite", bottom, spec.shear_speed_mm_s), ("wait", None, spec.wait_s)]
-        for name, target, value in steps:
-            if self.stop.level >= 1:
-                raise _Abort("stopped by the user (Ctrl-C)", hold=False)
-            self._phase(name)
-            if target is None:
-                self._dwell(value)
-            else:
-                self._move(target, value)
-        self._phase("normal_up")
-        self._move(contact, spec.normal_speed_mm_s)
-        self._phase("retract")
-        self._move(contact - spec.retract_height_mm * plan.down, spec.retract_speed_mm_s)
-        return result.contact_mm
+    def _play(self, procedure: Procedure) -> Any:
+        try:
+            return play(procedure, self._execute, self.on_step)
+        except ProcedureAbort as abort:
+            raise _Abort(abort.reason, hold=False) from None
 
-    def _approach(self, plan: ProbePlan) -> F64:
-        approach = plan.spec.approach
-        reached = self.session.monitor.arm("contact", approach.contact_force_n, self.grbl.jog_cancel,
-                                           average_samples=DETECT_SAMPLES)
-        limit = plan.approach_limit_mm
-        self.grbl.jog(*limit.tolist(), feed_mm_min=approach.speed_mm_s * 60, relative=False, machine=True)
-        self._wait_motion(approach.max_travel_mm / approach.speed_mm_s)
+    def _execute(self, step: Step) -> Any:
+        """One step of a procedure on the drivers; its reply."""
+        match step:
+            case Phase():
+                if step.stoppable and self.stop.level >= 1:
+                    raise _Abort("stopped by the user (Ctrl-C)", hold=False)
+                self._phase(step.name, recovering=step.recovering)
+            case Move():
+                self._move(step.target_mm, step.speed_mm_s)
+            case MoveUntil():
+                return self._move_until(step)
+            case Dwell():
+                self._dwell(step.seconds)
+            case Position():
+                return np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+            case Contact():
+                self._contact = np.asarray(step.position_mm, dtype=np.float64)
+            case Halt():
+                self._halt()
+            case Retreat():
+                self.grbl.move_to(*step.target_mm, feed_mm_min=step.speed_mm_s * 60, machine=True)
+                self.grbl.wait_idle(timeout_s=step.limit_s + self._patience_s)
+        return None
+
+    def _move_until(self, step: MoveUntil) -> bool:
+        """Jog toward the target with the monitor armed to cancel the jog once the condition holds."""
+        here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+        until = step.until
+        reached = self.session.monitor.arm(until.kind, until.threshold_n, self.grbl.jog_cancel,
+                                           average_samples=until.average_samples)
+        self.grbl.jog(*step.target_mm, feed_mm_min=step.speed_mm_s * 60, relative=False, machine=True)
+        self._wait_motion(move_limit_s(float(np.linalg.norm(np.asarray(step.target_mm) - here)), step.speed_mm_s))
         self.session.monitor.disarm()
-        if not reached.is_set():
-            raise _Abort(f"no contact within {approach.max_travel_mm} mm of the approach start "
-                         f"(|Fz| stayed under {approach.contact_force_n} N): check the gel height in the rig's gel pose",
-                         hold=False)
-        return np.asarray(self.grbl.status().position_mm, dtype=np.float64)
-
-    def _normal_down(self, plan: ProbePlan, contact: F64) -> F64:
-        spec = plan.spec
-        if spec.depth_mm is not None:
-            self._move(plan.bottom_mm(contact), spec.normal_speed_mm_s)
-            return plan.bottom_mm(contact)
-        assert spec.force_n is not None
-        cap = deepest_press_mm(self.indenter.max_depth_mm)
-        max_depth = min(spec.max_depth_mm or cap, cap)
-        deepest = plan.max_bottom_mm(contact, max_depth)
-        # Fast to most of the force, then slowly: the jog's deceleration overshoots by
-        # stiffness * v^2 / (2 a), about 1 N at 1.5 mm/s on this gel, 0.03 N at FINE_SPEED_MM_S.
-        stages = [(APPROACH_FRACTION * spec.force_n, spec.normal_speed_mm_s),
-                  (spec.force_n, min(spec.normal_speed_mm_s, FINE_SPEED_MM_S))]
-        for threshold, speed in stages:
-            here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
-            reached = self.session.monitor.arm("force", threshold, self.grbl.jog_cancel, average_samples=DETECT_SAMPLES)
-            self.grbl.jog(*deepest.tolist(), feed_mm_min=speed * 60, relative=False, machine=True)
-            self._wait_motion(float(np.linalg.norm(deepest - here)) / speed)
-            self.session.monitor.disarm()
-            if not reached.is_set():
-                raise _Abort(f"the force target {spec.force_n} N was not reached at the depth cap {max_depth} mm", hold=False)
-        return np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+        return reached.is_set()
 
     # -- motion with checks -----------------------------------------------------------------------
 
-    def _move(self, target: F64, speed_mm_s: float) -> None:
+    def _move(self, target: Point, speed_mm_s: float) -> None:
         here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
         distance = float(np.linalg.norm(np.asarray(target) - here))
-        self._checked(lambda: self.grbl.move_to(*np.asarray(target).tolist(), feed_mm_min=speed_mm_s * 60, machine=True))
-        self._wait_motion(distance / speed_mm_s)
+        self._checked(lambda: self.grbl.move_to(*target, feed_mm_min=speed_mm_s * 60, machine=True))
+        self._wait_motion(move_limit_s(distance, speed_mm_s))
 
-    def _wait_motion(self, nominal_s: float) -> None:
-        allowed_s = 1.5 * nominal_s + self._move_margin_s
+    def _wait_motion(self, limit_s: float) -> None:
+        """Wait for the machine to finish its moves, checking for faults; ``limit_s`` before the twin's patience."""
+        allowed_s = limit_s + self._patience_s
         deadline = time.monotonic() + allowed_s
         while True:
             self._check_faults()
@@ -427,15 +404,16 @@ class ProbeRunner:
         try:
             for target in (up, plan.clearance_mm, plan.approach_start_mm):
                 self.grbl.move_to(*target.tolist(), feed_mm_min=speed * 60, machine=True)
-                self.grbl.wait_idle(timeout_s=float(np.linalg.norm(target - here)) / speed * 1.5 + self._move_margin_s)
+                self.grbl.wait_idle(timeout_s=move_limit_s(float(np.linalg.norm(target - here)), speed) + self._patience_s)
                 here = target
         except GrblError as exc:
             raise SafetyError(f"travelling to the approach start failed: {exc}") from exc
 
-    def _recover(self, plan: ProbePlan, hold: bool) -> None:
-        """After an abort: stop, flush the plan, then go up along the gel normal and to the retract point."""
+    def _halt(self) -> None:
+        """After an abort: hold the machine to a stop and flush its plan (a hold abort), or let it
+        finish its move; unlock it if it is in Alarm."""
         grbl = self.grbl
-        if hold:
+        if self._hold_on_halt:
             with contextlib.suppress(GrblError):
                 grbl.feed_hold()
             deadline = time.monotonic() + 3.0
@@ -458,16 +436,6 @@ class ProbeRunner:
                 pass
         if grbl.status().state == "Alarm":
             grbl.unlock()
-        self._phase("retract", recovering=True)
-        here = np.asarray(grbl.status().position_mm, dtype=np.float64)
-        rise = float((here - plan.retract_mm) @ plan.down)  # distance below the retract plane along the normal
-        speed = plan.spec.retract_speed_mm_s
-        if rise > 0:
-            above = here - rise * plan.down
-            grbl.move_to(*above.tolist(), feed_mm_min=min(speed, plan.spec.normal_speed_mm_s * 2) * 60, machine=True)
-            grbl.wait_idle(timeout_s=rise / speed * 3 + self._move_margin_s)
-        grbl.move_to(*plan.retract_mm.tolist(), feed_mm_min=speed * 60, machine=True)
-        grbl.wait_idle(timeout_s=30)
 
     def _open_writer(self, out: Path, spec: ProbeSpec, protocol_toml: str, extra: dict[str, Any] | None) -> RecordingWriter:
         from labrig.sim.truth import truth_streams

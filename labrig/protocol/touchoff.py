@@ -30,7 +30,8 @@ from labrig.errors import CalibrationError, LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter, indenter_toml
 from labrig.protocol.plan import ProbePlan
-from labrig.protocol.runner import DETECT_SAMPLES, MOVE_MARGIN_S, ProbeRunner
+from labrig.protocol.procedure import DETECT_SAMPLES, MOVE_MARGIN_S
+from labrig.protocol.runner import ProbeRunner
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter

@@ -1,8 +1,9 @@
 """One probing run simulated in virtual time, into a recording shaped like a through-driver one.
 
-:func:`record_virtual` plays the runner's sequence (:mod:`labrig.protocol.runner`: the same
-checks, plan, phases, trigger edges, contact search, force targets, safety limits) against the
-virtual rig's devices stepped on a manual clock (:class:`~labrig.sim.offline.OfflineRig`), and
+:func:`record_virtual` plays the probing procedure (:mod:`labrig.protocol.procedure`: the runner's
+phases, trigger edges, contact search, force targets and recovery, after the same checks
+(:mod:`labrig.protocol.preflight`) and under the same force limits) on the virtual rig's devices
+stepped on a manual clock (:class:`~labrig.sim.offline.OfflineRig`), and
 routes their data into the recording as the rig session routes the drivers'
 (:mod:`labrig.protocol.routing`). Nothing waits on the wall clock, so the recording is the same
 for the same inputs and seed, whatever the load, and takes as long as the CPU needs.
@@ -14,8 +15,9 @@ through-driver campaign writes ``drivers``).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -26,11 +28,30 @@ from labrig.devices.bota_stream import FtSample
 from labrig.indenters import Indenter, indenter_toml
 from labrig.physics.grid import network_grid_gel_mm
 from labrig.protocol.plan import ProbePlan
+from labrig.protocol.preflight import checked_plan
+from labrig.protocol.procedure import (
+    Contact,
+    Dwell,
+    Halt,
+    Move,
+    MoveUntil,
+    Phase,
+    Point,
+    Position,
+    Procedure,
+    ProcedureAbort,
+    Retreat,
+    Step,
+    move_limit_s,
+    play,
+    probe,
+    recovery,
+)
 from labrig.protocol.rigfile import safety_limits
 from labrig.protocol.routing import put_chunk, put_ft_rows, put_gcode
-from labrig.protocol.runner import APPROACH_FRACTION, DETECT_SAMPLES, FINE_SPEED_MM_S, MOVE_MARGIN_S, ProbeRunner, RunResult
-from labrig.protocol.safety import ForceMonitor, SafetyLimits, SpeedLimits, deepest_press_mm
-from labrig.protocol.session import NS_PER_US, RigSession
+from labrig.protocol.runner import RunResult
+from labrig.protocol.safety import ForceMonitor, SafetyLimits, SpeedLimits
+from labrig.protocol.session import NS_PER_US
 from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
 from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
@@ -53,26 +74,18 @@ class _Abort(Exception):
     pass
 
 
-class _LimitsOnly:
-    """What :meth:`ProbeRunner.check` reads of a session: its limits (the checks are the runner's own),
-    and that it is the virtual rig."""
-
-    virtual = True
-
-    def __init__(self, limits: SafetyLimits) -> None:
-        self.limits = limits
-
-
 def record_virtual(spec: ProbeSpec, out: str | Path, rig: RigConfig, indenter: Indenter, *, seed: int = 0,
-                   protocol_toml: str = "", extra: dict[str, Any] | None = None) -> RunResult:
+                   protocol_toml: str = "", extra: dict[str, Any] | None = None,
+                   on_step: Callable[[Step], None] | None = None) -> RunResult:
     """Simulate the probing run ``spec`` in virtual time into ``out``; raises SafetyError before any
-    move if the plan is unsafe (the runner's checks), else returns the finalized recording."""
+    move if the plan is unsafe (the runner's checks), else returns the finalized recording.
+
+    ``on_step`` sees every step of the procedure before it is played (a log, a test)."""
     wall0 = time.perf_counter()
-    limits = safety_limits(rig)
-    checker = ProbeRunner(cast(RigSession, _LimitsOnly(limits)), rig, indenter, gel_in_machine=gel_pose(rig))
-    plan = checker.check(spec)
+    limits = safety_limits(rig).for_indenter(indenter.max_normal_force_n, indenter.max_shear_force_n)
+    plan = checked_plan(spec, rig, indenter, gel_pose(rig), limits)
     SpeedLimits.of_rig(rig).check(spec)
-    run = _VirtualRun(plan, rig, indenter, checker.limits, seed)
+    run = _VirtualRun(plan, rig, indenter, limits, seed, on_step)
     out = Path(out)
     if out.exists():
         out.unlink()
@@ -82,8 +95,13 @@ def record_virtual(spec: ProbeSpec, out: str | Path, rig: RigConfig, indenter: I
 
 
 class _VirtualRun:
-    def __init__(self, plan: ProbePlan, rig: RigConfig, indenter: Indenter, limits: SafetyLimits, seed: int) -> None:
+    """The executor in virtual time: plays the procedure's steps on an :class:`OfflineRig`."""
+
+    def __init__(self, plan: ProbePlan, rig: RigConfig, indenter: Indenter, limits: SafetyLimits, seed: int,
+                 on_step: Callable[[Step], None] | None = None) -> None:
         self.plan, self.rig, self.indenter, self.limits, self.seed = plan, rig, indenter, limits, seed
+        self.on_step = on_step
+        self.contact: F64 | None = None
         self.writer: RecordingWriter | None = None
         self.grid_gel = None
         self.devices = OfflineRig(rig, indenter, seed=seed, start_tool_mm=plan.approach_start_mm, sinks=OfflineSinks(
@@ -143,11 +161,13 @@ class _VirtualRun:
         self.writer = writer
         result = RunResult(out, EXIT_COMPLETE)
         try:
-            result.contact_mm = self._sequence()
+            self._play(probe(self.plan, self.indenter.max_depth_mm))
         except _Abort as abort:
             result.exit_status, result.reason = EXIT_ABORTED, str(abort)
-            self._recover()
+            self._play(recovery(self.plan))
         finally:
+            if self.contact is not None:
+                result.contact_mm = (float(self.contact[0]), float(self.contact[1]), float(self.contact[2]))
             writer.phase_end(d.now_us - writer.t0_host_ns // NS_PER_US)
             d.finish()
             self._flush_ft()
@@ -157,6 +177,42 @@ class _VirtualRun:
             result.phases = list(self.phases)
             result.peak_force_n = tuple(float(v) for v in self.monitor.peak_n)  # type: ignore[assignment]
         return result
+
+    def _play(self, procedure: Procedure) -> None:
+        try:
+            play(procedure, self._execute, self.on_step)
+        except ProcedureAbort as abort:
+            raise _Abort(abort.reason) from None
+
+    def _execute(self, step: Step) -> Any:
+        """One step of a procedure in virtual time; its reply."""
+        d = self.devices
+        match step:
+            case Phase():
+                self._phase(step.name)
+            case Move():
+                self._move(step.target_mm, step.speed_mm_s)
+            case MoveUntil():
+                reached = self.monitor.arm(step.until.kind, step.until.threshold_n, d.jog_cancel,
+                                           average_samples=step.until.average_samples)
+                self._move(step.target_mm, step.speed_mm_s, jog=True)
+                self.monitor.disarm()
+                return reached.is_set()
+            case Dwell():
+                d.dwell(round(step.seconds * US), stop=self._tripped)
+                self._check_trip()
+            case Position():
+                return np.asarray(d.timeline.position_mm, dtype=np.float64)
+            case Contact():
+                self.contact = np.asarray(step.position_mm, dtype=np.float64)
+            case Halt():
+                d.feed_hold()
+                d.dwell(500_000)
+                d.flush()
+            case Retreat():
+                d.move(step.target_mm, step.speed_mm_s * 60)
+                d.wait_idle(round(step.limit_s * US))
+        return None
 
     def _phase(self, name: str) -> None:
         writer = self.writer
@@ -175,79 +231,14 @@ class _VirtualRun:
         if trip is not None:
             raise _Abort(f"force limit: {trip.reason}")
 
-    def _move(self, target: F64, speed_mm_s: float, *, jog: bool = False) -> None:
+    def _move(self, target: Point, speed_mm_s: float, *, jog: bool = False) -> None:
         d = self.devices
         distance = float(np.linalg.norm(np.asarray(target) - np.asarray(d.timeline.tail_mm)))
         d.move(target, speed_mm_s * 60, jog=jog)
-        self._wait(distance / speed_mm_s)
+        self._wait(move_limit_s(distance, speed_mm_s))
 
-    def _wait(self, nominal_s: float) -> None:
-        limit_s = 1.5 * nominal_s + MOVE_MARGIN_S
+    def _wait(self, limit_s: float) -> None:
         status = self.devices.wait_idle(round(limit_s * US), stop=self._tripped)
         self._check_trip()
         if status is None:
             raise _Abort(f"the move did not finish within {limit_s:.1f} s")
-
-    def _sequence(self) -> tuple[float, float, float]:
-        plan, spec, d = self.plan, self.plan.spec, self.devices
-        self._phase("approach")
-        approach = spec.approach
-        reached = self.monitor.arm("contact", approach.contact_force_n, d.jog_cancel, average_samples=DETECT_SAMPLES)
-        self._move(plan.approach_limit_mm, approach.speed_mm_s, jog=True)
-        self.monitor.disarm()
-        if not reached.is_set():
-            raise _Abort(f"no contact within {approach.max_travel_mm} mm of the approach start "
-                         f"(|Fz| stayed under {approach.contact_force_n} N): check the gel height in the rig's gel pose")
-        contact = np.asarray(d.timeline.position_mm, dtype=np.float64)
-        self._phase("normal_down")
-        bottom = self._normal_down(contact)
-        steps: list[tuple[str, F64 | None, float]] = [("wait", None, spec.wait_s)]
-        if spec.shear_mm > 0:
-            steps += [("shear", plan.sheared_mm(bottom), spec.shear_speed_mm_s), ("wait", None, spec.wait_s),
-                      ("shear_opposite", bottom, spec.shear_speed_mm_s), ("wait", None, spec.wait_s)]
-        for name, target, value in steps:
-            self._phase(name)
-            if target is None:
-                d.dwell(round(value * US), stop=self._tripped)
-                self._check_trip()
-            else:
-                self._move(target, value)
-        self._phase("normal_up")
-        self._move(contact, spec.normal_speed_mm_s)
-        self._phase("retract")
-        self._move(contact - spec.retract_height_mm * plan.down, spec.retract_speed_mm_s)
-        return (float(contact[0]), float(contact[1]), float(contact[2]))
-
-    def _normal_down(self, contact: F64) -> F64:
-        plan, spec, d = self.plan, self.plan.spec, self.devices
-        if spec.depth_mm is not None:
-            self._move(plan.bottom_mm(contact), spec.normal_speed_mm_s)
-            return plan.bottom_mm(contact)
-        assert spec.force_n is not None
-        cap = deepest_press_mm(self.indenter.max_depth_mm)
-        max_depth = min(spec.max_depth_mm or cap, cap)
-        deepest = plan.max_bottom_mm(contact, max_depth)
-        for threshold, speed in ((APPROACH_FRACTION * spec.force_n, spec.normal_speed_mm_s),
-                                 (spec.force_n, min(spec.normal_speed_mm_s, FINE_SPEED_MM_S))):
-            reached = self.monitor.arm("force", threshold, d.jog_cancel, average_samples=DETECT_SAMPLES)
-            self._move(deepest, speed, jog=True)
-            self.monitor.disarm()
-            if not reached.is_set():
-                raise _Abort(f"the force target {spec.force_n} N was not reached at the depth cap {max_depth} mm")
-        return np.asarray(d.timeline.position_mm, dtype=np.float64)
-
-    def _recover(self) -> None:
-        """After an abort: stop, flush the plan, go up along the gel normal to the retract point."""
-        plan, d = self.plan, self.devices
-        d.feed_hold()
-        d.dwell(500_000)
-        d.flush()
-        self._phase("retract")
-        here = np.asarray(d.timeline.position_mm, dtype=np.float64)
-        rise = float((here - plan.retract_mm) @ plan.down)
-        speed = plan.spec.retract_speed_mm_s
-        if rise > 0:
-            d.move(here - rise * plan.down, min(speed, plan.spec.normal_speed_mm_s * 2) * 60)
-            d.wait_idle(round((rise / speed * 3 + MOVE_MARGIN_S) * US))
-        d.move(plan.retract_mm, speed * 60)
-        d.wait_idle(30 * US)

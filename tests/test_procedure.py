@@ -1,0 +1,199 @@
+"""The probing procedure: its steps replayed without devices, then played by both executors on the
+virtual rig (through the drivers over ptys, and in virtual time) with the same steps, phases, moves and trigger edges."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from labrig.calibration.registration_file import gel_pose
+from labrig.config import RigConfig
+from labrig.indenters import Indenter
+from labrig.protocol.plan import ProbePlan
+from labrig.protocol.preflight import checked_plan
+from labrig.protocol.procedure import (
+    APPROACH_FRACTION,
+    FINE_SPEED_MM_S,
+    Contact,
+    Dwell,
+    ForceAbove,
+    Halt,
+    Move,
+    MoveUntil,
+    Phase,
+    Position,
+    ProcedureAbort,
+    Retreat,
+    Step,
+    play,
+    probe,
+    recovery,
+)
+from labrig.protocol.rigfile import safety_limits
+from labrig.protocol.safety import SafetyError, SafetyLimits, deepest_press_mm
+from labrig.protocol.spec import ApproachSpec, ProbeSpec
+
+QUICK = ProbeSpec(
+    "sphere", depth_mm=0.6, normal_speed_mm_s=2.0, wait_s=0.1, shear_mm=0.4, shear_speed_mm_s=2.0,
+    approach=ApproachSpec(start_height_mm=0.4, speed_mm_s=1.0, contact_force_n=0.1, max_travel_mm=1.5),
+    retract_height_mm=1.0, retract_speed_mm_s=5.0,
+)
+
+
+def _plan(spec: ProbeSpec, rig: RigConfig, sphere: Indenter) -> ProbePlan:
+    limits = safety_limits(rig).for_indenter(sphere.max_normal_force_n, sphere.max_shear_force_n)
+    return checked_plan(spec, rig, sphere, gel_pose(rig), limits)
+
+
+def _replay(procedure: Any, *, position: np.ndarray, reached: bool = True) -> tuple[list[Step], Any]:
+    """Play a procedure without devices: every condition holds (or none), the machine is at ``position``."""
+    steps: list[Step] = []
+
+    def execute(step: Step) -> Any:
+        if isinstance(step, Position):
+            return position
+        return reached if isinstance(step, MoveUntil) else None
+
+    return steps, play(procedure, execute, steps.append)
+
+
+def test_the_depth_sequence_moves_from_the_contact_found(rig: RigConfig, sphere: Indenter) -> None:
+    plan = _plan(QUICK, rig, sphere)
+    contact = plan.approach_start_mm + 0.43 * plan.down
+    steps, result = _replay(probe(plan, sphere.max_depth_mm), position=contact)
+    assert result == tuple(contact)
+    assert [s.name for s in steps if isinstance(s, Phase)] == list(QUICK.phases())
+    assert [s.name for s in steps if isinstance(s, Phase) and s.stoppable] == list(QUICK.phases()[1:-2])
+    search = steps[1]
+    assert isinstance(search, MoveUntil) and search.until == ForceAbove("contact", 0.1)
+    np.testing.assert_allclose(search.target_mm, plan.approach_limit_mm)
+    assert steps[2:4] == [Position(), Contact(tuple(contact))]
+    bottom = contact + 0.6 * plan.down
+    moves = [(s.target_mm, s.speed_mm_s) for s in steps if isinstance(s, Move)]
+    expected = [(bottom, 2.0), (bottom + 0.4 * plan.shear_dir, 2.0), (bottom, 2.0), (contact, 2.0),
+                (contact - 1.0 * plan.down, 5.0)]
+    assert len(moves) == len(expected)
+    for (target, speed), (want, want_speed) in zip(moves, expected):
+        np.testing.assert_allclose(target, want, atol=1e-12)
+        assert speed == want_speed
+    assert [s for s in steps if isinstance(s, Dwell)] == [Dwell(0.1)] * 3
+
+
+def test_no_shear_skips_the_shear_phases(rig: RigConfig, sphere: Indenter) -> None:
+    plan = _plan(replace(QUICK, shear_mm=0.0), rig, sphere)
+    steps, _ = _replay(probe(plan, sphere.max_depth_mm), position=plan.approach_start_mm)
+    assert [s.name for s in steps if isinstance(s, Phase)] == ["approach", "normal_down", "wait", "normal_up", "retract"]
+
+
+def test_a_force_target_searches_in_two_stages_down_to_the_depth_cap(rig: RigConfig, sphere: Indenter) -> None:
+    spec = replace(QUICK, depth_mm=None, force_n=2.0, max_depth_mm=None)
+    plan = _plan(spec, rig, sphere)
+    contact = plan.approach_start_mm + 0.4 * plan.down
+    steps, _ = _replay(probe(plan, sphere.max_depth_mm), position=contact)
+    stages = [s for s in steps if isinstance(s, MoveUntil)][1:]
+    assert [s.until for s in stages] == [ForceAbove("force", APPROACH_FRACTION * 2.0), ForceAbove("force", 2.0)]
+    assert [s.speed_mm_s for s in stages] == [2.0, FINE_SPEED_MM_S]
+    for stage in stages:
+        np.testing.assert_allclose(stage.target_mm, contact + deepest_press_mm(sphere.max_depth_mm) * plan.down)
+
+
+def test_a_condition_that_never_holds_aborts_with_the_reason(rig: RigConfig, sphere: Indenter) -> None:
+    plan = _plan(QUICK, rig, sphere)
+    with pytest.raises(ProcedureAbort, match=r"no contact within 1\.5 mm"):
+        _replay(probe(plan, sphere.max_depth_mm), position=plan.approach_start_mm, reached=False)
+    forced = _plan(replace(QUICK, depth_mm=None, force_n=2.0, max_depth_mm=0.5), rig, sphere)
+    with pytest.raises(ProcedureAbort, match=r"force target 2\.0 N was not reached at the depth cap 0\.5 mm"):
+        procedure = probe(forced, sphere.max_depth_mm)
+        answers = iter([None, True, forced.approach_start_mm, None, None, False])  # reached contact, not the force
+        play(procedure, lambda step: next(answers))
+
+
+def test_recovery_goes_up_the_normal_then_to_the_retract_point(rig: RigConfig, sphere: Indenter) -> None:
+    plan = _plan(QUICK, rig, sphere)
+    deep = plan.retract_mm + 3.0 * plan.down
+    steps, _ = _replay(recovery(plan), position=deep)
+    assert steps[:3] == [Halt(), Phase("retract", recovering=True), Position()]
+    up, last = steps[3], steps[4]
+    assert isinstance(up, Retreat) and isinstance(last, Retreat) and len(steps) == 5
+    np.testing.assert_allclose(up.target_mm, plan.retract_mm, atol=1e-9)  # straight up onto the retract plane
+    assert up.speed_mm_s == min(QUICK.retract_speed_mm_s, 2 * QUICK.normal_speed_mm_s)
+    np.testing.assert_allclose(last.target_mm, plan.retract_mm)
+    above = plan.retract_mm - 1.0 * plan.down
+    steps, _ = _replay(recovery(plan), position=above)
+    assert [type(s) for s in steps] == [Halt, Phase, Position, Retreat]  # already above: no rise
+
+
+def test_preflight_refuses_the_wrong_indenter_and_unsafe_targets(rig: RigConfig, sphere: Indenter) -> None:
+    limits = safety_limits(rig)
+    with pytest.raises(SafetyError, match="needs the cube indenter"):
+        checked_plan(replace(QUICK, indenter="cube"), rig, sphere, gel_pose(rig), limits)
+    cramped = replace(limits, workspace_min_mm=(-200.0, -200.0, -45.0))
+    with pytest.raises(SafetyError, match="outside the workspace"):
+        checked_plan(QUICK, rig, sphere, gel_pose(rig), cramped)
+
+
+# -- both executors, step by step -----------------------------------------------------------------
+
+
+def _motion_lines(rec: Any) -> list[tuple[str, dict[str, float]]]:
+    """The moves, jogs and output switches the host sent, as (head, {axis: value})."""
+    gcode = rec.stream("gcode")
+    out = []
+    for direction, line in zip(gcode["direction"], gcode["line"]):
+        text = bytes(line).decode(errors="replace")
+        match = re.fullmatch(r"(\$J=G90G53|G90G53G1|M8|M9)((?:[XYZF]-?[\d.]+)*)", text)
+        if direction == 0 and match:
+            out.append((match[1], {w[0]: float(w[1:]) for w in re.findall(r"[XYZF]-?[\d.]+", match[2])}))
+    return out
+
+
+def _close(a: Step, b: Step, atol_mm: float) -> bool:
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, Move | MoveUntil | Retreat):
+        near = np.allclose(a.target_mm, b.target_mm, atol=atol_mm)  # type: ignore[union-attr]
+        return bool(near) and a == replace(b, target_mm=a.target_mm)  # type: ignore[arg-type]
+    if isinstance(a, Contact):
+        return bool(np.allclose(a.position_mm, b.position_mm, atol=atol_mm))  # type: ignore[union-attr]
+    return a == b
+
+
+def test_both_executors_play_the_same_steps_phases_moves_and_edges(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:
+    """One procedure through the drivers over ptys (real time) and in virtual time: the same steps
+    in the same order (targets to within the contact each found), the same phases with a trigger
+    edge at each start, and the same G-code moves, jogs and output switches."""
+    from labrig.protocol.rigfile import DeviceConfig
+    from labrig.protocol.runner import ProbeRunner
+    from labrig.protocol.session import RigSession
+    from labrig.protocol.virtual_run import record_virtual
+    from labrig.recording import Recording
+
+    through_drivers: list[Step] = []
+    with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere) as session:
+        runner = ProbeRunner(session, rig, sphere, gel_in_machine=gel_pose(rig), on_step=through_drivers.append)
+        drivers = runner.run(QUICK, tmp_path / "drivers.h5")
+    in_virtual_time: list[Step] = []
+    virtual = record_virtual(QUICK, tmp_path / "virtual.h5", rig, sphere, seed=1, on_step=in_virtual_time.append)
+    assert drivers.exit_status == virtual.exit_status == "complete", (drivers.reason, virtual.reason)
+
+    assert [type(s).__name__ for s in through_drivers] == [type(s).__name__ for s in in_virtual_time]
+    for a, b in zip(through_drivers, in_virtual_time):
+        assert _close(a, b, atol_mm=0.05), (a, b)
+
+    with Recording(drivers.path) as d, Recording(virtual.path) as v:
+        assert [p.name for p in d.phases()] == [p.name for p in v.phases()] == list(QUICK.phases())
+        for rec in (d, v):
+            edges = rec.column("trigger_out", "t_host_us")
+            assert edges.tolist() == [p.t_start_us for p in rec.phases()]  # one edge at each phase start (short waits)
+        assert d.column("trigger_out", "polarity").tolist() == v.column("trigger_out", "polarity").tolist()
+        lines_d, lines_v = _motion_lines(d), _motion_lines(v)
+        assert [head for head, _ in lines_d] == [head for head, _ in lines_v]
+        assert sum(head == "$J=G90G53" for head, _ in lines_d) == 1 and sum(head == "G90G53G1" for head, _ in lines_d) == 5
+        for (_, words_d), (_, words_v) in zip(lines_d, lines_v):
+            assert words_d.keys() == words_v.keys() and words_d.get("F") == words_v.get("F")
+            assert all(abs(words_d[k] - words_v[k]) < 0.05 for k in "XYZ" if k in words_d)
