@@ -14,10 +14,13 @@ Steps and their replies (positions: the CNC's tool reference point, machine mm):
 * :class:`Phase`: toggle the camera trigger output and log the phase at the edge (None).
 * :class:`Move`: a straight feed move, waited to its end (None).
 * :class:`MoveUntil`: an absolute jog cut short when its :class:`ForceAbove` condition holds
-  (whether it held). A force-controlled step (holding a force read from another estimate) is one
-  more step type with its condition, played by the executors; the procedure keeps this shape.
-* :class:`Dwell`: hold still (None).
-* :class:`Position`: where the machine is now (a position, F64 or any three numbers).
+  (whether it held). A force-controlled step (holding a force read from the event sensor's
+  estimate, say) would be one more step type carrying its condition, played by both executors;
+  the procedures keep their shape.
+* :class:`Dwell`: hold still (None). Through the drivers the trigger output also toggles in pairs
+  meanwhile (edges for the camera clock fit on a loaded host, each phase keeping its level); in
+  virtual time every edge is exact and a dwell adds none.
+* :class:`Position`: where the machine is now (three numbers, machine mm).
 * :class:`Contact`: the contact point found; depths are measured below it (None).
 * :class:`Halt`: stop the motion and drop the planned moves, the position kept (None).
 * :class:`Retreat`: after an abort, a move with its own time limit (None).

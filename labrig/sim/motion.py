@@ -63,6 +63,12 @@ def probing_path(
     Approach, Normal Down, Wait, Shear, Wait, Shear Opposite, Wait, Normal Up,
     retract. Locations are gel-frame mm; the path is returned in machine mm
     using the true gel pose (or the nominal one, as a real runner would).
+
+    A scripted scene's path, timed on paper: the tip meets the gel's surface where the
+    pose puts it, every move runs at its speed from end to end, and a run without shear
+    keeps its (still) shear phases and waits. A probing run's own sequence (contact
+    search, force targets, recovery) is :mod:`labrig.protocol.procedure`, played on
+    the virtual rig's device twins.
     """
     x, y = location_mm
     u = np.array([np.cos(np.radians(shear_direction_deg)), np.sin(np.radians(shear_direction_deg)), 0.0])
