@@ -141,7 +141,7 @@ def test_preflight_refuses_the_wrong_indenter_and_unsafe_targets(rig: RigConfig,
 
 
 def _motion_lines(rec: Any) -> list[tuple[str, dict[str, float]]]:
-    """The moves, jogs and output switches the host sent, as (head, {axis: value})."""
+    """The moves, jogs and output switches the host sent, as (head, {word: value})."""
     gcode = rec.stream("gcode")
     out = []
     for direction, line in zip(gcode["direction"], gcode["line"]):
@@ -152,27 +152,34 @@ def _motion_lines(rec: Any) -> list[tuple[str, dict[str, float]]]:
     return out
 
 
-def _close(a: Step, b: Step, atol_mm: float) -> bool:
-    if type(a) is not type(b):
-        return False
-    if isinstance(a, Move | MoveUntil | Retreat):
+def _from_contact(steps: list[Step]) -> tuple[np.ndarray, list[Step]]:
+    """The contact a run found, and its steps with every target after it taken relative to it (mm)."""
+    contact = next(np.asarray(s.position_mm) for s in steps if isinstance(s, Contact))
+    at = next(i for i, s in enumerate(steps) if isinstance(s, Contact))
+    relative = [replace(s, target_mm=tuple(np.asarray(s.target_mm) - contact))  # type: ignore[arg-type]
+                if i > at and isinstance(s, Move | MoveUntil) else s for i, s in enumerate(steps)]
+    return contact, [s for s in relative if not isinstance(s, Contact)]
+
+
+def _same(a: Step, b: Step, atol_mm: float) -> bool:
+    if isinstance(a, Move | MoveUntil | Retreat) and type(a) is type(b):
         near = np.allclose(a.target_mm, b.target_mm, atol=atol_mm)  # type: ignore[union-attr]
         return bool(near) and a == replace(b, target_mm=a.target_mm)  # type: ignore[arg-type]
-    if isinstance(a, Contact):
-        return bool(np.allclose(a.position_mm, b.position_mm, atol=atol_mm))  # type: ignore[union-attr]
     return a == b
 
 
 def test_both_executors_play_the_same_steps_phases_moves_and_edges(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:
     """One procedure through the drivers over ptys (real time) and in virtual time: the same steps
-    in the same order (targets to within the contact each found), the same phases with a trigger
-    edge at each start, and the same G-code moves, jogs and output switches."""
+    in the same order (each target after the contact at the same place relative to the contact each
+    run found), the same phases with a trigger edge at each start, and the same G-code moves, jogs
+    and output switches."""
     from labrig.protocol.rigfile import DeviceConfig
     from labrig.protocol.runner import ProbeRunner
     from labrig.protocol.session import RigSession
     from labrig.protocol.virtual_run import record_virtual
     from labrig.recording import Recording
 
+    plan = _plan(QUICK, rig, sphere)
     through_drivers: list[Step] = []
     with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere) as session:
         runner = ProbeRunner(session, rig, sphere, gel_in_machine=gel_pose(rig), on_step=through_drivers.append)
@@ -181,9 +188,15 @@ def test_both_executors_play_the_same_steps_phases_moves_and_edges(rig: RigConfi
     virtual = record_virtual(QUICK, tmp_path / "virtual.h5", rig, sphere, seed=1, on_step=in_virtual_time.append)
     assert drivers.exit_status == virtual.exit_status == "complete", (drivers.reason, virtual.reason)
 
-    assert [type(s).__name__ for s in through_drivers] == [type(s).__name__ for s in in_virtual_time]
-    for a, b in zip(through_drivers, in_virtual_time):
-        assert _close(a, b, atol_mm=0.05), (a, b)
+    contact_d, steps_d = _from_contact(through_drivers)
+    contact_v, steps_v = _from_contact(in_virtual_time)
+    for contact in (contact_d, contact_v):  # on the approach, between its start and its limit
+        travel = float((contact - plan.approach_start_mm) @ plan.down)
+        np.testing.assert_allclose(contact, plan.approach_start_mm + travel * plan.down, atol=0.005)
+        assert 0 < travel < QUICK.approach.max_travel_mm
+    assert [type(s).__name__ for s in steps_d] == [type(s).__name__ for s in steps_v]
+    for a, b in zip(steps_d, steps_v):
+        assert _same(a, b, atol_mm=0.005), (a, b)  # status positions to 3 decimals, virtual ones to a step
 
     with Recording(drivers.path) as d, Recording(virtual.path) as v:
         assert [p.name for p in d.phases()] == [p.name for p in v.phases()] == list(QUICK.phases())
@@ -194,6 +207,10 @@ def test_both_executors_play_the_same_steps_phases_moves_and_edges(rig: RigConfi
         lines_d, lines_v = _motion_lines(d), _motion_lines(v)
         assert [head for head, _ in lines_d] == [head for head, _ in lines_v]
         assert sum(head == "$J=G90G53" for head, _ in lines_d) == 1 and sum(head == "G90G53G1" for head, _ in lines_d) == 5
-        for (_, words_d), (_, words_v) in zip(lines_d, lines_v):
+        for k, ((head, words_d), (_, words_v)) in enumerate(zip(lines_d, lines_v)):
             assert words_d.keys() == words_v.keys() and words_d.get("F") == words_v.get("F")
-            assert all(abs(words_d[k] - words_v[k]) < 0.05 for k in "XYZ" if k in words_d)
+            after_contact = head == "G90G53G1"  # the jog searches for it from the plan's approach start
+            for i, axis in enumerate("XYZ"):
+                if axis in words_d:
+                    shift = (contact_d[i] - contact_v[i]) if after_contact else 0.0
+                    assert abs(words_d[axis] - words_v[axis] - shift) < 0.005, (k, axis, words_d, words_v)
