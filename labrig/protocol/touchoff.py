@@ -1,7 +1,7 @@
 """Touch-offs: find the gel surface at a location and press it in quasi-static steps (calibration).
 
 :func:`press` travels above a location (every target checked like a probing
-run, :meth:`~labrig.protocol.runner.ProbeRunner.check`), tares, approaches
+run's, :func:`~labrig.protocol.preflight.checked_plan`), tares, approaches
 until the mean |Fz| of ``DETECT_SAMPLES`` F/T samples exceeds the contact force
 (the runner's detection), then steps to each depth below the detected contact
 (move, settle, average F/T samples), optionally shears, and goes back up,
@@ -30,8 +30,8 @@ from labrig.errors import CalibrationError, LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter, indenter_toml
 from labrig.protocol.plan import ProbePlan
+from labrig.protocol.preflight import checked_plan
 from labrig.protocol.procedure import DETECT_SAMPLES, MOVE_MARGIN_S
-from labrig.protocol.runner import ProbeRunner
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
@@ -72,7 +72,8 @@ def press(
                      approach=ApproachSpec(start_height_mm=approach_start_mm, speed_mm_s=approach_speed_mm_s,
                                            contact_force_n=contact_force_n, max_travel_mm=max_travel_mm),
                      retract_height_mm=1.0)
-    plan = ProbeRunner(session, rig, indenter, gel_in_machine=gel_pose).check(spec)  # refuses unsafe targets
+    limits = session.limits.for_indenter(indenter.max_normal_force_n, indenter.max_shear_force_n)
+    plan = checked_plan(spec, rig, indenter, gel_pose, limits)  # refuses unsafe targets
     grbl, _ = _devices(session)
     if grbl.status().state.startswith("Alarm"):
         raise CalibrationError("GRBL is in Alarm: home it (labrig cnc home) first")
