@@ -301,7 +301,7 @@ def test_state_inputs_train_export_and_run_in_the_pipeline(campaign: Path, tmp_p
     assert "--inputs sae+disp+prev" in card["reproduce"] and card["augmentation"]["previous_map"]["p_zero"] > 0
     assert DepthModel(tmp_path / "s.onnx").inputs == spec
     with pytest.raises(LabrigError, match="setup"):
-        depth_sources.ModelDepth(tmp_path / "s.onnx")
+        depth_sources.model_depth(tmp_path / "s.onnx")
     with pytest.raises(LabrigError, match="--resume: inputs was 'sae\\+disp\\+prev'"):
         train(campaign, TrainConfig(steps=5, val_every=0, **TINY), tmp_path / "s", resume=True, show_progress=False)
     with Recording(campaign / "a.h5") as rec:
