@@ -11,7 +11,8 @@ from typing import Any
 
 import pytest
 
-from labrig.errors import ModelCardError
+from labrig.config import RigConfig
+from labrig.errors import LabrigError, ModelCardError
 from labrig.models import BUNDLED, bundled_model_path
 from labrig.pipeline.anchor import AnchorParams
 from labrig.pipeline.depth_inputs import InputSpec
@@ -119,3 +120,21 @@ def test_run_and_evaluate_refuse_a_bad_card_in_one_line(small_recording: Path, t
         assert proc.returncode == 2, (args, stderr)
         assert len(lines) == 1 and lines[0].startswith("error:") and "Traceback" not in stderr, (args, stderr)
         assert str(card_path(bad)) in lines[0] and "'inputs'" in lines[0], (args, stderr)
+
+
+def test_the_card_chooses_the_depth_source_and_bad_settings_are_refused(rig: RigConfig) -> None:
+    from labrig.pipeline import depth_sources, run_setup
+    from labrig.pipeline.quiet import QuietParams
+
+    setup = run_setup.setup_for_rig(rig, calibration_dir=None)
+    baseline = depth_sources.model_depth("sae-only")
+    assert type(baseline) is depth_sources.SaeNetworkDepth and baseline.hold is not None and not baseline.needs_counts
+    bright = depth_sources.model_depth("default", setup=setup)
+    assert type(bright) is depth_sources.BrightnessNetworkDepth and bright.needs_counts and bright.integrator is not None
+    assert bright.card == _bundled("default")
+    with pytest.raises(LabrigError, match="quiet hold does not apply"):
+        depth_sources.model_depth("default", setup=setup, quiet=QuietParams())
+    with pytest.raises(LabrigError, match="'auto', None or its parameters, not 'sometimes'"):
+        depth_sources.model_depth("sae-only", quiet="sometimes")
+    with pytest.raises(TypeError):
+        depth_sources.ModelDepth(bright.model, setup, None)  # type: ignore[abstract]  # a design is a subclass

@@ -16,6 +16,7 @@ and ``evaluate``).
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from dataclasses import replace
 from pathlib import Path
 from typing import Protocol, TypeVar
@@ -170,9 +171,9 @@ class ModelDepth(DepthSource):
         if self.integrator is not None:
             self.integrator.add(signed_counts, t1_us)
 
+    @abstractmethod
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
-                 n_events: int) -> npt.NDArray[np.float32]:
-        raise NotImplementedError
+                 n_events: int) -> npt.NDArray[np.float32]: ...
 
     def estimate(self, sae_grid: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
         """The network's map for this window's SAE and state; it becomes the previous estimate."""
