@@ -25,6 +25,10 @@ class SomeInputsFailed(LabrigError):
     exit_code = 1
 
 
+class ModelCardError(LabrigError):
+    """A depth network's model card (``NAME.json`` beside ``NAME.onnx``) that cannot be used."""
+
+
 class RecordingError(LabrigError):
     """A recording file cannot be opened or used."""
 

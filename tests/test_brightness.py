@@ -122,7 +122,7 @@ def test_a_brightness_network_answers_every_window_and_forgets_at_rest(tmp_path,
     integrated change too."""
     from labrig.pipeline.rest_gate import RestGateParams
     from labrig.models import bundled_model_path
-    from labrig.pipeline.depthnet import read_card, write_card
+    from labrig.pipeline.model_card import ModelCard, write_card
 
     torch = pytest.importorskip("torch")
     from labrig.pipeline.depthnet import UNetConfig, build_unet, export_onnx
@@ -132,10 +132,10 @@ def test_a_brightness_network_answers_every_window_and_forgets_at_rest(tmp_path,
     net = build_unet(UNetConfig(width=4, in_channels=spec.channels)).eval()
     onnx = tmp_path / "bright.onnx"
     export_onnx(net, onnx)
-    card = read_card(bundled_model_path().with_suffix(".json"))
+    card = ModelCard.load(bundled_model_path().with_suffix(".json")).to_json()
     write_card({**card, "name": "bright", "inputs": spec.to_card()}, tmp_path / "bright.json")
     with pytest.raises(LabrigError, match="brightness"):
-        depth_sources.ModelDepth(onnx)
+        depth_sources.model_depth(onnx)
     default = depth_sources.depth_source("model", setup, model_path=onnx)
     assert isinstance(default, depth_sources.ModelDepth) and default.hold is None and default.gate is None
     source = depth_sources.depth_source("model", setup, model_path=onnx, rest=RestGateParams())

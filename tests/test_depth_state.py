@@ -197,14 +197,14 @@ def test_a_virtual_press_returns_to_zero_depth_and_force_after_normal_up(setup: 
 def test_a_stateful_network_needs_the_setup(tmp_path: Path) -> None:
     import shutil
 
-    from labrig.pipeline.depthnet import read_card, write_card
+    from labrig.pipeline.model_card import ModelCard, write_card
 
     onnx = tmp_path / "disp.onnx"
     shutil.copy(bundled_model_path("sae-only"), onnx)
-    card = read_card(bundled_model_path("sae-only").with_suffix(".json"))
+    card = ModelCard.load(bundled_model_path("sae-only").with_suffix(".json")).to_json()
     write_card({**card, "inputs": InputSpec.named("sae+disp").to_card()}, tmp_path / "disp.json")
     with pytest.raises(LabrigError, match="takes 2 channels but its card names 4"):
-        depth_sources.ModelDepth(onnx)
+        depth_sources.model_depth(onnx)
 
 
 # ------------------------------------------------------------------------------------ one code path

@@ -17,10 +17,9 @@ from labrig.pipeline.depthnet import (
     benchmark_ms,
     build_unet,
     export_onnx,
-    find_models,
     parameter_count,
-    read_card,
 )
+from labrig.pipeline.model_card import ModelCard, find_models
 from labrig.pipeline.sae import UNET_SHAPE
 
 
@@ -89,8 +88,8 @@ def test_depth_model_returns_mm_on_the_grid(exported: tuple[torch.nn.Module, Pat
 def test_find_models_reads_cards_and_bad_files_are_clear(exported: tuple[torch.nn.Module, Path], tmp_path: Path) -> None:
     _, path = exported
     cards = find_models(path.parent)
-    assert [c["name"] for c in cards] == ["w8"] and cards[0]["onnx"] == str(path)
-    assert read_card(path.with_suffix(".json"))["format"] == "labrig.depthnet"
+    assert [c.name for c in cards] == ["w8"] and cards[0].onnx == path
+    assert ModelCard.load(path.with_suffix(".json")).raw["format"] == "labrig.depthnet"
     with pytest.raises(LabrigError, match="no such depth network"):
         DepthModel(tmp_path / "missing.onnx")
     (tmp_path / "x.onnx").write_bytes(b"not a model")

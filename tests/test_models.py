@@ -8,13 +8,13 @@ import pytest
 
 from labrig.errors import LabrigError
 from labrig.models import BUNDLED, bundled_model_path, model_path
-from labrig.pipeline.depthnet import read_card
+from labrig.pipeline.model_card import ModelCard
 
 
 @pytest.mark.parametrize("name", sorted(BUNDLED))
 def test_each_bundled_network_ships_with_its_card(name: str) -> None:
     path = bundled_model_path(name)
-    card = read_card(path.with_suffix(".json"))
+    card = ModelCard.load(path.with_suffix(".json")).to_json()
     assert path.stat().st_size < 10_000_000
     assert card["window_ms"] == 10.0 and card["bundled"]["reason"]
     assert card["reproduce"].startswith("labrig train ")
@@ -24,9 +24,9 @@ def test_each_bundled_network_ships_with_its_card(name: str) -> None:
 def test_the_default_sees_the_gels_state_and_the_baseline_does_not() -> None:
     from labrig.pipeline.depth_inputs import InputSpec
 
-    default = read_card(bundled_model_path().with_suffix(".json"))
+    default = ModelCard.load(bundled_model_path().with_suffix(".json")).to_json()
     assert InputSpec.from_card(default).kinds == ("sae", "brightness")
-    assert InputSpec.from_card(read_card(bundled_model_path("sae-only").with_suffix(".json"))).kinds == ("sae",)
+    assert InputSpec.from_card(ModelCard.load(bundled_model_path("sae-only").with_suffix(".json")).to_json()).kinds == ("sae",)
 
 
 def test_model_names_and_paths(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -13,6 +13,7 @@ from labrig.models import bundled_model_path
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import depth_sources, run_setup, runtime
 from labrig.pipeline.anchor import AnchorFilter, AnchorParams
+from labrig.pipeline.model_card import ModelCard
 
 TRUE_MM = np.array([1.5, -2.0])
 
@@ -74,7 +75,7 @@ def test_a_surer_core_far_from_a_shaky_anchor_is_a_new_contact() -> None:
     assert np.linalg.norm(sure.update(TRUE_MM, 0.4, 0.02) - np.array([-3.0, 2.0])) < 0.5
 
 
-class _Dents:
+class _Dents(depth_sources.DepthSource):
     """A depth source that replays maps, with the bundled network's anchor noise."""
 
     name = "dents"
@@ -122,7 +123,12 @@ def test_networks_carry_the_anchor_noise_and_the_truth_needs_none(setup: run_set
     source = depth_sources.depth_source("model", setup, model_path=bundled_model_path())
     assert source.anchor == depth_sources.DEFAULT_ANCHOR
     card = {"contact_anchor": {"floor_mm": 0.1}}
-    assert depth_sources.anchor_params_for(card).floor_mm == 0.1
+    assert depth_sources.anchor_params_for(_card(card)).floor_mm == 0.1
     with pytest.raises(depth_sources.LabrigError, match="contact_anchor"):
-        depth_sources.anchor_params_for({"contact_anchor": {"floor": 0.1}})
+        depth_sources.anchor_params_for(_card({"contact_anchor": {"floor": 0.1}}))
     assert depth_sources.TruthDepth.anchor is None
+
+
+def _card(sections: dict[str, Any]) -> ModelCard:
+    """A model card with these sections (and the scale every card has)."""
+    return ModelCard.from_json({"format": "labrig.depthnet", "scale_mm": 2.5, **sections})

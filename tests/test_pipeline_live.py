@@ -144,7 +144,7 @@ def test_the_tap_never_blocks_and_counts_what_it_drops() -> None:
 # -- the runner ---------------------------------------------------------------------------------------
 
 
-class _FlatDepth:
+class _FlatDepth(depth_sources.DepthSource):
     """A depth source that needs the SAE (like the network) and keeps what it saw."""
 
     name = "flat"

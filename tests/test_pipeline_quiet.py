@@ -12,6 +12,7 @@ from labrig.config import RigConfig
 from labrig.models import bundled_model_path
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import depth_sources, forces, run_setup, runtime
+from labrig.pipeline.model_card import ModelCard
 from labrig.pipeline.quiet import NoiseFloor, QuietHold, QuietParams, TileActivity, active_cells_per_tile
 from labrig.pipeline.sae import sae_grid
 from labrig.recording import EVENT_DTYPE
@@ -51,7 +52,7 @@ def test_the_noise_floor_forgets_a_quieter_past() -> None:
     assert floor.is_quiet(NOISE, 10_000) and not floor.is_quiet(MOTION, 10_000)
 
 
-class _Spy:
+class _Spy(depth_sources.DepthSource):
     """A depth source with its own 30 ms window that remembers what it was given."""
 
     name = "spy"
@@ -104,8 +105,8 @@ def test_depth_every_10_ms_with_tracking_and_forces_every_1_ms(rig: RigConfig, s
 
 def test_the_network_holds_its_last_active_map_through_quiet_windows(rig: RigConfig,
                                                                      setup: run_setup.PipelineSetup) -> None:
-    network = depth_sources.ModelDepth(bundled_model_path("sae-only"))
-    unheld = depth_sources.ModelDepth(bundled_model_path("sae-only"), quiet=None)
+    network = depth_sources.model_depth(bundled_model_path("sae-only"))
+    unheld = depth_sources.model_depth(bundled_model_path("sae-only"), quiet=None)
     held_pipe, raw_pipe = runtime.Pipeline(setup, network), runtime.Pipeline(setup, unheld)
     counts = [NOISE] * 20 + [MOTION] * 3 + [NOISE] * 10
     held, raw = [], []
@@ -137,7 +138,7 @@ def test_the_calibrated_stiffening_scales_the_linear_forces(rig: RigConfig, tmp_
     np.testing.assert_allclose(stiff.net_force_n, factor * linear.net_force_n, rtol=1e-9)
 
 
-class _Fixed:
+class _Fixed(depth_sources.DepthSource):
     name = "fixed"
     needs_sae = False
     window_us = None
@@ -197,10 +198,15 @@ def test_a_hot_pixel_raises_only_its_own_tile_floor(rig: RigConfig) -> None:
 
 
 def test_the_gate_follows_the_network_card() -> None:
-    assert depth_sources.ModelDepth("sae-only").hold.tiles is None  # type: ignore[union-attr]
-    noisy = depth_sources.quiet_params_for({"augmentation": {"background_noise": {"max_hz": 2.0}}})
+    assert depth_sources.model_depth("sae-only").hold.tiles is None  # type: ignore[union-attr]
+    noisy = depth_sources.quiet_params_for(_card({"augmentation": {"background_noise": {"max_hz": 2.0}}}))
     assert noisy is not None and noisy.tiles is not None  # a noise-trained SAE network: the tiles too
-    assert depth_sources.quiet_params_for({"augmentation": None}).tiles is None  # type: ignore[union-attr]
+    assert depth_sources.quiet_params_for(_card({"augmentation": None})).tiles is None  # type: ignore[union-attr]
     bright = {"inputs": {"kinds": ["sae", "brightness"]}, "augmentation": {"background_noise": {"max_hz": 2.0}}}
-    assert depth_sources.quiet_params_for(bright) is None  # the state is in its input: no hold
-    assert depth_sources.ModelDepth("sae-only", quiet=None).hold is None
+    assert depth_sources.quiet_params_for(_card(bright)) is None  # the state is in its input: no hold
+    assert depth_sources.model_depth("sae-only", quiet=None).hold is None
+
+
+def _card(sections: dict[str, Any]) -> ModelCard:
+    """A model card with these sections (and the scale every card has)."""
+    return ModelCard.from_json({"format": "labrig.depthnet", "scale_mm": 2.5, **sections})

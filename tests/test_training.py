@@ -135,7 +135,7 @@ def test_short_run_lowers_the_loss_and_writes_a_loadable_model(campaign: Path, t
     assert card["val"]["total_mm"] is not None and card["val"]["contact_mm"] is not None
     assert card["reproduce"].startswith(f"labrig train {campaign} --width 4 --window-ms 10 --loss contact --steps 24")
     model = DepthModel(tmp_path / "m.onnx", threads=1)
-    assert model.card["parameters"] == card["parameters"] and model.card["val"] == card["val"]
+    assert model.card.raw["parameters"] == card["parameters"] and model.card.raw["val"] == card["val"]
     assert model.depth_mm(np.zeros((2, 90, 112), np.float32)).shape == (90, 112)
     assert card["inference_ms_ort_1thread"] > 0
     with pytest.raises(LabrigError, match="--resume"):
@@ -301,7 +301,7 @@ def test_state_inputs_train_export_and_run_in_the_pipeline(campaign: Path, tmp_p
     assert "--inputs sae+disp+prev" in card["reproduce"] and card["augmentation"]["previous_map"]["p_zero"] > 0
     assert DepthModel(tmp_path / "s.onnx").inputs == spec
     with pytest.raises(LabrigError, match="setup"):
-        depth_sources.ModelDepth(tmp_path / "s.onnx")
+        depth_sources.model_depth(tmp_path / "s.onnx")
     with pytest.raises(LabrigError, match="--resume: inputs was 'sae\\+disp\\+prev'"):
         train(campaign, TrainConfig(steps=5, val_every=0, **TINY), tmp_path / "s", resume=True, show_progress=False)
     with Recording(campaign / "a.h5") as rec:

@@ -24,7 +24,7 @@ from pathlib import Path
 from labrig.cache import sha256_of
 from labrig.dataset import Dataset
 from labrig.models import BUNDLED, FOLDER, WEIGHTS_SUFFIX
-from labrig.pipeline.depthnet import read_card, write_card
+from labrig.pipeline.model_card import ModelCard, card_path, write_card
 
 MAX_BYTES = 10_000_000
 
@@ -43,25 +43,27 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{onnx}: needs NAME.onnx and NAME.json")
     if onnx.stat().st_size > MAX_BYTES:
         ap.error(f"{onnx} is {onnx.stat().st_size / 1e6:.1f} MB; the bundled model must stay under 10 MB")
-    card = read_card(onnx.with_suffix(".json"))
-    data = Path(card["training_data"]["campaign"])
+    card = ModelCard.load(card_path(onnx))
+    if card.training_campaign is None:
+        ap.error(f"{card.path}: no 'training_data.campaign'; bundle a network trained by `labrig train`")
+    data = Path(card.training_campaign)
     manifest = Dataset(data).manifest_path
     sweep_json = onnx.parent / "sweep.json"
     sweep = json.loads(sweep_json.read_text()) if sweep_json.exists() else None
-    card["bundled"] = {
+    bundled = {
         "source": str(onnx),
         "reason": args.reason,
         "sweep": sweep,
         "campaign_manifest_sha256": sha256_of(manifest) if manifest.exists() else None,
         "rebuild": [args.campaign_command, args.groundtruth_command or f"labrig groundtruth {data}",
-                    card.get("command", ""), f"python tools/bundle_model.py {onnx} ..."],
+                    card.command, f"python tools/bundle_model.py {onnx} ..."],
     }
     checkpoint = onnx.with_name(onnx.stem + ".ckpt.pt")
     if not checkpoint.exists():
         ap.error(f"{onnx}: needs its checkpoint {checkpoint.name} (the weights that labrig train --init fine-tunes)")
     target = FOLDER / f"{BUNDLED[args.slot]}.onnx"
     shutil.copyfile(onnx, target)
-    write_card(card, target.with_suffix(".json"))
+    write_card({**card.to_json(), "bundled": bundled}, card_path(target))
     import torch
 
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)["model"]

@@ -27,7 +27,7 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,6 +43,7 @@ from labrig.errors import LabrigError
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.tables import table3
 from labrig.pipeline.depth_inputs import INPUT_SETS
+from labrig.pipeline.model_card import ModelCard
 from labrig.recording import Recording
 from labrig.training import TrainConfig, output_paths, train
 
@@ -77,7 +78,7 @@ def after_release(result: ForceResult, normal_up_end_us: int) -> np.ndarray:
 
 
 def summarise(variant: str, results: Sequence[ForceResult], released: Sequence[np.ndarray],
-              card: dict[str, Any]) -> VariantRow:
+              card: Mapping[str, Any]) -> VariantRow:
     """The table's row for one variant from its per-recording pipeline results."""
     rows = {r["axis"]: r for r in table3(results)}
     depth = np.concatenate([r.depth_mae_mm[r.probing] for r in results]) if results else np.zeros(0)
@@ -164,7 +165,7 @@ def compare(args: argparse.Namespace, console: Console) -> list[VariantRow]:
                                  calibration_dir=str(args.calibration))
             train(args.data, config, stem, resume=paths["checkpoint"].exists(),
                   command="tools/depth_state_compare.py " + " ".join(sys.argv[1:]), show_progress=not args.json)
-        card = json.loads(paths["card"].read_text())
+        card = ModelCard.load(paths["card"]).raw  # checked; the row reads the training's records
         holds = (True, False) if args.no_hold_rows and variant != "sae" else (True,)
         for hold in holds:
             name = variant if hold else f"{variant} (no hold)"

@@ -184,7 +184,7 @@ def _lattice_sampler(node_xy_mm: F64, points_mm: F64) -> sp.csr_matrix:
                          shape=(len(points_mm), len(node_xy_mm)))
 
 
-class _Given:
+class _Given(depth_sources.DepthSource):
     """A depth source that returns the map it was handed (the study sets it before each back stage)."""
 
     needs_sae = False

@@ -45,6 +45,7 @@ from labrig.evaluation.tracking import (
 )
 from labrig.executor import Run, run_tasks
 from labrig.models import BUNDLED, bundled_model_path, model_path
+from labrig.pipeline.model_card import ModelCard, card_path, find_models
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
 
 SPLIT_CHOICES = (*SPLITS, ALL_SPLITS)  # --split
@@ -99,6 +100,8 @@ class EvaluationSettings:
         if self.model is not None and not model_path(self.model).exists():
             raise LabrigError(f"--model {self.model}: no such file (give a depth network .onnx with its .json card, "
                               f"or a bundled one: {', '.join(BUNDLED)})")
+        if self.model is not None:
+            ModelCard.load(card_path(model_path(self.model)))  # a bad card: one line now, not after the tasks
 
     @property
     def window_us(self) -> int | None:
@@ -149,25 +152,20 @@ def table2_models(models_dir: Path | None, width: int | None) -> dict[tuple[str,
     found: dict[tuple[str, float], str | None] = {row: None for row in tables.TABLE2_ROWS}
     if models_dir is None:
         return found
-    from labrig.pipeline.depthnet import find_models
-
     cards = find_models(models_dir)
     for loss, window in tables.TABLE2_ROWS:
-        matching = [c for c in cards if c.get("loss", {}).get("name") == loss
-                    and abs(float(c.get("window_ms", -1)) - window) < 1e-6]
-        matching.sort(key=lambda c: (c.get("architecture", {}).get("width") != width, c["onnx"]))
-        found[(loss, window)] = matching[0]["onnx"] if matching else None
+        matching = [c for c in cards if c.loss == loss and abs(c.window_ms - window) < 1e-6]
+        matching.sort(key=lambda c: (c.width != width, str(c.onnx)))
+        found[(loss, window)] = str(matching[0].onnx) if matching else None
     return found
 
 
 def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = None) -> Evaluation:
     """Run every task of the evaluation (parallel, cached) and pool the results."""
-    from labrig.pipeline.depthnet import read_card
-
     settings.check()
     recordings = [r.path for r in campaign_recordings(settings.data, settings.split)]
     model = model_path(settings.model) if settings.model is not None else default_model()
-    width = read_card(model.with_suffix(".json")).get("architecture", {}).get("width")
+    width = ModelCard.load(card_path(model)).width
     ev = Evaluation(settings, recordings, model, table2_models=table2_models(settings.models_dir, width))
     run = _runner(settings, ev, progress)
     calibration = str(settings.calibration_dir) if settings.calibration_dir is not None else None

@@ -32,6 +32,7 @@ from labrig.evaluation.forces import ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
+from labrig.pipeline.model_card import ModelCard, card_path, find_models
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS
 
 TOLERANCE = 0.05
@@ -69,18 +70,12 @@ class SweepResult:
 def sweep_models(models_dir: Path | None, main_model: Path) -> tuple[list[str], list[str]]:
     """(width models: same window and loss as ``main_model``, different widths; window models: Table II's
     contact-aware ones at the main model's width)."""
-    from labrig.pipeline.depthnet import find_models, read_card
-
-    main = read_card(main_model.with_suffix(".json"))
+    main = ModelCard.load(card_path(main_model))
     cards = find_models(models_dir) if models_dir is not None else []
-    width = main.get("architecture", {}).get("width")
-    loss = main.get("loss", {}).get("name")
-    window = float(main.get("window_ms", 10.0))
-    widths = {c.get("architecture", {}).get("width"): c["onnx"] for c in cards
-              if c.get("loss", {}).get("name") == loss and abs(float(c.get("window_ms", -1)) - window) < 1e-6}
+    width, loss, window = main.width, main.loss, main.window_ms
+    widths = {c.width: str(c.onnx) for c in cards if c.loss == loss and abs(c.window_ms - window) < 1e-6}
     widths.setdefault(width, str(main_model))
-    windows = {float(c["window_ms"]): c["onnx"] for c in cards
-               if c.get("loss", {}).get("name") == "contact" and c.get("architecture", {}).get("width") == width}
+    windows = {c.window_ms: str(c.onnx) for c in cards if c.loss == "contact" and c.width == width}
     windows.setdefault(window, str(main_model))
     return [widths[w] for w in sorted(widths, key=lambda w: w or 0)], [windows[w] for w in sorted(windows)]
 
@@ -90,7 +85,7 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
               window_us: int | None = None, mesh_refinements: tuple[int, ...] = MESH_REFINEMENTS,
               patch_scales: tuple[float, ...] = PATCH_SCALES) -> SweepResult:
     """Every knob setting on ``recordings``; ``run(kind, fn, tasks) -> results`` runs tasks (parallel, cached)."""
-    from labrig.pipeline.depthnet import benchmark_ms, read_card
+    from labrig.pipeline.depthnet import benchmark_ms
 
     points: list[SweepPoint] = []
     # tracking: patch size x refinement x tracker
@@ -114,12 +109,12 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
     results = run("sweep depth", evaluate_depth, depth_tasks)
     for k, model in enumerate(models):
         group = results[k * len(recordings):(k + 1) * len(recordings)]
-        card = read_card(Path(model).with_suffix(".json"))
+        card = ModelCard.load(card_path(model))
         infer_ms = benchmark_ms(model, threads=1, repeats=30, warmup=3)
         row = tables.depth_row(group)
         if row["contact_mm"] is None:
             continue
-        width, window = card.get("architecture", {}).get("width"), float(card.get("window_ms", 10.0))
+        width, window = card.width, card.window_ms
         if model in width_models:
             points.append(SweepPoint("depth", "width", f"width {width}", infer_ms + window, row["contact_mm"],
                                      {"infer_ms": infer_ms, "total_mm": row["total_mm"], "model": model}))

@@ -3,9 +3,12 @@
 * :class:`TruthDepth`: the recording's ``/truth/depth`` at the window's end, between two solves linear in
   time as the sim moves its markers (:func:`truth_between`; virtual-rig recordings only);
 * :class:`ModelDepth`: the ONNX depth network (:mod:`labrig.pipeline.depthnet`) on the SAE of the
-  span it was trained on, ending at the window's end, and the state channels its card names
-  (:mod:`labrig.pipeline.depth_inputs`), with the quiet-window hold of
-  :mod:`labrig.pipeline.quiet` and the rest gate of :mod:`labrig.pipeline.rest_gate`.
+  span it was trained on, ending at the window's end, and the state channels its card
+  (:mod:`labrig.pipeline.model_card`) names (:mod:`labrig.pipeline.depth_inputs`), with the rest
+  gate of :mod:`labrig.pipeline.rest_gate`; one class per design, chosen by the card
+  (:func:`model_depth`): :class:`SaeNetworkDepth` (change only: the quiet-window hold of
+  :mod:`labrig.pipeline.quiet`) and :class:`BrightnessNetworkDepth` (the brightness change since
+  rest in its input).
 
 :func:`depth_source` is the one place a run's source is built (``labrig run``, ``run --live``
 and ``evaluate``).
@@ -13,9 +16,10 @@ and ``evaluate``).
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -27,6 +31,7 @@ from labrig.pipeline.anchor import AnchorParams
 from labrig.pipeline.brightness import BrightnessIntegrator
 from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
 from labrig.pipeline.depthnet import DepthModel
+from labrig.pipeline.model_card import ModelCard
 from labrig.pipeline.quiet import QuietHold, QuietParams
 from labrig.pipeline.rest_gate import RestGate, RestGateParams
 from labrig.pipeline.run_setup import PipelineSetup
@@ -37,6 +42,7 @@ DEFAULT_REST_GATE = RestGateParams()
 DEFAULT_ANCHOR = AnchorParams()
 #: Tiles (rows x columns over the SAE grid) watched for motion with a noise-trained network.
 NOISE_TILES = (6, 7)
+T = TypeVar("T")
 
 
 class DepthSource(Protocol):
@@ -44,14 +50,25 @@ class DepthSource(Protocol):
 
     ``window_us``: the span the source's SAE covers, ending at the pipeline window's end
     (None: the pipeline window itself). ``depth_mm`` gets that span's SAE (None unless
-    ``needs_sae``), its bounds and how many events fell in it. ``anchor``: the noise of the
+    ``needs_sae``), its bounds and how many events fell in it. ``needs_counts``: the pipeline
+    counts each window's signed events for :meth:`observe`. ``anchor``: the noise of the
     contact's location read from its maps (:mod:`labrig.pipeline.anchor`); None: exact maps, no filter.
+
+    Per window the pipeline calls :meth:`observe`, then :meth:`depth_mm` (unless it keeps the last
+    map). A source that subclasses this protocol inherits the defaults below.
     """
 
     name: str
     needs_sae: bool
-    window_us: float | None
-    anchor: AnchorParams | None
+    needs_counts: bool = False
+    window_us: float | None = None
+    anchor: AnchorParams | None = None
+
+    def observe(self, positions_px: npt.NDArray[np.float64], rest_px: npt.NDArray[np.float64],
+                counts: npt.NDArray[np.float32] | None, t1_us: int) -> None:
+        """The tracked window ending at ``t1_us``: its marker positions (M, 2) px, the rest they are measured
+        from (M, 2) px and, when ``needs_counts``, its signed event counts per grid cell (else None)."""
+        return None
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]: ...
@@ -72,13 +89,13 @@ def truth_between(t_maps_us: npt.NDArray[np.int64], t_us: npt.ArrayLike
     return before, after, np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
 
 
-class TruthDepth:
-    """The recording's ``/truth/depth`` at the window's end (:func:`truth_between`; virtual rig only)."""
+class TruthDepth(DepthSource):
+    """The recording's ``/truth/depth`` at the window's end (:func:`truth_between`; virtual rig only).
+
+    The sim's own maps locate the contact exactly: no anchor filter (``anchor`` None)."""
 
     name = "truth"
     needs_sae = False
-    window_us: float | None = None
-    anchor: AnchorParams | None = None  # the sim's own maps locate the contact exactly
 
     def __init__(self, recording: Recording) -> None:
         if "truth/depth" not in recording.streams or recording.rows("truth/depth") == 0:
@@ -96,59 +113,39 @@ class TruthDepth:
         return (self.maps[before] * np.float32(1.0 - w) + self.maps[after] * np.float32(w)).astype(np.float32)
 
 
-class ModelDepth:
+class ModelDepth(DepthSource):
     """The depth network (:class:`labrig.pipeline.depthnet.DepthModel`, ONNX) on the SAE of the
     window it was trained on (model card ``window_ms``) ending at each pipeline window's end,
     with the state channels its card names (:mod:`labrig.pipeline.depth_inputs`).
 
-    ``path``: an ``.onnx`` with its card, or a bundled network's name (``default``,
-    ``sae-only``). ``setup``: the run's camera, ROI and markers (needed by a network that
-    takes the displacement field). ``quiet``: windows at the noise floor keep the last active
-    map (:mod:`labrig.pipeline.quiet`); ``"auto"`` also watches each SAE tile for motion when
-    the network was trained with background-noise augmentation (:func:`quiet_params_for`);
-    None feeds every window to the network. ``rest``: the rest gate
-    (:mod:`labrig.pipeline.rest_gate`): once the tracked markers are back at rest the depth
-    is exactly zero, the held map and the previous estimate are cleared; None turns it off;
-    ``"auto"`` (:func:`rest_params_for`) keeps it for the networks that need it.
+    What the networks share; :func:`model_depth` builds the one its card asks for: a
+    :class:`SaeNetworkDepth`, which sees change only and keeps its last map through still windows,
+    or a :class:`BrightnessNetworkDepth`, whose input holds the gel's state.
 
-    The pipeline calls :meth:`markers` with each window's tracked positions before
-    :meth:`depth_mm` (``needs_markers``), and, for a network that takes the brightness change
-    since rest (``needs_counts``), :meth:`counts` with each window's signed event counts.
-    Such a network sees the gel's state in every window, so it answers every window: the
-    quiet hold, which keeps an SAE-only network's last map through still windows, is off.
+    ``setup``: the run's camera, ROI and markers (needed by a network that takes the displacement
+    field or the brightness change). ``rest``: the rest gate (:mod:`labrig.pipeline.rest_gate`):
+    once the tracked markers are back at rest the depth is exactly zero and the source forgets
+    its state (:meth:`reset`); None: off.
     """
 
     needs_sae = True
-    needs_markers = True
+    hold: QuietHold | None = None  # the quiet-window hold (None: every window goes to the network)
+    integrator: BrightnessIntegrator | None = None  # the brightness change since rest (None: not an input)
 
-    def __init__(self, path: str | Path, threads: int = 1, quiet: QuietParams | str | None = "auto", *,
-                 setup: PipelineSetup | None = None, rest: RestGateParams | str | None = "auto") -> None:
-        self.model = DepthModel(models.model_path(path), threads=threads)
-        self.name = f"model:{self.model.name}"
-        self.window_us: float | None = self.model.window_ms * 1000.0
-        self.inputs = self.model.inputs
-        self.needs_counts = "brightness" in self.inputs.kinds
-        self.anchor: AnchorParams | None = anchor_params_for(self.model.card)
-        if quiet == "auto":
-            quiet = quiet_params_for(self.model.card)
-        assert not isinstance(quiet, str), f"quiet must be QuietParams, None or 'auto', not {quiet!r}"
-        self.hold = QuietHold(GRID_SHAPE, quiet) if quiet is not None else None
-        if rest == "auto":
-            rest = rest_params_for(self.model.card)
-        assert not isinstance(rest, str), f"rest must be RestGateParams, None or 'auto', not {rest!r}"
+    def __init__(self, model: DepthModel, setup: PipelineSetup | None, rest: RestGateParams | None) -> None:
+        self.model = model
+        self.card = model.card
+        self.name = f"model:{model.name}"
+        self.window_us: float | None = model.window_ms * 1000.0
+        self.inputs = model.inputs
+        self.anchor: AnchorParams | None = anchor_params_for(self.card)
         self.gate = RestGate(setup.observed if setup is not None else None, rest) if rest is not None else None
         self.raster: DisplacementRaster | None = None
         if "displacement" in self.inputs.kinds:
             if setup is None:
-                raise LabrigError(f"{self.model.path} takes the markers' displacement field: build it with "
+                raise LabrigError(f"{model.path} takes the markers' displacement field: build it with "
                                   "depth_sources.depth_source(..., setup=...)")
             self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
-        self.integrator: BrightnessIntegrator | None = None
-        if self.needs_counts:
-            if setup is None:
-                raise LabrigError(f"{self.model.path} takes the brightness change since rest: build it with "
-                                  "depth_sources.depth_source(..., setup=...)")
-            self.integrator = BrightnessIntegrator(setup.rig.roi, self.inputs.brightness, thresholds=setup.thresholds)
         self.camera = setup.camera if setup is not None else None
         self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
         self._positions_px: npt.NDArray[np.float64] | None = None
@@ -156,6 +153,12 @@ class ModelDepth:
         self._rest_seen: npt.NDArray[np.float64] | None = None
         self._rest_mm: npt.NDArray[np.float64] | None = None
         self.at_rest = False
+
+    def observe(self, positions_px: npt.NDArray[np.float64], rest_px: npt.NDArray[np.float64],
+                counts: npt.NDArray[np.float32] | None, t1_us: int) -> None:
+        self.markers(positions_px, rest_px)
+        if counts is not None:
+            self.counts(counts, t1_us)
 
     def markers(self, positions_px: npt.NDArray[np.float64], rest_px: npt.NDArray[np.float64]) -> None:
         """This window's tracked marker positions (M, 2) px and the rest they are measured from."""
@@ -168,19 +171,17 @@ class ModelDepth:
         if self.integrator is not None:
             self.integrator.add(signed_counts, t1_us)
 
+    @abstractmethod
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
-                 n_events: int) -> npt.NDArray[np.float32]:
-        assert sae_grid is not None
-        quiet = self.hold(n_events, t1_us - t0_us, sae_grid) if self.hold is not None else False  # every window feeds the floors
-        if self.at_rest:
-            self.reset(t1_us)
-            return np.zeros(GRID_SHAPE, np.float32)
-        if quiet:
-            assert self.hold is not None
-            return self.hold.held_mm
+                 n_events: int) -> npt.NDArray[np.float32]: ...
+
+    def estimate(self, sae_grid: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
+        """The network's map for this window's SAE and state; it becomes the previous estimate."""
+        if sae_grid is None:
+            raise ValueError(f"{self.name} needs the SAE: the pipeline must compute it (needs_sae)")
         depth = self.model.depth_mm(self.network_input(sae_grid))
         self.previous_norm = depth / np.float32(self.model.scale_mm)
-        return self.hold.update(depth) if self.hold is not None else depth
+        return depth
 
     def network_input(self, sae_grid: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
         """The channels the card names for this window: the SAE, then the state."""
@@ -191,33 +192,114 @@ class ModelDepth:
         if self.raster is not None:
             if self._positions_px is None or self._rest_px is None or self.camera is None:
                 raise LabrigError(f"{self.model.name} takes the markers' displacement: the pipeline must call "
-                                  "markers() before depth_mm()")
+                                  "observe() before depth_mm()")
             if self._rest_px is not self._rest_seen:  # the rest changes only while the stream's first windows refine it
                 self._rest_seen, self._rest_mm = self._rest_px, gel_plane_mm(self.camera, self._rest_px)
             field = self.raster(gel_plane_displacement_mm(self.camera, self._positions_px, self._rest_px, self._rest_mm))
         return network_input(self.inputs, sae_grid, field, self.previous_norm, bright)
 
     def reset(self, t_us: int | None = None) -> None:
-        """Forget the held map, the previous estimate and the brightness change (the gel is at rest at ``t_us``)."""
+        """Forget the previous estimate (the gel is at rest at ``t_us``)."""
         self.previous_norm = np.zeros(GRID_SHAPE, np.float32)
-        if self.integrator is not None:
-            self.integrator.reset(t_us)
+
+
+class SaeNetworkDepth(ModelDepth):
+    """A network that does not see the brightness change since rest: the SAE (with, if its card
+    says so, the markers' displacement and its previous map). A 10 ms SAE shows change, not
+    state, so ``quiet``: windows at the noise floor keep the last active map
+    (:mod:`labrig.pipeline.quiet`); None feeds every window to the network."""
+
+    def __init__(self, model: DepthModel, setup: PipelineSetup | None, quiet: QuietParams | None,
+                 rest: RestGateParams | None) -> None:
+        super().__init__(model, setup, rest)
+        self.hold = QuietHold(GRID_SHAPE, quiet) if quiet is not None else None
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int) -> npt.NDArray[np.float32]:
+        hold = self.hold
+        quiet = hold(n_events, t1_us - t0_us, sae_grid) if hold is not None else False  # every window feeds the floors
+        if self.at_rest:
+            self.reset(t1_us)
+            return np.zeros(GRID_SHAPE, np.float32)
+        if quiet and hold is not None:
+            return hold.held_mm
+        depth = self.estimate(sae_grid)
+        return hold.update(depth) if hold is not None else depth
+
+    def reset(self, t_us: int | None = None) -> None:
+        """Forget the held map and the previous estimate (the gel is at rest at ``t_us``)."""
+        super().reset(t_us)
         if self.hold is not None:
             self.hold.update(np.zeros(GRID_SHAPE, np.float32))
 
 
-def quiet_params_for(card: dict[str, Any]) -> QuietParams | None:
+class BrightnessNetworkDepth(ModelDepth):
+    """A network that takes the brightness change since rest (:mod:`labrig.pipeline.brightness`),
+    integrated here from each window's signed event counts (``needs_counts``). It sees the gel's
+    state in every window, so it answers every window: no quiet hold."""
+
+    needs_counts = True
+
+    def __init__(self, model: DepthModel, setup: PipelineSetup | None, rest: RestGateParams | None) -> None:
+        super().__init__(model, setup, rest)
+        if setup is None:
+            raise LabrigError(f"{model.path} takes the brightness change since rest: build it with "
+                              "depth_sources.depth_source(..., setup=...)")
+        self.integrator = BrightnessIntegrator(setup.rig.roi, self.inputs.brightness, thresholds=setup.thresholds)
+
+    def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                 n_events: int) -> npt.NDArray[np.float32]:
+        if self.at_rest:
+            self.reset(t1_us)
+            return np.zeros(GRID_SHAPE, np.float32)
+        return self.estimate(sae_grid)
+
+    def reset(self, t_us: int | None = None) -> None:
+        """Forget the previous estimate and the brightness change (the gel is at rest at ``t_us``)."""
+        super().reset(t_us)
+        if self.integrator is not None:
+            self.integrator.reset(t_us)
+
+
+def model_depth(path: str | Path, threads: int = 1, quiet: QuietParams | str | None = "auto", *,
+                setup: PipelineSetup | None = None, rest: RestGateParams | str | None = "auto") -> ModelDepth:
+    """The depth network at ``path`` (an ``.onnx`` with its card, or a bundled network's name:
+    ``default``, ``sae-only``) as the source its card asks for.
+
+    ``quiet``: the quiet hold of a network that does not see the brightness change (``"auto"``:
+    :func:`quiet_params_for`; None: off); ``rest``: the rest gate (``"auto"``: :func:`rest_params_for`;
+    None: off). ``setup``: the run's camera, ROI and markers (needed by a network with state channels).
+    """
+    model = DepthModel(models.model_path(path), threads=threads)
+    gate = _setting(rest, rest_params_for(model.card), "rest")
+    if model.card.sees_brightness:
+        if _setting(quiet, None, "quiet") is not None:
+            raise LabrigError(f"{model.name} sees the brightness change since rest: it answers every window, "
+                              "a quiet hold does not apply")
+        return BrightnessNetworkDepth(model, setup, gate)
+    return SaeNetworkDepth(model, setup, _setting(quiet, quiet_params_for(model.card), "quiet"), gate)
+
+
+def _setting(value: T | str | None, auto: T | None, what: str) -> T | None:
+    """``value``, or ``auto`` for ``"auto"``."""
+    if isinstance(value, str):
+        if value != "auto":
+            raise LabrigError(f"the {what} setting must be 'auto', None or its parameters, not {value!r}")
+        return auto
+    return value
+
+
+def quiet_params_for(card: ModelCard) -> QuietParams | None:
     """The quiet-window gate for a network: the rate gate, plus per-tile activity when it was
     trained on noisy windows. A network trained clean draws dimples from a noisy SAE, so
     the more sensitive tile test would hand it more of them (measured in docs/evaluation.md).
     None (no hold) for a network that sees the brightness change since rest: the state is in its input."""
-    if _sees_brightness(card):
+    if card.sees_brightness:
         return None
-    noise_trained = bool((card.get("augmentation") or {}).get("background_noise"))
-    return replace(DEFAULT_QUIET, tiles=NOISE_TILES) if noise_trained else DEFAULT_QUIET
+    return replace(DEFAULT_QUIET, tiles=NOISE_TILES) if card.noise_trained else DEFAULT_QUIET
 
 
-def rest_params_for(card: dict[str, Any]) -> RestGateParams | None:
+def rest_params_for(card: ModelCard) -> RestGateParams | None:
     """The rest gate for a network: on for one that sees only the SAE (its quiet hold would keep a
     stale dent), off for one that sees the brightness change since rest. The gate reads the gel's
     rest from the markers alone, and a press at the gel's centre hardly moves them in the image
@@ -225,25 +307,15 @@ def rest_params_for(card: dict[str, Any]) -> RestGateParams | None:
     whole. The brightness network's own input returns to rest with the gel; measured on the
     paper campaign's test split, it is better without the gate on every figure
     (docs/depthnet.md)."""
-    if _sees_brightness(card):
+    if card.sees_brightness:
         return None
     return DEFAULT_REST_GATE
 
 
-def anchor_params_for(card: dict[str, Any]) -> AnchorParams:
+def anchor_params_for(card: ModelCard) -> AnchorParams:
     """The contact anchor's noise model for a network: its card's ``contact_anchor`` (fields of
     :class:`~labrig.pipeline.anchor.AnchorParams`) over the defaults, fitted for the bundled network."""
-    fields = card.get("contact_anchor") or {}
-    try:
-        return replace(DEFAULT_ANCHOR, **fields)
-    except TypeError as e:
-        raise LabrigError(f"model card: contact_anchor has an unknown field ({e}); "
-                          f"use {sorted(AnchorParams.__dataclass_fields__)}") from e
-
-
-def _sees_brightness(card: dict[str, Any]) -> bool:
-    """The card's network takes the brightness change since rest (its state is in its input)."""
-    return "brightness" in ((card.get("inputs") or {}).get("kinds") or [])
+    return card.contact_anchor
 
 
 def default_model_path(folder: str | Path = "models") -> Path:
@@ -267,5 +339,5 @@ def depth_source(kind: str, setup: PipelineSetup, recording: Recording | None = 
             raise LabrigError("--depth truth needs a virtual-rig recording; a live camera has no true depth")
         return TruthDepth(recording)
     if kind == "model":
-        return ModelDepth(model_path or default_model_path(), threads=threads, quiet=quiet, setup=setup, rest=rest)
+        return model_depth(model_path or default_model_path(), threads=threads, quiet=quiet, setup=setup, rest=rest)
     raise LabrigError(f"depth source must be 'truth' or 'model', not {kind!r}")

@@ -14,16 +14,14 @@ output activation (the trainer's L1 loss pulls it into [0, 1]; :class:`DepthMode
 Width 32 with 4 poolings has 7.76 M parameters, the paper's size (7.9 M).
 
 Deployment: :func:`export_onnx` writes ``NAME.onnx``; the model card ``NAME.json`` beside it
-holds the architecture, the training data, window, loss, validation errors and the command
-that made it. :class:`DepthModel` runs it with onnxruntime and returns millimetres.
+(:mod:`labrig.pipeline.model_card`) holds the architecture, the training data, window, loss,
+validation errors and the command that made it. :class:`DepthModel` runs it with onnxruntime and returns millimetres.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,36 +30,12 @@ import numpy.typing as npt
 
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
-from labrig.pipeline.depth_inputs import InputSpec
+from labrig.pipeline.model_card import ModelCard, UNetConfig, card_path, write_card
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet, pad_for_unet
 
-CARD_FORMAT = "labrig.depthnet"
-CARD_VERSION = 1
 INPUT_NAME = "sae"  # the SAE-only network's input; a network with state channels takes STATE_INPUT_NAME
 STATE_INPUT_NAME = "inputs"
 OUTPUT_NAME = "depth"
-
-
-@dataclass(frozen=True)
-class UNetConfig:
-    """Shape of the U-Net: base width (channels at full resolution) and number of poolings."""
-
-    width: int = 32
-    pools: int = 4
-    in_channels: int = 2
-
-    def __post_init__(self) -> None:
-        if self.width < 1 or self.pools < 1:
-            raise ValueError("width and pools must be >= 1")
-        for size in UNET_SHAPE:
-            if size % (2 ** self.pools):
-                raise ValueError(f"input {UNET_SHAPE} is not divisible by 2**{self.pools}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"name": "unet", "width": self.width, "pools": self.pools, "in_channels": self.in_channels,
-                "input_shape": [self.in_channels, *UNET_SHAPE], "output_shape": [1, *UNET_SHAPE],
-                "grid_shape": list(GRID_SHAPE), "blocks": "2 x (conv3x3 + batchnorm + relu) per level",
-                "down": "maxpool 2x2", "up": "transposed conv 2x2 + skip concatenation", "head": "conv1x1, linear"}
 
 
 def build_unet(config: UNetConfig | None = None, **kwargs: Any) -> Any:
@@ -135,38 +109,13 @@ def export_onnx(model: Any, path: str | Path, card: dict[str, Any] | None = None
     return path
 
 
-def card_path(onnx_path: str | Path) -> Path:
-    return Path(onnx_path).with_suffix(".json")
-
-
-def write_card(card: dict[str, Any], path: str | Path) -> Path:
-    path = Path(path)
-    data = {"format": CARD_FORMAT, "format_version": CARD_VERSION, **card}
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
-    return path
-
-
-def read_card(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
-    if not path.exists():
-        raise LabrigError(f"{path}: no model card beside the network; export it again with `labrig train`")
-    try:
-        card = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise LabrigError(f"{path} is not valid JSON ({exc.msg}, line {exc.lineno})") from None
-    if card.get("format") != CARD_FORMAT:
-        raise LabrigError(f"{path} is not a labrig depth-network model card (format {card.get('format')!r})")
-    return dict(card)
-
-
 class DepthModel:
     """A trained depth network run with onnxruntime: SAE (and state channels) in, depth in mm on the 90 x 112 grid out.
 
-    ``DepthModel("models/depth-w8.onnx", threads=1)``; the model card (``.json`` beside it)
-    gives the scale (mm per normalised unit), the window the network was trained on and its
-    inputs (:attr:`inputs`, a :class:`~labrig.pipeline.depth_inputs.InputSpec`).
+    ``DepthModel("models/depth-w8.onnx", threads=1)``; its model card (:attr:`card`, a
+    :class:`~labrig.pipeline.model_card.ModelCard` read from the ``.json`` beside it) gives the
+    scale (mm per normalised unit), the window the network was trained on and its inputs
+    (:attr:`inputs`, a :class:`~labrig.pipeline.depth_inputs.InputSpec`).
     """
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
@@ -177,10 +126,10 @@ class DepthModel:
             self.path = self.path.with_suffix(".onnx")
         if not self.path.exists():
             raise LabrigError(f"{self.path}: no such depth network (.onnx); train one with `labrig train DATA/`")
-        self.card = read_card(card_path(self.path))
-        self.scale_mm = float(self.card["scale_mm"])
-        self.window_ms = float(self.card.get("window_ms", 10.0))
-        self.inputs = InputSpec.from_card(self.card)
+        self.card = ModelCard.load(card_path(self.path))
+        self.scale_mm = self.card.scale_mm
+        self.window_ms = self.card.window_ms
+        self.inputs = self.card.inputs
         options = ort.SessionOptions()
         options.intra_op_num_threads = max(1, int(threads))
         options.inter_op_num_threads = 1
@@ -221,25 +170,6 @@ class DepthModel:
         return (np.clip(out, 0.0, 1.0) * np.float32(self.scale_mm)).astype(np.float32)
 
     __call__ = depth_mm
-
-
-def find_models(folder: str | Path) -> list[dict[str, Any]]:
-    """The model cards of every ``NAME.onnx`` + ``NAME.json`` pair in ``folder``, each with its ``onnx`` path.
-
-    This is what ``labrig evaluate --models DIR`` reads: a card gives the window
-    (``window_ms``), the loss (``loss.name``) and the width of its network.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise LabrigError(f"{folder}: not a folder of depth networks")
-    cards = []
-    for onnx_path in sorted(folder.glob("*.onnx")):
-        side = card_path(onnx_path)
-        if side.exists():
-            card = read_card(side)
-            card["onnx"] = str(onnx_path)
-            cards.append(card)
-    return cards
 
 
 def benchmark_ms(path: str | Path, threads: int = 1, repeats: int = 50, warmup: int = 5) -> float:

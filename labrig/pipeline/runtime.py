@@ -123,8 +123,7 @@ class Pipeline:
         self.keep_sae = keep_sae
         self._index = 0
         self._recent: list[Events] = []  # events of the depth source's window
-        anchor = getattr(depth, "anchor", None)
-        self.anchor = AnchorFilter(anchor) if anchor is not None else None
+        self.anchor = AnchorFilter(depth.anchor) if depth.anchor is not None else None
         self._last_t1_us: int | None = None
         self.depth_every_us = depth_every_us
         self._depth_ran_us: int | None = None  # the end of the last window the depth source ran on (front stage)
@@ -145,7 +144,7 @@ class Pipeline:
         if (self.depth.needs_sae and due) or self.keep_sae:
             grid = sae.sae_grid(d_events, d0_us, t1_us, self.setup.rig.roi)
         counts = (brightness.signed_counts(events, self.setup.rig.roi, thresholds=self.setup.thresholds)
-                  if getattr(self.depth, "needs_counts", False) else None)
+                  if self.depth.needs_counts else None)
         seconds["sae"] = time.perf_counter() - start
         start = time.perf_counter()
         positions, updated = self.tracker.update(events, t1_us)
@@ -163,10 +162,7 @@ class Pipeline:
         seconds = dict(tracked.seconds)
         start = time.perf_counter()
         rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
-        if getattr(self.depth, "needs_markers", False):  # the rest gate and the displacement channels
-            self.depth.markers(tracked.positions_px, rest_px)  # type: ignore[attr-defined]
-        if tracked.counts is not None:  # the brightness change since rest
-            self.depth.counts(tracked.counts, tracked.t1_us)  # type: ignore[attr-defined]
+        self.depth.observe(tracked.positions_px, rest_px, tracked.counts, tracked.t1_us)
         if tracked.depth_due or self._depth_map is None:
             depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
             self._depth_map = depth

@@ -17,6 +17,7 @@ from typing import Any
 from labrig.errors import LabrigError
 from labrig.models import WEIGHTS_SUFFIX, model_path
 from labrig.pipeline.depth_inputs import INPUT_SETS, InputSpec
+from labrig.pipeline.model_card import ModelCard, card_path
 
 
 @dataclass(frozen=True)
@@ -25,7 +26,7 @@ class InitialNetwork:
 
     onnx: Path
     weights: Path
-    card: dict[str, Any]
+    card: ModelCard
     inputs: str  # the name of its input set (labrig.pipeline.depth_inputs.INPUT_SETS)
     width: int
     pools: int
@@ -43,7 +44,7 @@ class InitialNetwork:
         """The fine-tuned card's ``init`` section (before the validation errors are added)."""
         from labrig.cache import sha256_of
 
-        return {"model": self.card.get("name", self.onnx.stem), "onnx": str(self.onnx),
+        return {"model": self.card.name or self.onnx.stem, "onnx": str(self.onnx),
                 "onnx_sha256": sha256_of(self.onnx), "weights": self.weights.name}
 
 
@@ -58,8 +59,6 @@ def weights_beside(onnx: Path) -> Path | None:
 
 def initial_network(spec: str | Path) -> InitialNetwork:
     """``--init``'s value: a bundled network's name (``default``) or a trained network's ``.onnx``."""
-    from labrig.pipeline.depthnet import read_card
-
     onnx = model_path(spec).with_suffix(".onnx")
     if not onnx.exists() or not onnx.with_suffix(".json").exists():
         raise LabrigError(f"--init {spec}: no network {onnx} with its card {onnx.with_suffix('.json').name}; give a "
@@ -68,12 +67,13 @@ def initial_network(spec: str | Path) -> InitialNetwork:
     if weights is None:
         raise LabrigError(f"--init {spec}: {onnx.name} has no torch weights beside it ({onnx.stem}{WEIGHTS_SUFFIX} or "
                           f"{onnx.stem}.ckpt.pt); fine-tune a network trained by `labrig train`, which writes them")
-    card = read_card(onnx.with_suffix(".json"))
-    spec_of_card = InputSpec.from_card(card)
-    names = [name for name in INPUT_SETS if InputSpec.named(name) == spec_of_card]
+    card = ModelCard.load(card_path(onnx))
+    names = [name for name in INPUT_SETS if InputSpec.named(name) == card.inputs]
     if not names:
-        raise LabrigError(f"--init {spec}: its inputs {list(spec_of_card.kinds)} match none of --inputs' sets; "
+        raise LabrigError(f"--init {spec}: its inputs {list(card.inputs.kinds)} match none of --inputs' sets; "
                           "it cannot be fine-tuned by this labrig")
-    arch = card.get("architecture", {})
-    return InitialNetwork(onnx=onnx, weights=weights, card=card, inputs=names[0], width=int(arch["width"]),
-                          pools=int(arch["pools"]), window_ms=float(card["window_ms"]), scale_mm=float(card["scale_mm"]))
+    if card.architecture is None:
+        raise LabrigError(f"--init {spec}: its card {card.path} has no 'architecture' (width, pools); fine-tune a "
+                          "network trained by `labrig train`")
+    return InitialNetwork(onnx=onnx, weights=weights, card=card, inputs=names[0], width=card.architecture.width,
+                          pools=card.architecture.pools, window_ms=card.window_ms, scale_mm=card.scale_mm)

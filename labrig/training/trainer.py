@@ -302,7 +302,8 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
         }
         export_onnx(model, paths["onnx"], None)
-        from labrig.pipeline.depthnet import benchmark_ms, write_card
+        from labrig.pipeline.depthnet import benchmark_ms
+        from labrig.pipeline.model_card import write_card
 
         write_card(card, paths["card"])
         card["inference_ms_ort_1thread"] = round(benchmark_ms(paths["onnx"], threads=1), 3)
