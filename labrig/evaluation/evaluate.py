@@ -32,6 +32,7 @@ from labrig.evaluation import tables
 from labrig.evaluation.depth import DepthResult, DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.groundtruth_error import GroundTruthErrorResult, GroundTruthErrorTask, evaluate_groundtruth
+from labrig.evaluation.hold import hold_summary
 from labrig.evaluation.stress import StressResult
 from labrig.evaluation.stress_axes import axis_named
 from labrig.evaluation.sweep import SweepResult, run_sweep
@@ -242,6 +243,10 @@ def _scan_recordings(paths: list[str], tolerance_s: float = 0.1) -> tuple[list[s
 # -- headline numbers --------------------------------------------------------------------------
 
 
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
 def headline(ev: Evaluation) -> dict[str, Any]:
     """The summary ``labrig evaluate --json`` prints: stable keys, units in the names."""
     t3 = {row["axis"]: row for row in tables.table3(ev.forces)}
@@ -262,6 +267,11 @@ def headline(ev: Evaluation) -> dict[str, Any]:
         "paper": PAPER, "cache": ev.cache, "camera_stream_short_s": ev.camera_short_s,
         "force_by_indenter": tables.force_by_indenter(ev.forces),
     }
+    held = hold_summary(ev.forces)
+    out.update({"hold_presses": len(held.presses), "hold_fz_error_first_5s_n": _finite(held.fz_error_first_n),
+                "hold_fz_error_last_5s_n": _finite(held.fz_error_last_n),
+                "hold_error_ratio_last_to_first": _finite(held.error_ratio_last_to_first),
+                "hold_fz_after_release_n": _finite(held.after_release_fz_n)})
     if ev.forces_truth:
         truth = {row["axis"]: row for row in tables.table3(ev.forces_truth)}
         out.update({f"force_{a}_mae_true_depth_n": truth[a]["force_mae_n"] for a in ("x", "y", "z", "total")})

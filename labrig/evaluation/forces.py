@@ -86,6 +86,9 @@ class ForceResult:
     #: The machine while the windows were timed: its cores and its 1-minute load average at the end.
     cores: int = 0
     load_1min: float = float("nan")
+    recording: str = ""  # the recording's file name
+    #: The recording's phases: (name, start, end), host us, in the order they ran.
+    phases: tuple[tuple[str, int, int], ...] = ()
 
 
 def evaluate_forces(task: ForceTask) -> ForceResult:
@@ -115,6 +118,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         truth_n, marker_mae, missing = _truth(rec, t1, np.array([r.forces_n for r in rows]))
         probing = _in_phases(rec, t1)
         indenter = str(rec.attrs.get("indenter", ""))
+        phases = tuple((p.name, p.t_start_us, p.t_end_us) for p in rec.phases()) if "phases" in rec.streams and rec.rows("phases") else ()
     predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
     contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
     side = Path(task.sidecar) if task.sidecar else sidecar_path(path)
@@ -143,10 +147,10 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         youngs_modulus_mpa=setup.youngs_modulus_mpa, markers_missing=missing,
         markers_unobserved=int((~setup.observed).sum()), depth_mae_mm=depth_mae, depth_contact_mae_mm=depth_contact,
         indenter=indenter, window_ms=np.array([sum(r.seconds.values()) * 1e3 for r in rows]),
-        cores=os.cpu_count() or 0, load_1min=os.getloadavg()[0])
+        cores=os.cpu_count() or 0, load_1min=os.getloadavg()[0], recording=path.name, phases=phases)
 
 
-evaluate_forces.cache_version = "20"  # type: ignore[attr-defined]  # 20: per-window times, the machine's load; 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
+evaluate_forces.cache_version = "21"  # type: ignore[attr-defined]  # 21: the recording's name and phases; 20: per-window times, the machine's load; 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

@@ -10,6 +10,7 @@ import numpy as np
 
 from labrig.evaluation import charts, tables
 from labrig.evaluation.evaluate import PAPER, TABLE1_TRACKERS, Evaluation
+from labrig.evaluation.hold import AFTER_RELEASE_S, EDGE_S, force_after_release_n, hold_summary
 from labrig.evaluation.report import MeanStd, Report
 from labrig.evaluation.stress import add_stress_to_report
 from labrig.evaluation.sweep import add_sweep_to_report
@@ -100,8 +101,8 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
                              "at rest, so shear does not move it). Total: norm of the error vector. 'True depth' "
                              "(virtual-rig recordings): the same pipeline fed the sim's depth maps instead of the "
                              "network's, so what is left is tracking, the inverse FEM and the gel law.",
-                     units={"force": "N", "position": "px", "force, true depth": "N", "position, true depth": "px",
-                            "paper force": "N"})
+                     units={"force": "N", "position": "px", "paper force": "N",
+                            **({"force, true depth": "N", "position, true depth": "px"} if truth else {})})
     error, measured, _ = tables.force_errors(ev.forces)
     panels = {axis: np.abs(measured[:, i]) for i, axis in enumerate("xyz")}
     errs = {axis: np.abs(error[:, i]) for i, axis in enumerate("xyz")}
@@ -122,6 +123,31 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
                      caption="Table III's errors per indenter (the recording's own indenter name): shapes the network "
                              "never saw against the ones it trained on.",
                      units={"x": "N", "y": "N", "z": "N", "total": "N", "position": "px"})
+    held = hold_summary(ev.forces)
+    if held.presses:
+        after = {r.recording: force_after_release_n(r) for r in ev.forces}
+        report.add_table("hold", "Presses held",
+                         ["recording", "wait", "held", "measured Fz", f"error first {EDGE_S:g} s",
+                          f"error last {EDGE_S:g} s", "last / first", "Fz after release"],
+                         [[p.recording, p.wait_index + 1, p.duration_s, p.measured_fz_n, p.fz_error_first_n,
+                           p.fz_error_last_n, p.error_ratio_last_to_first, after.get(p.recording)]
+                          for p in held.presses],
+                         caption=f"Every wait of 10 s or more: the mean |predicted - measured| Fz over the windows "
+                                 f"ending in its first and in its last {EDGE_S:g} s (a ratio above 1: the estimate "
+                                 f"forgets the dent), and the mean |predicted Fz| {AFTER_RELEASE_S[0]:g}-"
+                                 f"{AFTER_RELEASE_S[1]:g} s after Normal Up ends, when the gel is at rest. Pooled: "
+                                 f"{held.fz_error_first_n:.3f} N first, {held.fz_error_last_n:.3f} N last "
+                                 f"(ratio {held.error_ratio_last_to_first:.2f}), {held.after_release_fz_n:.3f} N "
+                                 f"after the release.",
+                         units={"held": "s", "measured Fz": "N", f"error first {EDGE_S:g} s": "N",
+                                f"error last {EDGE_S:g} s": "N", "Fz after release": "N"})
+        longest = max(held.presses, key=lambda p: p.duration_s)
+        holder = next(r for r in ev.forces if r.recording == longest.recording)
+        report.add_figure("hold_series", "Force over the longest held press",
+                          charts.time_series(holder.t1_us / 1e6, holder.measured_n, holder.predicted_n, unit="N",
+                                             phases=[(n, a / 1e6, b / 1e6) for n, a, b in holder.phases]),
+                          caption=f"{longest.recording}: measured (F/T sensor) and predicted force on the gel; "
+                                  f"its wait {longest.wait_index + 1} lasts {longest.duration_s:.0f} s.")
     example = max(ev.forces, key=lambda r: float(np.max(np.abs(r.measured_n[:, 2]))) if len(r.measured_n) else 0)
     t_s = example.t1_us / 1e6
     report.add_figure("force_series", "Net force over a recording (largest normal force)",
