@@ -7,19 +7,18 @@ on the virtual rig (0.40 MPa, the rig's value).
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, rig_with
 from labrig.indenters import Indenter
-from labrig.physics.camera import CameraModel
 from labrig.pipeline import depth_sources, displacement, forces, ifem, run_setup, runtime
 from labrig.recording import Recording
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
+from labrig.sim.truth_config import true_camera
 
 NORMAL_HOLD_US = 550_000  # mid-way through the first Wait (normal only)
 SHEAR_HOLD_US = 817_000  # mid-way through the Wait after the shear
@@ -27,8 +26,7 @@ SHEAR_HOLD_US = 817_000  # mid-way through the Wait after the shear
 
 @pytest.fixture(scope="module")
 def linear_rig(rig: RigConfig) -> RigConfig:
-    mechanics = dataclasses.replace(rig.sim.mechanics, stiffening=0.0)
-    return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, mechanics=mechanics))
+    return rig_with(rig, {"sim.mechanics.stiffening": 0.0})
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +100,7 @@ def test_true_inputs_give_the_sims_forces(rig: RigConfig, operator: ifem.Surface
                                           truth: dict[str, dict[str, np.ndarray]]) -> None:
     """True marker pixels and depth map: the paper's K over-predicts Fz by about 55 %, the surface operator
     is within a few per cent in net force and four times closer per marker."""
-    camera = CameraModel.from_rig(rig)
+    camera = true_camera(rig)
     rest = rig.markers.rest_positions_mm()
     rest_px = camera.project(rest)
     surface = forces.SurfaceForces(operator, camera, rig.roi)

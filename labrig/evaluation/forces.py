@@ -103,7 +103,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
                                             None if task.depth == "truth" else task.depth,
                                             quiet="auto" if task.quiet_hold else None,
                                             rest="auto" if task.rest_gate else None)
-        params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
+        params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig, setup.camera)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,
                                 surface_params=ifem.SurfaceParams(refinement=task.surface_refinement))
