@@ -7,6 +7,7 @@ on the virtual rig (0.40 MPa, the rig's value).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -125,11 +126,19 @@ def test_true_inputs_give_the_sims_forces(rig: RigConfig, operator: ifem.Surface
     assert abs(net[0] / net_true[0] - 1) < 0.05  # shear at the sheared hold
 
 
+def with_true_camera(setup: run_setup.PipelineSetup) -> run_setup.PipelineSetup:
+    """``setup`` with the virtual rig's true camera and the lattice through it (a perfect camera calibration)."""
+    camera = true_camera(setup.rig)
+    return replace(setup, camera=camera, rest_px=camera.project(setup.rig.markers.rest_positions_mm()),
+                   sources={**setup.sources, "camera": "the virtual rig's true camera"})
+
+
 def test_full_pipeline_matches_the_sims_net_force_mid_hold(rig: RigConfig, recording: Path) -> None:
     """Tracker on the events + the true depth map + the dense operator: Fz within 10 % mid-hold."""
     with Recording(recording) as rec:
         tf = rec.stream("truth/marker_forces")
-        setup = run_setup.setup_for_recording(rec, calibration_dir=None, youngs_modulus_mpa=rig.gel.youngs_modulus_mpa)
+        setup = with_true_camera(run_setup.setup_for_recording(rec, calibration_dir=None,
+                                                               youngs_modulus_mpa=rig.gel.youngs_modulus_mpa))
         pipe = runtime.Pipeline(setup, depth_sources.TruthDepth(rec))
         results = list(pipe.run(rec, end_us=SHEAR_HOLD_US + 20_000))
     for t_us in (NORMAL_HOLD_US, SHEAR_HOLD_US):

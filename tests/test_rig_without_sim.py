@@ -115,7 +115,8 @@ def labrig(*args: str | Path, cwd: Path) -> subprocess.CompletedProcess[str]:
 def test_run_and_groundtruth_on_a_rig_without_sim_sections(lab_rig: Path, small_recording: Path) -> None:
     folder = lab_rig.parent
     recording = shutil.copy(small_recording, folder / "small.h5")
-    ran = labrig("run", recording, "--rig", lab_rig, "--calibration", folder, "--window-ms", "100", "--json", cwd=folder)
+    ran = labrig("run", recording, "--rig", lab_rig, "--calibration", folder, "--window-ms", "100", "--depth", "model",
+                 "--json", cwd=folder)
     assert ran.returncode == 0, ran.stderr
     assert json.loads(ran.stdout)["sources"]["camera"].startswith("nominal camera")
     assert [line for line in ran.stderr.splitlines() if "nominal camera" in line] != []
