@@ -1,4 +1,4 @@
-"""The rig configuration (calibration/rig.toml): gel, markers, camera, ROI, rig pose.
+"""The rig as a lab knows it (calibration/rig.toml): gel, markers, camera, ROI, rig pose, contact model.
 
 Frames and units
 ----------------
@@ -260,7 +260,7 @@ def _check(config: RigConfig) -> None:
         value = getattr(cam, key)
         if value is not None and not (isinstance(value, int | float) and not isinstance(value, bool) and value > 0):
             raise ConfigError(f"{where}: [camera] {key} must be a positive number, not {value!r}")
-    check_mechanics(config.mechanics, "mechanics", where)
+    check_mechanics_mode(config.mechanics.mode, "mechanics", where)
 
 
 def check_gel(gel: GelConfig, section: str, where: str) -> None:
@@ -272,7 +272,7 @@ def check_gel(gel: GelConfig, section: str, where: str) -> None:
             raise ConfigError(f"{where}: [{section}] {key} must be positive")
 
 
-def check_mechanics(mechanics: MechanicsModel, section: str, where: str) -> None:
-    """A contact model's mode is one the tables know."""
-    if mechanics.mode not in ("layer", "halfspace"):
+def check_mechanics_mode(mode: str, section: str, where: str) -> None:
+    """A contact model's mode is one the contact tables know."""
+    if mode not in ("layer", "halfspace"):
         raise ConfigError(f"{where}: [{section}] mode must be 'layer' or 'halfspace'")

@@ -1,6 +1,7 @@
 """A real rig's file holds no simulator truth: the lab's rig type has no ``sim``, a rig file
-without ``[sim.*]`` sections is valid and the real-data commands run on it, and no module
-outside the simulator (and the layers that open it) reads the simulator's truth."""
+without ``[sim.*]`` sections is valid and the real-data commands (run, groundtruth, calibrate,
+a hardware run's checks) run on it, and no module outside the simulator (and the layers that
+open it) reads the simulator's truth."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from labrig.indenters import Indenter
 from labrig.physics.camera import CameraModel
 from labrig.protocol.files import check_spec
 from labrig.protocol.spec import ProbeSpec
+from labrig.sim.calibration_scenes import record_led_blink
 from labrig.sim.truth_config import sim_config, true_camera
 
 LABRIG = Path(__file__).resolve().parent.parent / "labrig"
@@ -119,11 +121,23 @@ def test_run_and_groundtruth_on_a_rig_without_sim_sections(lab_rig: Path, small_
                  "--json", cwd=folder)
     assert ran.returncode == 0, ran.stderr
     assert json.loads(ran.stdout)["sources"]["camera"].startswith("nominal camera")
-    assert [line for line in ran.stderr.splitlines() if "nominal camera" in line] != []
+    assert len([line for line in ran.stderr.splitlines() if "nominal camera" in line]) == 1
     truth = labrig("groundtruth", recording, "--rig", lab_rig, "--calibration", folder, "--json", cwd=folder)
     assert truth.returncode == 0, truth.stderr
     result = json.loads(truth.stdout)["results"][0]
     assert result["status"] == "written" and result["camera_source"].startswith("nominal camera")
+
+
+@pytest.mark.slow
+def test_calibrate_from_a_recording_on_a_rig_without_sim_sections(lab_rig: Path, rig: RigConfig) -> None:
+    folder = lab_rig.parent
+    blink = folder / "blink.h5"
+    record_led_blink(blink, rig)  # the scene comes from the virtual rig; the calibration sees only the lab's file
+    intrinsics = DEFAULT_RIG.parent / "intrinsics.toml"
+    done = labrig("calibrate", "extrinsics", blink, "--rig", lab_rig, "--intrinsics", intrinsics,
+                  "--out", folder / "extrinsics.toml", "--json", cwd=folder)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["markers_detected"] == rig.markers.rows * rig.markers.cols
 
 
 def _reads_simulator_truth(tree: ast.AST) -> list[tuple[int, str]]:

@@ -22,7 +22,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from labrig.config import GelConfig, RigConfig, check_gel, parse_section
+from labrig.config import GelConfig, RigConfig, check_gel, check_mechanics_mode, parse_section
 from labrig.errors import ConfigError
 from labrig.indenters import Indenter
 from labrig.physics.camera import CameraModel
@@ -134,7 +134,7 @@ class SimConfig:
         sim = data.get("sim")
         if not isinstance(sim, dict):
             raise ConfigError(f"{path}: no virtual rig here: the simulator needs the rig file's [sim.*] sections "
-                              "(calibration/rig.toml has them)")
+                              "(calibration/rig.toml has them); for hardware, name the devices in [devices]")
         nominal = parse_section(GelConfig, data, "gel", path)
         markers, delivery, ft = parse_imperfections(sim, path)
         config = cls(
@@ -156,8 +156,7 @@ class SimConfig:
     def _check(self, data: dict[str, Any], path: Path) -> None:
         where = str(path)
         check_gel(self.gel, "sim.gel", where)
-        if self.mechanics.mode not in ("layer", "halfspace"):
-            raise ConfigError(f"{where}: [sim.mechanics] mode must be 'layer' or 'halfspace'")
+        check_mechanics_mode(self.mechanics.mode, "sim.mechanics", where)
         if len(self.camera.distortion) != 5:
             raise ConfigError(f"{where}: [sim.camera] distortion must be [k1, k2, p1, p2, k3]")
         markers, roi = data["markers"], data["roi"]
