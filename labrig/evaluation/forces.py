@@ -146,7 +146,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         cores=os.cpu_count() or 0, load_1min=os.getloadavg()[0])
 
 
-evaluate_forces.cache_version = "20"  # type: ignore[attr-defined]  # 20: per-window times, the machine's load; 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
+evaluate_forces.cache_version = "21"  # type: ignore[attr-defined]  # 21: the marker diameter through the run's camera (was the sim's); 20: per-window times, the machine's load; 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

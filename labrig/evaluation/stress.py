@@ -176,7 +176,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
     return SceneMeasurement(facts, by_tracker, by_method, by_depth)
 
 
-measure_scene.cache_version = "15"  # type: ignore[attr-defined]  # 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
+measure_scene.cache_version = "16"  # type: ignore[attr-defined]  # 16: the marker diameter through the run's camera; 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
 
 
 def window_key(window_ms: float) -> str:

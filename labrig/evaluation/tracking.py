@@ -186,7 +186,7 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         **{f.name: getattr(truth_fields, f.name) for f in fields(TruthErrors)})
 
 
-track_recording.cache_version = "8"  # type: ignore[attr-defined]  # 8: neighbours' moves; 7: lopsided gates follow neighbours, lag correction; 6: the paper tracker's polarity guard
+track_recording.cache_version = "9"  # type: ignore[attr-defined]  # 9: the marker diameter through the rest's camera; 8: neighbours' moves; 7: lopsided gates follow neighbours, lag correction; 6: the paper tracker's polarity guard
 
 
 def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Any, Array, str, npt.NDArray[np.bool_]]:
