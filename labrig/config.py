@@ -1,4 +1,4 @@
-"""The rig configuration (calibration/rig.toml): gel, markers, camera, ROI, rig pose.
+"""The rig as a lab knows it (calibration/rig.toml): gel, markers, camera, ROI, rig pose, contact model.
 
 Frames and units
 ----------------
@@ -9,12 +9,15 @@ Frames and units
 * **Camera frame** (OpenCV): x right, y down in the image, z along the optical
   axis. Image coordinates in pixels, origin at the top-left pixel's centre.
 
-Sections named ``sim.*`` are the virtual rig's truth (the true camera, the true
-rig pose, the event model); everything else is what a lab knows about its rig.
-The sections of an imperfect sensor (``sim.gel``, ``sim.markers``,
-``sim.camera_delivery``, ``sim.ft``, :mod:`labrig.config_sim`) may be left out:
-their defaults are the ideal sensor (the true gel is the nominal ``[gel]``); so may the
-virtual CNC's limits (``sim.grbl``: GRBL 1.1h's defaults).
+What a lab knows about its rig: the nominal gel and marker lattice, the camera's sensor and
+lens (nominal intrinsics, :meth:`labrig.physics.camera.CameraModel.nominal`, used until the
+camera calibration replaces them), the ROI, the nominal rig pose and the contact model the
+lab chooses (``[mechanics]``). The file's ``[devices]`` and ``[safety]`` sections are read by
+:mod:`labrig.protocol`.
+
+Sections named ``sim.*`` are the virtual rig's truth (the true camera, the true rig pose, the
+event model). :class:`RigConfig` does not read them and a real rig's file has none; only the
+simulator does (:mod:`labrig.sim.truth_config`, from the text a :class:`RigConfig` keeps).
 """
 
 from __future__ import annotations
@@ -23,25 +26,16 @@ import json
 import re
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config_sim import (
-    SimCameraDelivery,
-    SimFt,
-    SimGrbl,
-    SimMarkers,
-    check_imperfections,
-    parse_grbl,
-    parse_imperfections,
-)
 from labrig.errors import ConfigError
 
-__all__ = ["ConfigError", "SimCameraDelivery", "SimFt", "SimGrbl", "SimMarkers"]
+__all__ = ["ConfigError"]
 
 DEFAULT_RIG = Path(__file__).resolve().parent.parent / "calibration" / "rig.toml"
 #: The default rig's calibration folder (gel, camera, rig registration), wherever the command runs from.
@@ -80,6 +74,10 @@ class CameraGeometry:
     pixel_um: float
     #: Nominal gel-to-camera rotation (Rodrigues, rad): how the camera is mounted, known before calibration.
     nominal_rotvec_rad: tuple[float, float, float]
+    #: The lens' nominal focal length (mm); with ``pixel_um``, the nominal fx = fy (px). None: not stated.
+    focal_length_mm: float | None = None
+    #: Nominal distance (mm) from the camera centre to the gel surface along the optical axis. None: not stated.
+    gel_distance_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -107,74 +105,13 @@ class RigPose:
 
 
 @dataclass(frozen=True)
-class SimCamera:
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-    distortion: tuple[float, ...]
-    gel_to_camera_rotvec_rad: tuple[float, float, float]
-    gel_to_camera_translation_mm: tuple[float, float, float]
+class MechanicsModel:
+    """``[mechanics]``: the contact model the lab fits and runs (optional section; these defaults)."""
 
-
-@dataclass(frozen=True)
-class SimRigPose:
-    gel_origin_machine_mm: tuple[float, float, float]
-    gel_yaw_deg: float
-    gel_tilt_deg: tuple[float, float]
-    ft_axes_in_gel_rotvec_rad: tuple[float, float, float]
-    ft_origin_in_gel_mm: tuple[float, float, float]
-
-
-@dataclass(frozen=True)
-class SimMechanics:
-    mode: str
-    grid_spacing_mm: float
-    stiffening: float
-
-
-@dataclass(frozen=True)
-class SimLighting:
-    membrane_level: float
-    marker_level: float
-    slope_gain: float
-    led_on: bool
-
-
-@dataclass(frozen=True)
-class SimEvents:
-    threshold_on: float
-    threshold_off: float
-    threshold_sigma: float
-    refractory_us: float
-    cutoff_hz: float
-    leak_rate_hz: float
-    shot_noise_rate_hz: float
-    max_step_px: float
-
-
-@dataclass(frozen=True)
-class SimCameraClock:
-    origin_us: int
-    drift_ppm: float
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    camera: SimCamera
-    rig_pose: SimRigPose
-    mechanics: SimMechanics
-    lighting: SimLighting
-    events: SimEvents
-    camera_clock: SimCameraClock
-    #: The true gel (``[sim.gel]``; keys left out, or the whole section: the nominal ``[gel]``'s).
-    gel: GelConfig
-    #: The markers as printed, the camera's delivery, the F/T link (optional sections: :mod:`labrig.config_sim`).
-    markers: SimMarkers
-    camera_delivery: SimCameraDelivery
-    ft: SimFt
-    #: The virtual CNC's max rates and accelerations (``[sim.grbl]``; left out: GRBL 1.1h's defaults).
-    grbl: SimGrbl = field(default_factory=SimGrbl)
+    #: "layer" (a bonded thin layer) or "halfspace".
+    mode: str = "layer"
+    #: The contact tables' surface grid spacing (mm).
+    grid_spacing_mm: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -184,9 +121,10 @@ class RigConfig:
     camera: CameraGeometry
     roi: Roi
     rig: RigPose
-    sim: SimConfig
+    #: The rig file's whole text (a recording stores it; the simulator reads its ``sim.*`` sections).
     text: str
     path: Path
+    mechanics: MechanicsModel = field(default_factory=MechanicsModel)
 
 
 def load_rig(path: str | Path = DEFAULT_RIG) -> RigConfig:
@@ -205,38 +143,23 @@ def parse_rig(text: str, path: Path) -> RigConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    sim = _table(data, "sim", path)
-    gel = _build(GelConfig, data, "gel", path)
-    markers, delivery, ft = parse_imperfections(sim, path)
-    sim_gel = _true_gel(sim, gel, path)
     config = RigConfig(
-        gel=gel,
-        markers=_build(MarkerConfig, data, "markers", path),
-        camera=_build(CameraGeometry, data, "camera", path),
-        roi=_build(Roi, data, "roi", path),
-        rig=_build(RigPose, data, "rig", path),
-        sim=SimConfig(
-            camera=_build(SimCamera, sim, "camera", path, "sim."),
-            rig_pose=_build(SimRigPose, sim, "rig_pose", path, "sim."),
-            mechanics=_build(SimMechanics, sim, "mechanics", path, "sim."),
-            lighting=_build(SimLighting, sim, "lighting", path, "sim."),
-            events=_build(SimEvents, sim, "events", path, "sim."),
-            camera_clock=_build(SimCameraClock, sim, "camera_clock", path, "sim."),
-            gel=sim_gel,
-            markers=markers,
-            camera_delivery=delivery,
-            ft=ft,
-            grbl=parse_grbl(sim, path),
-        ),
+        gel=parse_section(GelConfig, data, "gel", path),
+        markers=parse_section(MarkerConfig, data, "markers", path),
+        camera=parse_section(CameraGeometry, data, "camera", path),
+        roi=parse_section(Roi, data, "roi", path),
+        rig=parse_section(RigPose, data, "rig", path),
         text=text,
         path=path,
+        mechanics=parse_section(MechanicsModel, data, "mechanics", path) if "mechanics" in data else MechanicsModel(),
     )
     _check(config)
     return config
 
 
-#: Sections a rig file may leave out (their defaults: the ideal sensor, the true gel = [gel], GRBL's own limits).
-OPTIONAL_SECTIONS = ("sim.gel", "sim.markers", "sim.camera_delivery", "sim.ft", "sim.grbl")
+#: Sections a rig file may leave out: the lab's contact model, and the virtual rig's imperfect sensor,
+#: true gel and CNC limits (:mod:`labrig.sim.truth_config`; their defaults: the ideal sensor, [gel], GRBL's own).
+OPTIONAL_SECTIONS = ("mechanics", "sim.gel", "sim.markers", "sim.camera_delivery", "sim.ft", "sim.grbl")
 
 TomlValue = bool | int | float | str | tuple[float, ...] | tuple[int, ...] | tuple[tuple[float, float], ...]
 
@@ -249,7 +172,8 @@ def rig_with(rig: RigConfig, changes: Mapping[str, TomlValue]) -> RigConfig:
     recording stores, states the changed values; ``path`` stays the original's. A key the
     text does not hold is a :class:`ConfigError`, except in the optional sections
     (:data:`OPTIONAL_SECTIONS`): there it is added (with its section if the text has none),
-    so they can be set on any rig; the parse then checks the name.
+    so they can be set on any rig; the parse then checks the name (the ``sim.*`` sections' parse:
+    :func:`labrig.sim.truth_config.sim_config`).
     """
     lines = rig.text.splitlines(keepends=True)
     for key, value in changes.items():
@@ -295,24 +219,30 @@ def _toml_value(value: TomlValue) -> str:
     return json.dumps(value)
 
 
-def _table(data: dict[str, Any], name: str, path: Path, prefix: str = "") -> dict[str, Any]:
+def section_table(data: dict[str, Any], name: str, path: Path, prefix: str = "") -> dict[str, Any]:
+    """The table ``[prefix + name]`` of parsed TOML ``data``; missing: a :class:`ConfigError` naming ``path``."""
     table = data.get(name)
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: missing section [{prefix}{name}]")
     return table
 
 
-def _build(cls: type, data: dict[str, Any], name: str, path: Path, prefix: str = "") -> Any:
-    table = _table(data, name, path, prefix)
+def parse_section(cls: type, data: dict[str, Any], name: str, path: Path, prefix: str = "") -> Any:
+    """The dataclass ``cls`` from the table ``[prefix + name]``: every field without a default must be
+    given, no other key may be; lists become tuples. Errors name ``path`` and the section."""
+    table = section_table(data, name, path, prefix)
     names = [f.name for f in fields(cls)]
     unknown = sorted(set(table) - set(names))
     if unknown:
         raise ConfigError(f"{path}: [{prefix}{name}] unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
-    missing = [n for n in names if n not in table]
+    missing = [f.name for f in fields(cls) if f.name not in table and f.default is MISSING
+               and f.default_factory is MISSING]
     if missing:
         raise ConfigError(f"{path}: [{prefix}{name}] missing {missing[0]!r}")
     values = {}
     for f in fields(cls):
+        if f.name not in table:
+            continue
         value = table[f.name]
         if isinstance(value, list):
             value = tuple(value)
@@ -320,36 +250,29 @@ def _build(cls: type, data: dict[str, Any], name: str, path: Path, prefix: str =
     return cls(**values)
 
 
-def _true_gel(sim: dict[str, Any], nominal: GelConfig, path: Path) -> GelConfig:
-    """``[sim.gel]``: the true gel; keys left out (or the whole section) take the nominal ``[gel]``'s values."""
-    table = sim.get("gel", {})
-    if not isinstance(table, dict):
-        raise ConfigError(f"{path}: [sim.gel] must be a table")
-    names = [f.name for f in fields(GelConfig)]
-    unknown = sorted(set(table) - set(names))
-    if unknown:
-        raise ConfigError(f"{path}: [sim.gel] unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
-    for key, value in table.items():
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            raise ConfigError(f"{path}: [sim.gel] {key} must be a number, not {value!r}")
-    return replace(nominal, **{key: float(value) for key, value in table.items()})
-
-
 def _check(config: RigConfig) -> None:
     where = str(config.path)
-    for section, gel in (("gel", config.gel), ("sim.gel", config.sim.gel)):
-        if not 0 < gel.poisson_ratio < 0.5:
-            raise ConfigError(f"{where}: [{section}] poisson_ratio must be in (0, 0.5), not {gel.poisson_ratio}")
-        for key in ("thickness_mm", "size_x_mm", "size_y_mm", "youngs_modulus_mpa"):
-            if getattr(gel, key) <= 0:
-                raise ConfigError(f"{where}: [{section}] {key} must be positive")
+    check_gel(config.gel, "gel", where)
     roi, cam = config.roi, config.camera
     if not (0 <= roi.x0_px < roi.x1_px <= cam.width_px and 0 <= roi.y0_px < roi.y1_px <= cam.height_px):
         raise ConfigError(f"{where}: [roi] must lie inside the {cam.width_px}x{cam.height_px} sensor")
-    if config.sim.mechanics.mode not in ("layer", "halfspace"):
-        raise ConfigError(f"{where}: [sim.mechanics] mode must be 'layer' or 'halfspace'")
-    if len(config.sim.camera.distortion) != 5:
-        raise ConfigError(f"{where}: [sim.camera] distortion must be [k1, k2, p1, p2, k3]")
-    mk, roi = config.markers, config.roi
-    check_imperfections(config.sim.markers, config.sim.camera_delivery, config.sim.ft, mk.rows * mk.cols, mk.pitch_mm,
-                        roi.width_px * roi.height_px, where)
+    for key in ("focal_length_mm", "gel_distance_mm"):
+        value = getattr(cam, key)
+        if value is not None and not (isinstance(value, int | float) and not isinstance(value, bool) and value > 0):
+            raise ConfigError(f"{where}: [camera] {key} must be a positive number, not {value!r}")
+    check_mechanics_mode(config.mechanics.mode, "mechanics", where)
+
+
+def check_gel(gel: GelConfig, section: str, where: str) -> None:
+    """A gel's values in range (``section`` and ``where`` name it in the error)."""
+    if not 0 < gel.poisson_ratio < 0.5:
+        raise ConfigError(f"{where}: [{section}] poisson_ratio must be in (0, 0.5), not {gel.poisson_ratio}")
+    for key in ("thickness_mm", "size_x_mm", "size_y_mm", "youngs_modulus_mpa"):
+        if getattr(gel, key) <= 0:
+            raise ConfigError(f"{where}: [{section}] {key} must be positive")
+
+
+def check_mechanics_mode(mode: str, section: str, where: str) -> None:
+    """A contact model's mode is one the contact tables know."""
+    if mode not in ("layer", "halfspace"):
+        raise ConfigError(f"{where}: [{section}] mode must be 'layer' or 'halfspace'")

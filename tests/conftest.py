@@ -15,6 +15,7 @@ import pytest
 from labrig.config import RigConfig, load_rig
 from labrig.indenters import Indenter, load_indenter
 from labrig.physics.mechanics import ContactTable
+from labrig.sim.truth_config import true_contact_table
 from labrig.testing.synthetic import SyntheticRun, record_synthetic
 
 #: A short synthetic run used by many tests (about 1.5 M events).
@@ -43,7 +44,7 @@ def sphere() -> Indenter:
 @pytest.fixture(scope="session")
 def table(rig: RigConfig, sphere: Indenter) -> ContactTable:
     """The sphere's contact table (cached on disk after the first build)."""
-    return ContactTable.from_rig(sphere, rig)
+    return true_contact_table(sphere, rig)
 
 
 @pytest.fixture()

@@ -1,4 +1,4 @@
-"""Camera calibration from events on the virtual rig, scored against the sim's true camera (rig.sim.camera)."""
+"""Camera calibration from events on the virtual rig, scored against the sim's true camera (`true_camera(rig)`)."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix
 from labrig.physics.camera import CameraModel, distort_normalized
 from labrig.sim.calibration_scenes import record_led_blink, record_target_scene
+from labrig.sim.truth_config import true_camera
 
 N_VIEWS = 10
 
@@ -27,7 +28,7 @@ def rig() -> RigConfig:
 
 @pytest.fixture(scope="module")
 def truth(rig: RigConfig) -> CameraModel:
-    return CameraModel.from_rig(rig)
+    return true_camera(rig)
 
 
 @pytest.fixture(scope="module")

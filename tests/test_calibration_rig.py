@@ -21,7 +21,6 @@ from labrig.config import RigConfig, load_rig
 from labrig.errors import CalibrationError
 from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix
 from labrig.indenters import Indenter, load_indenters
-from labrig.physics.camera import CameraModel
 from labrig.physics.geometry import nominal_gel_in_machine
 from labrig.protocol.calibration_runs import DEFAULT_LOCATIONS
 from labrig.protocol.rigfile import DeviceConfig
@@ -29,6 +28,7 @@ from labrig.protocol.safety import SafetyLimits
 from labrig.protocol.session import RigSession
 from labrig.protocol.touchoff import press
 from labrig.sim.motion import true_gel_in_machine
+from labrig.sim.truth_config import sim_config, true_camera
 
 DEPTHS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 LOCATIONS = DEFAULT_LOCATIONS[:3]
@@ -61,7 +61,7 @@ def presses(rig: RigConfig, indenters: dict[str, Indenter], sphere_session: RigS
 
 @pytest.fixture(scope="module")
 def registration(rig: RigConfig, indenters: dict[str, Indenter], presses: list[Press]) -> RigRegistration:
-    return solve_registration(presses, rig, indenters["sphere"], CameraModel.from_rig(rig), "sim truth")
+    return solve_registration(presses, rig, indenters["sphere"], true_camera(rig), "sim truth")
 
 
 def test_registration_recovers_the_rig_truth(rig: RigConfig, registration: RigRegistration, tmp_path: Path) -> None:
@@ -71,11 +71,11 @@ def test_registration_recovers_the_rig_truth(rig: RigConfig, registration: RigRe
     angle = np.degrees(np.linalg.norm(matrix_to_rotvec(registration.gel_in_machine.rotation.T @ truth.rotation)))
     assert angle < 0.2
     yaw, tilt = registration.yaw_tilt_deg
-    assert yaw == pytest.approx(rig.sim.rig_pose.gel_yaw_deg, abs=0.1)
-    assert tilt == pytest.approx(rig.sim.rig_pose.gel_tilt_deg, abs=0.05)
+    assert yaw == pytest.approx(sim_config(rig).rig_pose.gel_yaw_deg, abs=0.1)
+    assert tilt == pytest.approx(sim_config(rig).rig_pose.gel_tilt_deg, abs=0.05)
     # The F/T axes: the map exact, the small rotation about the sensor's z estimated.
     assert registration.ft_axis_map == ["+x", "+y", "+z"]
-    true_axes = rotvec_to_matrix(rig.sim.rig_pose.ft_axes_in_gel_rotvec_rad)
+    true_axes = rotvec_to_matrix(sim_config(rig).rig_pose.ft_axes_in_gel_rotvec_rad)
     # Within 0.6 deg of the 0.69 deg truth (better than leaving it out): the sim fixes a contact's shear axis at
     # its first micrometre, so a touch-off's shear direction scatters (docs/calibration.md; 0.25-0.51 deg seen).
     assert np.degrees(np.linalg.norm(matrix_to_rotvec(registration.ft_axes_in_gel.T @ true_axes))) < 0.6
@@ -101,7 +101,7 @@ def test_gel_modulus_within_five_percent(rig: RigConfig, indenters: dict[str, In
     fit = fit_modulus(curves, rig, indenters)
     truth = rig.gel.youngs_modulus_mpa  # the virtual rig's gel (its stiffening is the sim's hidden extra)
     assert fit.youngs_modulus_mpa == pytest.approx(truth, rel=0.05)
-    assert fit.stiffening == pytest.approx(rig.sim.mechanics.stiffening, abs=0.2)
+    assert fit.stiffening == pytest.approx(sim_config(rig).mechanics.stiffening, abs=0.2)
     assert fit.residual_rel < 0.02
     assert all(0.0 < d0 < 0.4 for d0 in fit.depth_offsets_mm)  # contact found a little below the surface
     # A plain linear fit over the same depths reads the stiffening as a stiffer gel.
@@ -123,7 +123,7 @@ def test_no_contact_is_a_clear_error(rig: RigConfig, indenters: dict[str, Indent
 def test_too_few_points_and_curves_are_clear_errors(rig: RigConfig, indenters: dict[str, Indenter],
                                                     presses: list[Press]) -> None:
     with pytest.raises(CalibrationError, match="at least 3"):
-        solve_registration(presses[:2], rig, indenters["sphere"], CameraModel.from_rig(rig))
+        solve_registration(presses[:2], rig, indenters["sphere"], true_camera(rig))
     with pytest.raises(CalibrationError, match="at least 2"):
         fit_modulus([p.curve() for p in presses], rig, indenters)  # one indenter shape only
     short = ForceDepthCurve("cylinder", np.array([0.1, 0.2]), np.array([0.5, 1.0]))

@@ -16,6 +16,7 @@ from labrig.indenters import DEFAULT_INDENTERS, Indenter, load_indenters
 from labrig.protocol.files import load_campaign
 from labrig.protocol.spec import ProtocolError
 from labrig.protocol.variation import SensorVariation, VariedKey, parse_variation
+from labrig.sim.truth_config import sim_config
 
 CAMPAIGN = """
 [campaign]
@@ -83,7 +84,7 @@ def test_recordings_of_a_campaign_get_their_own_sensor(tmp_path: Path, rig: RigC
     campaign = load_campaign(_campaign(tmp_path), rig, indenters)
     assert campaign.variation is not None
     a, b = (campaign.variation.rig_for(rig, seed) for seed in (1, 2))
-    assert a.sim.events.shot_noise_rate_hz != b.sim.events.shot_noise_rate_hz
+    assert sim_config(a).events.shot_noise_rate_hz != sim_config(b).events.shot_noise_rate_hz
     assert parse_rig(a.text, a.path) == a  # the recording stores text that states the drawn values
     assert a.gel == rig.gel and a.camera == rig.camera  # what the lab knows stays
 
@@ -121,7 +122,7 @@ def test_the_cli_records_each_sensor_in_virtual_time_and_refuses_vary_through_th
         rig_text = f.attrs["rig"]
     rig = parse_rig(str(rig_text), recording)
     campaign_seed_3_index_0 = 3 * 100_003
-    assert rig.sim.markers.seed == campaign_seed_3_index_0
+    assert sim_config(rig).markers.seed == campaign_seed_3_index_0
 
 
 def test_an_error_line_keeps_its_brackets(tmp_path: Path) -> None:

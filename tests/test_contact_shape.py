@@ -18,6 +18,7 @@ from labrig.groundtruth.turned import TurnedModel, lab_footprint_yaw_deg, turned
 from labrig.indenters import Indenter, IndenterError, load_indenter, load_indenters
 from labrig.physics.mechanics import ContactTable
 from labrig.physics.mechanics.table_cache import table_key, table_spec
+from labrig.sim.truth_config import sim_config, true_contact_table
 
 #: A small, coarse table: enough to see a footprint's shape, seconds to build.
 SMALL = {"spacing_mm": 0.2, "size_mm": 12.0, "max_depth_mm": 0.3, "shear_steps": 2}
@@ -37,8 +38,8 @@ def square_tables(rig: RigConfig, tmp_path_factory: pytest.TempPathFactory) -> t
     """(unturned, turned by 30 deg relative to the gel): the gel yawed by -30 deg in the CNC frame."""
     cache = tmp_path_factory.mktemp("tables")
     square = load_indenter("square")
-    flat = ContactTable.build(square, rig.sim.gel, cache_dir=cache, **SMALL)
-    turned = ContactTable.from_rig(square, rig_with(rig, {"sim.rig_pose.gel_yaw_deg": -30.0}), cache_dir=cache, **SMALL)
+    flat = ContactTable.build(square, sim_config(rig).gel, cache_dir=cache, **SMALL)
+    turned = true_contact_table(square, rig_with(rig, {"sim.rig_pose.gel_yaw_deg": -30.0}), cache_dir=cache, **SMALL)
     return flat, turned
 
 
@@ -71,7 +72,7 @@ def test_the_ground_truth_turns_the_square_as_the_sim_does(
     square = replace(load_indenter("square"), yaw_deg=30.0)
     gel_pose = Pose(yaw_tilt_matrix(0.0), np.zeros(3))
     assert lab_footprint_yaw_deg(square, gel_pose) == pytest.approx(30.0)
-    table = DepthTable.build(square, rig.sim.gel, spacing_mm=0.2, size_mm=12.0, max_depth_mm=0.3, cache_dir=tmp_path)
+    table = DepthTable.build(square, sim_config(rig).gel, spacing_mm=0.2, size_mm=12.0, max_depth_mm=0.3, cache_dir=tmp_path)
     model = turned_model(table, square, gel_pose)
     assert isinstance(model, TurnedModel) and model.describe()["footprint_yaw_deg"] == pytest.approx(30.0)
     sim = square_tables[1].fields(0.3)
@@ -86,12 +87,12 @@ def test_the_ground_truth_turns_the_square_as_the_sim_does(
 
 
 def rig_footprint_yaw_deg(indenter: Indenter, rig: RigConfig) -> float:
-    return indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg)
+    return indenter.footprint_yaw_deg(sim_config(rig).rig_pose.gel_yaw_deg)
 
 
 def test_footprint_yaw_is_the_indenters_yaw_minus_the_gels_reduced_by_symmetry(rig: RigConfig) -> None:
     indenters = load_indenters()
-    assert rig.sim.rig_pose.gel_yaw_deg == pytest.approx(0.6)
+    assert sim_config(rig).rig_pose.gel_yaw_deg == pytest.approx(0.6)
     assert rig_footprint_yaw_deg(indenters["square"], rig) == pytest.approx(-0.6)
     assert rig_footprint_yaw_deg(indenters["ridge"], rig) == pytest.approx(-0.6)
     assert rig_footprint_yaw_deg(indenters["sphere"], rig) == 0.0
@@ -102,23 +103,23 @@ def test_footprint_yaw_is_the_indenters_yaw_minus_the_gels_reduced_by_symmetry(r
 
 def test_table_cache_keys_differ_by_yaw(rig: RigConfig, tmp_path: Path) -> None:
     indenters = load_indenters()
-    # The virtual rig's tables (ContactTable.from_rig) take the yaw relative to the true gel, cached apart.
-    turned = ContactTable.from_rig(indenters["square"], rig, cache_dir=tmp_path, **SMALL)
-    unturned = ContactTable.from_rig(indenters["square"], rig, cache_dir=tmp_path, yaw_deg=0.0, **SMALL)
+    # The virtual rig's tables (true_contact_table) take the yaw relative to the true gel, cached apart.
+    turned = true_contact_table(indenters["square"], rig, cache_dir=tmp_path, **SMALL)
+    unturned = true_contact_table(indenters["square"], rig, cache_dir=tmp_path, yaw_deg=0.0, **SMALL)
     assert turned.yaw_deg == pytest.approx(-0.6) and unturned.yaw_deg == 0.0
     assert turned.meta["key"] != unturned.meta["key"] and len(list(tmp_path.rglob("square-*.npz"))) == 2
     options = {"mode": "layer", "spacing_mm": 0.1, "size_mm": 24.0, "direction_deg": 0.0, "depth_step_mm": 0.05,
                "max_depth_mm": 1.5, "shear_depth_stride": 1, "shear_steps": 10}
 
     def key(indenter: Indenter, yaw: float) -> str:
-        return table_key(table_spec(indenter, rig.sim.gel, yaw_deg=indenter.reduced_turn_deg(yaw), **options))
+        return table_key(table_spec(indenter, sim_config(rig).gel, yaw_deg=indenter.reduced_turn_deg(yaw), **options))
 
     square, sphere = indenters["square"], indenters["sphere"]
     assert len({key(square, yaw) for yaw in (0.0, 30.0, -0.6, 0.6)}) == 4
     assert key(square, 90.0) == key(square, 0.0)  # a square turned a quarter is the same square
     assert key(sphere, 30.0) == key(sphere, 0.0)
     # An unturned indenter's spec has no yaw: its cached tables keep their keys.
-    assert "yaw_deg" not in table_spec(square, rig.sim.gel, **options)
+    assert "yaw_deg" not in table_spec(square, sim_config(rig).gel, **options)
 
 
 # ------------------------------------------------------------------------------------- height-map axis
@@ -150,8 +151,8 @@ def test_a_ring_with_its_axis_at_its_centre_presses_symmetric(rig: RigConfig, tm
     assert centred.height_mm(2.5, 0.0) == pytest.approx(0.0) and np.isinf(centred.height_mm(0.0, 0.0))
     assert lowest.height_mm(0.0, 0.0) == pytest.approx(0.0)  # today's default: the tip is a point of the ring
     assert centred.footprint_radius_mm == pytest.approx(3.0, abs=0.05)  # the ring's outer edge, not the map's corner
-    table = ContactTable.build(centred, rig.sim.gel, cache_dir=tmp_path, **SMALL)
-    old = ContactTable.build(lowest, rig.sim.gel, cache_dir=tmp_path, **SMALL)
+    table = ContactTable.build(centred, sim_config(rig).gel, cache_dir=tmp_path, **SMALL)
+    old = ContactTable.build(lowest, sim_config(rig).gel, cache_dir=tmp_path, **SMALL)
     assert table.meta["key"] != old.meta["key"]
     f = table.fields(0.2)
     assert f.contact_mask.sum() > 50 and not f.contact_mask[len(f.y_mm) // 2, len(f.x_mm) // 2]  # a ring, hole inside
@@ -161,7 +162,7 @@ def test_a_ring_with_its_axis_at_its_centre_presses_symmetric(rig: RigConfig, tm
     assert np.hypot(*old.pressure_centre_mm(0.2)) == pytest.approx(2.5, abs=0.1)  # off the ring's centre
     assert old.fields(0.2).force_n[2] == pytest.approx(f.force_n[2], rel=0.05)
     # The ground truth presses the ring about the same axis.
-    truth = DepthTable.build(centred, rig.sim.gel, spacing_mm=0.2, size_mm=12.0, max_depth_mm=0.3, cache_dir=tmp_path)
+    truth = DepthTable.build(centred, sim_config(rig).gel, spacing_mm=0.2, size_mm=12.0, max_depth_mm=0.3, cache_dir=tmp_path)
     x, y = np.meshgrid(f.x_mm, f.y_mm)
     uz, mask = truth.fields(0.2, x, y)
     assert np.array_equal(mask, mask[::-1, ::-1]) and np.sum(mask & f.contact_mask) / np.sum(mask | f.contact_mask) > 0.95

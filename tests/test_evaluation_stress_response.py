@@ -16,16 +16,19 @@ from labrig.evaluation.stress_axes import RESPONSE_AXES, axis_named
 from labrig.evaluation.stress_scene import StressScene, stressed_rig
 from labrig.executor import run_tasks
 from labrig.models import bundled_model_path
+from labrig.sim.truth_config import sim_config
 
 
 def test_the_scene_sets_the_cameras_thresholds_and_the_light() -> None:
     rig = stressed_rig(StressScene(contrast_threshold=0.30, on_off_ratio=1.44, slope_gain=4.0, membrane_level=0.16))
-    assert rig.sim.events.threshold_on == pytest.approx(0.36) and rig.sim.events.threshold_off == pytest.approx(0.25)
-    assert rig.sim.lighting.slope_gain == 4.0 and rig.sim.lighting.membrane_level == 0.16
+    truth = sim_config(rig)
+    assert truth.events.threshold_on == pytest.approx(0.36) and truth.events.threshold_off == pytest.approx(0.25)
+    assert truth.lighting.slope_gain == 4.0 and truth.lighting.membrane_level == 0.16
     reference = stressed_rig(StressScene())
-    assert (reference.sim.events.threshold_on, reference.sim.lighting.slope_gain) == (0.22, 2.5)
+    assert (sim_config(reference).events.threshold_on, sim_config(reference).lighting.slope_gain) == (0.22, 2.5)
     asymmetric = stressed_rig(StressScene(on_off_ratio=1.6))  # about the rig's own geometric mean
-    assert np.sqrt(asymmetric.sim.events.threshold_on * asymmetric.sim.events.threshold_off) == pytest.approx(0.22)
+    events = sim_config(asymmetric).events
+    assert np.sqrt(events.threshold_on * events.threshold_off) == pytest.approx(0.22)
     assert StressScene(on_off_ratio=1.6).changes_event_response and not StressScene(slope_gain=3.0).changes_event_response
     for bad in ({"contrast_threshold": 0.0}, {"on_off_ratio": 0.0}, {"membrane_level": 1.5}, {"slope_gain": -1.0}):
         with pytest.raises(LabrigError, match="stress scene"):

@@ -14,13 +14,14 @@ import numpy as np
 import pytest
 
 from labrig.config import load_rig
-from labrig.config_sim import printed_markers
 from labrig.errors import LabrigError
 from labrig.evaluation.stress import StressResult, run_stress
 from labrig.evaluation.stress_axes import SENSOR_AXES, axis_named
 from labrig.evaluation.stress_calibration import calibrate_printed_markers
 from labrig.evaluation.stress_scene import FAR_FROM_PRESS_MM, StressScene, missing_markers, stressed_rig
 from labrig.executor import run_tasks
+from labrig.sim.imperfections import printed_markers
+from labrig.sim.truth_config import sim_config
 
 #: A short probe (0.5 mm press, 0.2 mm of shear at 6 mm/s) so that each scene stays cheap.
 SHORT = StressScene(depth_mm=0.5, shear_mm=0.2, speed_mm_s=6.0, wait_s=0.05, approach_mm=0.1)
@@ -42,13 +43,13 @@ def test_missing_markers_near_and_far_from_the_press() -> None:
 def test_the_scene_prints_the_gel_and_delivers_in_bursts() -> None:
     rig = stressed_rig(StressScene(position_error_mm=0.1, missing_near_pct=2.0, missing_far_pct=2.0,
                                    burst_period_ms=20.0, seed=5))
-    printed = printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm)
-    assert len(printed.missing) == 6 and not rig.sim.markers.ideal
+    printed = printed_markers(sim_config(rig).markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm)
+    assert len(printed.missing) == 6 and not sim_config(rig).markers.ideal
     offsets = printed.rest_mm[:, :2] - rig.markers.rest_positions_mm()[:, :2]
     assert 0.07 < offsets.std() < 0.13  # 0.1 mm std per axis
-    assert rig.sim.camera_delivery.burst_period_ms == 20.0 and rig.sim.camera_delivery.burst_jitter_ms == 4.0
+    assert sim_config(rig).camera_delivery.burst_period_ms == 20.0 and sim_config(rig).camera_delivery.burst_jitter_ms == 4.0
     assert "[sim.markers]" in rig.text and "[sim.camera_delivery]" in rig.text  # the recording's rig says so
-    assert stressed_rig(StressScene()).sim.markers.ideal
+    assert sim_config(stressed_rig(StressScene())).markers.ideal
     for bad in ({"position_error_mm": -0.1}, {"burst_period_ms": -1.0}, {"missing_near_pct": 40, "missing_far_pct": 20}):
         with pytest.raises(LabrigError, match="stress scene"):
             StressScene(**bad).check()  # type: ignore[arg-type]

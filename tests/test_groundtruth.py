@@ -27,6 +27,7 @@ from labrig.groundtruth import (
 from labrig.indenters import Indenter, load_indenter
 from labrig.physics.mechanics.spectral import contact_modulus_mpa
 from labrig.recording import Recording
+from labrig.sim.truth_config import true_camera
 
 
 @pytest.fixture(scope="module")
@@ -147,9 +148,8 @@ def test_map_centre_is_where_the_indenter_is_in_the_image(probe: Path, rig: RigC
     rows, cols = np.nonzero(mask)
     centre = np.array([cols.mean(), rows.mean()])
     # the commanded location projected through the camera into the network grid
-    from labrig.physics.camera import CameraModel
 
-    px = CameraModel.from_rig(rig).project(np.array([[2.0, -1.5, 0.0]]))[0]
+    px = true_camera(rig).project(np.array([[2.0, -1.5, 0.0]]))[0]
     roi = rig.roi
     cell = np.array([(px[0] - roi.x0_px + 0.5) * 112 / roi.width_px - 0.5, (px[1] - roi.y0_px + 0.5) * 90 / roi.height_px - 0.5])
     assert np.hypot(*(centre - cell)) < 2.0  # cells (0.27 mm): the nominal gel pose is 0.4 mm off the true one

@@ -9,6 +9,7 @@ import pytest
 
 from labrig.config import ConfigError, load_rig
 from labrig.indenters import IndenterError, load_indenter, load_indenters
+from labrig.sim.truth_config import sim_config
 
 
 def test_default_indenters_have_the_paper_shapes() -> None:
@@ -70,8 +71,8 @@ def test_default_rig_config_is_consistent() -> None:
     assert markers.shape == (156, 3)
     assert np.ptp(markers[:, 0]) == pytest.approx(24.0) and np.ptp(markers[:, 1]) == pytest.approx(22.0)
     # About 28 px per mm at the membrane: a 0.5 mm marker is about 14 px across.
-    depth_mm = rig.sim.camera.gel_to_camera_translation_mm[2]
-    assert rig.sim.camera.fx_px / depth_mm == pytest.approx(28.0, rel=0.02)
+    depth_mm = sim_config(rig).camera.gel_to_camera_translation_mm[2]
+    assert sim_config(rig).camera.fx_px / depth_mm == pytest.approx(28.0, rel=0.02)
     assert rig.roi.width_px > 24 * 28 and rig.roi.height_px > 22 * 28
 
 

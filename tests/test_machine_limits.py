@@ -19,6 +19,7 @@ from labrig.protocol.spec import ApproachSpec, ProbeSpec, ProtocolError
 from labrig.protocol.variation import slowest_machine
 from labrig.protocol.virtual_run import record_virtual
 from labrig.sim.offline import OfflineRig, OfflineSinks, machine_limits
+from labrig.sim.truth_config import sim_config
 from labrig.sim.world import LiveWorld
 
 FAST = {"sim.grbl.max_rate_mm_min": 3600.0, "sim.grbl.acceleration_mm_s2": 5000.0}
@@ -35,14 +36,14 @@ def fast_rig(rig: RigConfig) -> RigConfig:
 
 
 def test_the_default_rig_keeps_grbl_defaults(rig: RigConfig) -> None:
-    assert rig.sim.grbl.max_rate_mm_min == (500.0, 500.0, 500.0)
-    assert rig.sim.grbl.acceleration_mm_s2 == (10.0, 10.0, 10.0)
+    assert sim_config(rig).grbl.max_rate_mm_min == (500.0, 500.0, 500.0)
+    assert sim_config(rig).grbl.acceleration_mm_s2 == (10.0, 10.0, 10.0)
     assert machine_limits(rig).max_rate_mm_min == (500.0, 500.0, 500.0)
 
 
 def test_a_number_sets_every_axis_and_a_list_each(rig: RigConfig) -> None:
     text = rig.text + "\n[sim.grbl]\nmax_rate_mm_min = [6000, 6000.0, 1200]\nacceleration_mm_s2 = 2500\n"
-    grbl = parse_rig(text, rig.path).sim.grbl
+    grbl = sim_config(parse_rig(text, rig.path)).grbl
     assert grbl.max_rate_mm_min == (6000.0, 6000.0, 1200.0)
     assert grbl.acceleration_mm_s2 == (2500.0,) * 3
     assert grbl.max_rate_mm_s == (100.0, 100.0, 20.0)
@@ -59,15 +60,15 @@ def test_a_number_sets_every_axis_and_a_list_each(rig: RigConfig) -> None:
 ])
 def test_bad_values_are_refused_in_one_line(rig: RigConfig, section: str, expected: str) -> None:
     with pytest.raises(ConfigError) as info:
-        parse_rig(rig.text + f"\n[sim.grbl]\n{section}\n", rig.path)
+        sim_config(parse_rig(rig.text + f"\n[sim.grbl]\n{section}\n", rig.path))
     message = str(info.value)
     assert "[sim.grbl]" in message and expected in message and "\n" not in message
 
 
 def test_rig_with_adds_the_section_and_the_text_says_so(rig: RigConfig, fast_rig: RigConfig) -> None:
     assert "[sim.grbl]" not in rig.text and "[sim.grbl]" in fast_rig.text
-    assert fast_rig.sim.grbl.max_rate_mm_min == (3600.0,) * 3
-    assert parse_rig(fast_rig.text, rig.path).sim.grbl == fast_rig.sim.grbl  # a recording's rig text keeps it
+    assert sim_config(fast_rig).grbl.max_rate_mm_min == (3600.0,) * 3
+    assert sim_config(parse_rig(fast_rig.text, rig.path)).grbl == sim_config(fast_rig).grbl  # a recording's rig text keeps it
 
 
 # -- both twins honour it ------------------------------------------------------------------------------
@@ -181,7 +182,7 @@ def test_a_campaign_checks_speeds_against_its_slowest_varied_machine(rig: RigCon
         campaign = load_campaign(path, rig, load_indenters())
         assert campaign.variation is not None
         assert all(v >= 3600 for p in campaign.plans
-                   for v in campaign.variation.rig_for(rig, p.index).sim.grbl.max_rate_mm_min)
+                   for v in sim_config(campaign.variation.rig_for(rig, p.index)).grbl.max_rate_mm_min)
         return
     with pytest.raises(ProtocolError) as info:
         load_campaign(path, rig, load_indenters())
@@ -194,7 +195,7 @@ def test_slowest_machine_takes_the_low_end(rig: RigConfig, tmp_path: Path) -> No
     path.write_text(CAMPAIGN.format(vary=vary))
     variation = load_campaign(path, rig, load_indenters()).variation
     assert variation is not None
-    slow = slowest_machine(rig, variation).sim.grbl
+    slow = sim_config(slowest_machine(rig, variation)).grbl
     assert slow.max_rate_mm_min == (3000.0,) * 3 and slow.acceleration_mm_s2 == (900.0,) * 3
 
 
@@ -237,5 +238,5 @@ def test_train_large_loads_with_its_vary_keys(rig: RigConfig) -> None:
     assert keys["sim.events.shot_noise_rate_hz"].high == 2.0 and keys["sim.markers.missing_count"].high == 3
     for plan in plans[:: len(plans) // 6]:  # a few recordings' sensors: the rig takes every drawn value
         sensor = campaign.variation.rig_for(rig, plan.index)
-        assert sensor.sim.grbl.max_rate_mm_min == (3600.0,) * 3 and sensor.sim.markers.seed == plan.index
+        assert sim_config(sensor).grbl.max_rate_mm_min == (3600.0,) * 3 and sim_config(sensor).markers.seed == plan.index
         assert SpeedLimits.of_rig(sensor).problems(plan.spec) == []

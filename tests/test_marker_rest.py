@@ -16,11 +16,17 @@ from labrig.calibration.files import CalibrationFileError, Intrinsics, load_extr
 from labrig.calibration.plots import plot_marker_residuals
 from labrig.config import RigConfig
 from labrig.eventtypes import EVENT_DTYPE
-from labrig.physics.camera import CameraModel
 from labrig.pipeline import displacement, forces, ifem, run_setup
 from labrig.pipeline.rest import RestParams, RestRefiner
 from labrig.pipeline.tracking import Tracker, TrackerParams, marker_diameter_px
 from labrig.pipeline.unobserved import completion_matrix, condense_unobserved
+from labrig.sim.truth_config import true_camera
+
+
+def true_diameter_px(rig: RigConfig) -> float:
+    """The markers' image diameter through the virtual rig's true camera."""
+    return marker_diameter_px(rig, true_camera(rig))
+
 
 MISSING = (5, 70, 150)
 OFF_SITE = 40  # printed 0.36 mm off its site
@@ -35,15 +41,15 @@ def printed(rig: RigConfig) -> tuple[np.ndarray, np.ndarray]:
     error[OFF_SITE] = [0.3, -0.2]
     at = rest.copy()
     at[:, :2] += error
-    return error, CameraModel.from_rig(rig).project(at)
+    return error, true_camera(rig).project(at)
 
 
 @pytest.fixture(scope="module")
 def calibrated(rig: RigConfig, printed: tuple[np.ndarray, np.ndarray]) -> ExtrinsicsResult:
     """The extrinsics of a synthetic LED frame: lit membrane, brighter discs where the markers are printed."""
     _, px = printed
-    camera = CameraModel.from_rig(rig)
-    radius = marker_diameter_px(rig) / 2
+    camera = true_camera(rig)
+    radius = true_diameter_px(rig) / 2
     frame = np.full((camera.height_px, camera.width_px), 1.0)
     yy, xx = np.mgrid[0:camera.height_px, 0:camera.width_px]
     for i, (x, y) in enumerate(px):
@@ -104,7 +110,7 @@ def test_measured_rest_makes_no_false_displacement(rig: RigConfig, calibrated: E
     _, px = printed
     calibration = tmp_path / "cal"
     write_extrinsics(calibrated, calibration / "extrinsics.toml")
-    camera = CameraModel.from_rig(rig)
+    camera = true_camera(rig)
     (calibration / "intrinsics.toml").write_text(
         "[intrinsics]\n" + "".join(f"{k} = {v!r}\n" for k, v in (
             ("fx_px", camera.fx_px), ("fy_px", camera.fy_px), ("cx_px", camera.cx_px), ("cy_px", camera.cy_px),
@@ -120,10 +126,10 @@ def test_measured_rest_makes_no_false_displacement(rig: RigConfig, calibrated: E
 
 
 def test_the_tracker_skips_missing_markers(rig: RigConfig) -> None:
-    rest = CameraModel.from_rig(rig).project(rig.markers.rest_positions_mm())
+    rest = true_camera(rig).project(rig.markers.rest_positions_mm())
     observed = np.ones(len(rest), bool)
     observed[[20, 21]] = False
-    diameter = marker_diameter_px(rig)
+    diameter = true_diameter_px(rig)
     tracker = Tracker(rest, TrackerParams(marker_diameter_px=diameter), observed=observed)
     # Every marker's disc moves along +x: ON on its leading edge, OFF on its trailing edge (centroids 2 px on).
     events = []
@@ -169,7 +175,7 @@ def test_condensed_markers_carry_no_force(seed: int, n_missing: int) -> None:
 def test_surface_forces_condense_missing_markers(rig: RigConfig) -> None:
     """A smooth in-plane field with a missing marker inside the contact gives the forces of the full grid."""
     operator = ifem.build_surface_operator(rig, ifem.SurfaceParams(margin_mm=4.0, layers=2))
-    camera = CameraModel.from_rig(rig)
+    camera = true_camera(rig)
     rest = rig.markers.rest_positions_mm()
     depth = np.zeros((90, 112), np.float32)
     r2 = ((np.arange(112)[None] - 56) ** 2 + (np.arange(90)[:, None] - 45) ** 2).astype(np.float32)
@@ -211,8 +217,8 @@ def test_rest_refines_from_quiet_windows_and_freezes_at_motion() -> None:
 
 def test_a_quiet_start_refines_nothing_the_tracker_did_not_see(rig: RigConfig) -> None:
     """With no motion the tracker stays put, so the refined rest is the calibrated one (the perfect-gel case)."""
-    rest = CameraModel.from_rig(rig).project(rig.markers.rest_positions_mm())
-    tracker = Tracker(rest, TrackerParams(marker_diameter_px=marker_diameter_px(rig)))
+    rest = true_camera(rig).project(rig.markers.rest_positions_mm())
+    tracker = Tracker(rest, TrackerParams(marker_diameter_px=true_diameter_px(rig)))
     refiner = RestRefiner(rest)
     rng = np.random.default_rng(2)
     for _ in range(20):
@@ -226,8 +232,8 @@ def test_a_quiet_start_refines_nothing_the_tracker_did_not_see(rig: RigConfig) -
 
 def led_frame(rig: RigConfig, px: np.ndarray, missing: tuple[int, ...], seed: int = 1) -> np.ndarray:
     """A synthetic LED frame: lit membrane, brighter discs at ``px`` but for the ``missing`` markers."""
-    camera = CameraModel.from_rig(rig)
-    radius = marker_diameter_px(rig) / 2
+    camera = true_camera(rig)
+    radius = true_diameter_px(rig) / 2
     frame = np.full((camera.height_px, camera.width_px), 1.0)
     yy, xx = np.mgrid[0:camera.height_px, 0:camera.width_px]
     for i, (x, y) in enumerate(px):
@@ -245,8 +251,8 @@ def test_a_badly_printed_gel_calibrates_without_false_missing_markers(rig: RigCo
     error[OFF_SITE] = [0.8, 0.0]  # 0.4 pitch: beyond the association's tolerance, a free blob beside its site
     at = rest.copy()
     at[:, :2] += error
-    px = CameraModel.from_rig(rig).project(at)
-    result = extrinsics_from_frame(led_frame(rig, px, MISSING), Intrinsics.from_camera(CameraModel.from_rig(rig)),
+    px = true_camera(rig).project(at)
+    result = extrinsics_from_frame(led_frame(rig, px, MISSING), Intrinsics.from_camera(true_camera(rig)),
                                    rig.markers)
     markers = result.marker_map
     assert markers.missing_indices == list(MISSING)

@@ -7,19 +7,19 @@ on the virtual rig (0.40 MPa, the rig's value).
 
 from __future__ import annotations
 
-import dataclasses
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, rig_with
 from labrig.indenters import Indenter
-from labrig.physics.camera import CameraModel
 from labrig.pipeline import depth_sources, displacement, forces, ifem, run_setup, runtime
 from labrig.recording import Recording
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
+from labrig.sim.truth_config import true_camera
 
 NORMAL_HOLD_US = 550_000  # mid-way through the first Wait (normal only)
 SHEAR_HOLD_US = 817_000  # mid-way through the Wait after the shear
@@ -27,8 +27,7 @@ SHEAR_HOLD_US = 817_000  # mid-way through the Wait after the shear
 
 @pytest.fixture(scope="module")
 def linear_rig(rig: RigConfig) -> RigConfig:
-    mechanics = dataclasses.replace(rig.sim.mechanics, stiffening=0.0)
-    return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, mechanics=mechanics))
+    return rig_with(rig, {"sim.mechanics.stiffening": 0.0})
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +101,7 @@ def test_true_inputs_give_the_sims_forces(rig: RigConfig, operator: ifem.Surface
                                           truth: dict[str, dict[str, np.ndarray]]) -> None:
     """True marker pixels and depth map: the paper's K over-predicts Fz by about 55 %, the surface operator
     is within a few per cent in net force and four times closer per marker."""
-    camera = CameraModel.from_rig(rig)
+    camera = true_camera(rig)
     rest = rig.markers.rest_positions_mm()
     rest_px = camera.project(rest)
     surface = forces.SurfaceForces(operator, camera, rig.roi)
@@ -127,11 +126,19 @@ def test_true_inputs_give_the_sims_forces(rig: RigConfig, operator: ifem.Surface
     assert abs(net[0] / net_true[0] - 1) < 0.05  # shear at the sheared hold
 
 
+def with_true_camera(setup: run_setup.PipelineSetup) -> run_setup.PipelineSetup:
+    """``setup`` with the virtual rig's true camera and the lattice through it (a perfect camera calibration)."""
+    camera = true_camera(setup.rig)
+    return replace(setup, camera=camera, rest_px=camera.project(setup.rig.markers.rest_positions_mm()),
+                   sources={**setup.sources, "camera": "the virtual rig's true camera"})
+
+
 def test_full_pipeline_matches_the_sims_net_force_mid_hold(rig: RigConfig, recording: Path) -> None:
     """Tracker on the events + the true depth map + the dense operator: Fz within 10 % mid-hold."""
     with Recording(recording) as rec:
         tf = rec.stream("truth/marker_forces")
-        setup = run_setup.setup_for_recording(rec, calibration_dir=None, youngs_modulus_mpa=rig.gel.youngs_modulus_mpa)
+        setup = with_true_camera(run_setup.setup_for_recording(rec, calibration_dir=None,
+                                                               youngs_modulus_mpa=rig.gel.youngs_modulus_mpa))
         pipe = runtime.Pipeline(setup, depth_sources.TruthDepth(rec))
         results = list(pipe.run(rec, end_us=SHEAR_HOLD_US + 20_000))
     for t_us in (NORMAL_HOLD_US, SHEAR_HOLD_US):

@@ -7,11 +7,11 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.eventtypes import EVENT_DTYPE
-from labrig.physics.camera import CameraModel
 from labrig.physics.grid import network_grid_pixels
 from labrig.pipeline import sae
 from labrig.pipeline.displacement import displacements_mm, marker_positions_mm, sample_grid
 from labrig.pipeline.forces import contact_location, forces_from_displacements, net_force_n
+from labrig.sim.truth_config import true_camera
 
 
 def _events(rows: list[tuple[int, int, int, int]]) -> np.ndarray:
@@ -56,7 +56,7 @@ def test_grid_sae_is_the_max_pooled_roi_sae(rig: RigConfig) -> None:
 
 
 def test_displacements_recover_a_known_3d_motion(rig: RigConfig) -> None:
-    camera = CameraModel.from_rig(rig)
+    camera = true_camera(rig)
     rest = rig.markers.rest_positions_mm()
     r2 = (rest[:, :2] ** 2).sum(1)
     true_u = np.stack([0.3 * np.exp(-r2 / 30), -0.1 * np.exp(-r2 / 30), -1.0 * np.exp(-r2 / 10)], axis=1)
@@ -79,7 +79,7 @@ def test_forces_net_force_and_contact_location(rig: RigConfig) -> None:
     k = np.diag(np.arange(1.0, 7.0))
     f = forces_from_displacements(k, np.array([[1.0, 1, 1], [0.5, 0.5, 0.5]]))
     assert np.allclose(f, [[1, 2, 3], [2, 2.5, 3]]) and np.allclose(net_force_n(f), [3, 4.5, 6])
-    camera = CameraModel.from_rig(rig)
+    camera = true_camera(rig)
     depth = np.zeros((90, 112))
     assert contact_location(depth, rig.roi, camera) is None
     depth[30:33, 70:73] = 0.5
@@ -91,7 +91,7 @@ def test_forces_net_force_and_contact_location(rig: RigConfig) -> None:
 
 
 def test_contact_location_is_the_dents_core_not_its_faint_residue(rig: RigConfig) -> None:
-    camera = CameraModel.from_rig(rig)
+    camera = true_camera(rig)
     depth = np.zeros((90, 112))
     depth[30:33, 70:73] = 1.0
     depth[60:80, 10:30] = 0.1  # a faint, wide residue: 400 cells, more summed depth than the dent's 9

@@ -17,11 +17,22 @@ from labrig.pipeline.tracking import (
     TrackerParams,
     grid_neighbours,
     marker_diameter_px,
-    rest_positions_px,
 )
 from labrig.recording import Recording
 from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
+from labrig.sim.truth_config import true_camera
+
+
+def true_rest_px(rig: RigConfig) -> np.ndarray:
+    """The markers' rest pixels through the virtual rig's true camera."""
+    return true_camera(rig).project(rig.markers.rest_positions_mm())
+
+
+def true_diameter_px(rig: RigConfig) -> float:
+    """The markers' image diameter through the virtual rig's true camera."""
+    return marker_diameter_px(rig, true_camera(rig))
+
 
 WINDOW_US = 10_000
 LOST_PX = 15.0  # the paper's metric: start-end drift above this is a lost track
@@ -52,12 +63,12 @@ def track(recording: Path, tracker: Tracker | CircleFitTracker | EvetacTracker) 
 def test_rest_positions_match_the_truth_at_rest(rig: RigConfig, probe_recording: Path) -> None:
     with Recording(probe_recording) as rec:
         first = rec.column("truth/markers", "position_px", 0, 1)[0]
-    assert np.abs(rest_positions_px(rig) - first).max() < 0.05
-    assert 12 < marker_diameter_px(rig) < 16
+    assert np.abs(true_rest_px(rig) - first).max() < 0.05
+    assert 12 < true_diameter_px(rig) < 16
 
 
 def test_paper_tracker_follows_the_markers(rig: RigConfig, probe_recording: Path) -> None:
-    tracker = Tracker(rest_positions_px(rig), TrackerParams(marker_diameter_px=marker_diameter_px(rig)))
+    tracker = Tracker(true_rest_px(rig), TrackerParams(marker_diameter_px=true_diameter_px(rig)))
     errors, drift = track(probe_recording, tracker)
     median, p95 = np.median(errors), np.percentile(errors, 95)
     print(f"paper tracker: median {median:.2f} px, p95 {p95:.2f} px, max {errors.max():.1f} px, "
@@ -67,14 +78,14 @@ def test_paper_tracker_follows_the_markers(rig: RigConfig, probe_recording: Path
 
 
 def test_plain_paper_tracker_is_worse_without_the_gates(rig: RigConfig, probe_recording: Path) -> None:
-    plain = TrackerParams(marker_diameter_px=marker_diameter_px(rig), gate_diameters=None, min_each_polarity=0)
-    errors, _ = track(probe_recording, Tracker(rest_positions_px(rig), plain))
-    gated, _ = track(probe_recording, Tracker(rest_positions_px(rig), TrackerParams(marker_diameter_px=plain.marker_diameter_px)))
+    plain = TrackerParams(marker_diameter_px=true_diameter_px(rig), gate_diameters=None, min_each_polarity=0)
+    errors, _ = track(probe_recording, Tracker(true_rest_px(rig), plain))
+    gated, _ = track(probe_recording, Tracker(true_rest_px(rig), TrackerParams(marker_diameter_px=plain.marker_diameter_px)))
     assert np.percentile(errors, 95) > np.percentile(gated, 95)
 
 
 def test_circle_fit_baseline_follows_the_markers(rig: RigConfig, probe_recording: Path) -> None:
-    tracker = CircleFitTracker(rest_positions_px(rig), CircleFitParams(marker_diameter_px=marker_diameter_px(rig)))
+    tracker = CircleFitTracker(true_rest_px(rig), CircleFitParams(marker_diameter_px=true_diameter_px(rig)))
     errors, drift = track(probe_recording, tracker)
     print(f"circle-fit baseline: median {np.median(errors):.2f} px, p95 {np.percentile(errors, 95):.2f} px, "
           f"lost {(drift > LOST_PX).sum()}")
@@ -83,18 +94,18 @@ def test_circle_fit_baseline_follows_the_markers(rig: RigConfig, probe_recording
 
 
 def test_evetac_published_tracker_follows_the_markers(rig: RigConfig, probe_recording: Path) -> None:
-    tracker = EvetacTracker(rest_positions_px(rig), EvetacParams(marker_diameter_px=marker_diameter_px(rig)))
+    tracker = EvetacTracker(true_rest_px(rig), EvetacParams(marker_diameter_px=true_diameter_px(rig)))
     errors, drift = track(probe_recording, tracker)
     print(f"evetac (published): median {np.median(errors):.2f} px, p95 {np.percentile(errors, 95):.2f} px, "
           f"max {errors.max():.1f} px, lost {(drift > LOST_PX).sum()}")
     assert np.median(errors) < 0.5 and np.percentile(errors, 95) < 2.0 and errors.max() < 8.0
     assert (drift > LOST_PX).sum() == 0
-    unsprung = EvetacTracker(rest_positions_px(rig), EvetacParams(marker_diameter_px=marker_diameter_px(rig), springs=False))
+    unsprung = EvetacTracker(true_rest_px(rig), EvetacParams(marker_diameter_px=true_diameter_px(rig), springs=False))
     assert track(probe_recording, unsprung)[0].max() > errors.max()  # the springs hold dots the events lose
 
 
 def test_tracker_ignores_sparse_noise_and_follows_a_translated_grid(rig: RigConfig) -> None:
-    rest = rest_positions_px(rig)
+    rest = true_rest_px(rig)
     tracker = Tracker(rest, TrackerParams(marker_diameter_px=14.0))
     rng = np.random.default_rng(0)
     noise = np.zeros(300, dtype=[("x", "<u2"), ("y", "<u2"), ("p", "u1"), ("t", "<i8")])
@@ -123,7 +134,7 @@ def test_the_polarity_guard_keeps_a_dot_from_a_band_of_slope_shading(rig: RigCon
     edge's slope shading brightens a band 11-14 px below the dots of one row (under the edge): many ON
     events and no OFF. Without the guard their ON centroid follows the band; with it, only as many ON
     events count as OFF ones, the nearest the dot."""
-    rest = rest_positions_px(rig)
+    rest = true_rest_px(rig)
     angles = np.linspace(0.0, np.pi, 12)
     shift = np.array([0.0, 1.5])
     rows = []
@@ -166,10 +177,10 @@ def test_background_subtraction_keeps_the_gated_tracker_on_its_markers_in_noise(
                                                                                probe_recording: Path) -> None:
     """At 2 Hz per pixel (6 noise events per polarity in a gate per 10 ms) the noise alone passes the
     event minimums: without subtraction the tracks random-walk and lag; with it they follow."""
-    base = TrackerParams(marker_diameter_px=marker_diameter_px(rig))
+    base = TrackerParams(marker_diameter_px=true_diameter_px(rig))
     results = {}
     for subtract in (True, False):
-        tracker = Tracker(rest_positions_px(rig), TrackerParams(**{**base.__dict__, "noise_subtraction": subtract}))
+        tracker = Tracker(true_rest_px(rig), TrackerParams(**{**base.__dict__, "noise_subtraction": subtract}))
         rng = np.random.default_rng(11)
         with Recording(probe_recording) as rec:
             truth = rec.stream("truth/markers")
@@ -224,7 +235,7 @@ def test_the_lag_correction_reports_a_moving_dot_at_the_windows_end(rig: RigConf
     """Every dot moves at 0.1 px/ms (3.6 mm/s on the default rig) for six 20 ms windows. A window's
     centroid is where the dot was at its events' mean time, 1 px behind its end; the correction moves
     it on by the velocity of the last two centroids."""
-    rest = rest_positions_px(rig)
+    rest = true_rest_px(rig)
     velocity = np.array([0.0, 1e-4])  # px / us
     rng = np.random.default_rng(0)
     errors: dict[float | None, float] = {}
@@ -243,7 +254,7 @@ def test_the_lag_correction_reports_a_moving_dot_at_the_windows_end(rig: RigConf
 def test_a_still_dot_is_not_moved_by_the_lag_correction(rig: RigConfig) -> None:
     """The dots stay put while their rims flicker with 0.3 px of jitter: the velocity of two noisy centroids
     is shrunk away (without the shrinkage the extrapolation would add half the jitter again)."""
-    rest = rest_positions_px(rig)
+    rest = true_rest_px(rig)
     errors: dict[float | None, float] = {}
     for noise in (1.0, 0.01, None):
         rng = np.random.default_rng(1)
@@ -265,7 +276,7 @@ def test_a_dot_under_one_polarity_shading_follows_its_neighbours(rig: RigConfig)
     300 ON events across its middle and its own rim's (12 ON, 12 OFF). The polarity guard keeps the 12
     ON events nearest the centre, which are the shading's: the dot is dragged down. A gate this lopsided
     cannot place its dot, so it takes its neighbours' displacement."""
-    rest = rest_positions_px(rig)
+    rest = true_rest_px(rig)
     shift = np.array([0.0, 1.5])
     angles = np.linspace(0.0, np.pi, 12)
     shaded = 6 * rig.markers.cols + 6

@@ -31,6 +31,7 @@ from labrig.protocol.calibration_runs import TOUCHOFF_LOCATIONS, require_usable_
 from labrig.protocol.session import RigSession
 from labrig.protocol.touchoff import press
 from labrig.sim.motion import true_gel_in_machine
+from labrig.sim.truth_config import sim_config, true_camera
 
 DEPTHS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 LOCATIONS = TOUCHOFF_LOCATIONS[:4]
@@ -83,7 +84,7 @@ def thick_presses(thick_rig: RigConfig, sphere: Indenter, tmp_path_factory: pyte
 
 @pytest.fixture(scope="module")
 def camera(thick_rig: RigConfig) -> CameraModel:
-    return CameraModel.from_rig(thick_rig)
+    return true_camera(thick_rig)
 
 
 def _solve(presses: list[Press], rig: RigConfig, sphere: Indenter, camera: CameraModel) -> RigRegistration:
@@ -94,7 +95,7 @@ def _assert_truth(reg: RigRegistration, rig: RigConfig) -> None:
     truth = true_gel_in_machine(rig)
     error = reg.gel_in_machine.translation_mm - truth.translation_mm
     assert np.abs(error).max() < ORIGIN_TOLERANCE_MM, error
-    assert reg.yaw_tilt_deg[0] == pytest.approx(rig.sim.rig_pose.gel_yaw_deg, abs=YAW_TOLERANCE_DEG)
+    assert reg.yaw_tilt_deg[0] == pytest.approx(sim_config(rig).rig_pose.gel_yaw_deg, abs=YAW_TOLERANCE_DEG)
 
 
 def _displaced(p: Press, along_mm: float) -> Press:
@@ -143,7 +144,7 @@ def test_a_touch_off_the_others_disagree_with_is_dropped(thick_rig: RigConfig, s
 def test_a_camera_calibrated_on_another_gel_is_refused(thick_rig: RigConfig, sphere: Indenter,
                                                        thick_presses: list[Press], tmp_path: Path) -> None:
     # The default gel's camera (surface 30 mm from the lens, not 31): every contact 3 % off in scale.
-    stale = CameraModel.from_rig(load_rig())
+    stale = true_camera(load_rig())
     reg = _solve(thick_presses, thick_rig, sphere, stale)
     quality = reg.quality
     assert quality.verdict == "refused" and quality.residual_rms_mm > REFUSE_RESIDUAL_RMS_MM, quality

@@ -12,6 +12,7 @@ from labrig.indenters import Indenter, load_indenter
 from labrig.physics.mechanics import ContactTable, ShearHistory
 from labrig.sim.contact_track import ContactKinematics, ContactTrack
 from labrig.sim.motion import true_gel_in_machine
+from labrig.sim.truth_config import true_contact_table
 
 
 def test_cheap_force_matches_the_fields_along_a_shear_loop(table: ContactTable) -> None:
@@ -128,12 +129,12 @@ def test_track_is_safe_to_share_between_threads(rig: RigConfig, sphere: Indenter
 def test_a_ridge_shears_in_any_direction_through_a_table_per_direction(rig: RigConfig) -> None:
     """Non-axisymmetric indenters: a few degrees off a table's direction is served by it; 90 deg by its own."""
     ridge = load_indenter("ridge")
-    base = ContactTable.from_rig(ridge, rig)
+    base = true_contact_table(ridge, rig)
     built: list[float] = []
 
     def table_for(direction_deg: float) -> ContactTable:
         built.append(direction_deg)
-        return ContactTable.from_rig(ridge, rig, direction_deg=direction_deg)
+        return true_contact_table(ridge, rig, direction_deg=direction_deg)
 
     pose = true_gel_in_machine(rig)
     for angle_deg, expect in ((0.6, []), (90.6, [90.0])):

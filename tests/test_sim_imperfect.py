@@ -11,14 +11,15 @@ import numpy as np
 import pytest
 
 from labrig.config import ConfigError, RigConfig, load_rig, parse_rig, rig_with
-from labrig.config_sim import SimMarkers, printed_markers
 from labrig.indenters import Indenter
 from labrig.physics.mechanics import ContactTable
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.delivery import HOT_EPOCH_US, BurstSchedule, HotPixels
 from labrig.sim.evk4_twin import Evk4Twin
+from labrig.sim.imperfections import SimMarkers, printed_markers
 from labrig.sim.motion import true_gel_in_machine
 from labrig.sim.rig import VirtualRig
+from labrig.sim.truth_config import sim_config, true_contact_table
 
 N = 12 * 13
 
@@ -27,14 +28,14 @@ N = 12 * 13
 
 
 def test_the_default_rig_is_the_ideal_sensor(rig: RigConfig) -> None:
-    assert rig.sim.gel == rig.gel and rig.sim.markers.ideal
-    assert rig.sim.camera_delivery.burst_period_ms == 0 and rig.sim.camera_delivery.hot_pixels == 0
-    assert rig.sim.ft.drop_probability == 0
+    assert sim_config(rig).gel == rig.gel and sim_config(rig).markers.ideal
+    assert sim_config(rig).camera_delivery.burst_period_ms == 0 and sim_config(rig).camera_delivery.hot_pixels == 0
+    assert sim_config(rig).ft.drop_probability == 0
 
 
 def test_a_partial_sim_gel_takes_the_rest_from_the_nominal_gel(rig: RigConfig) -> None:
     changed = rig_with(rig, {"sim.gel.youngs_modulus_mpa": 0.55, "sim.gel.friction": 0.8})
-    assert changed.sim.gel == replace(rig.gel, youngs_modulus_mpa=0.55, friction=0.8)
+    assert sim_config(changed).gel == replace(rig.gel, youngs_modulus_mpa=0.55, friction=0.8)
     assert changed.gel == rig.gel  # what the lab knows is unchanged
     assert "[sim.gel]" in changed.text
 
@@ -43,7 +44,7 @@ def test_the_sim_builds_its_tables_from_the_true_gel(rig: RigConfig, sphere: Ind
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     seen = []
     monkeypatch.setattr(ContactTable, "build", classmethod(lambda cls, indenter, gel, **kw: seen.append(gel)))
-    ContactTable.from_rig(sphere, rig_with(rig, {"sim.gel.youngs_modulus_mpa": 0.55}))
+    true_contact_table(sphere, rig_with(rig, {"sim.gel.youngs_modulus_mpa": 0.55}))
     assert seen[0].youngs_modulus_mpa == 0.55
 
 
@@ -74,7 +75,7 @@ def test_the_sim_builds_its_tables_from_the_true_gel(rig: RigConfig, sphere: Ind
 )
 def test_bad_knobs_say_what_is_wrong_in_one_line(rig: RigConfig, snippet: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message) as info:
-        parse_rig(rig.text + "\n" + snippet, Path("bad.toml"))
+        sim_config(parse_rig(rig.text + "\n" + snippet, Path("bad.toml")))
     text = str(info.value)
     assert text.startswith("bad.toml: ") and "\n" not in text
 
@@ -100,7 +101,7 @@ def test_printed_markers_are_seeded_and_each_knob_draws_on_its_own(rig: RigConfi
 def test_an_explicit_list_places_each_marker(rig: RigConfig) -> None:
     offsets = [[0.01 * (i % 7), -0.02 * (i % 3)] for i in range(N)]
     changed = rig_with(rig, {"sim.markers.position_error_mm": tuple(tuple(o) for o in offsets)})
-    printed = printed_markers(changed.sim.markers, rig.markers.rest_positions_mm(), 0.5)
+    printed = printed_markers(sim_config(changed).markers, rig.markers.rest_positions_mm(), 0.5)
     assert np.allclose(printed.rest_mm[:, :2] - rig.markers.rest_positions_mm()[:, :2], offsets)
 
 
@@ -125,11 +126,11 @@ def test_the_camera_sees_the_markers_as_printed(imperfect: VirtualRig) -> None:
     vr = imperfect
     printed = vr.printed.markers
     centres = vr.camera.project(printed.rest_mm)
-    membrane = vr.rig.sim.lighting.membrane_level
+    membrane = sim_config(vr.rig).lighting.membrane_level
     for i in printed.missing:
         image, _, _ = _window(vr, centres[i], 3)
         assert np.allclose(image, membrane)  # never printed: bare membrane
-    lighting, checked = vr.rig.sim.lighting, 0
+    lighting, checked = sim_config(vr.rig).lighting, 0
     for i in np.flatnonzero(printed.printed)[:40]:
         image, x, y = _window(vr, centres[i])
         weight = image - membrane
@@ -288,5 +289,5 @@ def test_a_rig_file_on_disk_with_every_knob(tmp_path: Path) -> None:
     path = tmp_path / "rig.toml"
     path.write_text(text)
     rig = load_rig(path)
-    assert rig.sim.markers.missing == (5,) and rig.sim.camera_delivery.hot_pixels == 4
-    assert rig.sim.gel.youngs_modulus_mpa == 0.45 and rig.gel.youngs_modulus_mpa == 0.4
+    assert sim_config(rig).markers.missing == (5,) and sim_config(rig).camera_delivery.hot_pixels == 4
+    assert sim_config(rig).gel.youngs_modulus_mpa == 0.45 and rig.gel.youngs_modulus_mpa == 0.4

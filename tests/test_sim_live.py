@@ -12,6 +12,7 @@ from labrig.indenters import load_indenter
 from labrig.recording import Recording
 from labrig.sim.live import FT_CLOCK_DRIFT_PPM, FT_CLOCK_ORIGIN_US, record_live
 from labrig.sim.motion import probing_path
+from labrig.sim.truth_config import sim_config
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,7 @@ def test_live_recording_clocks_match_the_simulated_devices(live_recording: Path)
     with Recording(live_recording) as rec:
         camera = rec.clock_model("camera")
         assert camera.method == "triggers" and camera.n_triggers == 9
-        cam = rig.sim.camera_clock
+        cam = sim_config(rig).camera_clock
         camera_device = cam.origin_us + np.floor(world_us * (1 + cam.drift_ppm * 1e-6))
         assert np.abs(camera.to_host_us(camera_device) - world_us).max() <= 5.0
         ft = rec.clock_model("ft")

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, rig_with
 from labrig.frames import matrix_to_rotvec, rotvec_to_matrix
 from labrig.physics.camera import CameraModel
 from labrig.physics.target import DotGridTarget, target_pose
@@ -15,11 +13,12 @@ from labrig.sim.optics import Renderer
 from labrig.sim.shading import DepthField
 from labrig.sim.stepping import image_velocity_px_s, step_us
 from labrig.sim.target import render_target
+from labrig.sim.truth_config import sim_config, true_camera
 
 
 @pytest.fixture(scope="module")
 def camera(rig: RigConfig) -> CameraModel:
-    return CameraModel.from_rig(rig)
+    return true_camera(rig)
 
 
 def weighted_centroids(image: np.ndarray, background: float, centres_px: np.ndarray, x0: int, y0: int, half: int) -> np.ndarray:
@@ -97,12 +96,12 @@ def test_rest_marker_centroids_match_projections(rig: RigConfig) -> None:
     renderer = Renderer(rig)
     rest = rig.markers.rest_positions_mm()
     true = renderer.camera.project(rest)
-    found = weighted_centroids(renderer.image, rig.sim.lighting.membrane_level, true, rig.roi.x0_px, rig.roi.y0_px, 12)
+    found = weighted_centroids(renderer.image, sim_config(rig).lighting.membrane_level, true, rig.roi.x0_px, rig.roi.y0_px, 12)
     error = np.linalg.norm(found - true, axis=1)
     assert error.shape == (156,)
     assert error.max() < 0.05, error.max()
-    assert renderer.image.max() == pytest.approx(rig.sim.lighting.marker_level)
-    assert renderer.image.min() == pytest.approx(rig.sim.lighting.membrane_level)
+    assert renderer.image.max() == pytest.approx(sim_config(rig).lighting.marker_level)
+    assert renderer.image.min() == pytest.approx(sim_config(rig).lighting.membrane_level)
 
 
 def bump(amplitude_mm: float, centre_mm: tuple[float, float] = (1.0, -1.0)) -> DepthField:
@@ -165,10 +164,10 @@ def test_slope_shading_brightens_the_contact_edge(rig: RigConfig) -> None:
     back = renderer.camera.backproject_to_plane(sensor_px[None, :])[0]
     r2 = (back[0] - 1.0) ** 2 + (back[1] + 1.0) ** 2
     slope = 0.4 * np.exp(-r2 / 4.0) * 2 * np.sqrt(r2) / 4.0
-    expected = rig.sim.lighting.membrane_level * (1 + rig.sim.lighting.slope_gain * slope)
+    expected = sim_config(rig).lighting.membrane_level * (1 + sim_config(rig).lighting.slope_gain * slope)
     assert renderer.image[px[1], px[0]] == pytest.approx(expected, rel=0.01)
     # Far from the bump the membrane is unshaded; lifting the indenter restores the rest image.
-    assert renderer.image[5, 5] == pytest.approx(rig.sim.lighting.membrane_level)
+    assert renderer.image[5, 5] == pytest.approx(sim_config(rig).lighting.membrane_level)
     renderer.render(rest, None)
     assert np.abs(renderer.image - renderer.render_full(rest)).max() < 1e-12
 
@@ -190,7 +189,7 @@ def test_a_slowly_growing_dent_stays_within_the_reported_change(rig: RigConfig) 
     # plus that bound, and fewer pixels are re-shaded than with shade_tol 0.
     rest = rig.markers.rest_positions_mm()
     lazy, eager = Renderer(rig), Renderer(rig, shade_tol=0.0)
-    assert lazy.shade_tol == pytest.approx(lazy.min_rel_change / (2 * rig.sim.lighting.slope_gain))
+    assert lazy.shade_tol == pytest.approx(lazy.min_rel_change / (2 * sim_config(rig).lighting.slope_gain))
     lazy_px = eager_px = 0
     for amplitude in np.linspace(0.3, 0.302, 12):
         field = bump(float(amplitude))
@@ -211,9 +210,7 @@ def test_led_off_is_dark(rig: RigConfig) -> None:
     assert renderer.render_full(rest, led=False).max() < 1e-6
     renderer.render(rest, led=True)
     assert np.abs(renderer.image - renderer.render_full(rest, led=True)).max() < 1e-12
-    dark_rig = dataclasses.replace(
-        rig, sim=dataclasses.replace(rig.sim, lighting=dataclasses.replace(rig.sim.lighting, led_on=False))
-    )
+    dark_rig = rig_with(rig, {"sim.lighting.led_on": False})
     assert Renderer(dark_rig).image.max() < 1e-6
 
 

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, rig_with
 from labrig.frames import wrench_about
 from labrig.indenters import Indenter
 from labrig.physics.mechanics import ContactTable
@@ -16,14 +15,14 @@ from labrig.sim.motion import PiecewiseLinearPath, probing_path
 from labrig.sim.optics import RenderUpdate
 from labrig.sim.rig import TRUTH_MARKER_INTERVAL_US, RigOutput, Solve, VirtualRig
 from labrig.sim.shading import DepthField
+from labrig.sim.truth_config import sim_config
 
 CHUNK_US = 100_000
 
 
 def noiseless(rig: RigConfig) -> RigConfig:
     """The rig with the pixels' leak and shot noise off."""
-    events = dataclasses.replace(rig.sim.events, leak_rate_hz=0.0, shot_noise_rate_hz=0.0)
-    return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, events=events))
+    return rig_with(rig, {"sim.events.leak_rate_hz": 0.0, "sim.events.shot_noise_rate_hz": 0.0})
 
 
 @dataclass
@@ -192,7 +191,7 @@ def test_same_seed_same_events(rig: RigConfig, sphere: Indenter, table: ContactT
 
 def test_camera_clock_applies_offset_and_drift(rig: RigConfig, sphere: Indenter, table: ContactTable) -> None:
     vr = VirtualRig(rig, sphere, table=table)
-    clock = rig.sim.camera_clock
+    clock = sim_config(rig).camera_clock
     t = np.array([0, 1_000_000, 60_000_000])
     expected = clock.origin_us + np.floor(t * (1 + clock.drift_ppm * 1e-6)).astype(np.int64)
     np.testing.assert_array_equal(vr.camera_time_us(t), expected)

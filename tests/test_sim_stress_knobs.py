@@ -16,14 +16,15 @@ from labrig.recording import Recording
 from labrig.recording.finalize import store_clock_model
 from labrig.sim.events import EventParams, EventSensor
 from labrig.sim.rig import VirtualRig
+from labrig.sim.truth_config import sim_config
 
 
 def test_rig_with_changes_values_and_the_text(rig: RigConfig) -> None:
     changed = rig_with(rig, {"sim.events.shot_noise_rate_hz": 5.0, "sim.lighting.marker_level": 0.3,
                              "gel.friction": 0.5, "sim.camera.distortion": (0.0, 0.0, 0.0, 0.0, 0.0)})
-    assert changed.sim.events.shot_noise_rate_hz == 5.0 and changed.sim.lighting.marker_level == 0.3
-    assert changed.gel.friction == 0.5 and changed.sim.camera.distortion == (0.0,) * 5
-    assert changed.sim.events.leak_rate_hz == rig.sim.events.leak_rate_hz and changed.path == rig.path
+    assert sim_config(changed).events.shot_noise_rate_hz == 5.0 and sim_config(changed).lighting.marker_level == 0.3
+    assert changed.gel.friction == 0.5 and sim_config(changed).camera.distortion == (0.0,) * 5
+    assert sim_config(changed).events.leak_rate_hz == sim_config(rig).events.leak_rate_hz and changed.path == rig.path
     assert "shot_noise_rate_hz = 5.0" in changed.text and "# relative brightness of a marker" in changed.text
     assert len(changed.text.splitlines()) == len(rig.text.splitlines())
     with pytest.raises(ConfigError, match=r"no key 'nope' in \[sim\.events\]"):
@@ -81,7 +82,7 @@ def test_record_live_keeps_an_unsynced_camera_clock(rig: RigConfig, sphere: Inde
     out = tmp_path / "unsynced.h5"
     record_live(out, rig, sphere, path, seed=1, realtime=False, virtual_rig=VirtualRig(rig, sphere, table=table),
                 camera_clock_model=model)
-    skew_us = rig.sim.camera_clock.drift_ppm * 1e-6 * 60 * 60e6
+    skew_us = sim_config(rig).camera_clock.drift_ppm * 1e-6 * 60 * 60e6
     with Recording(out) as rec:
         assert rec.clock_model("camera") == model
         events = rec.events_between(0, 2e6)

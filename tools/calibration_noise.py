@@ -21,13 +21,14 @@ from labrig.calibration.intrinsics import calibrate_intrinsics, intrinsics_from_
 from labrig.config import load_rig
 from labrig.errors import CalibrationError
 from labrig.frames import rotvec_to_matrix
-from labrig.physics.camera import CameraModel, distort_normalized
+from labrig.physics.camera import distort_normalized
 from labrig.sim.calibration_scenes import record_led_blink, record_target_scene
+from labrig.sim.truth_config import true_camera
 
 
 def figures(scale: float, views: int, seed: int, root: Path) -> dict[str, float]:
     rig = load_rig()
-    truth = CameraModel.from_rig(rig)
+    truth = true_camera(rig)
     target = record_target_scene(root / f"target-{scale}.h5", rig, n_views=views, seed=seed, noise_scale=scale).path
     led = record_led_blink(root / f"led-{scale}.h5", rig, seed=seed, noise_scale=scale).path
     res = calibrate_intrinsics(target)

@@ -21,7 +21,7 @@ import numpy as np
 
 from labrig.config import load_rig
 from labrig.indenters import load_indenters
-from labrig.physics.mechanics import ContactTable
+from labrig.sim.truth_config import sim_config, true_contact_table
 
 #: Below this normal force a relative difference is noise of the first touching cells, N.
 FORCE_FLOOR_N = 0.5
@@ -30,12 +30,13 @@ FORCE_FLOOR_N = 0.5
 def compare(name: str, yaw_deg: float | None) -> dict[str, float]:
     rig = load_rig()
     indenter = load_indenters()[name]
-    turn = indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg) if yaw_deg is None else indenter.reduced_turn_deg(yaw_deg)
+    true_yaw_deg = sim_config(rig).rig_pose.gel_yaw_deg
+    turn = indenter.footprint_yaw_deg(true_yaw_deg) if yaw_deg is None else indenter.reduced_turn_deg(yaw_deg)
     out: dict[str, float] = {"yaw_deg": turn}
     normal_rel, shear_rel, depth_max_um, depth_rms_um, flipped = 0.0, 0.0, 0.0, 0.0, 0.0
     for direction in (0.0, 90.0):
-        flat = ContactTable.from_rig(indenter, rig, direction_deg=direction, yaw_deg=0.0)
-        turned = ContactTable.from_rig(indenter, rig, direction_deg=direction, yaw_deg=turn)
+        flat = true_contact_table(indenter, rig, direction_deg=direction, yaw_deg=0.0)
+        turned = true_contact_table(indenter, rig, direction_deg=direction, yaw_deg=turn)
         loaded = flat.normal_force_n > FORCE_FLOOR_N
         ratio = turned.normal_force_n[loaded] / flat.normal_force_n[loaded]
         normal_rel = max(normal_rel, float(np.max(np.abs(ratio - 1))))

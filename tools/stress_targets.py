@@ -46,6 +46,7 @@ from labrig.evaluation.stress_axes import SENSOR_AXES, axis_named
 from labrig.evaluation.stress_scene import StressScene, stressed_rig
 from labrig.executor import run_tasks
 from labrig.models import bundled_model_path
+from labrig.sim.truth_config import sim_config
 
 PRINTED_RATIO = 1.2  # force and depth errors on a printed gel against the perfect one
 BURST_CHANGE = 0.05  # largest relative change of any error under bursts
@@ -54,7 +55,7 @@ WINDOW = window_key(10.0)
 
 def scenes(seed: int, rig: str, position_error_mm: float, bursts_ms: list[float]) -> dict[str, StressScene]:
     base = StressScene(rig=rig, seed=seed)
-    noise = stressed_rig(base).sim.events.shot_noise_rate_hz
+    noise = sim_config(stressed_rig(base)).events.shot_noise_rate_hz
     common: dict[str, Any] = {"rig": rig, "seed": seed, "shot_noise_rate_hz": noise}
     three = 3 / 156 * 100  # three markers of the 12 x 13 grid, in % (rounded back to 3)
     out = {"perfect": StressScene(**common),

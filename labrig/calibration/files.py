@@ -5,7 +5,7 @@ by hand (TOML is simple enough) and read with :mod:`tomllib`; a missing key
 or a wrong shape is a one-line :class:`CalibrationFileError` naming the file
 and the key. See docs/calibration.md for the keys. :func:`camera_model` picks
 the camera a rig's calibration works with: the calibrated one, else the
-virtual rig's true one.
+rig file's nominal camera (:func:`uncalibrated_camera`, which says so once).
 
 ``extrinsics.toml`` versions (top-level ``format_version``; absent: 1): version 2 adds
 the markers as printed to ``[markers]`` (``measured_px``, ``in_pose``, ``missing``,
@@ -18,6 +18,7 @@ tell a missing marker from one left out of the pose.
 from __future__ import annotations
 
 import datetime as _dt
+import logging
 import math
 import tomllib
 from dataclasses import dataclass
@@ -29,11 +30,15 @@ import numpy.typing as npt
 
 from labrig import __version__
 from labrig.calibration.marker_map import MarkerMap
-from labrig.config import RigConfig
+from labrig.config import CameraGeometry, RigConfig
 from labrig.errors import CalibrationError, LabrigError
 from labrig.physics.camera import CameraModel
 
 Array = npt.NDArray[np.float64]
+
+log = logging.getLogger(__name__)
+#: The nominal cameras (``[camera]`` sections) :func:`uncalibrated_camera` has warned about, each once per process.
+_WARNED_NOMINAL: set[CameraGeometry] = set()
 
 DEFAULT_INTRINSICS = Path("calibration/intrinsics.toml")
 DEFAULT_EXTRINSICS = Path("calibration/extrinsics.toml")
@@ -105,7 +110,7 @@ def camera_model(rig: RigConfig, extrinsics_path: str | Path | None = None,
                  intrinsics_path: str | Path | None = None) -> tuple[CameraModel, str]:
     """(camera model, where it came from): the camera calibration (``intrinsics.toml`` and
     ``extrinsics.toml`` next to the rig file, or the paths given) when both exist, else the
-    virtual rig's true camera (only meaningful on the virtual rig)."""
+    rig file's nominal camera (:func:`uncalibrated_camera`)."""
     extrinsics = Path(extrinsics_path) if extrinsics_path is not None else rig.path.parent / "extrinsics.toml"
     intrinsics = Path(intrinsics_path) if intrinsics_path is not None else rig.path.parent / "intrinsics.toml"
     if extrinsics.exists() and intrinsics.exists():
@@ -113,7 +118,19 @@ def camera_model(rig: RigConfig, extrinsics_path: str | Path | None = None,
     if extrinsics_path is not None or intrinsics_path is not None:
         raise CalibrationError(f"the camera calibration needs both {intrinsics} and {extrinsics}; "
                                "run `labrig calibrate intrinsics` and `labrig calibrate extrinsics`")
-    return CameraModel.from_rig(rig), "sim truth (rig.toml [sim.camera]; no intrinsics/extrinsics calibration yet)"
+    return uncalibrated_camera(rig)
+
+
+def uncalibrated_camera(rig: RigConfig) -> tuple[CameraModel, str]:
+    """(camera, source) without a camera calibration: the rig file's nominal camera
+    (:meth:`CameraModel.nominal`: lens and sensor, no distortion). Warns once per nominal camera."""
+    camera = CameraModel.nominal(rig)
+    if rig.camera not in _WARNED_NOMINAL:
+        _WARNED_NOMINAL.add(rig.camera)
+        log.warning("no camera calibration: using the rig file's nominal camera ([camera]: %g mm lens, %g um pixels, "
+                    "centred, no distortion); run `labrig calibrate intrinsics` and `labrig calibrate extrinsics`",
+                    rig.camera.focal_length_mm, rig.camera.pixel_um)
+    return camera, f"nominal camera ({rig.path} [camera]; no intrinsics.toml + extrinsics.toml)"
 
 
 # -- writing ----------------------------------------------------------------------------------------

@@ -150,9 +150,9 @@ def _q(text: str) -> str:
 
 def contact_table(indenter: Indenter, rig: RigConfig, poisson_ratio: float | None = None) -> ContactTable:
     """The normal-contact table the fit uses: the rig's gel (its E as reference, nu as chosen),
-    the rig's mechanics mode and grid, no stiffening (cached on disk like the virtual rig's)."""
+    the rig file's ``[mechanics]`` mode and grid, no stiffening (cached on disk like the virtual rig's)."""
     gel = rig.gel if poisson_ratio is None else replace(rig.gel, poisson_ratio=float(poisson_ratio))
-    return ContactTable.build(indenter, gel, mode=rig.sim.mechanics.mode, spacing_mm=rig.sim.mechanics.grid_spacing_mm,
+    return ContactTable.build(indenter, gel, mode=rig.mechanics.mode, spacing_mm=rig.mechanics.grid_spacing_mm,
                               stiffening=0.0)
 
 
@@ -197,10 +197,10 @@ def gel_model(rig: RigConfig, gel_path: str | Path | None = None) -> GelModel:
 
 def model_contact_table(indenter: Indenter, rig: RigConfig, gel: GelModel) -> ContactTable:
     """The normal-contact table of ``indenter`` on the gel ``gel`` (its thickness, E and nu; the rig's
-    mechanics mode and grid; no stiffening: models apply ``gel.stiffening`` themselves)."""
+    ``[mechanics]`` mode and grid; no stiffening: models apply ``gel.stiffening`` themselves)."""
     nominal = replace(rig.gel, thickness_mm=gel.thickness_mm, youngs_modulus_mpa=gel.youngs_modulus_mpa,
                       poisson_ratio=gel.poisson_ratio)
-    return ContactTable.build(indenter, nominal, mode=rig.sim.mechanics.mode, spacing_mm=rig.sim.mechanics.grid_spacing_mm,
+    return ContactTable.build(indenter, nominal, mode=rig.mechanics.mode, spacing_mm=rig.mechanics.grid_spacing_mm,
                               stiffening=0.0)
 
 

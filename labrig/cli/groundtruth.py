@@ -140,7 +140,7 @@ def _print_summary(s: dict[str, Any]) -> None:
                   f"({s['maps']:,} maps, {s['maps_per_s'] or 0:.0f} maps/s, {s['wall_s']:.1f} s)")
     sources = {(r["camera_source"], r["gel_pose_source"], r["gel_source"]) for r in s["results"] if "camera_source" in r}
     for camera, pose, gel in sources:
-        style = "yellow" if camera.startswith("SIM TRUTH") else "dim"
+        style = "yellow" if camera.startswith("nominal camera") else "dim"
         console.print(f"[{style}]camera: {escape(camera)}; gel pose: {escape(pose)}; gel: {escape(gel)}[/]")
     if s.get("plot"):
         console.print(f"plot: {s['plot']}")

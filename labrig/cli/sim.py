@@ -165,7 +165,8 @@ def sim_tables(
 
     from rich.progress import MofNCompleteColumn, TimeElapsedColumn
 
-    from labrig.physics.mechanics import ContactTable, table_cache_dir
+    from labrig.physics.mechanics import table_cache_dir
+    from labrig.sim.truth_config import true_contact_table
 
     rig, indenters, _ = load_rig_and_indenters(rig_path, indenters_path)
     rows = []
@@ -174,7 +175,7 @@ def sim_tables(
         for name, ind in indenters.items():
             bar.update(task, description=f"contact table: {name} (a new one takes a minute or two)")
             t0 = time.perf_counter()
-            table = ContactTable.from_rig(ind, rig)
+            table = true_contact_table(ind, rig)
             rows.append({"indenter": name, "seconds": time.perf_counter() - t0,
                          "max_depth_mm": float(table.depths_mm[-1]), "footprint_yaw_deg": table.yaw_deg})
             bar.advance(task)

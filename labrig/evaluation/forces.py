@@ -106,7 +106,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
                                             None if task.depth == "truth" else task.depth,
                                             quiet="auto" if task.quiet_hold else None,
                                             rest="auto" if task.rest_gate else None)
-        params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig)),
+        params = replace(tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig, setup.camera)),
                          patch_scale=task.patch_scale, refine_lambda=task.refine_lambda)
         pipe = runtime.Pipeline(setup, source, tracker_params=params,
                                 surface_params=ifem.SurfaceParams(refinement=task.surface_refinement))
@@ -150,7 +150,7 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         cores=os.cpu_count() or 0, load_1min=os.getloadavg()[0], recording=path.name, phases=phases)
 
 
-evaluate_forces.cache_version = "21"  # type: ignore[attr-defined]  # 21: the recording's name and phases; 20: per-window times, the machine's load; 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
+evaluate_forces.cache_version = "22"  # type: ignore[attr-defined]  # 22: the marker diameter through the run's camera (was the sim's); 21: the recording's name and phases; 20: per-window times, the machine's load; 19: the recording's indenter; 18: the contrast thresholds weigh the brightness events; 17: the true depth between solves; 16: a surer core starts a new contact; 15: lopsided gates make their neighbours' moves (14: their displacement); 14: the tracker follows neighbours through lopsided gates, reports dots at the window end; 13: the contact anchor filter; 12: the tracker's polarity guard; 11: the contact is the dent's core; 3: quiet windows hold the map; 5: tile activity for noise-trained networks; 6: tracker background subtraction; 8: missing markers; 9: the rest gate, depth errors; 10: brightness networks (no hold, no gate)
 
 
 def _truth(rec: Recording, t_us: npt.NDArray[np.int64], forces_n: npt.NDArray[np.float64]

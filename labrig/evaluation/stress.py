@@ -57,6 +57,7 @@ from labrig.evaluation.stress_calibration import calibrate_event_thresholds, cal
 from labrig.evaluation.stress_scene import SceneFacts, StressScene, record_scene, stressed_rig
 from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
+from labrig.sim.truth_config import sim_config
 
 #: Tracker -> patch scale (marker diameters), refined: each tracker's best setting in Table I on the virtual rig.
 TRACKERS = {"paper": 3.0, "paper-published": 1.0, "circle-fit": 1.0, "evetac": 1.0}  # evetac: scale unused
@@ -133,7 +134,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
         recording = str(Path(folder) / "stress.h5")
         facts = record_scene(scene, recording)
         rig = stressed_rig(scene)
-        if not rig.sim.markers.ideal:
+        if not sim_config(rig).markers.ideal:
             calibrated = calibrate_printed_markers(rig, task.calibration_dir, Path(folder) / "calibration", seed=scene.seed)
             calibration_dir = calibrated.directory
             found = set(calibrated.missing_found)
@@ -175,7 +176,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
     return SceneMeasurement(facts, by_tracker, by_method, by_depth)
 
 
-measure_scene.cache_version = "15"  # type: ignore[attr-defined]  # 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
+measure_scene.cache_version = "16"  # type: ignore[attr-defined]  # 16: the marker diameter through the run's camera; 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
 
 
 def window_key(window_ms: float) -> str:
@@ -261,7 +262,7 @@ def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | Non
     base = base or StressScene(rig=rig_file(calibration_dir))
     rig = stressed_rig(base)
     if base.shot_noise_rate_hz is None:  # spelled out, so the noise axis' baseline is the default scene
-        base = StressScene(**{**asdict(base), "shot_noise_rate_hz": rig.sim.events.shot_noise_rate_hz})
+        base = StressScene(**{**asdict(base), "shot_noise_rate_hz": sim_config(rig).events.shot_noise_rate_hz})
     scenes = plan(axes, grid, base)
     tasks = []
     for scene, windows, points in scenes:

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from labrig.config import RigConfig
-from labrig.config_sim import printed_markers
 from labrig.errors import LabrigError
-from labrig.physics.camera import CameraModel
+from labrig.sim.imperfections import printed_markers
+from labrig.sim.truth_config import sim_config, true_camera
 
 EXTRINSICS = "extrinsics.toml"
 EVENTS = "events.toml"
@@ -70,8 +70,8 @@ def calibrate_printed_markers(rig: RigConfig, calibration_dir: str | Path | None
     write_extrinsics(result, out / EXTRINSICS, intrinsics)
     recording.unlink()
     marker_map = result.marker_map
-    printed = printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm)
-    true_px = CameraModel.from_rig(rig).project(printed.rest_mm)
+    printed = printed_markers(sim_config(rig).markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm)
+    true_px = true_camera(rig).project(printed.rest_mm)
     both = printed.printed & ~marker_map.missing
     error = np.linalg.norm(marker_map.rest_px[both] - true_px[both], axis=1)
     summary = marker_map.summary(0)

@@ -43,10 +43,10 @@ import numpy as np
 
 from labrig.clock import ClockModel
 from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
-from labrig.config_sim import printed_markers
 from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
-from labrig.physics.camera import CameraModel
+from labrig.sim.imperfections import printed_markers
+from labrig.sim.truth_config import sim_config, true_camera
 
 US_PER_MIN = 60_000_000
 #: "Far" missing markers are drawn from those at least this far from the press (three pitches of the default gel), mm.
@@ -122,7 +122,7 @@ def stressed_rig(scene: StressScene) -> RigConfig:
     if scene.shot_noise_rate_hz is not None:
         changes["sim.events.shot_noise_rate_hz"] = float(scene.shot_noise_rate_hz)
     if scene.marker_dimming != 1.0:
-        changes["sim.lighting.marker_level"] = rig.sim.lighting.marker_level / scene.marker_dimming
+        changes["sim.lighting.marker_level"] = sim_config(rig).lighting.marker_level / scene.marker_dimming
     missing = sorted(set(missing_markers(rig, scene.missing_near_pct, near=True, seed=scene.seed))
                      | set(missing_markers(rig, scene.missing_far_pct, near=False, seed=scene.seed)))
     if scene.position_error_mm > 0 or missing:
@@ -133,7 +133,7 @@ def stressed_rig(scene: StressScene) -> RigConfig:
         changes["sim.camera_delivery.burst_period_ms"] = float(scene.burst_period_ms)
         changes["sim.camera_delivery.burst_jitter_ms"] = BURST_JITTER * float(scene.burst_period_ms)
     if scene.changes_event_response:
-        events = rig.sim.events
+        events = sim_config(rig).events
         mean = (float(scene.contrast_threshold) if scene.contrast_threshold is not None
                 else float(np.sqrt(events.threshold_on * events.threshold_off)))
         changes["sim.events.threshold_on"] = mean * float(np.sqrt(scene.on_off_ratio))
@@ -169,7 +169,7 @@ def dead_region_px(rig: RigConfig, side_mm: float, centre_mm: tuple[float, float
         return None
     half = side_mm / 2
     corners = np.array([[centre_mm[0] + sx * half, centre_mm[1] + sy * half, 0.0] for sx in (-1, 1) for sy in (-1, 1)])
-    px = CameraModel.from_rig(rig).project(corners)
+    px = true_camera(rig).project(corners)
     lo, hi = np.floor(px.min(axis=0)).astype(int), np.ceil(px.max(axis=0)).astype(int) + 1
     return Roi(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
 
@@ -181,7 +181,7 @@ def unsynced_camera_clock(rig: RigConfig, sync_age_min: float) -> ClockModel:
     runs at ``[sim.camera_clock] drift_ppm``, so an event at world time t lands at
     t + drift x (age + t) in the recording.
     """
-    clock = rig.sim.camera_clock
+    clock = sim_config(rig).camera_clock
     t_sync_us = -float(sync_age_min) * US_PER_MIN
     device_at_sync = clock.origin_us + t_sync_us * (1 + clock.drift_ppm * 1e-6)
     return ClockModel(device_ref_us=device_at_sync, host_ref_us=t_sync_us, drift_ppm=0.0, method="unsynced")
@@ -230,12 +230,12 @@ def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
     normal = np.abs(force[:, 2])
     tangential = np.linalg.norm(force[:, :2], axis=1)
     sheared = (t_us >= phases["shear"].t_start_us) & (t_us < phases["normal_up"].t_start_us) & (normal > 0)
-    slip = tangential[sheared] / (rig.sim.gel.friction * normal[sheared]) if sheared.any() else np.zeros(1)
-    drift = rig.sim.camera_clock.drift_ppm * 1e-6
+    slip = tangential[sheared] / (sim_config(rig).gel.friction * normal[sheared]) if sheared.any() else np.zeros(1)
+    drift = sim_config(rig).camera_clock.drift_ppm * 1e-6
     skew_ms = 0.0 if scene.sync_age_min is None else abs(drift) * (scene.sync_age_min * US_PER_MIN
                                                                    + path.duration_us) / 1e3
     return SceneFacts(duration_s=float(result.sim_duration_s), events=int(result.events),
                       peak_force_n=float(np.linalg.norm(force, axis=1).max()), peak_normal_n=float(normal.max()),
                       slip_ratio_max=float(slip.max()), clock_skew_max_ms=float(skew_ms),
-                      markers_missing=len(printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(),
+                      markers_missing=len(printed_markers(sim_config(rig).markers, rig.markers.rest_positions_mm(),
                                                           rig.markers.diameter_mm).missing))

@@ -159,8 +159,8 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
 
     task = task if isinstance(task, TrackingTask) else TrackingTask(**task)
     with Recording(task.recording) as rec:
-        rig, rest_px, rest_source, observed = rest_pixels(rec, task.rest, task.calibration_dir)
-        diameter = marker_diameter_px(rig)
+        rig, camera, rest_px, rest_source, observed = rest_pixels(rec, task.rest, task.calibration_dir)
+        diameter = marker_diameter_px(rig, camera)
         tracker = tracker_for(task, rest_px, diameter, observed)
         ends, positions, seconds = [], [], []
         for _, t1, events in recording_windows(rec, window_us=task.window_us, window_events=task.window_events):
@@ -186,28 +186,31 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
         **{f.name: getattr(truth_fields, f.name) for f in fields(TruthErrors)})
 
 
-track_recording.cache_version = "8"  # type: ignore[attr-defined]  # 8: neighbours' moves; 7: lopsided gates follow neighbours, lag correction; 6: the paper tracker's polarity guard
+track_recording.cache_version = "9"  # type: ignore[attr-defined]  # 9: the marker diameter through the rest's camera; 8: neighbours' moves; 7: lopsided gates follow neighbours, lag correction; 6: the paper tracker's polarity guard
 
 
-def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Array, str, npt.NDArray[np.bool_]]:
-    """(rig, rest pixels (M, 2), where they came from, observed (M,)) for an open recording; see :class:`TrackingTask`.
+def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, Any, Array, str, npt.NDArray[np.bool_]]:
+    """(rig, camera, rest pixels (M, 2), where they came from, observed (M,)) for an open recording; see
+    :class:`TrackingTask`.
 
-    ``observed``: the calibration's present markers ("calibration"), or the rig's printed ones
-    (``[sim.markers]``; "rig": what a calibration of that rig would find missing)."""
+    "calibration": the run's camera and rest pixels (:func:`labrig.pipeline.run_setup.setup_for_recording`)
+    and its present markers; "rig": the virtual rig's true camera and lattice, and its printed markers
+    (``[sim.markers]``: what a calibration of that rig would find missing)."""
     from labrig.config import load_rig
-    from labrig.config_sim import printed_markers
     from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
-    from labrig.pipeline.tracking import rest_positions_px
+    from labrig.sim.imperfections import printed_markers
+    from labrig.sim.truth_config import sim_config, true_camera
 
     if rest == "calibration":
         setup = setup_for_recording(rec, calibration_dir=calibration_dir)
-        return setup.rig, np.asarray(setup.rest_px, np.float64), setup.sources["camera"], setup.observed
+        return setup.rig, setup.camera, np.asarray(setup.rest_px, np.float64), setup.sources["camera"], setup.observed
     if rest == "rig":
         carried = rig_from_recording(rec)
         rig = carried or load_rig()
-        printed = printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm).printed
-        return (rig, rest_positions_px(rig), "rig camera (" + ("the recording's rig" if carried else str(rig.path)) + ")",
-                np.asarray(printed, bool))
+        printed = printed_markers(sim_config(rig).markers, rig.markers.rest_positions_mm(), rig.markers.diameter_mm).printed
+        camera = true_camera(rig)
+        return (rig, camera, camera.project(rig.markers.rest_positions_mm()),
+                "rig camera (" + ("the recording's rig" if carried else str(rig.path)) + ")", np.asarray(printed, bool))
     raise LabrigError(f"rest must be one of {', '.join(REST_SOURCES)}, not {rest!r}")
 
 

@@ -1,10 +1,10 @@
 """What a real lab knows, each behind one switchable function: rig, gel, camera, gel pose.
 
 Nothing here reads a recording's ``/truth`` streams or the rig file's ``sim.*``
-sections, except :func:`lab_camera`'s fallback: without camera calibration
-files (``intrinsics.toml`` and ``extrinsics.toml`` in the calibration folder)
-it uses the virtual rig's true camera and says so in its source string (and
-the sidecar records it). Every function returns (value, source).
+sections. Without camera calibration files (``intrinsics.toml`` and
+``extrinsics.toml`` in the calibration folder) :func:`lab_camera` uses the rig
+file's nominal camera, warns once and says so in its source string (and the
+sidecar records it). Every function returns (value, source).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from labrig.calibration.files import load_camera, uncalibrated_camera
 from labrig.config import DEFAULT_CALIBRATION_DIR as _DEFAULT_CALIBRATION_DIR
 from labrig.config import DEFAULT_RIG, ConfigError, GelConfig, RigConfig, load_rig
 from labrig.errors import LabrigError
@@ -96,15 +97,13 @@ def lab_gel(rig: RigConfig, calibration_dir: Path) -> tuple[GelConfig, float, st
 def lab_camera(rig: RigConfig, calibration_dir: Path) -> tuple[CameraModel, str]:
     """(camera, source): ``intrinsics.toml`` + ``extrinsics.toml`` from the calibration folder when both exist.
 
-    Otherwise the virtual rig's true camera (``rig.toml [sim.camera]``): only
-    meaningful on the virtual rig, and flagged in the source string.
+    Otherwise the rig file's nominal camera (``[camera]``: lens and sensor), flagged in the
+    source string (:func:`labrig.calibration.files.uncalibrated_camera`).
     """
     intrinsics, extrinsics = calibration_dir / "intrinsics.toml", calibration_dir / "extrinsics.toml"
     if intrinsics.exists() and extrinsics.exists():
-        from labrig.calibration.files import load_camera
-
         return load_camera(intrinsics, extrinsics), f"{intrinsics} + {extrinsics}"
-    return CameraModel.from_rig(rig), "SIM TRUTH rig [sim.camera] (no intrinsics.toml + extrinsics.toml)"
+    return uncalibrated_camera(rig)
 
 
 def lab_gel_pose(rig: RigConfig, calibration_dir: Path) -> tuple[Pose, str]:

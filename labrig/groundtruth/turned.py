@@ -7,7 +7,7 @@ gel's yaw in the machine, as the lab knows it: the rig registration or the
 nominal pose) presses the same field turned: :class:`TurnedModel` turns the
 query points (gel frame, relative to the contact centre) into the indenter
 frame, so the labels follow the footprint exactly as the virtual rig's contact
-tables do (:meth:`~labrig.physics.mechanics.ContactTable.from_rig`).
+tables do (:func:`~labrig.sim.truth_config.true_contact_table`).
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ import numpy.typing as npt
 from numba import njit
 
 from labrig.config import RigConfig
+from labrig.errors import ConfigError
 from labrig.frames import Pose, rotvec_to_matrix
 
 __all__ = ["CameraModel", "distort_normalized", "undistort_normalized"]
@@ -93,19 +94,25 @@ class CameraModel:
     height_px: int = 720
 
     @classmethod
-    def from_rig(cls, rig: RigConfig) -> CameraModel:
-        """The rig's true (simulated) camera: ``rig.sim.camera`` on the ``rig.camera`` sensor."""
-        cam = rig.sim.camera
+    def nominal(cls, rig: RigConfig) -> CameraModel:
+        """The camera as the rig file states it, before calibration: fx = fy = ``focal_length_mm`` /
+        ``pixel_um``, the principal point at the sensor's centre, no distortion, and the gel
+        ``gel_distance_mm`` along the optical axis, turned by ``nominal_rotvec_rad`` (``[camera]``)."""
+        cam = rig.camera
+        if cam.focal_length_mm is None or cam.gel_distance_mm is None:
+            raise ConfigError(f"{rig.path}: [camera] needs focal_length_mm and gel_distance_mm for the nominal camera "
+                              "(or calibrate it: `labrig calibrate intrinsics`, `labrig calibrate extrinsics`)")
+        focal_px = float(cam.focal_length_mm) * 1000.0 / float(cam.pixel_um)
         return cls(
-            fx_px=float(cam.fx_px),
-            fy_px=float(cam.fy_px),
-            cx_px=float(cam.cx_px),
-            cy_px=float(cam.cy_px),
-            distortion=tuple(float(d) for d in cam.distortion),  # type: ignore[arg-type]
-            gel_to_camera_rotvec_rad=tuple(float(r) for r in cam.gel_to_camera_rotvec_rad),  # type: ignore[arg-type]
-            gel_to_camera_translation_mm=tuple(float(t) for t in cam.gel_to_camera_translation_mm),  # type: ignore[arg-type]
-            width_px=rig.camera.width_px,
-            height_px=rig.camera.height_px,
+            fx_px=focal_px,
+            fy_px=focal_px,
+            cx_px=(cam.width_px - 1) / 2.0,
+            cy_px=(cam.height_px - 1) / 2.0,
+            distortion=(0.0, 0.0, 0.0, 0.0, 0.0),
+            gel_to_camera_rotvec_rad=tuple(float(r) for r in cam.nominal_rotvec_rad),  # type: ignore[arg-type]
+            gel_to_camera_translation_mm=(0.0, 0.0, float(cam.gel_distance_mm)),
+            width_px=cam.width_px,
+            height_px=cam.height_px,
         )
 
     @cached_property

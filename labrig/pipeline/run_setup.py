@@ -3,10 +3,10 @@ thresholds, and where each came from.
 
 The gel modulus is the fitted one (``calibration/gel.toml``) when present, else the rig's;
 the camera is the calibrated one (``calibration/intrinsics.toml`` + ``extrinsics.toml``)
-when present, else the rig's. The markers' rest pixels are those the extrinsic calibration
+when present, else the rig file's nominal one (lens and sensor). The markers' rest pixels are those the extrinsic calibration
 measured (its marker map: where each marker really is, the nominal lattice only where one is
 missing), with the missing markers flagged; without a calibration, the nominal lattice through
-the rig's camera. The contrast thresholds are the measured ones (``calibration/events.toml``) when
+that camera. The contrast thresholds are the measured ones (``calibration/events.toml``) when
 present, else none (every event counts one: the nominal sensor). :func:`setup_for_recording`
 resolves both for a recording, :func:`setup_for_rig` for a live stream.
 """
@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.calibration.event_thresholds_file import EVENTS_FILE, ContrastThresholds, load_event_thresholds
-from labrig.calibration.files import camera_from_calibration, load_extrinsics, load_intrinsics
+from labrig.calibration.files import camera_from_calibration, load_extrinsics, load_intrinsics, uncalibrated_camera
 from labrig.calibration.gel import load_gel
 from labrig.config import DEFAULT_CALIBRATION_DIR, RigConfig, load_rig
 from labrig.dataset import events_sidecar_path
@@ -140,18 +140,20 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = DEFAUL
         nu = float(poisson_ratio)
     if stiffening is not None:
         b, sources["stiffening"] = float(stiffening), "argument"
-    camera, rest_px, missing = CameraModel.from_rig(rig), None, None
-    sources["camera"] = "rig"
-    sources["rest"] = "nominal lattice through the rig's camera (no extrinsics.toml)"
+    rest_px, missing = None, None
     if "intrinsics.toml" in files and "extrinsics.toml" in files:
         extrinsics = load_extrinsics(files["extrinsics.toml"])
         camera = camera_from_calibration(load_intrinsics(files["intrinsics.toml"]), extrinsics)
+        sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
+        sources["rest"] = "nominal lattice through the camera (no extrinsics.toml)"
         marker_map = extrinsics.marker_map
         if len(marker_map.rest_px) == rig.markers.rows * rig.markers.cols:
             rest_px, missing = marker_map.rest_px, marker_map.missing
             sources["rest"] = (f"measured ({files['extrinsics.toml']}, format {extrinsics.format_version}; "
                                f"{int(missing.sum())} missing)")
-        sources["camera"] = f"{files['intrinsics.toml']} + {files['extrinsics.toml']}"
+    else:
+        camera, sources["camera"] = uncalibrated_camera(rig)
+        sources["rest"] = "nominal lattice through the camera (no extrinsics.toml)"
     if rest_px is None:
         rest_px = camera.project(rig.markers.rest_positions_mm())
     thresholds, sources["thresholds"] = None, "nominal (no events.toml: every event counts one)"

@@ -109,7 +109,7 @@ class Pipeline:
         self.setup = setup
         self.depth = depth
         rig = setup.rig
-        params = tracker_params or tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(rig))
+        params = tracker_params or tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(rig, setup.camera))
         self.tracker = tracking.Tracker(setup.rest_px, params, observed=setup.observed)
         self.rest = RestRefiner(setup.rest_px, setup.observed, rest_params or RestParams())
         self._rest_px, self._rest_mm = self.rest.rest_px, setup.rest_mm()

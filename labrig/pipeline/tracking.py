@@ -38,6 +38,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from labrig.calibration.files import load_extrinsics, uncalibrated_camera
 from labrig.config import RigConfig
 from labrig.physics.camera import CameraModel
 
@@ -47,17 +48,18 @@ BoolArray = npt.NDArray[np.bool_]
 
 def rest_positions_px(rig: RigConfig, extrinsics_path: str | Path | None = None) -> Array:
     """Markers' rest positions (M, 2) px: measured by the extrinsic calibration (its file's marker map:
-    the nominal projection only where a marker is missing), else the nominal lattice through the rig's camera."""
+    the nominal projection only where a marker is missing), else the nominal lattice through the rig
+    file's nominal camera (:func:`labrig.calibration.files.uncalibrated_camera`)."""
     if extrinsics_path is not None:
-        from labrig.calibration.files import load_extrinsics
-
         return np.asarray(load_extrinsics(extrinsics_path).marker_map.rest_px, np.float64)
-    return CameraModel.from_rig(rig).project(rig.markers.rest_positions_mm())
+    camera, _ = uncalibrated_camera(rig)
+    return camera.project(rig.markers.rest_positions_mm())
 
 
-def marker_diameter_px(rig: RigConfig) -> float:
-    """The markers' mean image diameter (px) through the rig's camera at rest."""
-    jac = CameraModel.from_rig(rig).jacobian_px_per_mm(rig.markers.rest_positions_mm())[:, :, :2]
+def marker_diameter_px(rig: RigConfig, camera: CameraModel | None = None) -> float:
+    """The markers' mean image diameter (px) at rest through ``camera`` (None: the rig file's nominal camera)."""
+    camera = camera or CameraModel.nominal(rig)
+    jac = camera.jacobian_px_per_mm(rig.markers.rest_positions_mm())[:, :, :2]
     scale = np.sqrt(np.abs(np.linalg.det(jac)))  # px per mm, area-equivalent
     return float(rig.markers.diameter_mm * scale.mean())
 

@@ -29,6 +29,7 @@ import numpy.typing as npt
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
 from labrig.protocol.spec import ProbeSpec
+from labrig.sim.truth_config import sim_config
 
 
 class SafetyError(LabrigError):
@@ -115,7 +116,7 @@ class SpeedLimits:
     @classmethod
     def of_rig(cls, rig: RigConfig) -> SpeedLimits:
         """The virtual CNC's: the rig file's ``[sim.grbl]`` (GRBL's defaults without one)."""
-        return cls(rig.sim.grbl.max_rate_mm_min, virtual=True)
+        return cls(sim_config(rig).grbl.max_rate_mm_min, virtual=True)
 
     @classmethod
     def of_grbl(cls, settings: Mapping[int, float]) -> SpeedLimits | None:

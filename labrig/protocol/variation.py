@@ -27,6 +27,7 @@ import numpy as np
 
 from labrig.config import RigConfig, TomlValue, rig_with
 from labrig.errors import ConfigError
+from labrig.sim.truth_config import sim_config
 
 #: The value of a key that takes the recording's own seed (e.g. the marker printing's).
 RECORDING_SEED = "recording"
@@ -99,7 +100,7 @@ def parse_variation(table: Mapping[str, object], rig: RigConfig | None) -> tuple
         if rig is not None:
             try:
                 for end in (low, high):
-                    rig_with(rig, {key: int(end) if varied.integer else float(end)})
+                    sim_config(rig_with(rig, {key: int(end) if varied.integer else float(end)}))
             except ConfigError as exc:
                 problems.append((key, str(exc)))
                 continue

@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, rig_with
 from labrig.frames import Pose, matrix_to_rotvec, rotvec_to_matrix
 from labrig.indenters import Indenter, load_indenter
 from labrig.physics.camera import CameraModel
@@ -37,6 +37,7 @@ from labrig.recording import RecordingMetadata, RecordingWriter
 from labrig.sim.events import EventParams
 from labrig.sim.rig import VirtualRig
 from labrig.sim.target_scene import TargetScene
+from labrig.sim.truth_config import sim_config
 
 #: Event packet length written to the recording, world us.
 PACKET_US = 5_000
@@ -58,19 +59,15 @@ def noisy_rig(rig: RigConfig, noise_scale: float = 1.0) -> RigConfig:
     """The rig with its event noise (shot noise, leak, threshold spread) multiplied by ``noise_scale``."""
     if noise_scale < 0:
         raise ValueError("noise_scale must not be negative")
-    ev = rig.sim.events
-    events = replace(
-        ev,
-        shot_noise_rate_hz=ev.shot_noise_rate_hz * noise_scale,
-        leak_rate_hz=ev.leak_rate_hz * noise_scale,
-        threshold_sigma=ev.threshold_sigma * noise_scale,
-    )
-    return replace(rig, sim=replace(rig.sim, events=events))
+    ev = sim_config(rig).events
+    return rig_with(rig, {"sim.events.shot_noise_rate_hz": ev.shot_noise_rate_hz * noise_scale,
+                          "sim.events.leak_rate_hz": ev.leak_rate_hz * noise_scale,
+                          "sim.events.threshold_sigma": ev.threshold_sigma * noise_scale})
 
 
 def camera_clock_us(rig: RigConfig, t_world_us: npt.ArrayLike) -> npt.NDArray[np.int64]:
     """The simulated camera's timestamps for world times (the virtual rig's clock: offset and drift)."""
-    clock = rig.sim.camera_clock
+    clock = sim_config(rig).camera_clock
     t = np.asarray(t_world_us, dtype=np.float64)
     return (clock.origin_us + np.floor(t * (1 + clock.drift_ppm * 1e-6))).astype(np.int64)
 
@@ -290,7 +287,7 @@ def record_led_ramps(
     vr, still = _gel_at_rest(rig, indenter, seed)
     for t_us, level in ramps.levels():
         vr.set_led(level, t_us)
-    ev = rig.sim.events
+    ev = sim_config(rig).events
     metadata = RecordingMetadata(
         indenter=indenter.name,
         protocol_toml="# calibration scene: the LED ring dimmed and brightened along slow ramps, gel at rest (virtual rig)\n",

@@ -1,6 +1,6 @@
 """How the virtual camera's data reaches the host: USB bursts, and hot pixels on the sensor.
 
-Both come from ``[sim.camera_delivery]`` (:mod:`labrig.config_sim`) and are
+Both come from ``[sim.camera_delivery]`` (:mod:`labrig.sim.imperfections`) and are
 deterministic: which pixels are hot follows the section's ``seed`` (a property of
 the sensor), when they fire and when bursts are released follow the run's seed.
 Times are integer microseconds of the rig's world time.
@@ -20,8 +20,9 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.config import RigConfig
-from labrig.config_sim import hot_pixel_indices
 from labrig.eventtypes import EVENT_DTYPE
+from labrig.sim.imperfections import hot_pixel_indices
+from labrig.sim.truth_config import sim_config
 
 #: Hot-pixel events are drawn per epoch of this many world microseconds.
 HOT_EPOCH_US = 100_000
@@ -38,7 +39,7 @@ class BurstSchedule:
     @classmethod
     def from_rig(cls, rig: RigConfig, seed: int = 0) -> BurstSchedule | None:
         """The rig's schedule, or None without bursts (``burst_period_ms`` 0)."""
-        d = rig.sim.camera_delivery
+        d = sim_config(rig).camera_delivery
         if d.burst_period_ms <= 0:
             return None
         return cls(round(d.burst_period_ms * 1000), round(d.burst_jitter_ms * 1000), seed)
@@ -60,7 +61,7 @@ class HotPixels:
     """The hot pixels of a rig's sensor and their events (see the module docstring)."""
 
     def __init__(self, rig: RigConfig, seed: int = 0) -> None:
-        d, roi = rig.sim.camera_delivery, rig.roi
+        d, roi = sim_config(rig).camera_delivery, rig.roi
         flat = hot_pixel_indices(d, roi.width_px * roi.height_px)
         #: Sensor pixel coordinates of the hot pixels.
         self.x = (flat % roi.width_px + roi.x0_px).astype(np.uint16)

@@ -54,6 +54,7 @@ from labrig.config import RigConfig
 from labrig.eventtypes import EVENT_DTYPE
 from labrig.sim import _render_kernels as _k
 from labrig.sim.pixels import PixelBlock
+from labrig.sim.truth_config import sim_config
 
 Array = npt.NDArray[np.float64]
 Index = npt.NDArray[np.int64]
@@ -87,7 +88,7 @@ class EventParams:
 
     @classmethod
     def from_rig(cls, rig: RigConfig) -> EventParams:
-        ev = rig.sim.events
+        ev = sim_config(rig).events
         return cls(
             threshold_on=ev.threshold_on,
             threshold_off=ev.threshold_off,

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from labrig.config_sim import GRBL_MAX_STEP_RATE_HZ
 from labrig.devices.grbl_gcode import NUMBER
 from labrig.devices.grbl_protocol import format_setting
+from labrig.sim.imperfections import GRBL_MAX_STEP_RATE_HZ
 
 #: The step rate GRBL's stepper interrupt can reach (a write that needs more is refused: error:12).
 MAX_STEP_RATE_HZ = GRBL_MAX_STEP_RATE_HZ

@@ -36,6 +36,7 @@ from labrig.sim.delivery import BurstSchedule
 from labrig.sim.motion import PiecewiseLinearPath
 from labrig.sim.rig import RigOutput, Solve, VirtualRig
 from labrig.sim.truth import truth_streams
+from labrig.sim.truth_config import sim_config
 
 FT_RATE_HZ = 800.0
 CNC_RATE_HZ = 10.0
@@ -95,7 +96,7 @@ def record_live(
     next_ft_us, next_cnc_us, trigger_level = 0.0, 0.0, 0
     bursts = BurstSchedule.from_rig(rig, seed)
     held: list[tuple[int, RigOutput]] = []  # camera chunks waiting for their burst: (release, chunk)
-    ft_drop = _FtDrops(rig.sim.ft.drop_probability, seed)
+    ft_drop = _FtDrops(sim_config(rig).ft.drop_probability, seed)
     max_lag_us, late, chunks, events = 0.0, 0, 0, 0
     wall0 = time.perf_counter()
     with RecordingWriter(path, metadata, clock=clock, extra_streams=truth_streams(n_markers)) as writer:

@@ -16,6 +16,7 @@ from labrig.config import RigConfig
 from labrig.frames import Pose
 from labrig.indenters import Indenter
 from labrig.physics.geometry import gel_frame, nominal_gel_in_machine
+from labrig.sim.truth_config import sim_config
 
 
 def true_gel_in_machine(rig: RigConfig) -> Pose:
@@ -23,7 +24,7 @@ def true_gel_in_machine(rig: RigConfig) -> Pose:
 
     The nominal pose a real runner starts from is :func:`labrig.physics.geometry.nominal_gel_in_machine`.
     """
-    p = rig.sim.rig_pose
+    p = sim_config(rig).rig_pose
     return gel_frame(p.gel_origin_machine_mm, p.gel_yaw_deg, p.gel_tilt_deg)
 
 

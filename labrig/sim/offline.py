@@ -43,6 +43,7 @@ from labrig.indenters import Indenter
 from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
 from labrig.sim.grbl_settings import initial_settings
 from labrig.sim.rig import RigOutput, VirtualRig
+from labrig.sim.truth_config import sim_config
 from labrig.sim.world import FT_CLOCK_DRIFT_PPM, FT_CLOCK_ORIGIN_US
 
 GRBL_BAUD = 115_200
@@ -297,4 +298,4 @@ class OfflineRig:
 
 def machine_limits(rig: RigConfig) -> MachineLimits:
     """The GRBL planner's limits of the virtual CNC: GRBL's defaults with the rig file's ``[sim.grbl]``."""
-    return MachineLimits.from_settings(initial_settings(rig.sim.grbl.settings()))
+    return MachineLimits.from_settings(initial_settings(sim_config(rig).grbl.settings()))

@@ -8,7 +8,7 @@ Scene model (units: intensity relative to full scale, pixels of the sensor):
   the marker's 3D centre (gel frame, mm) and shaped by the projection's local
   Jacobian in the gel x-y plane (the membrane's own tilt is neglected).
   Overlapping markers add coverage, clipped at 1. Printed markers may differ
-  (``marker_diameter_mm``, ``marker_contrast``: :mod:`labrig.config_sim`): a
+  (``marker_diameter_mm``, ``marker_contrast``: :mod:`labrig.sim.imperfections`): a
   marker's coverage is weighted by its contrast c (its brightness above the
   membrane relative to the nominal), and the clip is at max(1, max c).
 * Everything is scaled by the slope shading S of :mod:`labrig.sim.shading`
@@ -60,6 +60,7 @@ from labrig.sim import _render_kernels as _k
 from labrig.sim.discs import ellipse_coverage, patch_half_px, patch_origins, rim_radii
 from labrig.sim.pixels import PixelBlock
 from labrig.sim.shading import DepthField, GridLookup
+from labrig.sim.truth_config import sim_config, true_camera
 
 Array = npt.NDArray[np.float64]
 Index = npt.NDArray[np.int64]
@@ -150,9 +151,9 @@ class Renderer:
         lattice); ``marker_diameter_mm`` (N,), ``marker_contrast`` (N,): per marker (default: nominal, 1).
         ``shade_tol`` (default: ``min_rel_change / (2 slope_gain)``, so that no pixel's shading is further off
         than the smallest change the renderer reports)."""
-        self.camera = camera or CameraModel.from_rig(rig)
+        self.camera = camera or true_camera(rig)
         self.roi = rig.roi
-        self.lighting = rig.sim.lighting
+        self.lighting = sim_config(rig).lighting
         self.radius_mm: float | Array = (rig.markers.diameter_mm / 2 if marker_diameter_mm is None
                                          else np.asarray(marker_diameter_mm, dtype=np.float64)[:, None, None] / 2)
         #: Per-marker coverage weights (contrast), or None: all 1 (the compiled rim update then serves every move).

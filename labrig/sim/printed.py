@@ -1,6 +1,6 @@
 """The virtual rig's markers as printed: what the renderer draws and what the truth describes.
 
-``[sim.markers]`` (:mod:`labrig.config_sim`) perturbs the nominal lattice: placement
+``[sim.markers]`` (:mod:`labrig.sim.imperfections`) perturbs the nominal lattice: placement
 errors, per-marker diameters and contrasts, missing markers. :class:`PrintedLayout`
 carries that through the rig:
 
@@ -22,7 +22,8 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from labrig.config import RigConfig
-from labrig.config_sim import PrintedMarkers, printed_markers
+from labrig.sim.imperfections import PrintedMarkers, printed_markers
+from labrig.sim.truth_config import sim_config
 
 F64 = npt.NDArray[np.float64]
 
@@ -31,8 +32,8 @@ class PrintedLayout:
     """The printed markers of a rig (see the module docstring)."""
 
     def __init__(self, rig: RigConfig) -> None:
-        self.ideal = rig.sim.markers.ideal
-        self.markers: PrintedMarkers = printed_markers(rig.sim.markers, rig.markers.rest_positions_mm(),
+        self.ideal = sim_config(rig).markers.ideal
+        self.markers: PrintedMarkers = printed_markers(sim_config(rig).markers, rig.markers.rest_positions_mm(),
                                                        rig.markers.diameter_mm)
         printed = self.markers.printed
         #: Indices of the printed markers, or None when every marker is printed.

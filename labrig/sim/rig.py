@@ -35,7 +35,7 @@ See :mod:`labrig.sim.contact_track`: tool positions become contact states
 F/T twin shares when the rig is served live; the rig turns the states it
 solves at into contact fields. A non-axisymmetric footprint is turned by the
 indenter's yaw relative to the true gel (the tables of
-:meth:`~labrig.physics.mechanics.ContactTable.from_rig`); the gel's tilt is
+:func:`~labrig.sim.truth_config.true_contact_table`); the gel's tilt is
 ignored in the contact shape (below a degree).
 
 The markers are the printed ones (:mod:`labrig.sim.printed`); hot pixels
@@ -54,7 +54,6 @@ import numpy.typing as npt
 from labrig.config import RigConfig, Roi
 from labrig.frames import Pose, rotvec_to_matrix
 from labrig.indenters import Indenter
-from labrig.physics.camera import CameraModel
 from labrig.physics.mechanics import ContactFields, ContactTable
 from labrig.sim.contact_track import ContactKinematics, ContactState, ContactTrack, ToolPoint
 from labrig.sim.delivery import HotPixels, merge_events
@@ -63,6 +62,7 @@ from labrig.sim.motion import true_gel_in_machine
 from labrig.sim.optics import Renderer
 from labrig.sim.printed import PrintedLayout
 from labrig.sim.shading import DepthField
+from labrig.sim.truth_config import sim_config, true_camera, true_contact_table
 
 ToolPath = Callable[[npt.ArrayLike], npt.NDArray[np.float64]]
 
@@ -124,12 +124,14 @@ class VirtualRig:
     ) -> None:
         """``dead_pixels``: a rectangle of sensor pixels that emit no events (a dead region), or None."""
         self.rig = rig
+        #: The virtual rig's truth (the rig file's ``sim.*`` sections).
+        self.truth = sim_config(rig)
         self.indenter = indenter
-        self.camera = CameraModel.from_rig(rig)
-        self.table = table if table is not None else ContactTable.from_rig(indenter, rig)
+        self.camera = true_camera(rig)
+        self.table = table if table is not None else true_contact_table(indenter, rig)
         self.gel_in_machine: Pose = true_gel_in_machine(rig)
         self.machine_to_gel = self.gel_in_machine.inverse()
-        pose = rig.sim.rig_pose
+        pose = self.truth.rig_pose
         #: F/T sensor axes in the gel frame; its origin rides with the tool.
         self.ft_axes_in_gel = rotvec_to_matrix(pose.ft_axes_in_gel_rotvec_rad)
         self.ft_origin_from_tip_mm = np.asarray(pose.ft_origin_in_gel_mm, dtype=np.float64)
@@ -146,12 +148,12 @@ class VirtualRig:
         self.min_solve_interval_us = min_solve_interval_us
         self.max_solve_interval_us = max_solve_interval_us
         self.max_render_interval_us = max_render_interval_us
-        self.max_step_px = rig.sim.events.max_step_px
+        self.max_step_px = self.truth.events.max_step_px
         self.t_us = 0
         self.kinematics = ContactKinematics(
             self.table, indenter.tool_offset_mm, self.machine_to_gel,
             table_for_direction=None if indenter.axisymmetric or table is not None
-            else lambda deg: ContactTable.from_rig(indenter, rig, direction_deg=deg),
+            else lambda deg: true_contact_table(indenter, rig, direction_deg=deg),
         )
         #: The contact states the rig solves at; shared with the F/T twin when served live.
         self.track = track
@@ -193,7 +195,7 @@ class VirtualRig:
 
     def camera_time_us(self, t_world_us: npt.ArrayLike) -> npt.NDArray[np.int64]:
         """The camera's own timestamps for world times (offset and drift)."""
-        clock = self.rig.sim.camera_clock
+        clock = self.truth.camera_clock
         t = np.asarray(t_world_us, dtype=np.float64)
         return (clock.origin_us + np.floor(t * (1 + clock.drift_ppm * 1e-6))).astype(np.int64)
 

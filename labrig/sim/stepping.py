@@ -18,7 +18,7 @@ def step_us(image_velocity: npt.ArrayLike, max_step_px: float, *, min_us: int = 
     """The longest step (whole us, within [min_us, max_us]) over which no point moves more than ``max_step_px``.
 
     ``image_velocity`` is (N, 2) px/s (or (N,) speeds); the rig's default
-    ``max_step_px`` is ``rig.sim.events.max_step_px``.
+    ``max_step_px`` is ``sim_config(rig).events.max_step_px``.
     """
     v = np.asarray(image_velocity, dtype=np.float64)
     speed = float(np.max(np.linalg.norm(v, axis=-1) if v.ndim > 1 else np.abs(v), initial=0.0))

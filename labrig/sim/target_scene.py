@@ -25,6 +25,7 @@ from labrig.physics.camera import CameraModel
 from labrig.physics.target import DotGridTarget
 from labrig.sim.events import EventParams, EventSensor
 from labrig.sim.target import render_target
+from labrig.sim.truth_config import true_camera
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class TargetScene:
         seed: int = 0,
         params: EventParams | None = None,
     ) -> None:
-        self.camera = CameraModel.from_rig(rig)
+        self.camera = true_camera(rig)
         self.target = target or DotGridTarget()
         width, height = self.camera.width_px, self.camera.height_px
         self._dark = np.full(width * height, self.target.plate_level)

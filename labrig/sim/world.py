@@ -46,6 +46,7 @@ from labrig.sim.grbl_twin import GrblTwin
 from labrig.sim.motion import true_gel_in_machine
 from labrig.sim.rig import RigOutput, VirtualRig
 from labrig.sim.serial_pty import SerialTwin, TwinServer
+from labrig.sim.truth_config import sim_config
 
 #: The simulated F/T sensor's clock against the host clock.
 FT_CLOCK_ORIGIN_US = 2_000_000_000
@@ -114,12 +115,12 @@ class LiveWorld:
         self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=min(50_000, self.render_lag_us * 2 // 3))
         self.track: ContactTrack = self.rig.bind(self._tool_world)
         # The rig file's [sim.grbl] limits are the twin's EEPROM at power-on; explicit settings win.
-        settings = {**rig.sim.grbl.settings(), **(grbl_settings or {})}
+        settings = {**sim_config(rig).grbl.settings(), **(grbl_settings or {})}
         self.grbl = GrblTwin(settings, power_on_physical_mm=power_on_tool_mm(rig, indenter), on_output=self._on_output,
                              homed=homed)
         self.bota = BotaTwin(
             bota_params or BotaTwinParams(clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM, seed=seed,
-                                          drop_probability=rig.sim.ft.drop_probability),
+                                          drop_probability=sim_config(rig).ft.drop_probability),
             wrench_at=self._wrench_at,
         )
         # The GRBL twin's port in a relay process: it switches its trigger output when a line

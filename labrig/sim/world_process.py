@@ -24,11 +24,11 @@ from typing import Any
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
-from labrig.physics.mechanics import ContactTable
 from labrig.physics.mechanics.tables import table_direction_deg
 from labrig.sim.faults import RigFault
 from labrig.sim.live import TruthRows
 from labrig.sim.parent_watch import exit_with_parent, started_from_main_thread
+from labrig.sim.truth_config import true_contact_table
 
 #: Truth chunks waiting in the pipe at most (about 10 s of rendering); more are dropped and counted.
 TRUTH_QUEUE_CHUNKS = 1000
@@ -41,7 +41,7 @@ def prepare_contact_tables(rig: RigConfig, indenter: Indenter, shear_directions_
     if indenter.axisymmetric:
         return
     for direction in sorted({table_direction_deg(d) for d in shear_directions_deg}):
-        ContactTable.from_rig(indenter, rig, direction_deg=direction)
+        true_contact_table(indenter, rig, direction_deg=direction)
 
 
 #: How long :meth:`WorldProcess.start` waits for a living world process to serve (s).

@@ -132,7 +132,7 @@ def track_recording(path: str | Path, calibration_dir: str | Path | None, cache_
     path = Path(path)
     with Recording(path) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
-        params = tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig))
+        params = tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(setup.rig, setup.camera))
         key = cache_key({"recording": sha256_of(path), "rest_px": np.round(setup.rest_px, 4).tolist(),
                          "observed": setup.observed.tolist(), "tracker": repr(params), "window_us": TRACK_WINDOW_US,
                          "rest": repr(RestParams()), "version": TRACKS_VERSION})

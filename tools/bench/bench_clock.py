@@ -42,6 +42,7 @@ from _common import bench_main, emit
 
 from labrig.clock import ClockModel
 from labrig.clock_fit import fit_lower_envelope, fit_triggers
+from labrig.sim.truth_config import sim_config
 from labrig.testing.loaded_clock import LoadedCameraScene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -191,8 +192,8 @@ def _rig_run(drift: float, busy: int, keep: Path | None = None) -> dict[str, Any
             kept = shutil.copy(result.path, keep / f"clock{drift:+.0f}ppm.h5")
             with h5py.File(kept, "r+") as f:
                 f.attrs.update({"bench_world_origin_us": world_origin_us, "bench_camera_drift_ppm": drift,
-                                "bench_camera_origin_us": rig.sim.camera_clock.origin_us})
-    clock = rig.sim.camera_clock
+                                "bench_camera_origin_us": sim_config(rig).camera_clock.origin_us})
+    clock = sim_config(rig).camera_clock
     host = np.linspace(phases[0].t_start_us, phases[-1].t_end_us, 2000)
     device = clock.origin_us + np.floor((host + t0_us - world_origin_us) * (1 + clock.drift_ppm * 1e-6))
     return _scores("rig", drift, model, online, device, host, exit_status=result.exit_status,

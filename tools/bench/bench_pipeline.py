@@ -22,7 +22,6 @@ between), serial on one core; its real-time factor is the mean processing per wi
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import resource
 import tempfile
 import time
@@ -32,7 +31,7 @@ from typing import Any
 import numpy as np
 from _common import bench_main, emit
 
-from labrig.config import load_rig
+from labrig.config import load_rig, rig_with
 from labrig.indenters import load_indenter
 from labrig.pipeline import depth_sources, ifem, run_setup, runtime
 from labrig.recording import Recording
@@ -111,8 +110,7 @@ def _measure(setup: run_setup.PipelineSetup, rec: Recording, depth: str | Path, 
 
 def run(widths: str = "16,32", repeat: int = 2, progress: bool = True) -> dict[str, Any]:
     rig = load_rig()
-    linear = dataclasses.replace(rig, sim=dataclasses.replace(
-        rig.sim, mechanics=dataclasses.replace(rig.sim.mechanics, stiffening=0.0)))
+    linear = rig_with(rig, {"sim.mechanics.stiffening": 0.0})
     sphere = load_indenter("sphere")
     figures: dict[str, Any] = {"window_ms": WINDOW_US / 1000, "configs": {}}
     with tempfile.TemporaryDirectory() as tmp:

@@ -48,6 +48,7 @@ from labrig.indenters import load_indenter
 from labrig.physics.mechanics import ContactTable
 from labrig.sim.motion import probing_path
 from labrig.sim.rig import VirtualRig
+from labrig.sim.truth_config import true_contact_table
 
 REQUIRED_RTF = 1.0
 TARGET_RTF = 0.5
@@ -176,16 +177,16 @@ def run(
     rig = load_rig()
     ind = load_indenter(indenter)
     t = time.perf_counter()
-    table = ContactTable.from_rig(ind, rig)  # warms the cache (builds the table if it is missing)
+    table = true_contact_table(ind, rig)  # warms the cache (builds the table if it is missing)
     warm_s = time.perf_counter() - t
     t = time.perf_counter()
-    table = ContactTable.from_rig(ind, rig)
+    table = true_contact_table(ind, rig)
     load_s = time.perf_counter() - t
     cold_s = None
     if cold:
         with tempfile.TemporaryDirectory(prefix="labrig-bench-rig-") as tmp:
             t = time.perf_counter()
-            ContactTable.from_rig(ind, rig, cache_dir=tmp)
+            true_contact_table(ind, rig, cache_dir=tmp)
             cold_s = time.perf_counter() - t
     path = probing_path(rig, ind, depth_mm=depth_mm, shear_mm=shear_mm)
     chunk_us = round(chunk_ms * 1000)

@@ -31,8 +31,8 @@ contact sizes); forces match direct solves to < 1 %.
 
 The grid is local: centred on the indenter tip, aligned with the gel axes,
 ``size_mm`` wide; a non-axisymmetric footprint is solved turned by its yaw
-relative to the gel (``yaw_deg``; :meth:`ContactTable.from_rig` takes it from the
-indenter's ``yaw_deg`` and the rig's true gel yaw); the gel is treated as laterally infinite
+relative to the gel (``yaw_deg``; the virtual rig's :func:`labrig.sim.truth_config.true_contact_table`
+takes it from the indenter's ``yaw_deg`` and the true gel yaw); the gel is treated as laterally infinite
 (its edges are not modelled). Fields are float32; forces are from float64
 sums. Tables are cached on disk, keyed by a hash of every input
 (:mod:`table_cache`).
@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import GelConfig, RigConfig
+from labrig.config import GelConfig
 from labrig.indenters import Indenter
 from labrig.physics.mechanics.convolution import SurfaceConvolver
 from labrig.physics.mechanics.grid import Grid
@@ -182,17 +182,6 @@ class ContactTable:
         if use_cache:
             table.save(path)
         return table
-
-    @classmethod
-    def from_rig(cls, indenter: Indenter, rig: RigConfig, **options: Any) -> ContactTable:
-        """:meth:`build` with the virtual rig's true gel (``rig.sim.gel``), mode, grid spacing and stiffening,
-        and the footprint turned by the indenter's yaw relative to the true gel (``[sim.rig_pose] gel_yaw_deg``)."""
-        mechanics = rig.sim.mechanics
-        options.setdefault("yaw_deg", indenter.footprint_yaw_deg(rig.sim.rig_pose.gel_yaw_deg))
-        options.setdefault("mode", mechanics.mode)
-        options.setdefault("spacing_mm", mechanics.grid_spacing_mm)
-        options.setdefault("stiffening", mechanics.stiffening)
-        return cls.build(indenter, rig.sim.gel, **options)
 
     def save(self, path: str | Path) -> Path:
         """Write the table as an uncompressed ``.npz`` (atomically)."""
