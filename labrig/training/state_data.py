@@ -336,7 +336,7 @@ def build_state(task: StateTask) -> int:
     channels = StateChannels(task.recording, InputSpec.from_card({"inputs": task.inputs}), task.calibration_dir)
     steps = channels.brightness.t_us if channels.brightness is not None else (
         channels.tracks.t_us if channels.tracks is not None else np.zeros(0))
-    return int(len(steps))
+    return len(steps)
 
 
 def prepare_states(recordings: list[Path], spec: InputSpec, calibration_dir: str | Path | None, *,
