@@ -48,6 +48,8 @@ from labrig.executor import Run, run_tasks
 from labrig.models import BUNDLED, bundled_model_path, model_path
 from labrig.pipeline.model_card import ModelCard, card_path, find_models
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
+from labrig.recording import Recording
+from labrig.recording.quality import camera_shortfall_s
 
 SPLIT_CHOICES = (*SPLITS, ALL_SPLITS)  # --split
 PAPER = {"force_x_mae_n": 0.14, "force_y_mae_n": 0.10, "force_z_mae_n": 0.93, "force_total_mae_n": 0.94,
@@ -226,9 +228,6 @@ def _runner(settings: EvaluationSettings, ev: Evaluation, progress: Progress | N
 def _scan_recordings(paths: list[str], tolerance_s: float = 0.1) -> tuple[list[str], dict[str, float]]:
     """One look at each recording: those with the sim's truth (virtual rig), and those whose camera
     stream stops more than ``tolerance_s`` before the protocol ends (name -> seconds missing)."""
-    from labrig.recording import Recording
-    from labrig.recording.quality import camera_shortfall_s
-
     simulated, short = [], {}
     for path in paths:
         with Recording(path) as rec:

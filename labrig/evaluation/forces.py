@@ -27,6 +27,8 @@ import numpy.typing as npt
 from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.dataset import sidecar_path
 from labrig.evaluation.measured import contact_centre_px, ft_axes_in_gel, measured_force_on_gel_n
+from labrig.groundtruth import load_groundtruth
+from labrig.pipeline import depth_sources, ifem, run_setup, runtime, tracking
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 from labrig.recording import Recording
 
@@ -94,9 +96,6 @@ class ForceResult:
 def evaluate_forces(task: ForceTask) -> ForceResult:
     """Per-window forces and errors of the pipeline on ``task.recording``."""
     from dataclasses import replace
-
-    from labrig.groundtruth import load_groundtruth
-    from labrig.pipeline import depth_sources, ifem, run_setup, runtime, tracking
 
     path = Path(task.recording)
     with Recording(path) as rec:

@@ -46,7 +46,13 @@ from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
 from labrig.config_sim import printed_markers
 from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
+from labrig.groundtruth import generate, write_sidecar
+from labrig.indenters import load_indenter
 from labrig.physics.camera import CameraModel
+from labrig.recording import Recording
+from labrig.sim.live import record_live
+from labrig.sim.motion import probing_path
+from labrig.sim.rig import VirtualRig
 
 US_PER_MIN = 60_000_000
 #: "Far" missing markers are drawn from those at least this far from the press (three pitches of the default gel), mm.
@@ -205,13 +211,6 @@ class SceneFacts:
 
 def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
     """Simulate ``scene`` into the recording ``out`` (not real time) and write its sidecar ``NAME.gt.h5``."""
-    from labrig.groundtruth import generate, write_sidecar
-    from labrig.indenters import load_indenter
-    from labrig.recording import Recording
-    from labrig.sim.live import record_live
-    from labrig.sim.motion import probing_path
-    from labrig.sim.rig import VirtualRig
-
     scene.check()
     rig = stressed_rig(scene)
     indenter = load_indenter(scene.indenter)

@@ -32,6 +32,7 @@ from labrig.evaluation.forces import ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
+from labrig.pipeline.depthnet import benchmark_ms
 from labrig.pipeline.model_card import ModelCard, card_path, find_models
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS
 
@@ -85,8 +86,6 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
               window_us: int | None = None, mesh_refinements: tuple[int, ...] = MESH_REFINEMENTS,
               patch_scales: tuple[float, ...] = PATCH_SCALES) -> SweepResult:
     """Every knob setting on ``recordings``; ``run(kind, fn, tasks) -> results`` runs tasks (parallel, cached)."""
-    from labrig.pipeline.depthnet import benchmark_ms
-
     points: list[SweepPoint] = []
     # tracking: patch size x refinement x tracker
     settings = [(tracker, refine, scale) for tracker in ("paper", "paper-published") for refine in (True, False)

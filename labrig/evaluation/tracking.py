@@ -36,8 +36,21 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import DEFAULT_CALIBRATION_DIR
+from labrig.config import DEFAULT_CALIBRATION_DIR, load_rig
+from labrig.config_sim import printed_markers
 from labrig.errors import LabrigError
+from labrig.pipeline.evetac import EvetacParams, EvetacTracker
+from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
+from labrig.pipeline.tracking import (
+    CircleFitParams,
+    CircleFitTracker,
+    Tracker,
+    TrackerParams,
+    marker_diameter_px,
+    rest_positions_px,
+)
+from labrig.pipeline.windows import recording_windows
+from labrig.recording import Recording
 
 Array = npt.NDArray[np.float64]
 
@@ -129,9 +142,6 @@ class TrackingResult:
 def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed: npt.ArrayLike | None = None) -> Any:
     """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide;
     ``observed`` (M,): False for markers to skip (missing), None: all tracked."""
-    from labrig.pipeline.evetac import EvetacParams, EvetacTracker
-    from labrig.pipeline.tracking import CircleFitParams, CircleFitTracker, Tracker, TrackerParams
-
     if task.patch_scale <= 0:
         raise LabrigError(f"patch_scale must be positive (a multiple of the marker diameter), not {task.patch_scale}")
     if task.tracker == "evetac":
@@ -153,10 +163,6 @@ def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed
 
 def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
     """Track ``task.recording`` window by window; lost tracks, drift and (virtual rig) true errors."""
-    from labrig.pipeline.tracking import Tracker, marker_diameter_px
-    from labrig.pipeline.windows import recording_windows
-    from labrig.recording import Recording
-
     task = task if isinstance(task, TrackingTask) else TrackingTask(**task)
     with Recording(task.recording) as rec:
         rig, rest_px, rest_source, observed = rest_pixels(rec, task.rest, task.calibration_dir)
@@ -194,11 +200,6 @@ def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, 
 
     ``observed``: the calibration's present markers ("calibration"), or the rig's printed ones
     (``[sim.markers]``; "rig": what a calibration of that rig would find missing)."""
-    from labrig.config import load_rig
-    from labrig.config_sim import printed_markers
-    from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
-    from labrig.pipeline.tracking import rest_positions_px
-
     if rest == "calibration":
         setup = setup_for_recording(rec, calibration_dir=calibration_dir)
         return setup.rig, np.asarray(setup.rest_px, np.float64), setup.sources["camera"], setup.observed

@@ -38,6 +38,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from labrig.calibration.files import load_extrinsics
 from labrig.config import RigConfig
 from labrig.physics.camera import CameraModel
 
@@ -49,8 +50,6 @@ def rest_positions_px(rig: RigConfig, extrinsics_path: str | Path | None = None)
     """Markers' rest positions (M, 2) px: measured by the extrinsic calibration (its file's marker map:
     the nominal projection only where a marker is missing), else the nominal lattice through the rig's camera."""
     if extrinsics_path is not None:
-        from labrig.calibration.files import load_extrinsics
-
         return np.asarray(load_extrinsics(extrinsics_path).marker_map.rest_px, np.float64)
     return CameraModel.from_rig(rig).project(rig.markers.rest_positions_mm())
 
