@@ -80,7 +80,7 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
             sae_grid(events, end - window_us, end, roi, GRID_SHAPE, out=saes[k])
             t_last[k] = float(events["t"].max()) if len(events) else float(end)
     pred = np.zeros((t1.size, *GRID_SHAPE), np.float32)
-    seconds = []
+    seconds: list[float] = []
     if model.inputs.stateful:  # the state comes from the windows before: the whole pipeline, every window, in order
         pred, seconds = _pipeline_depth(task, t1)
     for start in range(0, t1.size if not model.inputs.stateful else 0, BATCH):

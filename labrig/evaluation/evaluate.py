@@ -47,7 +47,7 @@ from labrig.evaluation.tracking import (
 from labrig.executor import Run, run_tasks
 from labrig.models import BUNDLED, bundled_model_path, model_path
 from labrig.pipeline.model_card import ModelCard, card_path, find_models
-from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowArgs, WindowSpec
 from labrig.recording import Recording
 from labrig.recording.quality import camera_shortfall_s
 
@@ -172,7 +172,7 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
     ev = Evaluation(settings, recordings, model, table2_models=table2_models(settings.models_dir, width))
     run = _runner(settings, ev, progress)
     calibration = str(settings.calibration_dir) if settings.calibration_dir is not None else None
-    windows = {"window_events": settings.window_events, "window_us": settings.window_us}
+    windows: WindowArgs = {"window_events": settings.window_events, "window_us": settings.window_us}
     paths = [str(p) for p in recordings]
 
     ev.forces = run("forces", evaluate_forces, [ForceTask(p, str(model), calibration_dir=calibration,
