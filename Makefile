@@ -23,6 +23,8 @@ demo: $(STAMP)
 	$(BIN)/python tools/demo.py demo-out $(DEMO)
 
 test: $(STAMP)
+	$(BIN)/ruff check labrig tests tools
+	$(BIN)/mypy
 	$(BIN)/lint-imports --no-cache
 	$(BIN)/python -m pytest -q
 

@@ -99,7 +99,7 @@ class ResultCache:
         temporary = self.folder / f".{key}.{uuid.uuid4().hex}.tmp"
         try:
             with open(temporary, "wb") as f:
-                np.savez(f, __json__=np.array(json.dumps(document)), **arrays)
+                np.savez(f, allow_pickle=True, __json__=np.array(json.dumps(document)), **arrays)
             os.replace(temporary, self.path(key))
         finally:
             temporary.unlink(missing_ok=True)

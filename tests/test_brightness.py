@@ -120,9 +120,9 @@ def setup(rig: RigConfig) -> run_setup.PipelineSetup:
 def test_a_brightness_network_answers_every_window_and_forgets_at_rest(tmp_path, setup) -> None:  # type: ignore[no-untyped-def]
     """No quiet hold and no rest gate by default (the state is in the input); a rest gate given clears the
     integrated change too."""
-    from labrig.pipeline.rest_gate import RestGateParams
     from labrig.models import bundled_model_path
     from labrig.pipeline.model_card import ModelCard, write_card
+    from labrig.pipeline.rest_gate import RestGateParams
 
     torch = pytest.importorskip("torch")
     from labrig.pipeline.depthnet import UNetConfig, build_unet, export_onnx
@@ -158,7 +158,8 @@ RELEASE_LAG_US = 100_000
 
 @pytest.fixture(scope="module")
 def virtual_press(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    """A sphere pressed 1 mm at the gel centre, sheared 0.5 mm and back, released, retracted 1 mm (virtual time, with its sidecar)."""
+    """A sphere pressed 1 mm at the gel centre, sheared 0.5 mm and back, released, retracted 1 mm
+    (virtual time, with its sidecar)."""
     from labrig.evaluation.stress_scene import StressScene, record_scene
 
     path = tmp_path_factory.mktemp("press") / "press.h5"

@@ -232,45 +232,6 @@ def test_the_builder_refuses_truth_without_a_recording(setup: run_setup.Pipeline
     assert baseline.hold is not None and baseline.gate is not None
 
 
-# ------------------------------------------------------------------------------------ the comparison harness
-
-
-def _load_compare_tool():  # type: ignore[no-untyped-def]
-    import importlib.util
-    import sys
-
-    spec = importlib.util.spec_from_file_location("depth_state_compare", ROOT / "tools" / "depth_state_compare.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_comparison_row_pools_probing_windows_and_the_force_left_after_release() -> None:
-    from labrig.evaluation.forces import ForceResult
-
-    tool = _load_compare_tool()
-    w = 4
-    t1 = np.array([10, 20, 30, 40], np.int64)
-    result = ForceResult(
-        t0_us=t1 - 10, t1_us=t1, predicted_n=np.array([[0.0, 0, -1], [0.1, 0, -3], [0, 0, -2], [0, 0, -0.5]]),
-        measured_n=np.array([[0.0, 0, -1], [0, 0, -2], [0, 0, 0], [0, 0, 0]]), truth_n=np.full((w, 3), np.nan),
-        contact_error_px=np.array([[np.nan, np.nan], [3.0, 4.0], [np.nan, np.nan], [np.nan, np.nan]]),
-        marker_mae_n=np.full((w, 3), np.nan), probing=np.array([True, True, False, False]),
-        stage_ms={"depth": 1.5}, total_ms=4.0, drift_px=np.zeros(3), ft_axes="test", depth_source="model:x",
-        youngs_modulus_mpa=0.4, depth_mae_mm=np.array([0.1, 0.3, 9.0, 9.0]),
-        depth_contact_mae_mm=np.array([np.nan, 0.5, 9.0, 9.0]))
-    released = tool.after_release(result, 25)
-    assert released.tolist() == [False, False, True, True]
-    row = tool.summarise("sae", [result], [released], {"training": {"steps": 7, "seconds": 3.0}, "val": None})
-    assert row.depth_total_mm == pytest.approx(0.2) and row.depth_contact_mm == pytest.approx(0.5)
-    assert row.force_z_mae_n == pytest.approx(0.5) and row.force_x_mae_n == pytest.approx(0.05)
-    assert row.position_mae_px == pytest.approx(5.0) and row.fz_after_release_n == pytest.approx(1.25)
-    assert row.depth_ms == 1.5 and row.pipeline_ms == 4.0 and row.windows == 4 and row.train_steps == 7
-    assert tool.main(["/nonexistent-campaign", "--variants", "sae,lstm"]) == 2
-
-
 def test_self_feed_replaces_only_the_previous_channel_with_the_networks_own_padded_answer() -> None:
     import torch
 

@@ -74,7 +74,7 @@ def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path
         assert (out / "tables" / f"{table}.csv").exists()
     table2 = (out / "tables" / "table2.csv").read_text()
     assert "missing" not in table2 and table2.count("\n") == 3  # header + the two networks that exist
-    assert list(results["tables"])[0] == "headline"  # the answer first
+    assert next(iter(results["tables"])) == "headline"  # the answer first
     columns = [c["key"] for c in results["tables"]["headline"]["columns"]]
     headline = {row[columns[0]]: [row[c] for c in columns] for row in results["tables"]["headline"]["rows"]}
     assert headline["force z on the gel"][1] == pytest.approx(summary["force_z_mae_n"])

@@ -31,7 +31,7 @@ def test_normal_and_shear_limits_trip_once() -> None:
 
 
 def test_baseline_is_subtracted_before_the_limits() -> None:
-    m, calls = monitor()
+    m, _calls = monitor()
     m.set_baseline([0.0, 0.0, -5.0])
     m.on_sample(1, (0.0, 0.0, -14.0))  # -9 N from the baseline
     assert m.trip is None and m.last_n.tolist() == [0.0, 0.0, -9.0]

@@ -20,7 +20,8 @@ def _result(name: str, predicted_z: np.ndarray, measured_z: np.ndarray, t1_s: np
         t0_us=t1 - 10_000, t1_us=t1, predicted_n=np.column_stack([zeros, predicted_z]),
         measured_n=np.column_stack([zeros, measured_z]), truth_n=np.full((w, 3), np.nan),
         contact_error_px=np.full((w, 2), np.nan), marker_mae_n=np.full((w, 3), np.nan), probing=np.ones(w, bool),
-        stage_ms=dict.fromkeys(("read", "sae", "track", "depth", "displacement", "forces"), 1.0), total_ms=6.0, drift_px=np.zeros(3), ft_axes="test", depth_source="model:x",
+        stage_ms=dict.fromkeys(("read", "sae", "track", "depth", "displacement", "forces"), 1.0), total_ms=6.0,
+        drift_px=np.zeros(3), ft_axes="test", depth_source="model:x",
         youngs_modulus_mpa=0.4, recording=name, phases=phases)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -177,8 +178,8 @@ def test_shot_noise_is_uniform_in_time_whatever_the_steps() -> None:
     while steps[-1] < 2_000_000:  # short steps, steps across the horizon's end, a step of several horizons
         steps.append(steps[-1] + int(rng.choice([7, 1_000, 33_333, NOISE_HORIZON_US - 1, 3 * NOISE_HORIZON_US + 5])))
     sensor = EventSensor(params, 100, 100, np.full(n, 0.5), seed=4)
-    events = [sensor.step(t0, t1, [], []) for t0, t1 in zip(steps, steps[1:])]
-    for (t0, t1), ev in zip(zip(steps, steps[1:]), events):
+    events = [sensor.step(t0, t1, [], []) for t0, t1 in pairwise(steps)]
+    for (t0, t1), ev in zip(pairwise(steps), events):
         assert ev.size == 0 or (t0 <= ev["t"].min() and ev["t"].max() < t1)  # each event in its own step
     t = np.concatenate(events)["t"]
     expected = n * params.shot_noise_rate_hz * steps[-1] * 1e-6  # ~1e6 events
@@ -189,7 +190,7 @@ def test_shot_noise_is_uniform_in_time_whatever_the_steps() -> None:
     at_horizons = per_ms[np.arange(NOISE_HORIZON_US // 1000 - 1, per_ms.size, NOISE_HORIZON_US // 1000)]
     assert at_horizons.mean() == pytest.approx(per_ms.mean(), rel=0.1)
     again = EventSensor(params, 100, 100, np.full(n, 0.5), seed=4)
-    assert np.concatenate([again.step(t0, t1, [], []) for t0, t1 in zip(steps, steps[1:])]).tobytes() == (
+    assert np.concatenate([again.step(t0, t1, [], []) for t0, t1 in pairwise(steps)]).tobytes() == (
         np.concatenate(events).tobytes())
 
 

@@ -358,7 +358,7 @@ def test_table_cache_is_fast_and_keyed(table) -> None:  # type: ignore[no-untype
 
 def test_a_process_loads_a_table_file_once(table) -> None:  # type: ignore[no-untyped-def]
     """Rigs built one after another (a campaign's worker) share the loaded table, read-only, until its file changes."""
-    tab, cache = table
+    _tab, cache = table
     options = dict(mode="layer", spacing_mm=0.2, size_mm=16.0, max_depth_mm=1.5, cache_dir=cache)
     first = ContactTable.build(sphere(), GEL, **options)
     assert ContactTable.build(sphere(), GEL, **options) is first

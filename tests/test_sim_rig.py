@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -169,7 +170,7 @@ def test_solves_sit_on_both_sides_of_each_contact_edge(rig: RigConfig, sphere: I
         track.sample(t)
         if t - 30_000 >= vr.t_us + 10_000:
             solves += vr.advance(t - 30_000, path).solves
-    edges = [(a, b) for a, b in zip(solves, solves[1:]) if (a.anchor_mm is None) != (b.anchor_mm is None)]
+    edges = [(a, b) for a, b in pairwise(solves) if (a.anchor_mm is None) != (b.anchor_mm is None)]
     assert len(edges) == 2  # the contact begins, and ends
     assert [b.t_us - a.t_us for a, b in edges] == [1250, 1250]
     lift_off = edges[1][0]

@@ -154,5 +154,6 @@ def test_virtual_time_recording_looks_like_a_through_driver_one(campaign_file: P
         lines = rec.stream("gcode")["line"].tolist()
         assert any(line.startswith(b"$J=") for line in lines) and b"M8" in lines and b"M9" in lines
         assert rec.attrs["extra_made_by"] == "virtual-time"
-        assert indenter_from_toml(str(rec.attrs["indenter_definition"]), "recording") == indenters["sphere"]  # ground truth needs no file
+        # ground truth needs no file
+        assert indenter_from_toml(str(rec.attrs["indenter_definition"]), "recording") == indenters["sphere"]
         assert rec.clock_model("camera").method == "triggers"

@@ -215,7 +215,7 @@ def fit_event_thresholds(recording: str | Path, roi: Roi, *, ratio: float | None
 
 def _first_cycle_end(schedule: LedSchedule) -> int:
     """The end of the first ramp of each direction (the references settle into the cycle over it)."""
-    ends = {}
-    for t0, t1, direction in schedule.ramps_us:
+    ends: dict[int, int] = {}
+    for _t0, t1, direction in schedule.ramps_us:
         ends.setdefault(direction, t1)
     return max(ends.values())

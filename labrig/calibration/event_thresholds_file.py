@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig import __version__
+from labrig.calibration.files import save_text_atomic, toml_table
 from labrig.config import Roi
 from labrig.errors import CalibrationError
 
@@ -79,8 +80,6 @@ def write_event_thresholds(path: str | Path, thresholds: ContrastThresholds, sum
                            provenance: dict[str, Any]) -> Path:
     """Write ``events.toml`` (``summary``: the [thresholds], [scene] and [quality] figures) with its maps,
     through a temporary file."""
-    from labrig.calibration.files import save_text_atomic, toml_table
-
     roi = thresholds.roi
 
     def rows(values: F32) -> str:

@@ -28,7 +28,8 @@ def evaluate_command(
     data: Annotated[Path, typer.Argument(help="Campaign folder (manifest.csv, recordings, NAME.gt.h5 sidecars).")],
     split: Annotated[str, typer.Option(help="Which recordings: test, val, train or all.")] = "test",
     model: Annotated[Path | None, typer.Option(
-        help="Depth network: an .onnx with its card, or a bundled one (default: the SAE and the brightness change since rest; sae-only: the paper's network).")] = None,
+        help="Depth network: an .onnx with its card, or a bundled one "
+             "(default: the SAE and the brightness change since rest; sae-only: the paper's network).")] = None,
     models: Annotated[Path | None, typer.Option(
         "--models", help="Folder of Table II networks (tools/depth_sweep.py --table2); missing rows are reported.")] = None,
     out: Annotated[Path, typer.Option(help="Report folder: index.html, figures/, tables/*.csv, results.json.")] = Path(

@@ -13,8 +13,8 @@ from rich import box
 from rich.live import Live
 from rich.table import Table
 
-from labrig.cli.console import err_console
 from labrig.calibration.ft_frame import ft_on_gel_n
+from labrig.cli.console import err_console
 from labrig.live.runner import LiveStats
 from labrig.pipeline.runtime import WindowResult
 from labrig.protocol.runner import RunProgress

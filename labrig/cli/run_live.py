@@ -21,12 +21,12 @@ from typing import Any
 
 import typer
 
+from labrig.calibration.ft_frame import ft_axes_in_gel
 from labrig.cli.console import err_console, on_ctrl_c, print_json, stop_probing_run
 from labrig.cli.live_view import LiveView, showing
 from labrig.cli.run_report import check_view, print_live_run
 from labrig.config import DEFAULT_RIG, RigConfig, load_rig
 from labrig.errors import LabrigError
-from labrig.calibration.ft_frame import ft_axes_in_gel
 from labrig.indenters import DEFAULT_INDENTERS, load_indenters
 from labrig.live import rig as live_rig
 from labrig.live.runner import MAX_LAG_MS

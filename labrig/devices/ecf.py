@@ -34,6 +34,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from labrig.devices.raw.header import RawHeader
 from labrig.devices.raw.stream import TRIGGER_DTYPE
 from labrig.errors import LabrigError
 from labrig.eventtypes import EVENT_DTYPE
@@ -170,8 +171,6 @@ def _attrs(f: Any) -> dict[str, str]:
 
 def geometry_from_attrs(attrs: dict[str, str]) -> tuple[int, int] | None:
     """(width, height) from the ``geometry`` (WxH) or ``format`` (NAME;width=..;height=..) attribute."""
-    from labrig.devices.raw.header import RawHeader
-
     return RawHeader(fields=dict(attrs)).geometry()
 
 

@@ -183,7 +183,7 @@ class SerialLink:
                 self._owns_port = True
             if self.low_latency:
                 with contextlib.suppress(Exception):  # 1 ms FTDI latency where the port supports it
-                    self._port.set_low_latency_mode(True)  # type: ignore[attr-defined]
+                    self._port.set_low_latency_mode(True)  # type: ignore[union-attr]
         with self._latch:
             self._error = None
         self.exit_reason = ""

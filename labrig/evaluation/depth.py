@@ -14,10 +14,15 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import DEFAULT_CALIBRATION_DIR
+from labrig.config import DEFAULT_CALIBRATION_DIR, Roi
 from labrig.dataset import sidecar_path
+from labrig.groundtruth import load_groundtruth
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline import depth_sources, run_setup, runtime
+from labrig.pipeline.depthnet import DepthModel
+from labrig.pipeline.sae import sae_grid
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
+from labrig.recording import Recording
 
 BATCH = 32
 F64 = npt.NDArray[np.float64]
@@ -59,12 +64,6 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
     """Per-window depth errors (mm) of ``task.model`` on ``task.recording``."""
     import time
 
-    from labrig.config import Roi
-    from labrig.groundtruth import load_groundtruth
-    from labrig.pipeline.depthnet import DepthModel
-    from labrig.pipeline.sae import sae_grid
-    from labrig.recording import Recording
-
     model = DepthModel(task.model, threads=1)
     gt = load_groundtruth(Path(task.sidecar) if task.sidecar else sidecar_path(task.recording))
     roi = Roi(*(int(v) for v in gt.attrs["roi_px"]))
@@ -81,7 +80,7 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
             sae_grid(events, end - window_us, end, roi, GRID_SHAPE, out=saes[k])
             t_last[k] = float(events["t"].max()) if len(events) else float(end)
     pred = np.zeros((t1.size, *GRID_SHAPE), np.float32)
-    seconds = []
+    seconds: list[float] = []
     if model.inputs.stateful:  # the state comes from the windows before: the whole pipeline, every window, in order
         pred, seconds = _pipeline_depth(task, t1)
     for start in range(0, t1.size if not model.inputs.stateful else 0, BATCH):
@@ -107,9 +106,6 @@ def _pipeline_depth(task: DepthTask, t1_us: npt.NDArray[np.int64]) -> tuple[npt.
     the pipeline (tracker, the depth source from the one builder) over every window of :func:`window_ends_us`
     (the windows of the force evaluation, from the first event, which precedes host time 0 in a recording made
     through the drivers), and its depth seconds."""
-    from labrig.pipeline import depth_sources, run_setup, runtime
-    from labrig.recording import Recording
-
     with Recording(task.recording) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir)
         pipe = runtime.Pipeline(setup, depth_sources.depth_source("model", setup, rec, task.model))

@@ -47,7 +47,9 @@ from labrig.evaluation.tracking import (
 from labrig.executor import Run, run_tasks
 from labrig.models import BUNDLED, bundled_model_path, model_path
 from labrig.pipeline.model_card import ModelCard, card_path, find_models
-from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowSpec
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowArgs, WindowSpec
+from labrig.recording import Recording
+from labrig.recording.quality import camera_shortfall_s
 
 SPLIT_CHOICES = (*SPLITS, ALL_SPLITS)  # --split
 PAPER = {"force_x_mae_n": 0.14, "force_y_mae_n": 0.10, "force_z_mae_n": 0.93, "force_total_mae_n": 0.94,
@@ -170,7 +172,7 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
     ev = Evaluation(settings, recordings, model, table2_models=table2_models(settings.models_dir, width))
     run = _runner(settings, ev, progress)
     calibration = str(settings.calibration_dir) if settings.calibration_dir is not None else None
-    windows = {"window_events": settings.window_events, "window_us": settings.window_us}
+    windows: WindowArgs = {"window_events": settings.window_events, "window_us": settings.window_us}
     paths = [str(p) for p in recordings]
 
     ev.forces = run("forces", evaluate_forces, [ForceTask(p, str(model), calibration_dir=calibration,
@@ -226,9 +228,6 @@ def _runner(settings: EvaluationSettings, ev: Evaluation, progress: Progress | N
 def _scan_recordings(paths: list[str], tolerance_s: float = 0.1) -> tuple[list[str], dict[str, float]]:
     """One look at each recording: those with the sim's truth (virtual rig), and those whose camera
     stream stops more than ``tolerance_s`` before the protocol ends (name -> seconds missing)."""
-    from labrig.recording import Recording
-    from labrig.recording.quality import camera_shortfall_s
-
     simulated, short = [], {}
     for path in paths:
         with Recording(path) as rec:

@@ -27,6 +27,8 @@ import numpy.typing as npt
 from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.dataset import sidecar_path
 from labrig.evaluation.measured import contact_centre_px, ft_axes_in_gel, measured_force_on_gel_n
+from labrig.groundtruth import load_groundtruth
+from labrig.pipeline import depth_sources, ifem, run_setup, runtime, tracking
 from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, window_ends_us
 from labrig.recording import Recording
 
@@ -95,9 +97,6 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
     """Per-window forces and errors of the pipeline on ``task.recording``."""
     from dataclasses import replace
 
-    from labrig.groundtruth import load_groundtruth
-    from labrig.pipeline import depth_sources, ifem, run_setup, runtime, tracking
-
     path = Path(task.recording)
     with Recording(path) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=task.calibration_dir,
@@ -118,7 +117,8 @@ def evaluate_forces(task: ForceTask) -> ForceResult:
         truth_n, marker_mae, missing = _truth(rec, t1, np.array([r.forces_n for r in rows]))
         probing = _in_phases(rec, t1)
         indenter = str(rec.attrs.get("indenter", ""))
-        phases = tuple((p.name, p.t_start_us, p.t_end_us) for p in rec.phases()) if "phases" in rec.streams and rec.rows("phases") else ()
+        has_phases = "phases" in rec.streams and rec.rows("phases")
+        phases = tuple((p.name, p.t_start_us, p.t_end_us) for p in rec.phases()) if has_phases else ()
     predicted = np.array([r.net_force_n for r in rows]).reshape(-1, 3)
     contact_px = np.array([r.contact_px for r in rows]).reshape(-1, 2)
     side = Path(task.sidecar) if task.sidecar else sidecar_path(path)

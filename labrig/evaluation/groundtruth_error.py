@@ -16,7 +16,11 @@ import numpy as np
 
 from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
+from labrig.groundtruth import generate, lab_inputs
+from labrig.groundtruth.inputs import recording_rig
 from labrig.pipeline.depth_sources import truth_between
+from labrig.recording import Recording
+from labrig.sim.motion import true_gel_in_machine
 
 
 @dataclass(frozen=True)
@@ -53,10 +57,6 @@ class GroundTruthErrorResult:
 def evaluate_groundtruth(task: GroundTruthErrorTask) -> GroundTruthErrorResult:
     """MAE (mm) in and out of the true contact, p95 out of contact, total, the masks' IoU, the
     indentation error and the generation rate (maps per second), over frames in contact."""
-    from labrig.groundtruth import generate, lab_inputs
-    from labrig.groundtruth.inputs import recording_rig
-    from labrig.recording import Recording
-
     with Recording(task.recording) as rec:
         if "truth/depth" not in rec.streams or rec.rows("truth/depth") == 0:
             raise LabrigError(f"{task.recording}: no /truth/depth; label errors need a virtual-rig recording")
@@ -66,8 +66,6 @@ def evaluate_groundtruth(task: GroundTruthErrorTask) -> GroundTruthErrorResult:
         indenter = str(rec.attrs.get("indenter", ""))
     lab = None
     if task.pose == "true":
-        from labrig.sim.motion import true_gel_in_machine
-
         lab = lab_inputs(rig, task.calibration_dir, gel_pose=true_gel_in_machine(rig))
     elif task.pose != "lab":
         raise LabrigError(f"pose must be 'lab' or 'true', not {task.pose!r}")

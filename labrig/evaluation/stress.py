@@ -299,7 +299,7 @@ def _methods(metric: str, model: str | None, axis: StressAxis) -> list[str]:
     if metric == "depth":
         return [DEPTH_MODEL] if model else []
     with_model = [FORCES_MODEL] + ([FORCES_MODEL_UNCALIBRATED] if axis.event_calibration else []) if model else []
-    return [FORCES_TRUTH, FORCES_LINEAR] + with_model
+    return [FORCES_TRUTH, FORCES_LINEAR, *with_model]
 
 
 def _scene_facts(measurement: SceneMeasurement | None) -> SceneFacts | None:

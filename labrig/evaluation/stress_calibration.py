@@ -21,8 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from labrig.calibration.event_thresholds import fit_event_thresholds
+from labrig.calibration.event_thresholds_file import write_event_thresholds
+from labrig.calibration.files import load_intrinsics
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
+from labrig.sim.calibration_scenes import record_led_blink, record_led_ramps
 from labrig.sim.imperfections import printed_markers
 from labrig.sim.truth_config import sim_config, true_camera
 
@@ -54,8 +58,6 @@ def calibrate_printed_markers(rig: RigConfig, calibration_dir: str | Path | None
     the extrinsics is copied. ``seed``: the LED-blink scene's.
     """
     from labrig.calibration.extrinsics import calibrate_extrinsics, write_extrinsics
-    from labrig.calibration.files import load_intrinsics
-    from labrig.sim.calibration_scenes import record_led_blink
 
     source = Path(calibration_dir) if calibration_dir is not None else None
     if source is None or not (source / "intrinsics.toml").exists():
@@ -86,10 +88,6 @@ def calibrate_event_thresholds(rig: RigConfig, calibration_dir: str | Path | Non
     biases (:func:`labrig.sim.calibration_scenes.record_led_ramps`, then
     :func:`labrig.calibration.event_thresholds.fit_event_thresholds`); the other ``*.toml`` of
     ``calibration_dir`` (or of ``out_dir`` when it is already a calibrated copy) stay. Returns ``out_dir``."""
-    from labrig.calibration.event_thresholds import fit_event_thresholds
-    from labrig.calibration.event_thresholds_file import write_event_thresholds
-    from labrig.sim.calibration_scenes import record_led_ramps
-
     out = _calibration_copy(Path(calibration_dir) if calibration_dir is not None else None, out_dir, but=EVENTS)
     recording = out / "led-ramps.h5"
     record_led_ramps(recording, rig, seed=seed, overwrite=True)

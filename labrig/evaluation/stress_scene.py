@@ -45,7 +45,13 @@ from labrig.clock import ClockModel
 from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
 from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
+from labrig.groundtruth import generate, write_sidecar
+from labrig.indenters import load_indenter
+from labrig.recording import Recording
 from labrig.sim.imperfections import printed_markers
+from labrig.sim.live import record_live
+from labrig.sim.motion import probing_path
+from labrig.sim.rig import VirtualRig
 from labrig.sim.truth_config import sim_config, true_camera
 
 US_PER_MIN = 60_000_000
@@ -205,13 +211,6 @@ class SceneFacts:
 
 def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
     """Simulate ``scene`` into the recording ``out`` (not real time) and write its sidecar ``NAME.gt.h5``."""
-    from labrig.groundtruth import generate, write_sidecar
-    from labrig.indenters import load_indenter
-    from labrig.recording import Recording
-    from labrig.sim.live import record_live
-    from labrig.sim.motion import probing_path
-    from labrig.sim.rig import VirtualRig
-
     scene.check()
     rig = stressed_rig(scene)
     indenter = load_indenter(scene.indenter)

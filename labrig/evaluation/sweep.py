@@ -32,8 +32,9 @@ from labrig.evaluation.forces import ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
+from labrig.pipeline.depthnet import benchmark_ms
 from labrig.pipeline.model_card import ModelCard, card_path, find_models
-from labrig.pipeline.windows import PAPER_WINDOW_EVENTS
+from labrig.pipeline.windows import PAPER_WINDOW_EVENTS, WindowArgs
 
 TOLERANCE = 0.05
 PATCH_SCALES = (1.0, 2.0, 3.0, 4.0, 5.0)
@@ -85,8 +86,6 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
               window_us: int | None = None, mesh_refinements: tuple[int, ...] = MESH_REFINEMENTS,
               patch_scales: tuple[float, ...] = PATCH_SCALES) -> SweepResult:
     """Every knob setting on ``recordings``; ``run(kind, fn, tasks) -> results`` runs tasks (parallel, cached)."""
-    from labrig.pipeline.depthnet import benchmark_ms
-
     points: list[SweepPoint] = []
     # tracking: patch size x refinement x tracker
     settings = [(tracker, refine, scale) for tracker in ("paper", "paper-published") for refine in (True, False)
@@ -104,7 +103,7 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
     # depth: widths and windows
     width_models, window_models = sweep_models(models_dir, main_model)
     models = sorted(set(width_models) | set(window_models))
-    windows = {"window_events": window_events, "window_us": window_us}
+    windows: WindowArgs = {"window_events": window_events, "window_us": window_us}
     depth_tasks = [DepthTask(p, m, sidecar=str(sidecar_path(p)), **windows) for m in models for p in recordings]
     results = run("sweep depth", evaluate_depth, depth_tasks)
     for k, model in enumerate(models):
@@ -122,7 +121,8 @@ def run_sweep(recordings: list[str], main_model: Path, models_dir: Path | None, 
             points.append(SweepPoint("depth", "window", f"{window:g} ms (w{width})", infer_ms + window, row["contact_mm"],
                                      {"infer_ms": infer_ms, "total_mm": row["total_mm"], "model": model}))
     # forces: mesh refinement, window kind
-    force_settings = [(f"mesh {m}", {"surface_refinement": m, **windows}) for m in mesh_refinements]
+    force_settings: list[tuple[str, dict[str, Any]]] = [(f"mesh {m}", {"surface_refinement": m, **windows})
+                                                       for m in mesh_refinements]
     force_settings += [(name, {"surface_refinement": 2, **w}) for name, w in FORCE_WINDOWS]
     force_tasks = [ForceTask(p, str(main_model), calibration_dir=calibration_dir, sidecar=str(sidecar_path(p)), **options)
                    for _, options in force_settings for p in recordings]

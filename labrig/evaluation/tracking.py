@@ -36,8 +36,21 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from labrig.config import DEFAULT_CALIBRATION_DIR
+from labrig.config import DEFAULT_CALIBRATION_DIR, load_rig
 from labrig.errors import LabrigError
+from labrig.pipeline.evetac import EvetacParams, EvetacTracker
+from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
+from labrig.pipeline.tracking import (
+    CircleFitParams,
+    CircleFitTracker,
+    Tracker,
+    TrackerParams,
+    marker_diameter_px,
+)
+from labrig.pipeline.windows import recording_windows
+from labrig.recording import Recording
+from labrig.sim.imperfections import printed_markers
+from labrig.sim.truth_config import sim_config, true_camera
 
 Array = npt.NDArray[np.float64]
 
@@ -129,9 +142,6 @@ class TrackingResult:
 def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed: npt.ArrayLike | None = None) -> Any:
     """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide;
     ``observed`` (M,): False for markers to skip (missing), None: all tracked."""
-    from labrig.pipeline.evetac import EvetacParams, EvetacTracker
-    from labrig.pipeline.tracking import CircleFitParams, CircleFitTracker, Tracker, TrackerParams
-
     if task.patch_scale <= 0:
         raise LabrigError(f"patch_scale must be positive (a multiple of the marker diameter), not {task.patch_scale}")
     if task.tracker == "evetac":
@@ -153,10 +163,6 @@ def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed
 
 def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
     """Track ``task.recording`` window by window; lost tracks, drift and (virtual rig) true errors."""
-    from labrig.pipeline.tracking import Tracker, marker_diameter_px
-    from labrig.pipeline.windows import recording_windows
-    from labrig.recording import Recording
-
     task = task if isinstance(task, TrackingTask) else TrackingTask(**task)
     with Recording(task.recording) as rec:
         rig, camera, rest_px, rest_source, observed = rest_pixels(rec, task.rest, task.calibration_dir)
@@ -196,11 +202,6 @@ def rest_pixels(rec: Any, rest: str, calibration_dir: str | None) -> tuple[Any, 
     "calibration": the run's camera and rest pixels (:func:`labrig.pipeline.run_setup.setup_for_recording`)
     and its present markers; "rig": the virtual rig's true camera and lattice, and its printed markers
     (``[sim.markers]``: what a calibration of that rig would find missing)."""
-    from labrig.config import load_rig
-    from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
-    from labrig.sim.imperfections import printed_markers
-    from labrig.sim.truth_config import sim_config, true_camera
-
     if rest == "calibration":
         setup = setup_for_recording(rec, calibration_dir=calibration_dir)
         return setup.rig, setup.camera, np.asarray(setup.rest_px, np.float64), setup.sources["camera"], setup.observed

@@ -13,8 +13,9 @@ import numpy as np
 from labrig.cache import sha256_of
 from labrig.dataset import DatasetRecording
 from labrig.errors import LabrigError
+from labrig.groundtruth.generate import generate
 from labrig.groundtruth.inputs import GroundTruthError
-from labrig.groundtruth.sidecar import FORMAT, load_groundtruth
+from labrig.groundtruth.sidecar import FORMAT, load_groundtruth, write_sidecar
 from labrig.indenters import DEFAULT_INDENTERS
 from labrig.recording import Recording
 
@@ -110,9 +111,6 @@ class SidecarTask:
 def write_sidecar_task(task: SidecarTask) -> dict[str, Any]:
     """Generate and write one sidecar; returns its summary entry (``status`` ``written``, or
     ``failed`` with the reason for a recording that cannot be labelled)."""
-    from labrig.groundtruth.generate import generate
-    from labrig.groundtruth.sidecar import write_sidecar
-
     entry: dict[str, Any] = {"recording": task.recording, "split": task.split}
     try:
         gt = generate(task.recording, elastic=task.elastic, method=task.method, rate_hz=task.rate_hz,

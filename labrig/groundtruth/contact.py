@@ -307,7 +307,7 @@ class DepthTable:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
             with open(tmp, "wb") as f:
-                np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
+                np.savez(f, allow_pickle=True, meta=np.array(json.dumps(meta)), **arrays)
             os.replace(tmp, path)
         return table
 

@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from labrig.calibration.files import load_camera, uncalibrated_camera
+from labrig.calibration.gel import load_gel
+from labrig.calibration.registration_file import REGISTRATION_FILE, gel_pose
 from labrig.config import DEFAULT_CALIBRATION_DIR as _DEFAULT_CALIBRATION_DIR
 from labrig.config import DEFAULT_RIG, ConfigError, GelConfig, RigConfig, load_rig
 from labrig.errors import LabrigError
@@ -81,8 +83,6 @@ def lab_gel(rig: RigConfig, calibration_dir: Path) -> tuple[GelConfig, float, st
     """(gel, stiffening, source): the fitted ``gel.toml`` when present, else the rig file's nominal [gel]."""
     path = calibration_dir / "gel.toml"
     if path.exists():
-        from labrig.calibration.gel import load_gel
-
         data = load_gel(path)
         try:
             gel = replace(rig.gel, youngs_modulus_mpa=float(data["youngs_modulus_mpa"]),
@@ -108,8 +108,6 @@ def lab_camera(rig: RigConfig, calibration_dir: Path) -> tuple[CameraModel, str]
 
 def lab_gel_pose(rig: RigConfig, calibration_dir: Path) -> tuple[Pose, str]:
     """(gel frame in machine coordinates, source): the rig registration when present, else the nominal pose."""
-    from labrig.calibration.registration_file import REGISTRATION_FILE, gel_pose
-
     path = calibration_dir / REGISTRATION_FILE
     pose = gel_pose(rig, path)
     return pose, str(path) if path.exists() else "rig [rig] nominal pose (no rig-registration.toml)"

@@ -7,13 +7,13 @@ log-intensity change since counting began, to within one threshold. The threshol
 camera's (its biases, each pixel's mismatch): measured per grid cell by ``labrig calibrate
 events`` (:class:`~labrig.calibration.event_thresholds_file.ContrastThresholds`), they turn the
 counts into a unit that no camera setting moves. The unit here is the **reference event**: the
-change of log intensity over :data:`NOMINAL_THRESHOLD_LN` (0.22 ln, the IMX636's nominal 25 %),
-the events a reference sensor would have fired; an ON event counts ``C_on / 0.22`` of them, an
-OFF event ``-C_off / 0.22``. Uncalibrated, every event counts one (the nominal sensor). Under the LED ring a dented membrane is brighter
-where it slopes (the slope shading of :mod:`labrig.sim.shading`; a real gel does the same), and
-a marker that moved leaves an OFF patch where it was and an ON patch where it is. So the
-integrated count is the image's change since rest: a still dent, which a 10 ms SAE cannot
-see, stays in it.
+change of log intensity over :data:`~labrig.calibration.event_thresholds_file.NOMINAL_THRESHOLD_LN`
+(0.22 ln, the IMX636's nominal 25 %), the events a reference sensor would have fired; an ON event
+counts ``C_on / 0.22`` of them, an OFF event ``-C_off / 0.22``. Uncalibrated, every event counts
+one (the nominal sensor). Under the LED ring a dented membrane is brighter where it slopes (the
+slope shading of :mod:`labrig.sim.shading`; a real gel does the same), and a marker that moved
+leaves an OFF patch where it was and an ON patch where it is. So the integrated count is the
+image's change since rest: a still dent, which a 10 ms SAE cannot see, stays in it.
 
 :class:`BrightnessIntegrator` keeps it on the network grid (:mod:`labrig.physics.grid`, the
 cells of :func:`labrig.pipeline.sae.sae_grid`), per window:
@@ -24,7 +24,8 @@ cells of :func:`labrig.pipeline.sae.sae_grid`), per window:
 seconds). The leak forgets what a pixel's threshold mismatch and background noise add up over
 minutes, and with them a press held that long. The gated leak (``BrightnessParams.rest_tau_s``)
 leaks only where the gel is at rest: each 10 ms step removes the uniform drift and decays the
-quiet cells quickly, while the cells that hold a change keep it (:meth:`BrightnessIntegrator._gated_leak`). :func:`brightness_channel` turns it into the network's channel: events per pixel
+quiet cells quickly, while the cells that hold a change keep it (:meth:`BrightnessIntegrator._gated_leak`).
+:func:`brightness_channel` turns it into the network's channel: events per pixel
 (the count over the cell's pixel area) minus the map's median (the uniform drift of the
 sensor's leak events, which fire ON at a steady rate on every pixel), over
 ``scale_events_per_px`` (reference events), clipped (a hot pixel's count grows without bound).
@@ -42,7 +43,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import uniform_filter
 
-from labrig.calibration.event_thresholds_file import NOMINAL_THRESHOLD_LN, ContrastThresholds
+from labrig.calibration.event_thresholds_file import ContrastThresholds
 from labrig.config import Roi
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE, grid_cells_of_pixels
@@ -92,7 +93,8 @@ def signed_counts(events: npt.NDArray, roi: Roi, grid_shape: tuple[int, int] = G
                   thresholds: ContrastThresholds | None = None) -> F32:
     """(rows, cols) float32: the log-intensity change per grid cell (the cells of ``sae_grid``) in reference
     events, summed over its pixels: ON minus OFF events, each weighted by its cell's threshold over
-    :data:`NOMINAL_THRESHOLD_LN` when ``thresholds`` are given (else 1); events outside the ROI are dropped."""
+    :data:`~labrig.calibration.event_thresholds_file.NOMINAL_THRESHOLD_LN` when ``thresholds`` are given
+    (else 1); events outside the ROI are dropped."""
     rows, cols = grid_shape
     if len(events) == 0:
         return np.zeros(grid_shape, np.float32)

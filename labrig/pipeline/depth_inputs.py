@@ -22,7 +22,7 @@ Training and inference build the channels with the same functions here.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -55,11 +55,12 @@ DEFAULT_DISPLACEMENT_SCALE_MM = 1.0
 
 @dataclass(frozen=True)
 class InputSpec:
-    """The channels a depth network takes, in order, the displacement channels' unit (mm) and the brightness channel's settings."""
+    """The channels a depth network takes, in order, the displacement channels' unit (mm) and the
+    brightness channel's settings."""
 
     kinds: tuple[str, ...] = ("sae",)
     displacement_scale_mm: float = DEFAULT_DISPLACEMENT_SCALE_MM
-    brightness: BrightnessParams = BrightnessParams()
+    brightness: BrightnessParams = field(default_factory=BrightnessParams)
 
     def __post_init__(self) -> None:
         unknown = [k for k in self.kinds if k not in CHANNELS]

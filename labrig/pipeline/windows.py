@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -39,6 +39,14 @@ MAX_JUMP_US = 10_000_000
 
 class WindowError(LabrigError, ValueError):
     """Windows that are not one positive time span or event count."""
+
+
+class WindowArgs(TypedDict):
+    """The keyword arguments that choose an evaluation task's windows: ``window_events`` events each,
+    or ``window_us`` (us) long."""
+
+    window_events: int | None
+    window_us: int | None
 
 
 @dataclass(frozen=True)

@@ -64,6 +64,7 @@ from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
 from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
 from labrig.sim.faults import RigFault
+from labrig.sim.truth import truth_streams
 
 F64 = npt.NDArray[np.float64]
 
@@ -438,8 +439,6 @@ class ProbeRunner:
             grbl.unlock()
 
     def _open_writer(self, out: Path, spec: ProbeSpec, protocol_toml: str, extra: dict[str, Any] | None) -> RecordingWriter:
-        from labrig.sim.truth import truth_streams
-
         info = {"virtual_rig": self.session.virtual, "made_by": "drivers", "seed": self.session.seed,
                 "location_mm": list(spec.location_mm),
                 "tare_n_nm": list(self.session.tare_n), "calibration": _calibration_files(self.rig), **(extra or {})}

@@ -116,7 +116,8 @@ class RigSession:
         self._stop.clear()
         try:
             paths = self._device_paths()
-            patience = {"response_timeout_s": TWIN_PATIENCE_S, "status_timeout_s": TWIN_PATIENCE_S} if self.virtual else {}
+            patience: dict[str, Any] = (
+                {"response_timeout_s": TWIN_PATIENCE_S, "status_timeout_s": TWIN_PATIENCE_S} if self.virtual else {})
             self.grbl = Grbl(paths["grbl"], baudrate=self.devices.grbl_baud, clock=self.clock,
                              on_sample=self._on_cnc, on_gcode=self._on_gcode, **patience,
                              output_on=self.devices.output_on, output_off=self.devices.output_off)

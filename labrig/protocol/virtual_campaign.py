@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from labrig.cache import sha256_of
+from labrig.calibration.event_thresholds import fit_event_thresholds
+from labrig.calibration.event_thresholds_file import write_event_thresholds
 from labrig.config import RigConfig, load_rig
 from labrig.dataset import COMPLETE, Dataset, events_sidecar_path
 from labrig.errors import LabrigError
@@ -92,9 +94,6 @@ def record_task(task: VirtualTask) -> Outcome:
 def calibrate_own_camera(rig: RigConfig, recording: Path, seed: int) -> Path:
     """Calibrate the contrast thresholds of the camera that made ``recording`` (``rig``'s) into its
     ``ID.events.toml`` sidecar, as ``labrig calibrate events`` would."""
-    from labrig.calibration.event_thresholds import fit_event_thresholds
-    from labrig.calibration.event_thresholds_file import write_event_thresholds
-
     with tempfile.TemporaryDirectory(prefix="labrig-events-") as folder:
         scene = Path(folder) / "led-ramps.h5"
         record_led_ramps(scene, rig, seed=seed, ramps=CAMPAIGN_RAMPS)

@@ -103,7 +103,7 @@ class _VirtualRun:
         self.on_step = on_step
         self.contact: F64 | None = None
         self.writer: RecordingWriter | None = None
-        self.grid_gel = None
+        self.grid_gel: F64 | None = None
         self.devices = OfflineRig(rig, indenter, seed=seed, start_tool_mm=plan.approach_start_mm, sinks=OfflineSinks(
             ft=self._on_ft, cnc=self._on_cnc, gcode=self._on_gcode, camera=self._on_chunk, rig_chunk=self._on_rig_chunk))
         self.monitor = ForceMonitor(limits, on_trip=self.devices.feed_hold)

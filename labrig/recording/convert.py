@@ -21,6 +21,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.devices.ecf import (
+    EcfError,
+    geometry_from_attrs,
+    iter_metavision_chunks,
+    metavision_attrs,
+    metavision_event_count,
+    metavision_triggers,
+)
 from labrig.devices.raw import TRIGGER_DTYPE, Evt3StreamEncoder, RawFormatError, make_header, open_decoder
 from labrig.errors import LabrigError
 from labrig.eventtypes import EVENT_DTYPE
@@ -86,8 +94,6 @@ class _Source:
         else:
             import h5py
 
-            from labrig.devices.ecf import EcfError, geometry_from_attrs, metavision_attrs, metavision_event_count
-
             try:
                 with h5py.File(path, "r") as f:
                     if f.attrs.get("schema") == "labrig.recording":
@@ -117,7 +123,6 @@ class _Source:
             decoder.finish()
             self.skipped_words = decoder.skipped_words
             return
-        from labrig.devices.ecf import EcfError, iter_metavision_chunks, metavision_triggers
 
         done = 0
         try:

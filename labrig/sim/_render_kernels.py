@@ -495,7 +495,8 @@ def leak_due(cand, t_start, t1, c_on_all, k_all, reference, log_filtered, hi, to
              out_kept):  # type: ignore[no-untyped-def]
     """The candidates whose next leak time is at or before ``t1`` (as :func:`quiet_leak` finds it), into
     ``out_due``; those still at or above their band's top (the only ones that may leak before the
-    epoch's end, :func:`epoch_leak_candidates`) into ``out_kept``, the others leave the candidates (``is_candidate``). Returns both counts."""
+    epoch's end, :func:`epoch_leak_candidates`) into ``out_kept``, the others leave the candidates
+    (``is_candidate``). Returns both counts."""
     m = 0
     kept = 0
     for i in range(cand.size):

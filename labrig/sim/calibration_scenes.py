@@ -242,7 +242,7 @@ class LedRamps:
         out, t = [], self.lead_ms * 1e3
         for _ in range(self.cycles):
             for direction in (-1, 1):
-                out.append((int(round(t)), int(round(t + self.ramp_ms * 1e3)), direction))
+                out.append((round(t), round(t + self.ramp_ms * 1e3), direction))
                 t += (self.ramp_ms + self.hold_ms) * 1e3
         return out
 
@@ -252,12 +252,12 @@ class LedRamps:
         for t0, t1, direction in self.ramps_us():
             for k in range(1, self.steps + 1):
                 frac = k / self.steps if direction < 0 else 1.0 - k / self.steps
-                out.append((int(round(t0 + (t1 - t0) * (k - 0.5) / self.steps)), float(self.ratio ** -frac)))
+                out.append((round(t0 + (t1 - t0) * (k - 0.5) / self.steps), float(self.ratio ** -frac)))
         return out
 
     @property
     def duration_us(self) -> int:
-        return int(round((self.lead_ms * 2 + self.cycles * 2 * (self.ramp_ms + self.hold_ms)) * 1e3))
+        return round((self.lead_ms * 2 + self.cycles * 2 * (self.ramp_ms + self.hold_ms)) * 1e3)
 
 
 def record_led_ramps(

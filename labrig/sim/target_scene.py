@@ -80,7 +80,8 @@ class TargetScene:
         for pose in poses:
             lit = render_target(self.camera, self.target, pose).ravel()
             dots = np.flatnonzero(lit != self._dark)
-            on_times, off_times = [], []
+            on_times: list[int] = []
+            off_times: list[int] = []
             for _ in range(blinks):
                 for level, times in ((lit[dots], on_times), (self._dark[dots], off_times)):
                     t0 = self.sensor.t_us

@@ -21,14 +21,16 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from labrig.config import RigConfig
+from labrig.config import RigConfig, load_rig
 from labrig.errors import LabrigError
-from labrig.indenters import Indenter
+from labrig.indenters import DEFAULT_INDENTERS, Indenter, load_indenters
+from labrig.physics.grid import network_grid_gel_mm
 from labrig.physics.mechanics.tables import table_direction_deg
 from labrig.sim.faults import RigFault
-from labrig.sim.live import TruthRows
+from labrig.sim.live import TruthRows, truth_rows
 from labrig.sim.parent_watch import exit_with_parent, started_from_main_thread
 from labrig.sim.truth_config import true_contact_table
+from labrig.sim.world import LiveWorld
 
 #: Truth chunks waiting in the pipe at most (about 10 s of rendering); more are dropped and counted.
 TRUTH_QUEUE_CHUNKS = 1000
@@ -161,12 +163,6 @@ def _serve(args: dict[str, Any], conn: Any, truth_queue: Any, progress: Any, sto
     exit_with_parent(args["parent_pid"], death_signal=args["death_signal"])
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the parent's to handle: it stops us
     try:
-        from labrig.config import load_rig
-        from labrig.indenters import DEFAULT_INDENTERS, load_indenters
-        from labrig.physics.grid import network_grid_gel_mm
-        from labrig.sim.live import truth_rows
-        from labrig.sim.world import LiveWorld
-
         rig = load_rig(args["rig_path"])
         indenter = load_indenters(args["indenters_path"] or DEFAULT_INDENTERS)[args["indenter"]]
         state: dict[str, Any] = {"dropped": 0}

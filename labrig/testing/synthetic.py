@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from labrig.recording import RecordingMetadata, RecordingWriter
+
 #: (phase, duration weight, dz over the phase in mm, dx over the phase in mm)
 PROBING_PATH: tuple[tuple[str, float, float, float], ...] = (
     ("approach", 0.6, -0.5, 0.0),
@@ -244,8 +246,6 @@ def feed_writer(writer: Any, run: SyntheticRun) -> None:
 
 def record_synthetic(path: Any, run: SyntheticRun | None = None, **writer_kwargs: Any) -> Any:
     """Write one synthetic run through the real writer; returns its RecordingResult."""
-    from labrig.recording import RecordingMetadata, RecordingWriter
-
     run = run or SyntheticRun()
     metadata = RecordingMetadata(indenter="sphere", protocol_toml="# synthetic probing run\n", extra={"synthetic": True})
     with RecordingWriter(path, metadata, **writer_kwargs) as writer:

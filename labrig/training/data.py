@@ -40,6 +40,7 @@ from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import pad_for_unet, sae_grid
+from labrig.recording import EVENT_DTYPE, Recording
 from labrig.training.state_data import StateChannels
 
 SAE_ONLY = InputSpec()
@@ -77,8 +78,6 @@ def background_noise(roi: Roi, t0_us: float, t1_us: float, rate_hz: float,
                      rng: np.random.Generator) -> npt.NDArray:
     """Noise events (``EVENT_DTYPE``, sorted in time) at ``rate_hz`` per pixel over ``roi`` and
     ``[t0_us, t1_us)``: Poisson count, uniform pixel, time and polarity."""
-    from labrig.recording import EVENT_DTYPE
-
     mean = rate_hz * roi.width_px * roi.height_px * max(t1_us - t0_us, 0.0) * 1e-6
     n = int(rng.poisson(mean)) if mean > 0 else 0
     events = np.zeros(n, EVENT_DTYPE)
@@ -105,8 +104,6 @@ class Source:
     """One recording and its sidecar: lazy map reads (one compressed chunk per map)."""
 
     def __init__(self, recording: Path, sidecar: Path, split: str, phases: str = "probing") -> None:
-        from labrig.recording import Recording
-
         self.path = recording
         self.sidecar = sidecar
         self.split = split

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from labrig.cache import sha256_of
 from labrig.errors import LabrigError
 from labrig.models import WEIGHTS_SUFFIX, model_path
 from labrig.pipeline.depth_inputs import INPUT_SETS, InputSpec
@@ -42,8 +43,6 @@ class InitialNetwork:
 
     def describe(self) -> dict[str, Any]:
         """The fine-tuned card's ``init`` section (before the validation errors are added)."""
-        from labrig.cache import sha256_of
-
         return {"model": self.card.name or self.onnx.stem, "onnx": str(self.onnx),
                 "onnx_sha256": sha256_of(self.onnx), "weights": self.weights.name}
 

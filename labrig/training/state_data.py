@@ -41,10 +41,15 @@ import numpy.typing as npt
 from labrig.cache import cache_folder, cache_key, sha256_of
 from labrig.calibration.event_thresholds_file import ContrastThresholds
 from labrig.errors import LabrigError
+from labrig.executor import run_tasks
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline import run_setup, tracking
 from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel
 from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
+from labrig.pipeline.rest import RestParams, RestRefiner
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
+from labrig.pipeline.windows import recording_windows
+from labrig.recording import Recording
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -124,11 +129,6 @@ class Tracks:
 
 def track_recording(path: str | Path, calibration_dir: str | Path | None, cache_root: str | Path | None = None) -> Tracks:
     """The pipeline's tracker over the whole recording (10 ms windows), cached by the file's SHA-256 and the setup."""
-    from labrig.pipeline import run_setup, tracking
-    from labrig.pipeline.rest import RestParams, RestRefiner
-    from labrig.pipeline.windows import recording_windows
-    from labrig.recording import Recording
-
     path = Path(path)
     with Recording(path) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
@@ -188,9 +188,6 @@ def brightness_recording(path: str | Path, params: BrightnessParams, calibration
                          cache_root: str | Path | None = None) -> BrightnessTrack:
     """:class:`BrightnessTrack` of a recording, cached by the file's SHA-256, its ROI, the contrast
     thresholds and the settings."""
-    from labrig.pipeline import run_setup
-    from labrig.recording import Recording
-
     path = Path(path)
     with Recording(path) as rec:
         setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
@@ -268,9 +265,6 @@ class StateChannels:
         if "brightness" in spec.kinds:
             self.brightness = brightness_recording(recording, spec.brightness, calibration_dir, cache_root)
         if "displacement" in spec.kinds:
-            from labrig.pipeline import run_setup
-            from labrig.recording import Recording
-
             with Recording(recording) as rec:
                 setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
             self.camera = setup.camera
@@ -336,7 +330,7 @@ def build_state(task: StateTask) -> int:
     channels = StateChannels(task.recording, InputSpec.from_card({"inputs": task.inputs}), task.calibration_dir)
     steps = channels.brightness.t_us if channels.brightness is not None else (
         channels.tracks.t_us if channels.tracks is not None else np.zeros(0))
-    return int(len(steps))
+    return len(steps)
 
 
 def prepare_states(recordings: list[Path], spec: InputSpec, calibration_dir: str | Path | None, *,
@@ -344,8 +338,6 @@ def prepare_states(recordings: list[Path], spec: InputSpec, calibration_dir: str
     """Build every recording's state channels in parallel (``workers`` processes; None: one per core) so that
     training samples from warm caches: a campaign's first pass would otherwise integrate each recording whole,
     one after another, in the sampler's process."""
-    from labrig.executor import run_tasks
-
     if not spec.stateful or not recordings:
         return
     tasks = [StateTask(str(path), spec.to_card(), None if calibration_dir is None else str(calibration_dir))

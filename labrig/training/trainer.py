@@ -22,13 +22,17 @@ from typing import Any
 
 import numpy as np
 
+from labrig import __version__
 from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
 from labrig.pipeline.depth_inputs import InputSpec
+from labrig.pipeline.depthnet import DepthModel, UNetConfig, benchmark_ms, build_unet, export_onnx, parameter_count
+from labrig.pipeline.model_card import write_card
 from labrig.pipeline.sae import crop_from_unet
-from labrig.training.data import NoiseAugment
+from labrig.training.data import NoiseAugment, WindowSampler, fixed_set, open_campaign
+from labrig.training.init import initial_network
 from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
-from labrig.training.state_data import SELF_FEED_MAX, self_feed
+from labrig.training.state_data import SELF_FEED_MAX, PreviousAugment, prepare_states, self_feed
 
 DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
@@ -72,8 +76,6 @@ class TrainConfig:
     @classmethod
     def from_init(cls, init: str, **settings: Any) -> TrainConfig:
         """A config that fine-tunes ``init``: its architecture, window and inputs, the other ``settings`` as given."""
-        from labrig.training.init import initial_network
-
         net = initial_network(init)
         return cls(width=net.width, pools=net.pools, window_ms=net.window_ms, inputs=net.inputs, init=str(init),
                    **settings)
@@ -155,11 +157,6 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
           on_step: Callable[[int, float], None] | None = None) -> dict[str, Any]:
     """Train, export and return the model card (also written beside the .onnx)."""
     import torch
-
-    from labrig import __version__
-    from labrig.pipeline.depthnet import UNetConfig, build_unet, export_onnx, parameter_count
-    from labrig.training.data import WindowSampler, fixed_set, open_campaign
-    from labrig.training.state_data import prepare_states
 
     config.check()
     paths = output_paths(out)
@@ -302,8 +299,6 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
         }
         export_onnx(model, paths["onnx"], None)
-        from labrig.pipeline.depthnet import benchmark_ms
-        from labrig.pipeline.model_card import write_card
 
         write_card(card, paths["card"])
         card["inference_ms_ort_1thread"] = round(benchmark_ms(paths["onnx"], threads=1), 3)
@@ -319,7 +314,6 @@ def _initial(config: TrainConfig, scale_mm: float) -> Any:
     config and the data, or None."""
     if config.init is None:
         return None
-    from labrig.training.init import initial_network
 
     net = initial_network(config.init)
     mismatched = [f"{key} {getattr(net, key)!r} (not {getattr(config, key)!r})"
@@ -335,8 +329,6 @@ def _initial(config: TrainConfig, scale_mm: float) -> Any:
 
 def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
     """The card's augmentation section: background noise, the previous map's perturbation, the tracker's tracks."""
-    from labrig.training.state_data import PreviousAugment
-
     out: dict[str, Any] = {}
     if config.noise:
         out["background_noise"] = config.noise.describe()
@@ -433,9 +425,6 @@ def split_errors(onnx_path: str | Path, data_dir: str | Path, split: str = "test
     The windows are drawn with the card's window length and the paper's sampling, the same
     draw for every model given the same seed, so models can be compared on one set.
     """
-    from labrig.pipeline.depthnet import DepthModel
-    from labrig.training.data import fixed_set, open_campaign
-
     model = DepthModel(onnx_path, threads=threads)
     data = open_campaign(data_dir)
     try:

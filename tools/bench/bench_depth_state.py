@@ -26,8 +26,8 @@ import numpy as np
 from _common import bench_main, emit
 
 from labrig.config import load_rig
-from labrig.physics.grid import GRID_SHAPE
 from labrig.eventtypes import EVENT_DTYPE
+from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import depth_sources, run_setup
 from labrig.pipeline.brightness import signed_counts
 from labrig.pipeline.depth_inputs import INPUT_SETS, InputSpec

@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-
 from _common import bench_main, emit
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -110,7 +110,8 @@ def run(windows: int = 300, events: int = 20_000, progress: bool = True) -> dict
 
 def render(f: dict[str, Any]) -> None:
     rows = [[name, f"{f[name]['median_ms']:.3f}", f"{f[name]['p95_ms']:.3f}", f"{f[name]['median_window_fraction']:.4f}",
-             f"{f[name]['p95_window_fraction']:.4f}"] for name in ("paper", "paper-unguarded", "paper-no-follow-no-lag", "circle-fit", "evetac")]
+             f"{f[name]['p95_window_fraction']:.4f}"]
+            for name in ("paper", "paper-unguarded", "paper-no-follow-no-lag", "circle-fit", "evetac")]
     emit(f"Marker tracking: {f['events_per_window']} events, {f['markers']} markers per {f['window_ms']:.0f} ms window",
          ["tracker", "median ms", "p95 ms", "median / window", "p95 / window"], rows,
          [f"target for the paper's tracker: <= 0.05 of the window; the paper's C++ tracker: 0.46. "

@@ -204,20 +204,21 @@ class Camera:
         Raises :attr:`error` (a :class:`CameraError`) once the chunks before a failure are read.
         """
         if self._ended and self._queue.empty():
-            return self._ended_read()
+            self._ended_read()
+            return None
         try:
             item = self._queue.get(timeout=timeout_s)
         except queue.Empty:
             return None
         if item is _END:
             self._ended = True
-            return self._ended_read()
+            self._ended_read()
+            return None
         return item  # type: ignore[no-any-return]
 
     def _ended_read(self) -> None:
         if self.error is not None:
             raise self.error
-        return None
 
     def chunks(self, timeout_s: float | None = None) -> Iterator[EventChunk]:
         """Chunks until the stream ends, or until none arrives within ``timeout_s``."""

@@ -92,7 +92,7 @@ def write_table_file(path: str | Path, meta: dict[str, Any], arrays: dict[str, n
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as f:
-        np.savez(f, meta=np.array(json.dumps(meta)), **{name: arrays[name] for name in TABLE_ARRAYS})
+        np.savez(f, allow_pickle=True, meta=np.array(json.dumps(meta)), **{name: arrays[name] for name in TABLE_ARRAYS})
     os.replace(tmp, path)
     return path
 
