@@ -219,7 +219,7 @@ def _compare_with_read_raw(path: Path) -> None:
 
 
 @pytest.mark.skipif(not REAL_SDK, reason="the Metavision SDK / OpenEB (metavision_hal) is not importable here; "
-                    "see the README's 'Metavision SDK' section to build it and run this test")
+                    "see docs/camera.md, 'Metavision SDK', to build it and run this test")
 @pytest.mark.parametrize("name", ["evt3_sample.raw", "evt2_sample.raw"])
 def test_the_real_sdk_streams_the_real_samples(name: str) -> None:
     path = SAMPLES / name

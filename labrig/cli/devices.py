@@ -54,7 +54,7 @@ def devices(as_json: JsonOption = False) -> None:
                       f"cameras it sees: {', '.join(sdk.cameras) or 'none'}" + (f"; [yellow]{sdk.error}[/]" if sdk.error else ""))
     elif sdk is not None:
         console.print(f"Metavision SDK: not importable ({sdk.error}); the camera = \"metavision\" backend needs it "
-                      "(README, 'Metavision SDK')")
+                      "(docs/camera.md, 'Metavision SDK')")
 
 
 # -- labrig ft ---------------------------------------------------------------------------------
