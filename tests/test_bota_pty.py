@@ -129,7 +129,7 @@ def test_unplugged_mid_stream_is_reported_without_hanging(make_rig) -> None:
     rig = streaming(make_rig())
     rig.wait_samples(50)
     rig.server.stop()  # closes the pty: the port is gone
-    rig.wait_for(lambda: rig.sensor.error is not None, 2.0)
+    rig.wait_for(lambda: rig.sensor.error is not None and bool(rig.errors), 2.0)  # the error latches, then on_error runs
     assert isinstance(rig.sensor.error, BotaDisconnected) and rig.errors == [rig.sensor.error]
     assert "disconnected" in str(rig.sensor.error)
     rig.wait_for(lambda: rig.sensor.reader_exit_reason != "", 1.0)
