@@ -26,7 +26,7 @@ test: $(STAMP)
 	$(BIN)/ruff check labrig tests tools
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-cache
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=20
 
 bench: $(STAMP)
 	$(BIN)/python tools/bench/run_all.py

@@ -29,11 +29,26 @@ def test_the_scene_sets_the_cameras_thresholds_and_the_light() -> None:
     asymmetric = stressed_rig(StressScene(on_off_ratio=1.6))  # about the rig's own geometric mean
     events = sim_config(asymmetric).events
     assert np.sqrt(events.threshold_on * events.threshold_off) == pytest.approx(0.22)
-    assert StressScene(on_off_ratio=1.6).changes_event_response and not StressScene(slope_gain=3.0).changes_event_response
+    assert StressScene(on_off_ratio=1.6).changes_event_response and StressScene(slope_gain=3.0).changes_event_response
+    assert not StressScene(membrane_level=0.2).changes_event_response  # the log intensity does not see the level
     for bad in ({"contrast_threshold": 0.0}, {"on_off_ratio": 0.0}, {"membrane_level": 1.5}, {"slope_gain": -1.0}):
         with pytest.raises(LabrigError, match="stress scene"):
             StressScene(**bad).check()  # type: ignore[arg-type]
     assert set(RESPONSE_AXES) <= {axis_named(k).key for k in RESPONSE_AXES}
+
+
+def test_the_light_is_recalibrated_with_the_protocols_press_on_the_scenes_own_sensor() -> None:
+    import tomllib
+
+    from labrig.evaluation.stress_calibration import SLOPE_PRESS_PROTOCOL, calibration_press
+
+    scene = StressScene(slope_gain=1.0, contrast_threshold=0.3, shear_mm=0.5, burst_period_ms=20.0, seed=9)
+    press = calibration_press(scene)
+    protocol = tomllib.loads(SLOPE_PRESS_PROTOCOL.read_text())
+    assert (press.depth_mm, press.wait_s, press.shear_mm) == (protocol["normal"]["depth_mm"],
+                                                             protocol["wait"]["duration_s"], 0.0)
+    assert (press.slope_gain, press.contrast_threshold, press.seed, press.burst_period_ms) == (1.0, 0.3, 9, 0.0)
+    assert axis_named("led_slope_gain").event_calibration and min(axis_named("led_slope_gain").reduced) <= 1.0
 
 
 class Runner:

@@ -1,9 +1,10 @@
 """Calibrate the default rig (the virtual one) end to end and write its files into calibration/.
 
 The same commands a lab runs on its own rig, in order: camera intrinsics (a blinking dot-grid
-target at many poses), extrinsics (the LED ring blinking), contrast thresholds (the LED ring
-dimmed and brightened along ramps), rig registration (touch-offs through the real drivers), gel
-modulus (stepped indentations). Each records its scene on the virtual rig first. The files
+target at many poses), extrinsics (the LED ring blinking), rig registration (touch-offs through
+the real drivers), gel modulus (stepped indentations), contrast thresholds and the light's slope
+response (the LED ring dimmed and brightened along ramps, then the calibration press, whose ground
+truth needs the registration and the gel). Each records its scene on the virtual rig first. The files
 (intrinsics.toml, extrinsics.toml, events.toml with events-thresholds.npz, rig-registration.toml,
 gel.toml) ship with labrig; rerun this after changing calibration/rig.toml's [sim.*] truth.
 
@@ -29,9 +30,9 @@ def main(argv: list[str] | None = None) -> int:
     steps = [
         ("intrinsics", ["--out", str(CALIBRATION / "intrinsics.toml")]),
         ("extrinsics", ["--intrinsics", str(CALIBRATION / "intrinsics.toml"), "--out", str(CALIBRATION / "extrinsics.toml")]),
-        ("events", ["--out", str(CALIBRATION / "events.toml")]),
         ("rig", ["--out", str(CALIBRATION / "rig-registration.toml")]),
         ("gel", ["--out", str(CALIBRATION / "gel.toml")]),
+        ("events", ["--out", str(CALIBRATION / "events.toml")]),  # last: its calibration press needs the gel's
     ]
     summary = {}
     for name, options in steps:

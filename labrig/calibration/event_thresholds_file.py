@@ -7,6 +7,10 @@ ROI they were measured on. ``events.toml`` holds the summary and the maps themse
 ``on_ln``, ``off_ln``: rows of the grid, 5 significant digits), so the file travels alone like
 every other calibration file. Without one every event counts as one of a sensor at
 :data:`NOMINAL_THRESHOLD_LN` (the pipeline's thresholds are then None).
+
+The file may also hold the membrane's shading response (``[shading]`` ``slope_gain``: how much
+brighter the membrane looks per unit of surface slope, :mod:`labrig.calibration.slope_response`),
+fitted from a press of known depth; without it the light is taken as the reference light.
 """
 
 from __future__ import annotations
@@ -39,12 +43,14 @@ EVENTS_FILE = "events.toml"
 @dataclass(frozen=True, eq=False)
 class ContrastThresholds:
     """ON and OFF contrast thresholds ``on_ln``, ``off_ln`` (rows, cols) float32, ln intensity per event,
-    per cell of the network grid over ``roi`` (sensor px); ``source``: where they came from."""
+    per cell of the network grid over ``roi`` (sensor px); ``source``: where they came from; ``slope_gain``
+    (dimensionless; None: not measured): the membrane's shading response of the same sensor."""
 
     on_ln: F32
     off_ln: F32
     roi: Roi
     source: str = "nominal"
+    slope_gain: float | None = None
 
     def __post_init__(self) -> None:
         if self.on_ln.shape != self.off_ln.shape or self.on_ln.ndim != 2:
@@ -52,6 +58,9 @@ class ContrastThresholds:
         if not (np.isfinite(self.on_ln).all() and np.isfinite(self.off_ln).all()
                 and (self.on_ln > 0).all() and (self.off_ln > 0).all()):
             raise CalibrationError(f"{self.source}: every contrast threshold must be finite and positive; "
+                                   "recalibrate with `labrig calibrate events`")
+        if self.slope_gain is not None and not (np.isfinite(self.slope_gain) and self.slope_gain > 0):
+            raise CalibrationError(f"{self.source}: the slope gain must be a positive number, not {self.slope_gain!r}; "
                                    "recalibrate with `labrig calibrate events`")
 
     @cached_property
@@ -78,8 +87,8 @@ class ContrastThresholds:
 
 def write_event_thresholds(path: str | Path, thresholds: ContrastThresholds, summary: dict[str, Any],
                            provenance: dict[str, Any]) -> Path:
-    """Write ``events.toml`` (``summary``: the [thresholds], [scene] and [quality] figures) with its maps,
-    through a temporary file."""
+    """Write ``events.toml`` (``summary``: the [thresholds], [scene] and [quality] figures, and [shading] when
+    the slope response was fitted) with its maps, through a temporary file."""
     roi = thresholds.roi
 
     def rows(values: F32) -> str:
@@ -95,6 +104,7 @@ def write_event_thresholds(path: str | Path, thresholds: ContrastThresholds, sum
         + "\n" + toml_table("roi", {"x0_px": roi.x0_px, "y0_px": roi.y0_px, "x1_px": roi.x1_px, "y1_px": roi.y1_px})
         + "\n" + toml_table("scene", summary["scene"])
         + "\n" + toml_table("quality", summary["quality"])
+        + ("\n" + toml_table("shading", summary["shading"]) if summary.get("shading") else "")
         + "\n" + toml_table("source", provenance)
         + f"\n[map]  # per cell, row-major over the ROI: the ON and OFF thresholds, ln\non_ln = {rows(thresholds.on_ln)}\n"
         + f"off_ln = {rows(thresholds.off_ln)}\n"
@@ -120,9 +130,11 @@ def load_event_thresholds(path: str | Path) -> ContrastThresholds:
         roi = Roi(int(r["x0_px"]), int(r["y0_px"]), int(r["x1_px"]), int(r["y1_px"]))
         on = np.asarray(data["map"]["on_ln"], np.float32)
         off = np.asarray(data["map"]["off_ln"], np.float32)
+        shading = data.get("shading")
+        slope_gain = None if shading is None else float(shading["slope_gain"])
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationError(f"{path}: missing or malformed key {exc}; recalibrate with `labrig calibrate events`") from None
     if on.shape != shape or off.shape != shape:
         raise CalibrationError(f"{path}: [map] on_ln and off_ln must be {shape} (grid_shape), not {on.shape} and "
                                f"{off.shape}; recalibrate with `labrig calibrate events`")
-    return ContrastThresholds(on, off, roi, str(path))
+    return ContrastThresholds(on, off, roi, str(path), slope_gain)

@@ -181,7 +181,8 @@ def extrinsics_command(
 
 @calibrate_app.command("events")
 def events_command(
-    recording: Annotated[Path | None, typer.Argument(help="Recording of the LED ring dimmed and brightened along ramps, gel at rest (default: record one on the virtual rig).")] = None,  # noqa: E501
+    recording: Annotated[Path | None, typer.Argument(help="Recording of the LED ring dimmed and brightened along ramps, gel at rest (default: record one on the virtual rig, and the calibration press).")] = None,  # noqa: E501
+    press: Annotated[Path | None, typer.Option("--press", help="A probing recording of the standard sphere pressed 1 mm or more (protocols/slope-press.toml): the light's slope response is fitted against its ground truth.")] = None,  # noqa: E501
     out: Annotated[Path | None, typer.Option("--out", help="Thresholds file to write (default: events.toml beside the rig file).")] = None,  # noqa: E501
     force: ForceOption = False,
     led_ratio: Annotated[float | None, typer.Option("--led-ratio", help="The LED's full / dimmed light (default: what the recording names).", min=1.0)] = None,  # noqa: E501
@@ -191,31 +192,53 @@ def events_command(
         "--plot", help="Draw the threshold maps and histograms to this PNG.", callback=output_file)] = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Contrast thresholds, ON and OFF, per cell of the network grid, from the LED ring dimmed and brightened.
+    """Contrast thresholds, ON and OFF, per cell of the network grid, from the LED ring dimmed and brightened;
+    with a press of known depth, the light's slope response too.
 
     Every command that reads the calibration folder uses them: the depth network's brightness input is
-    then the change of log intensity, not a count of events, whatever the camera's biases."""
+    then the change of log intensity under the reference light, not a count of events, whatever the
+    camera's biases and the light."""
     from labrig.cache import sha256_of
     from labrig.calibration.event_thresholds import fit_event_thresholds
     from labrig.calibration.event_thresholds_file import EVENTS_FILE, write_event_thresholds
     from labrig.calibration.files import provenance
     from labrig.calibration.plots import plot_event_thresholds
     from labrig.config import DEFAULT_RIG, load_rig
+    from labrig.errors import CalibrationError
+    from labrig.indenters import load_indenters
+    from labrig.protocol.light_calibration import measure_slope_response, record_slope_press
 
     rig = load_rig(rig_path or DEFAULT_RIG)
     target = calibration_output(out, rig.path.parent / EVENTS_FILE, force)
+    if press is not None and not press.exists():
+        raise CalibrationError(f"--press {press}: no such recording; record the calibration press first "
+                               "(labrig run protocols/slope-press.toml)")
     if recording is None:
         from labrig.sim.calibration_scenes import record_led_ramps
 
         recording = _scratch("led-ramps.h5")
         err_console.print(f"no recording given: recording the LED ring's ramps on the virtual rig ({recording})")
         record_led_ramps(recording, rig, seed=seed)
+        if press is None:
+            press = _scratch("slope-press.h5")
+            err_console.print(f"and the calibration press on the virtual rig ({press})")
+            record_slope_press(press, rig, load_indenters()["sphere"], seed=seed)
     fit = fit_event_thresholds(recording, rig.roi, ratio=led_ratio)
     summary = fit.summary()
+    response = None
+    if press is not None:
+        response = measure_slope_response(press, rig.roi, fit.thresholds, rig.path.parent, rig.path)
+        summary["shading"] = {**response.summary(), "press": str(press)}
+    else:
+        err_console.print("no --press: the light's slope response is not measured; networks trained under the "
+                          "reference light will assume it")
     backup = keep_backup(target)
     path = write_event_thresholds(target, fit.thresholds, summary, provenance(recording, sha256_of(recording)))
     result: dict[str, Any] = {"path": str(path), "recording": str(recording), "backup": None if backup is None else str(backup),
-                              **summary["thresholds"], **summary["scene"], **summary["quality"]}
+                              **summary["thresholds"], **summary["scene"], **summary["quality"],
+                              "slope_gain": None if response is None else response.slope_gain,
+                              "slope_rms_ln": None if response is None else response.rms_ln,
+                              "press": None if press is None else str(press)}
     if plot is not None:
         result["plot"] = str(plot_event_thresholds(fit, plot))
     if as_json:
@@ -232,6 +255,9 @@ def events_command(
                   f"({fit.ramps_used} ramps of ln {fit.schedule.ratio:g})")
     table.add_row("background", f"{q['background_rate_hz']:.3f} Hz per pixel")
     table.add_row("left out", f"{q['pixels_rejected']} pixels (hot or dead), {q['cells_filled']} cells given the median")
+    table.add_row("slope gain", "not measured (no --press)" if response is None else
+                  f"{response.slope_gain:.3f} (ln(1 + g |grad d|) fitted over {response.cells} cells of "
+                  f"{response.maps} maps, rms {response.rms_ln:.3f} ln)")
     calibration_file_rows(table, result)
     console.print(table)
 

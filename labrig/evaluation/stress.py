@@ -53,7 +53,7 @@ from labrig.evaluation.depth import DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.report import Report
 from labrig.evaluation.stress_axes import AXES, StressAxis
-from labrig.evaluation.stress_calibration import calibrate_event_thresholds, calibrate_printed_markers
+from labrig.evaluation.stress_calibration import calibrate_event_response, calibrate_printed_markers
 from labrig.evaluation.stress_scene import SceneFacts, StressScene, record_scene, stressed_rig
 from labrig.evaluation.tracking import TrackingTask, track_recording
 from labrig.executor import Run
@@ -143,7 +143,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
                             rest_error_rms_px=calibrated.rest_error_rms_px)
         uncalibrated_dir = calibration_dir
         if scene.changes_event_response:
-            calibration_dir = calibrate_event_thresholds(rig, calibration_dir, Path(folder) / "calibration", seed=scene.seed)
+            calibration_dir = calibrate_event_response(scene, calibration_dir, Path(folder) / "calibration")
         for window_ms in task.windows_ms:
             window_us = round(window_ms * 1000)
             tracking = {}
@@ -176,7 +176,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
     return SceneMeasurement(facts, by_tracker, by_method, by_depth)
 
 
-measure_scene.cache_version = "16"  # type: ignore[attr-defined]  # 16: the marker diameter through the run's camera; 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
+measure_scene.cache_version = "17"  # type: ignore[attr-defined]  # 17: the light's slope response calibrated with the thresholds; 16: the marker diameter through the run's camera; 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
 
 
 def window_key(window_ms: float) -> str:

@@ -43,7 +43,7 @@ class StressAxis:
     metrics: tuple[str, ...]
     what: str  # how a value changes the scene, one sentence
     log_x: bool = False
-    event_calibration: bool = False  # the scenes change the camera's thresholds: measured with and without recalibrating
+    event_calibration: bool = False  # the scenes change the camera or its light: measured with and without recalibrating
 
     def values(self, grid: str) -> tuple[float, ...]:
         if grid not in GRIDS:
@@ -122,7 +122,7 @@ AXES: tuple[StressAxis, ...] = (
              "recording's clock fit rests on the prompt pairs (lower envelope) and the trigger edges"),
     StressAxis(
         "contrast_threshold", "Contrast threshold (a less sensitive bias setting)", "contrast threshold, ON and OFF",
-        "ln", "ln", "contrast_threshold", full=(0.22, 0.26, 0.30, 0.35, 0.40), reduced=(0.22, 0.30, 0.40),
+        "ln", "ln", "contrast_threshold", full=(0.15, 0.22, 0.26, 0.30, 0.35, 0.40), reduced=(0.15, 0.22, 0.30, 0.40),
         metrics=("forces",), event_calibration=True,
         what="raises both contrast thresholds (the reference camera's 0.22 ln); fewer events for the same change, "
              "measured with the thresholds recalibrated (labrig calibrate events) and with the reference camera's"),
@@ -133,9 +133,10 @@ AXES: tuple[StressAxis, ...] = (
              "ON and OFF counts; measured recalibrated and with the reference camera's thresholds"),
     StressAxis(
         "led_slope_gain", "LED ring slope gain", "brightening per unit surface slope", "x", "x", "slope_gain",
-        full=(2.5, 3.0, 3.5, 4.0), reduced=(2.5, 3.0, 4.0), metrics=("forces",),
-        what="raises how much brighter a sloped membrane looks under the LED ring (the reference 2.5): the same dent "
-             "changes the log intensity more; no calibration measures it yet"),
+        full=(1.0, 1.5, 2.5, 3.0, 3.5, 4.0), reduced=(1.0, 2.5, 4.0), metrics=("forces",), event_calibration=True,
+        what="changes how much brighter a sloped membrane looks under the LED ring (the reference 2.5): the same dent "
+             "changes the log intensity more or less; measured with the light recalibrated (labrig calibrate events "
+             "with its press) and with the reference light's slope response"),
     StressAxis(
         "membrane_level", "Membrane brightness", "membrane level", "of full scale", "level", "membrane_level",
         full=(0.08, 0.12, 0.16, 0.24), reduced=(0.08, 0.16, 0.24), metrics=("forces",),

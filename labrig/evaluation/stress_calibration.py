@@ -1,5 +1,5 @@
 """What a lab would calibrate before a stressed run: the extrinsics of an imperfectly printed gel, and the
-contrast thresholds of a camera whose biases changed.
+contrast thresholds and the light's slope response of a sensor whose biases or light changed.
 
 On a gel whose markers sit off their lattice sites or are missing, the pipeline must not be
 told by the sim where they are: it learns it as a lab does, from an extrinsic calibration of
@@ -16,7 +16,8 @@ pipeline.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+import tomllib
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,14 +25,30 @@ import numpy as np
 from labrig.calibration.event_thresholds import fit_event_thresholds
 from labrig.calibration.event_thresholds_file import write_event_thresholds
 from labrig.calibration.files import load_intrinsics
+from labrig.calibration.slope_response import slope_response_of
 from labrig.config import RigConfig
+from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
+from labrig.evaluation.stress_scene import StressScene, record_scene, stressed_rig
+from labrig.groundtruth.sidecar import load_groundtruth
+from labrig.indenters import DEFAULT_INDENTERS
 from labrig.sim.calibration_scenes import record_led_blink, record_led_ramps
 from labrig.sim.imperfections import printed_markers
 from labrig.sim.truth_config import sim_config, true_camera
 
 EXTRINSICS = "extrinsics.toml"
 EVENTS = "events.toml"
+#: The calibration press's protocol (``labrig.protocol.light_calibration`` plays it through the procedure).
+SLOPE_PRESS_PROTOCOL = DEFAULT_INDENTERS.parent / "slope-press.toml"
+
+
+def calibration_press(scene: StressScene) -> StressScene:
+    """``scene``'s sensor pressed as the calibration press: the protocol file's indenter, depth, speed and hold,
+    no shear, and none of the scene's faults of timing or position."""
+    press = tomllib.loads(SLOPE_PRESS_PROTOCOL.read_text())
+    return replace(scene, indenter=press["probe"]["indenter"], depth_mm=press["normal"]["depth_mm"],
+                   speed_mm_s=press["normal"]["speed_mm_s"], wait_s=press["wait"]["duration_s"], shear_mm=0.0,
+                   dead_side_mm=0.0, sync_age_min=None, burst_period_ms=0.0, position_error_mm=0.0)
 
 
 @dataclass(frozen=True)
@@ -82,18 +99,30 @@ def calibrate_printed_markers(rig: RigConfig, calibration_dir: str | Path | None
                              float(summary["residual_rms_mm"]))  # type: ignore[arg-type]
 
 
-def calibrate_event_thresholds(rig: RigConfig, calibration_dir: str | Path | None, out_dir: str | Path,
-                               seed: int = 0) -> str:
-    """Calibrate the contrast thresholds of ``rig``'s camera into ``out_dir`` as a lab would after changing its
-    biases (:func:`labrig.sim.calibration_scenes.record_led_ramps`, then
-    :func:`labrig.calibration.event_thresholds.fit_event_thresholds`); the other ``*.toml`` of
-    ``calibration_dir`` (or of ``out_dir`` when it is already a calibrated copy) stay. Returns ``out_dir``."""
+def calibrate_event_response(scene: StressScene, calibration_dir: str | Path | None, out_dir: str | Path) -> str:
+    """Calibrate the contrast thresholds of the stressed camera and the slope response of its light into
+    ``out_dir`` as a lab would after changing its biases or its light: the LED ramps
+    (:func:`labrig.sim.calibration_scenes.record_led_ramps`,
+    :func:`labrig.calibration.event_thresholds.fit_event_thresholds`), then the calibration press
+    (``protocols/slope-press.toml``'s sphere, depth, speed and hold, recorded as a stress scene on the same
+    sensor) against its ground truth (:func:`labrig.calibration.slope_response.slope_response_of`). The
+    other ``*.toml`` of ``calibration_dir`` (or of ``out_dir`` when it is already a calibrated copy)
+    stay. Returns ``out_dir``."""
+    rig = stressed_rig(scene)
     out = _calibration_copy(Path(calibration_dir) if calibration_dir is not None else None, out_dir, but=EVENTS)
     recording = out / "led-ramps.h5"
-    record_led_ramps(recording, rig, seed=seed, overwrite=True)
+    record_led_ramps(recording, rig, seed=scene.seed, overwrite=True)
     fit = fit_event_thresholds(recording, rig.roi)
-    write_event_thresholds(out / EVENTS, fit.thresholds, fit.summary(), {"recording": "stress scene", "seed": seed})
     recording.unlink()
+    press = out / "slope-press.h5"
+    record_scene(calibration_press(scene), press)
+    gt = load_groundtruth(sidecar_path(press))
+    response = slope_response_of(press, rig.roi, fit.thresholds, gt.t_us, gt.depth_mm, gt.indentation_mm,
+                                 gt.grid_gel_mm)
+    summary = {**fit.summary(), "shading": {**response.summary(), "press": "stress scene"}}
+    write_event_thresholds(out / EVENTS, fit.thresholds, summary, {"recording": "stress scene", "seed": scene.seed})
+    press.unlink()
+    sidecar_path(press).unlink()
     return str(out)
 
 

@@ -93,8 +93,9 @@ class StressScene:
 
     @property
     def changes_event_response(self) -> bool:
-        """Whether the camera's thresholds differ from the rig's (a lab recalibrates them: ``labrig calibrate events``)."""
-        return self.contrast_threshold is not None or self.on_off_ratio != 1.0
+        """Whether the camera's thresholds or the light's slope gain differ from the rig's (a lab recalibrates
+        them: ``labrig calibrate events`` with its press)."""
+        return self.contrast_threshold is not None or self.on_off_ratio != 1.0 or self.slope_gain is not None
 
     def check(self) -> None:
         if self.depth_mm <= 0 or self.speed_mm_s <= 0 or self.shear_mm < 0 or self.wait_s < 0:

@@ -30,6 +30,13 @@ quiet cells quickly, while the cells that hold a change keep it (:meth:`Brightne
 sensor's leak events, which fire ON at a steady rate on every pixel), over
 ``scale_events_per_px`` (reference events), clipped (a hot pixel's count grows without bound).
 
+**The light, in reference units.** The membrane brightens by ``1 + g |grad d|`` where it slopes
+(:mod:`labrig.calibration.slope_response`), and ``g``, the slope gain, is the lab's light and
+membrane. With ``BrightnessParams.reference_slope_gain`` set (the network was trained so) and the
+camera's slope gain measured (``events.toml`` ``[shading]``), :func:`reference_light` turns every
+cell's change ``L`` into what the reference light would have made of the same slope,
+``ln(1 + (g_ref / g)(e^L - 1))``, before the unit and the clip.
+
 Training and run time build the channel with these functions (:mod:`labrig.training.state_data`,
 :mod:`labrig.pipeline.depth_sources`).
 """
@@ -43,14 +50,19 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import uniform_filter
 
-from labrig.calibration.event_thresholds_file import ContrastThresholds
+from labrig.calibration.event_counts import signed_counts
+from labrig.calibration.event_thresholds_file import NOMINAL_THRESHOLD_LN, ContrastThresholds
 from labrig.config import Roi
 from labrig.errors import LabrigError
-from labrig.physics.grid import GRID_SHAPE, grid_cells_of_pixels
+from labrig.physics.grid import GRID_SHAPE
 
 F32 = npt.NDArray[np.float32]
 #: A gated leak (``rest_tau_s``) is applied at most this often (us of stream time).
 LEAK_STEP_US = 10_000
+#: The reference light's slope gain (dimensionless): the light a channel under the reference light is expressed
+#: in. Any fixed value would serve; this one is the reference sensor's as the calibration press measures it
+#: (:mod:`labrig.protocol.light_calibration`), so that sensor's channel is about unchanged.
+REFERENCE_SLOPE_GAIN = 2.4
 
 
 @dataclass(frozen=True)
@@ -62,13 +74,17 @@ class BrightnessParams:
     ``rest_tau_s`` (s; None: one leak for every cell): the leak of the cells that hold no change (the
     gel at rest there), which bounds their noise; a cell whose change since rest, averaged over it and
     its 8 neighbours, is at least ``floor_events_per_px`` (reference events per pixel) holds it and
-    leaks only with ``tau_s``, so a press is kept as long as it lasts."""
+    leaks only with ``tau_s``, so a press is kept as long as it lasts.
+
+    ``reference_slope_gain`` (dimensionless; None: the light as it is): the slope gain the channel is
+    expressed in (:func:`reference_light`)."""
 
     tau_s: float = 30.0
     scale_events_per_px: float = 2.0
     clip: float = 4.0
     rest_tau_s: float | None = None
     floor_events_per_px: float = 0.3
+    reference_slope_gain: float | None = None
 
     def __post_init__(self) -> None:
         if not (self.tau_s > 0 and self.scale_events_per_px > 0 and self.clip > 0 and self.floor_events_per_px > 0):
@@ -76,41 +92,21 @@ class BrightnessParams:
                               "be positive")
         if self.rest_tau_s is not None and not 0 < self.rest_tau_s <= self.tau_s:
             raise LabrigError("the brightness channel's rest_tau_s must be positive and at most tau_s")
+        if self.reference_slope_gain is not None and not self.reference_slope_gain > 0:
+            raise LabrigError("the brightness channel's reference_slope_gain must be positive")
 
     def to_card(self) -> dict[str, float]:
         card = {"tau_s": self.tau_s, "scale_events_per_px": self.scale_events_per_px, "clip": self.clip}
         if self.rest_tau_s is not None:
             card.update(rest_tau_s=self.rest_tau_s, floor_events_per_px=self.floor_events_per_px)
+        if self.reference_slope_gain is not None:
+            card["reference_slope_gain"] = self.reference_slope_gain
         return card
 
     @classmethod
     def from_card(cls, section: dict[str, float] | None) -> BrightnessParams:
-        keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px")
+        keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px", "reference_slope_gain")
         return cls(**{k: float(v) for k, v in (section or {}).items() if k in keys})
-
-
-def signed_counts(events: npt.NDArray, roi: Roi, grid_shape: tuple[int, int] = GRID_SHAPE,
-                  thresholds: ContrastThresholds | None = None) -> F32:
-    """(rows, cols) float32: the log-intensity change per grid cell (the cells of ``sae_grid``) in reference
-    events, summed over its pixels: ON minus OFF events, each weighted by its cell's threshold over
-    :data:`~labrig.calibration.event_thresholds_file.NOMINAL_THRESHOLD_LN` when ``thresholds`` are given
-    (else 1); events outside the ROI are dropped."""
-    rows, cols = grid_shape
-    if len(events) == 0:
-        return np.zeros(grid_shape, np.float32)
-    cell, inside = grid_cells_of_pixels(events["x"], events["y"], roi.x0_px, roi.y0_px, roi.width_px, roi.height_px,
-                                        grid_shape)
-    cell, on = cell[inside], events["p"][inside] > 0
-    if thresholds is None:
-        weight = np.where(on, 1.0, -1.0)
-    else:
-        if thresholds.on_ln.shape != grid_shape:
-            raise LabrigError(f"{thresholds.source}: thresholds on a {thresholds.on_ln.shape} grid, the channel's is "
-                              f"{grid_shape}")
-        on_weight, off_weight = thresholds.reference_weights
-        weight = np.where(on, on_weight[cell], off_weight[cell])
-    counts = np.bincount(cell, weights=weight, minlength=rows * cols)
-    return counts.reshape(grid_shape).astype(np.float32)
 
 
 class BrightnessIntegrator:
@@ -173,11 +169,37 @@ class BrightnessIntegrator:
         self.t_us = t_us
 
     def channel(self) -> F32:
-        return brightness_channel(self.counts, self.pixels_per_cell, self.params)
+        slope_gain = None if self.thresholds is None else self.thresholds.slope_gain
+        return brightness_channel(self.counts, self.pixels_per_cell, self.params, slope_gain)
 
 
-def brightness_channel(counts: F32, pixels_per_cell: float, params: BrightnessParams) -> F32:
-    """(rows, cols) float32: integrated counts per pixel less their median, in units of ``scale_events_per_px``, clipped."""
+def change_per_px(counts: npt.ArrayLike, pixels_per_cell: float) -> F32:
+    """(rows, cols) float32: integrated counts (reference events per cell) per pixel, less their median (the
+    uniform drift), in reference events; times ``NOMINAL_THRESHOLD_LN`` it is the log-intensity change (ln)."""
     per_px = np.asarray(counts, np.float32) / np.float32(pixels_per_cell)
-    out = (per_px - np.float32(np.median(per_px))) / np.float32(params.scale_events_per_px)
+    return per_px - np.float32(np.median(per_px))
+
+
+def reference_light(change_ln: npt.ArrayLike, slope_gain: float, reference_slope_gain: float,
+                    floor_ln: float = -4.0) -> F32:
+    """(rows, cols) float32: a log-intensity change (ln) under a light of ``slope_gain`` expressed under the
+    reference light's ``reference_slope_gain``: ``ln(1 + (g_ref / g)(e^L - 1))``, exact for the slope
+    shading ``1 + g |grad d|``; an argument at or below zero (a darkening the reference light cannot make)
+    gives ``floor_ln``."""
+    change = np.asarray(change_ln, np.float64)
+    inside = 1.0 + (reference_slope_gain / slope_gain) * np.expm1(change)
+    return np.log(np.maximum(inside, math.exp(floor_ln))).astype(np.float32)
+
+
+def brightness_channel(counts: F32, pixels_per_cell: float, params: BrightnessParams,
+                       slope_gain: float | None = None) -> F32:
+    """(rows, cols) float32: integrated counts per pixel less their median, under the reference light when
+    ``params.reference_slope_gain`` and the camera's ``slope_gain`` are both known (:func:`reference_light`),
+    in units of ``scale_events_per_px``, clipped."""
+    change = change_per_px(counts, pixels_per_cell)
+    if params.reference_slope_gain is not None and slope_gain is not None:
+        floor_ln = -2.0 * params.clip * params.scale_events_per_px * NOMINAL_THRESHOLD_LN
+        change = reference_light(change * np.float32(NOMINAL_THRESHOLD_LN), slope_gain, params.reference_slope_gain,
+                                 floor_ln) / np.float32(NOMINAL_THRESHOLD_LN)
+    out = change / np.float32(params.scale_events_per_px)
     return np.clip(out, -params.clip, params.clip).astype(np.float32)

@@ -32,7 +32,7 @@ from labrig.config import Roi
 from labrig.errors import LabrigError
 from labrig.physics.camera import CameraModel
 from labrig.physics.grid import GRID_SHAPE
-from labrig.pipeline.brightness import BrightnessParams
+from labrig.pipeline.brightness import REFERENCE_SLOPE_GAIN, BrightnessParams
 from labrig.pipeline.displacement import grid_coordinates
 from labrig.pipeline.sae import pad_for_unet
 
@@ -46,8 +46,10 @@ INPUT_SETS = {"sae": ("sae",), "sae+disp": ("sae", "displacement"), "sae+disp+pr
               "sae+bright": ("sae", "brightness"), "sae+bright+disp": ("sae", "brightness", "displacement"),
               "sae+bright-hold": ("sae", "brightness")}
 #: The brightness change integrated with the gated leak: a press held as long as it lasts
-#: (:class:`~labrig.pipeline.brightness.BrightnessParams` ``rest_tau_s``); the other sets keep one 30 s leak.
-HOLD_BRIGHTNESS = BrightnessParams(tau_s=3600.0, rest_tau_s=0.5, floor_events_per_px=0.3)
+#: (:class:`~labrig.pipeline.brightness.BrightnessParams` ``rest_tau_s``), under the reference light (the
+#: camera's measured slope gain divided out); the other sets keep one 30 s leak and the light as it is.
+HOLD_BRIGHTNESS = BrightnessParams(tau_s=3600.0, rest_tau_s=0.5, floor_events_per_px=0.3,
+                                   reference_slope_gain=REFERENCE_SLOPE_GAIN)
 INPUT_BRIGHTNESS = {"sae+bright-hold": HOLD_BRIGHTNESS}
 #: Gel-plane displacement (mm) that makes one unit of a displacement channel.
 DEFAULT_DISPLACEMENT_SCALE_MM = 1.0

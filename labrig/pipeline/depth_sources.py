@@ -16,6 +16,7 @@ and ``evaluate``).
 
 from __future__ import annotations
 
+import logging
 from abc import abstractmethod
 from dataclasses import replace
 from pathlib import Path
@@ -36,6 +37,8 @@ from labrig.pipeline.quiet import QuietHold, QuietParams
 from labrig.pipeline.rest_gate import RestGate, RestGateParams
 from labrig.pipeline.run_setup import PipelineSetup
 from labrig.recording import Recording
+
+log = logging.getLogger(__name__)
 
 DEFAULT_QUIET = QuietParams()
 DEFAULT_REST_GATE = RestGateParams()
@@ -233,6 +236,15 @@ class SaeNetworkDepth(ModelDepth):
             self.hold.update(np.zeros(GRID_SHAPE, np.float32))
 
 
+_WARNED: set[str] = set()
+
+
+def _warn_once(message: str) -> None:
+    if message not in _WARNED:
+        _WARNED.add(message)
+        log.warning(message)
+
+
 class BrightnessNetworkDepth(ModelDepth):
     """A network that takes the brightness change since rest (:mod:`labrig.pipeline.brightness`),
     integrated here from each window's signed event counts (``needs_counts``). It sees the gel's
@@ -246,6 +258,10 @@ class BrightnessNetworkDepth(ModelDepth):
             raise LabrigError(f"{model.path} takes the brightness change since rest: build it with "
                               "depth_sources.depth_source(..., setup=...)")
         self.integrator = BrightnessIntegrator(setup.rig.roi, self.inputs.brightness, thresholds=setup.thresholds)
+        if self.inputs.brightness.reference_slope_gain is not None and (
+                setup.thresholds is None or setup.thresholds.slope_gain is None):
+            _warn_once(f"{model.path.name} reads the brightness under the reference light, and this camera's slope gain "
+                       "is not measured: the reference light is assumed (measure it: `labrig calibrate events`)")
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]:

@@ -9,11 +9,13 @@ cluster's workers, which must see the same paths); it writes its own file and re
 back (:func:`run_virtual_campaign`). A recording's seed is the campaign's seed and its index,
 so the same campaign gives the same recordings wherever and in whatever order they run.
 
-A campaign whose ``[vary]`` changes the camera's contrast thresholds gives each recording a camera
-of its own, which a lab would calibrate: the task then records the event-response scene on that
-camera (:func:`labrig.sim.calibration_scenes.record_led_ramps`, :data:`CAMPAIGN_RAMPS`), fits it
-(:func:`labrig.calibration.event_thresholds.fit_event_thresholds`) and writes ``ID.events.toml``
-beside the recording, which every later step reads for it (:func:`labrig.dataset.events_sidecar_path`).
+A campaign whose ``[vary]`` changes the camera (``sim.events.*``) or the light (``sim.lighting.*``)
+gives each recording a sensor of its own, which a lab would calibrate: the task then records the
+event-response scene on that camera (:func:`labrig.sim.calibration_scenes.record_led_ramps`,
+:data:`CAMPAIGN_RAMPS`) and fits it (:func:`labrig.calibration.event_thresholds.fit_event_thresholds`),
+records the calibration press and fits the light's slope response
+(:mod:`labrig.protocol.light_calibration`), and writes both to ``ID.events.toml`` beside the
+recording, which every later step reads for it (:func:`labrig.dataset.events_sidecar_path`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 
 from labrig.cache import sha256_of
 from labrig.calibration.event_thresholds import fit_event_thresholds
-from labrig.calibration.event_thresholds_file import write_event_thresholds
+from labrig.calibration.event_thresholds_file import load_event_thresholds, write_event_thresholds
 from labrig.config import RigConfig, load_rig
 from labrig.dataset import COMPLETE, Dataset, events_sidecar_path
 from labrig.errors import LabrigError
@@ -33,6 +35,7 @@ from labrig.executor import run_tasks
 from labrig.indenters import load_indenters
 from labrig.protocol.campaign import Manifest, Outcome, degraded_reasons
 from labrig.protocol.files import load_campaign
+from labrig.protocol.light_calibration import measure_slope_response, record_slope_press, write_slope_response
 from labrig.protocol.realtime import DEGRADED
 from labrig.protocol.spec import Campaign, RecordingPlan
 from labrig.protocol.virtual_run import MADE_BY_VIRTUAL_TIME, record_virtual
@@ -82,8 +85,9 @@ def record_task(task: VirtualTask) -> Outcome:
                                 protocol_toml=protocol_toml, extra=extra)
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
-    if campaign.variation is not None and campaign.variation.varies("sim.events.threshold"):
-        calibrate_own_camera(rig, path, seed)
+    if campaign.variation is not None and (campaign.variation.varies("sim.events.")
+                                           or campaign.variation.varies("sim.lighting.")):
+        calibrate_own_camera(rig, path, seed, Path(task.rig_path).parent)
     damage = degraded_reasons(result.path)
     if result.exit_status == COMPLETE and damage:  # virtual time is deterministic: trying again gives the same
         return Outcome(plan.id, DEGRADED, f"its data is damaged: {damage}", result.path.name, sha256_of(result.path),
@@ -91,15 +95,29 @@ def record_task(task: VirtualTask) -> Outcome:
     return Outcome(plan.id, result.exit_status, result.reason, result.path.name, sha256_of(result.path), result.wall_s)
 
 
-def calibrate_own_camera(rig: RigConfig, recording: Path, seed: int) -> Path:
-    """Calibrate the contrast thresholds of the camera that made ``recording`` (``rig``'s) into its
-    ``ID.events.toml`` sidecar, as ``labrig calibrate events`` would."""
+def calibrate_own_camera(rig: RigConfig, recording: Path, seed: int, calibration_dir: str | Path | None) -> Path:
+    """Calibrate the contrast thresholds and the light's slope response of the sensor that made ``recording``
+    (``rig``'s) into its ``ID.events.toml`` sidecar, as ``labrig calibrate events`` would (``calibration_dir``:
+    the rig's calibration, for the press's ground truth)."""
     with tempfile.TemporaryDirectory(prefix="labrig-events-") as folder:
         scene = Path(folder) / "led-ramps.h5"
         record_led_ramps(scene, rig, seed=seed, ramps=CAMPAIGN_RAMPS)
         fit = fit_event_thresholds(scene, rig.roi)
-    return write_event_thresholds(events_sidecar_path(recording), fit.thresholds, fit.summary(),
-                                  {"recording": "the event-response scene of this recording's camera", "seed": seed})
+    write_event_thresholds(events_sidecar_path(recording), fit.thresholds, fit.summary(),
+                           {"recording": "the event-response scene of this recording's camera", "seed": seed})
+    return calibrate_own_light(rig, recording, seed, calibration_dir)
+
+
+def calibrate_own_light(rig: RigConfig, recording: Path, seed: int, calibration_dir: str | Path | None) -> Path:
+    """Add the slope response of the light that made ``recording`` (``rig``'s: the calibration press on the
+    virtual rig, with the standard sphere) to its ``ID.events.toml``, which must hold its thresholds."""
+    sidecar = events_sidecar_path(recording)
+    thresholds = load_event_thresholds(sidecar)
+    with tempfile.TemporaryDirectory(prefix="labrig-light-") as folder:
+        press = Path(folder) / "slope-press.h5"
+        record_slope_press(press, rig, load_indenters()["sphere"], seed=seed)
+        response = measure_slope_response(press, rig.roi, thresholds, calibration_dir)
+    return write_slope_response(sidecar, response, "the calibration press of this recording's sensor")
 
 
 def _set_aside_partial(path: Path) -> None:

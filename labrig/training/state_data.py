@@ -24,14 +24,16 @@ trainer also feeds it its own answers (:func:`self_feed`).
 thresholds as a run weighs them), stepped over the whole recording in 10 ms windows from its start,
 as a run steps it, and kept at every step
 (:class:`BrightnessTrack`, cached under ``$LABRIG_CACHE/brightness`` and memory-mapped); a
-window's channel is the step before its end plus the window's own events after that step.
+window's channel is the step before its end plus the window's own events after that step. A
+network trained under the reference light (``BrightnessParams.reference_slope_gain``) reads each
+recording's slope gain from its sensor's ``events.toml`` ``[shading]``, as a run does.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +46,7 @@ from labrig.errors import LabrigError
 from labrig.executor import run_tasks
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import run_setup, tracking
-from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel
+from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams
 from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
 from labrig.pipeline.rest import RestParams, RestRefiner
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
@@ -164,7 +166,7 @@ def track_recording(path: str | Path, calibration_dir: str | Path | None, cache_
 class BrightnessTrack:
     """The integrated signed counts (reference events) of one recording at every 10 ms step: step ends
     ``t_us`` (N,) host us, ``counts`` (N, 90, 112) float16 (memory-mapped), the ROI, the integrator's
-    settings and the contrast thresholds that weigh the events (None: nominal)."""
+    settings and the event calibration that weighs the events and holds the light's slope gain (None: nominal)."""
 
     t_us: npt.NDArray[np.int64]
     counts: npt.NDArray[np.float16]
@@ -181,7 +183,7 @@ class BrightnessTrack:
             integrator.add(np.asarray(self.counts[k], np.float32), float(self.t_us[k]))
             events = events[events["t"] >= self.t_us[k]] if len(events) else events
         integrator.add_events(events, t_end_us)
-        return brightness_channel(integrator.counts, integrator.pixels_per_cell, self.params)
+        return integrator.channel()
 
 
 def brightness_recording(path: str | Path, params: BrightnessParams, calibration_dir: str | Path | None,
@@ -193,7 +195,8 @@ def brightness_recording(path: str | Path, params: BrightnessParams, calibration
         setup = run_setup.setup_for_recording(rec, calibration_dir=calibration_dir)
         roi, thresholds = setup.rig.roi, setup.thresholds
         key = cache_key({"recording": sha256_of(path), "roi": [roi.x0_px, roi.y0_px, roi.x1_px, roi.y1_px],
-                         "params": repr(params), "window_us": TRACK_WINDOW_US, "version": BRIGHTNESS_VERSION,
+                         "params": repr(replace(params, reference_slope_gain=None)),  # the counts do not depend on it
+                         "window_us": TRACK_WINDOW_US, "version": BRIGHTNESS_VERSION,
                          "thresholds": thresholds.digest() if thresholds is not None else "nominal"})
         folder = cache_folder("brightness", cache_root)
         times, counts = folder / f"{key}.t.npy", folder / f"{key}.counts.npy"
