@@ -180,16 +180,23 @@ def parse_imperfections(sim: dict[str, Any], path: Path) -> tuple[SimMarkers, Si
             _optional(SimFt, sim, "ft", path))
 
 
-def parse_grbl(sim: dict[str, Any], path: Path) -> SimGrbl:
-    """The optional ``[sim.grbl]`` section, checked (defaults where absent: GRBL 1.1h's)."""
-    table = sim.get("grbl", {})
-    where = f"{path}: [sim.grbl]"
+def sim_table(sim: dict[str, Any], name: str, cls: type, path: Path) -> tuple[dict[str, Any], str]:
+    """The optional ``[sim.NAME]`` table (empty where absent) and the ``where`` of its messages, checked to be a
+    table whose keys are fields of the dataclass ``cls``."""
+    table = sim.get(name, {})
+    where = f"{path}: [sim.{name}]"
     if not isinstance(table, dict):
-        raise ConfigError(f"{where} must be a table, e.g. [sim.grbl] on its own line")
-    names = [f.name for f in fields(SimGrbl)]
+        raise ConfigError(f"{where} must be a table, e.g. [sim.{name}] on its own line")
+    names = [f.name for f in fields(cls)]
     unknown = sorted(set(table) - set(names))
     if unknown:
         raise ConfigError(f"{where} unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
+    return table, where
+
+
+def parse_grbl(sim: dict[str, Any], path: Path) -> SimGrbl:
+    """The optional ``[sim.grbl]`` section, checked (defaults where absent: GRBL 1.1h's)."""
+    table, where = sim_table(sim, "grbl", SimGrbl, path)
     values = {key: _axes(key, table[key], where) for key in table}
     for key, axes in values.items():
         if min(axes) <= 0:
@@ -216,14 +223,7 @@ def _show(value: Any) -> str:
 
 
 def _optional(cls: type, sim: dict[str, Any], name: str, path: Path) -> Any:
-    table = sim.get(name, {})
-    where = f"{path}: [sim.{name}]"
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where} must be a table, e.g. [sim.{name}] on its own line")
-    names = [f.name for f in fields(cls)]
-    unknown = sorted(set(table) - set(names))
-    if unknown:
-        raise ConfigError(f"{where} unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
+    table, where = sim_table(sim, name, cls, path)
     values = {key: _value(cls, key, table[key], where) for key in table}
     return cls(**values)
 

@@ -17,7 +17,7 @@ Frames and units as in :mod:`labrig.config`: the true camera is the OpenCV model
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,7 @@ from labrig.sim.imperfections import (
     check_imperfections,
     parse_grbl,
     parse_imperfections,
+    sim_table,
 )
 
 __all__ = ["SimCamera", "SimCameraClock", "SimConfig", "SimEvents", "SimLighting", "SimMechanics", "SimRigPose",
@@ -204,14 +205,8 @@ def true_contact_table(indenter: Indenter, rig: RigConfig, **options: Any) -> Co
 
 def _true_gel(sim: dict[str, Any], nominal: GelConfig, path: Path) -> GelConfig:
     """``[sim.gel]``: the true gel; keys left out (or the whole section) take the nominal ``[gel]``'s values."""
-    table = sim.get("gel", {})
-    if not isinstance(table, dict):
-        raise ConfigError(f"{path}: [sim.gel] must be a table")
-    names = [f.name for f in fields(GelConfig)]
-    unknown = sorted(set(table) - set(names))
-    if unknown:
-        raise ConfigError(f"{path}: [sim.gel] unknown key {unknown[0]!r}; allowed: {', '.join(names)}")
+    table, where = sim_table(sim, "gel", GelConfig, path)
     for key, value in table.items():
         if not isinstance(value, int | float) or isinstance(value, bool):
-            raise ConfigError(f"{path}: [sim.gel] {key} must be a number, not {value!r}")
+            raise ConfigError(f"{where} {key} must be a number, not {value!r}")
     return replace(nominal, **{key: float(value) for key, value in table.items()})
