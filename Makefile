@@ -26,7 +26,8 @@ test: $(STAMP)
 	$(BIN)/ruff check labrig tests tools
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-cache
-	$(BIN)/python -m pytest -q --durations=20
+	$(BIN)/python -m pytest -q -n auto -m "not serial" --durations=15
+	$(BIN)/python -m pytest -q -m serial --durations=10
 
 bench: $(STAMP)
 	$(BIN)/python tools/bench/run_all.py

@@ -18,6 +18,24 @@ from labrig.physics.mechanics import ContactTable
 from labrig.sim.truth_config import true_contact_table
 from labrig.testing.synthetic import SyntheticRun, record_synthetic
 
+#: Modules whose tests keep wall-clock time (pseudo-terminals, real-time runs, rates, timeouts): marked
+#: ``serial`` so that `make test` runs them alone, after the rest has run on every core (pytest-xdist).
+#: A single such test elsewhere carries ``@pytest.mark.serial`` itself.
+SERIAL_MODULES = frozenset({
+    "test_bota_driver", "test_bota_pty", "test_calibration_rig", "test_campaign_stop", "test_cli_devices",
+    "test_cnc_envelope", "test_crash_safety", "test_device_faults", "test_evk4", "test_grbl_driver", "test_grbl_pty",
+    "test_machine_limits", "test_parent_watch", "test_pipeline_live", "test_procedure", "test_protocol_runner",
+    "test_realtime", "test_registration_robust", "test_rig_ready", "test_serial_pty", "test_session_drain",
+    "test_sim_live",
+})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.stem in SERIAL_MODULES:
+            item.add_marker(pytest.mark.serial)
+
+
 #: A short synthetic run used by many tests (about 1.5 M events).
 SMALL_RUN = SyntheticRun(duration_s=3.0, peak_event_rate_hz=8e5, seed=11)
 

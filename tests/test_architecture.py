@@ -173,3 +173,12 @@ def test_every_deferrable_module_imports_a_heavy_dependency(name: str) -> None:
     source = (inner.with_suffix(".py") if inner.with_suffix(".py").exists() else inner / "__init__.py").read_text()
     assert any(is_heavy(package) for package in top_level_imports(source)), \
         f"{name} imports nothing heavy at its top: import it at the top of its users"
+
+
+def test_every_serial_test_module_exists() -> None:
+    """`make test` runs the modules of conftest.SERIAL_MODULES alone; a renamed module would silently join the
+    parallel run."""
+    from conftest import SERIAL_MODULES
+
+    missing = sorted(m for m in SERIAL_MODULES if not (Path(__file__).parent / f"{m}.py").exists())
+    assert missing == [], f"SERIAL_MODULES names modules that are gone: {missing}"

@@ -61,6 +61,7 @@ def files(tmp_path: Path) -> Path:
     return tmp_path / "tiny.toml"
 
 
+@pytest.mark.serial  # real time through the drivers
 def test_campaign_resumes_after_a_kill_mid_recording(files: Path, tmp_path: Path) -> None:
     out = tmp_path / "data"
     proc = subprocess.Popen([sys.executable, "-m", "labrig.cli", "campaign", str(files), "--out", str(out), "--json"],

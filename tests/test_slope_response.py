@@ -18,6 +18,7 @@ from labrig.errors import CalibrationError
 from labrig.indenters import Indenter
 from labrig.physics.grid import GRID_SHAPE
 from labrig.physics.mechanics import ContactTable
+from labrig.pipeline import run_setup
 from labrig.pipeline.brightness import (
     REFERENCE_SLOPE_GAIN,
     BrightnessIntegrator,
@@ -182,6 +183,9 @@ def test_the_command_fits_a_labs_press_into_events_toml(dim_press: tuple[Path, R
     assert loaded.slope_gain is not None and reference is not None
     assert loaded.slope_gain / reference == pytest.approx(DIM_GAIN / 2.5, rel=0.06)
     assert np.array_equal(loaded.on_ln, thresholds_before.on_ln) and loaded.digest() == thresholds_before.digest()
+    setup = run_setup.setup_for_rig(dim, calibration_dir=folder)
+    assert setup.thresholds is not None and setup.thresholds.slope_gain == loaded.slope_gain
+    assert setup.sources["slope_gain"].startswith(f"{loaded.slope_gain:.3g} (")
     text = events.read_text()
     events.write_text(text.replace(f"slope_gain = {loaded.slope_gain:.5g}", "slope_gain = -1.0"))
     with pytest.raises(CalibrationError, match="slope gain must be a positive number"):

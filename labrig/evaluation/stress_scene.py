@@ -229,7 +229,9 @@ def record_scene(scene: StressScene, out: str | Path) -> SceneFacts:
         phases = {p.name: p for p in reversed(rec.phases())}  # the first of each name
     normal = np.abs(force[:, 2])
     tangential = np.linalg.norm(force[:, :2], axis=1)
-    sheared = (t_us >= phases["shear"].t_start_us) & (t_us < phases["normal_up"].t_start_us) & (normal > 0)
+    sheared = np.zeros(len(t_us), bool)
+    if "shear" in phases:  # a press without shear has none
+        sheared = (t_us >= phases["shear"].t_start_us) & (t_us < phases["normal_up"].t_start_us) & (normal > 0)
     slip = tangential[sheared] / (sim_config(rig).gel.friction * normal[sheared]) if sheared.any() else np.zeros(1)
     drift = sim_config(rig).camera_clock.drift_ppm * 1e-6
     skew_ms = 0.0 if scene.sync_age_min is None else abs(drift) * (scene.sync_age_min * US_PER_MIN

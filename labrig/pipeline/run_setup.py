@@ -161,4 +161,6 @@ def setup_for_rig(rig: RigConfig, *, calibration_dir: str | Path | None = DEFAUL
         thresholds = load_event_thresholds(files[EVENTS_FILE])
         thresholds.check_roi(rig.roi)
         sources["thresholds"] = str(files[EVENTS_FILE])
+        sources["slope_gain"] = (f"{thresholds.slope_gain:.3g} ({files[EVENTS_FILE]})" if thresholds.slope_gain is not None
+                                 else f"not measured ({files[EVENTS_FILE]} has no [shading])")
     return PipelineSetup(rig, camera, rest_px, e, nu, sources, stiffening=b, missing=missing, thresholds=thresholds)

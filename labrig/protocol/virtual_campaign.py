@@ -9,7 +9,8 @@ cluster's workers, which must see the same paths); it writes its own file and re
 back (:func:`run_virtual_campaign`). A recording's seed is the campaign's seed and its index,
 so the same campaign gives the same recordings wherever and in whatever order they run.
 
-A campaign whose ``[vary]`` changes the camera (``sim.events.*``) or the light (``sim.lighting.*``)
+A campaign whose ``[vary]`` changes the camera's thresholds (``sim.events.threshold*``) or the light
+(``sim.lighting.*``)
 gives each recording a sensor of its own, which a lab would calibrate: the task then records the
 event-response scene on that camera (:func:`labrig.sim.calibration_scenes.record_led_ramps`,
 :data:`CAMPAIGN_RAMPS`) and fits it (:func:`labrig.calibration.event_thresholds.fit_event_thresholds`),
@@ -85,7 +86,7 @@ def record_task(task: VirtualTask) -> Outcome:
                                 protocol_toml=protocol_toml, extra=extra)
     except LabrigError as exc:
         return Outcome(plan.id, "failed", str(exc), "", "", 0.0)
-    if campaign.variation is not None and (campaign.variation.varies("sim.events.")
+    if campaign.variation is not None and (campaign.variation.varies("sim.events.threshold")
                                            or campaign.variation.varies("sim.lighting.")):
         calibrate_own_camera(rig, path, seed, Path(task.rig_path).parent)
     damage = degraded_reasons(result.path)
