@@ -128,10 +128,9 @@ def test_the_default_probe_is_shared_and_every_window_measured_on_it() -> None:
     # the default probe; two more each for force range, speed, noise, contrast and dead region and for the
     # imperfect sensor's four axes (placement error, missing near and far, USB bursts: 0 is the default probe);
     # three for shear (0.25, 1, 3 mm: the default's 0.5 mm is not on the reduced grid) and the clock (unsynced from 0 min on);
-    # the camera's response and light: four for the threshold (0.15-0.40), three each for the slope gain and the
-    # membrane (their reference values are set, not the rig's), two each for the ON/OFF ratio and the hold (1 and
-    # 0.1 s: the default probe)
-    assert len(scenes) == 1 + 5 * 2 + 4 * 2 + 2 * 3 + 4 + 2 * 3 + 2 * 2
+    # the camera's response and light: three each for the threshold, slope gain and membrane (their reference values
+    # are set, not the rig's), two each for the ON/OFF ratio and the hold (1 and 0.1 s: the default probe)
+    assert len(scenes) == 1 + 5 * 2 + 4 * 2 + 2 * 3 + 3 * 3 + 2 * 2
 
 
 def test_breakdown_by_doubling_or_by_lost_tracks() -> None:

@@ -122,7 +122,7 @@ AXES: tuple[StressAxis, ...] = (
              "recording's clock fit rests on the prompt pairs (lower envelope) and the trigger edges"),
     StressAxis(
         "contrast_threshold", "Contrast threshold (a less sensitive bias setting)", "contrast threshold, ON and OFF",
-        "ln", "ln", "contrast_threshold", full=(0.15, 0.22, 0.26, 0.30, 0.35, 0.40), reduced=(0.15, 0.22, 0.30, 0.40),
+        "ln", "ln", "contrast_threshold", full=(0.22, 0.26, 0.30, 0.35, 0.40), reduced=(0.22, 0.30, 0.40),
         metrics=("forces",), event_calibration=True,
         what="raises both contrast thresholds (the reference camera's 0.22 ln); fewer events for the same change, "
              "measured with the thresholds recalibrated (labrig calibrate events) and with the reference camera's"),
@@ -133,7 +133,7 @@ AXES: tuple[StressAxis, ...] = (
              "ON and OFF counts; measured recalibrated and with the reference camera's thresholds"),
     StressAxis(
         "led_slope_gain", "LED ring slope gain", "brightening per unit surface slope", "x", "x", "slope_gain",
-        full=(1.0, 1.5, 2.5, 3.0, 3.5, 4.0), reduced=(1.0, 2.5, 4.0), metrics=("forces",), event_calibration=True,
+        full=(2.5, 3.0, 3.5, 4.0), reduced=(2.5, 3.0, 4.0), metrics=("forces",), event_calibration=True,
         what="changes how much brighter a sloped membrane looks under the LED ring (the reference 2.5): the same dent "
              "changes the log intensity more or less; measured with the light recalibrated (labrig calibrate events "
              "with its press) and with the reference light's slope response"),
