@@ -3,12 +3,11 @@
 The calibration press (``protocols/slope-press.toml``, :data:`SLOPE_PRESS_PROTOCOL`): the standard
 sphere at the gel's centre, 1.2 mm below contact, held 1 s, no shear. Its ground truth
 (:func:`labrig.groundtruth.generate.generate`, from the rig's calibration, never the simulator's
-truth) gives the surface slope per grid cell at every map;
-the events, summed per cell and weighted by the camera's contrast thresholds, give the
-log-intensity change at the same instants, and
-:func:`labrig.calibration.slope_response.slope_response_of` finds the slope gain. The same press and the same fit serve a
-lab's recording (``labrig calibrate events --press REC``), the virtual rig's
-(:func:`record_slope_press`) and each camera a varied campaign gives its recordings
+truth) gives the surface slope per grid cell at every map; the events, summed per cell and
+weighted by the camera's contrast thresholds, give the log-intensity change at the same instants;
+:func:`labrig.calibration.slope_response.slope_response_of` finds the slope gain. The same press
+and the same fit serve a lab's recording (``labrig calibrate events --press REC``), the virtual
+rig's (:func:`record_slope_press`) and each camera a varied campaign gives its recordings
 (:mod:`labrig.protocol.virtual_campaign`).
 """
 

@@ -28,7 +28,8 @@ from pathlib import Path
 
 from labrig.cache import sha256_of
 from labrig.calibration.event_thresholds import fit_event_thresholds
-from labrig.calibration.event_thresholds_file import load_event_thresholds, write_event_thresholds
+from labrig.calibration.event_thresholds_file import ContrastThresholds, load_event_thresholds, write_event_thresholds
+from labrig.calibration.slope_response import SlopeResponse
 from labrig.config import RigConfig, load_rig
 from labrig.dataset import COMPLETE, Dataset, events_sidecar_path
 from labrig.errors import LabrigError
@@ -99,26 +100,36 @@ def record_task(task: VirtualTask) -> Outcome:
 def calibrate_own_camera(rig: RigConfig, recording: Path, seed: int, calibration_dir: str | Path | None) -> Path:
     """Calibrate the contrast thresholds and the light's slope response of the sensor that made ``recording``
     (``rig``'s) into its ``ID.events.toml`` sidecar, as ``labrig calibrate events`` would (``calibration_dir``:
-    the rig's calibration, for the press's ground truth)."""
+    the rig's calibration, for the press's ground truth); the file is written once, with both."""
     with tempfile.TemporaryDirectory(prefix="labrig-events-") as folder:
         scene = Path(folder) / "led-ramps.h5"
         record_led_ramps(scene, rig, seed=seed, ramps=CAMPAIGN_RAMPS)
         fit = fit_event_thresholds(scene, rig.roi)
-    write_event_thresholds(events_sidecar_path(recording), fit.thresholds, fit.summary(),
-                           {"recording": "the event-response scene of this recording's camera", "seed": seed})
-    return calibrate_own_light(rig, recording, seed, calibration_dir)
+    response = _own_light(rig, fit.thresholds, seed, calibration_dir)
+    summary = {**fit.summary(), "shading": {**response.summary(), "press": OWN_PRESS}}
+    return write_event_thresholds(events_sidecar_path(recording), fit.thresholds, summary,
+                                  {"recording": "the event-response scene of this recording's camera", "seed": seed})
 
 
 def calibrate_own_light(rig: RigConfig, recording: Path, seed: int, calibration_dir: str | Path | None) -> Path:
-    """Add the slope response of the light that made ``recording`` (``rig``'s: the calibration press on the
-    virtual rig, with the standard sphere) to its ``ID.events.toml``, which must hold its thresholds."""
+    """Add the slope response of the light that made ``recording`` (``rig``'s) to its ``ID.events.toml``, which
+    must hold its thresholds (campaigns recorded before the press was part of the calibration)."""
     sidecar = events_sidecar_path(recording)
-    thresholds = load_event_thresholds(sidecar)
+    response = _own_light(rig, load_event_thresholds(sidecar), seed, calibration_dir)
+    return write_slope_response(sidecar, response, OWN_PRESS)
+
+
+#: The ``press`` a campaign recording's ``[shading]`` names.
+OWN_PRESS = "the calibration press of this recording's sensor"
+
+
+def _own_light(rig: RigConfig, thresholds: ContrastThresholds, seed: int, calibration_dir: str | Path | None
+               ) -> SlopeResponse:
+    """The calibration press on the virtual rig ``rig`` (the standard sphere), fitted with ``thresholds``."""
     with tempfile.TemporaryDirectory(prefix="labrig-light-") as folder:
         press = Path(folder) / "slope-press.h5"
         record_slope_press(press, rig, load_indenters()["sphere"], seed=seed)
-        response = measure_slope_response(press, rig.roi, thresholds, calibration_dir)
-    return write_slope_response(sidecar, response, "the calibration press of this recording's sensor")
+        return measure_slope_response(press, rig.roi, thresholds, calibration_dir)
 
 
 def _set_aside_partial(path: Path) -> None:
