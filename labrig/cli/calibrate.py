@@ -212,7 +212,7 @@ def events_command(
     target = calibration_output(out, rig.path.parent / EVENTS_FILE, force)
     if press is not None and not press.exists():
         raise CalibrationError(f"--press {press}: no such recording; record the calibration press first "
-                               "(labrig run protocols/slope-press.toml)")
+                               "(labrig record --protocol protocols/slope-press.toml)")
     if recording is None:
         from labrig.sim.calibration_scenes import record_led_ramps
 
