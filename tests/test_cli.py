@@ -163,3 +163,12 @@ def test_run_refuses_a_result_file_that_is_not_hdf5_and_names_the_rig_it_used(sm
     assert result.returncode == 0, result.stderr
     rig = json.loads(result.stdout)["sources"]["rig"]
     assert rig.startswith(str(small_recording)) or Path(rig).exists()  # never a deleted temporary copy
+
+
+def test_run_with_a_model_runs_the_model_and_says_so(small_recording: Path) -> None:
+    """``--model`` alone means the network, also on a virtual-rig recording that holds its true depth."""
+    result = labrig("run", small_recording, "--model", "default", "--json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["depth_source"] != "truth"
+    line = one_error_line(labrig("run", small_recording, "--depth", "truth", "--model", "default"))
+    assert "--model" in line and "--depth truth" in line

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import shutil
 from pathlib import Path
@@ -15,6 +16,8 @@ from labrig.errors import LabrigError
 from labrig.indenters import Indenter
 from labrig.training import TrainConfig, contact_aware_l1, depth_errors_mm, output_paths, train, uniform_l1
 from labrig.training.data import PHASE_MARGIN_S, WindowSampler, open_campaign, torch_dataset
+from labrig.training.shift import ShiftAugment, shifted
+from labrig.training.trainer import COSINE_FLOOR, DEFAULT_SHIFT_CELLS
 
 
 @pytest.fixture(scope="session")
@@ -165,13 +168,16 @@ def test_cli_train_json_and_errors(campaign: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     result = runner.invoke(app, ["train", str(campaign), "--width", "4", "--steps", "2", "--batch-size", "2",
                                  "--val-windows", "4", "--loss", "uniform", "--window-ms", "5", "--out",
-                                 str(tmp_path / "u"), "--json"])
+                                 str(tmp_path / "u"), "--shift-cells", "3", "--json"])
     assert result.exit_code == 0, result.output
     card = json.loads(result.output)
     assert card["loss"] == {"name": "uniform", "lambda_c": None} and card["window_ms"] == 5.0
+    assert card["augmentation"]["translation"]["max_cells"] == 3
     assert (tmp_path / "u.onnx").exists() and (tmp_path / "u.json").exists()
     bad = runner.invoke(app, ["train", str(campaign), "--loss", "huber"])
     assert isinstance(bad.exception, LabrigError) and "--loss must be one of" in str(bad.exception)
+    cosine = runner.invoke(app, ["train", str(campaign), "--lr-schedule", "cosine", "--time-budget-min", "1"])
+    assert isinstance(cosine.exception, LabrigError) and "give --steps" in str(cosine.exception)
     empty = runner.invoke(app, ["train", str(tmp_path)])
     assert isinstance(empty.exception, LabrigError) and "manifest.csv" in str(empty.exception)
 
@@ -257,17 +263,80 @@ def test_noise_fills_the_sae_but_leaves_the_target(campaign: Path) -> None:
 def test_the_card_and_the_reproduce_line_name_the_augmentation(campaign: Path, tmp_path: Path) -> None:
     cfg = {"val_every": 0, "checkpoint_every": 2, **TINY}
     card = train(campaign, TrainConfig(steps=2, noise_hz=1.5, **cfg), tmp_path / "n", show_progress=False)
-    assert card["augmentation"] == {"background_noise": {"min_hz": 0.02, "max_hz": 1.5, "fraction": 0.5}}
-    assert "--noise-hz 1.5" in card["reproduce"]
+    assert card["augmentation"] == {"background_noise": {"min_hz": 0.02, "max_hz": 1.5, "fraction": 0.5},
+                                    "translation": ShiftAugment(DEFAULT_SHIFT_CELLS).describe()}
+    assert "--noise-hz 1.5" in card["reproduce"] and f"--shift-cells {DEFAULT_SHIFT_CELLS}" in card["reproduce"]
     with pytest.raises(LabrigError, match=r"noise_hz was 1\.5"):
         train(campaign, TrainConfig(steps=4, **cfg), tmp_path / "n", resume=True, show_progress=False)
     ckpt_path = output_paths(tmp_path / "old")["checkpoint"]
-    train(campaign, TrainConfig(steps=2, **cfg), tmp_path / "old", show_progress=False)
+    train(campaign, TrainConfig(steps=2, shift_cells=0, **cfg), tmp_path / "old", show_progress=False)
     ckpt = torch.load(ckpt_path, weights_only=False)
-    del ckpt["config"]["noise_hz"]  # a checkpoint from before the augmentation existed
+    for key in ("noise_hz", "shift_cells", "lr_schedule"):  # a checkpoint from before these augmentations existed
+        del ckpt["config"][key]
     torch.save(ckpt, ckpt_path)
-    resumed = train(campaign, TrainConfig(steps=3, **cfg), tmp_path / "old", resume=True, show_progress=False)
+    with pytest.raises(LabrigError, match="shift_cells was 0"):
+        train(campaign, TrainConfig(steps=3, **cfg), tmp_path / "old", resume=True, show_progress=False)
+    resumed = train(campaign, TrainConfig(steps=3, shift_cells=0, **cfg), tmp_path / "old", resume=True,
+                    show_progress=False)
     assert resumed["training"]["steps"] == 3 and resumed["augmentation"] is None
+
+
+def test_shifted_moves_the_last_two_axes_and_fills_zeros() -> None:
+    a = np.arange(1.0, 13.0).reshape(3, 4)
+    np.testing.assert_array_equal(shifted(a, 1, -1), [[0, 0, 0, 0], [2, 3, 4, 0], [6, 7, 8, 0]])
+    np.testing.assert_array_equal(shifted(a, 0, 0), a)
+    assert not shifted(a, 3, 0).any() and not shifted(a, 0, -4).any()
+    stack = np.stack([a, 10 * a])
+    np.testing.assert_array_equal(shifted(stack, -1, 2)[1], shifted(10 * a, -1, 2))
+
+
+def test_a_shifted_window_keeps_its_input_and_its_depth_in_register(campaign: Path) -> None:
+    """The translation augmentation moves the SAE, the state channels, the depth and the contact mask together,
+    within the 90 x 112 grid, and leaves the U-Net's padding rows empty."""
+    from labrig.pipeline.sae import crop_from_unet
+
+    data = open_campaign(campaign)
+    try:
+        src = data.sources["train"][0]
+        phases = {p.name: p for p in src.rec.phases()}
+        window = src.window(phases["normal_down"].t_end_us - 10_000, 10_000)
+        assert window.contact.any()
+        moved = ShiftAugment(12).apply(window, 7, -9)
+        np.testing.assert_array_equal(crop_from_unet(moved.sae)[:, 7:, :-9], crop_from_unet(window.sae)[:, :-7, 9:])
+        np.testing.assert_array_equal(moved.target[7:, :-9], window.target[:-7, 9:])
+        np.testing.assert_array_equal(moved.contact[7:, :-9], window.contact[:-7, 9:])
+        assert not moved.sae[:, :3].any() and not moved.sae[:, 93:].any() and not moved.target[:7].any()
+        assert moved.t_last_us == window.t_last_us and moved.sae.dtype == np.float32
+
+        plain = WindowSampler(data.sources["train"], 10_000, seed=5)
+        a, b = (WindowSampler(data.sources["train"], 10_000, seed=5, shift=ShiftAugment(12)) for _ in range(2))
+        draws = [(a.sample(), b.sample()) for _ in range(6)]
+        assert all(np.array_equal(x.sae, y.sae) and np.array_equal(x.target, y.target) for x, y in draws)
+        centres = {tuple(np.round(np.argwhere(x.contact).mean(0))) for x, _ in draws if x.contact.any()}
+        assert len(centres) > 1  # the same press seen at several places
+        assert any(not np.array_equal(x.target, plain.sample().target) for x, _ in draws)
+    finally:
+        data.close()
+
+
+def test_the_cosine_schedule_decays_the_rate_and_is_named_in_the_card(campaign: Path, tmp_path: Path) -> None:
+    config = TrainConfig(steps=10, lr=1e-3, lr_schedule="cosine")
+    rates = [config.lr_at(k) for k in range(11)]
+    assert rates[0] == pytest.approx(1e-3) and rates[10] == pytest.approx(1e-3 * COSINE_FLOOR)
+    assert all(x > y for x, y in itertools.pairwise(rates))
+    assert TrainConfig(steps=10).lr_at(9) == 1e-3  # constant
+    with pytest.raises(LabrigError, match="--lr-schedule cosine decays over --steps"):
+        TrainConfig(time_budget_min=1.0, lr_schedule="cosine").check()
+    with pytest.raises(LabrigError, match="--lr-schedule must be one of"):
+        TrainConfig(steps=2, lr_schedule="step").check()
+    with pytest.raises(LabrigError, match="--shift-cells must be"):
+        TrainConfig(steps=2, shift_cells=-1).check()
+    cfg = {"val_every": 0, "checkpoint_every": 4, **TINY}
+    card = train(campaign, TrainConfig(steps=4, lr_schedule="cosine", **cfg), tmp_path / "c", show_progress=False)
+    assert card["training"]["lr_schedule"] == "cosine" and "--lr-schedule cosine" in card["reproduce"]
+    ckpt = torch.load(output_paths(tmp_path / "c")["checkpoint"], weights_only=False)
+    used = ckpt["optimizer"]["param_groups"][0]["lr"]
+    assert used == pytest.approx(TrainConfig(steps=4, lr_schedule="cosine", **cfg).lr_at(3)) == card["training"]["lr_final"]
 
 
 # ----------------------------------------------------------------------------------------- inputs with state

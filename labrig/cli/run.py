@@ -46,7 +46,8 @@ def run(
     window_ms: WindowMsOption = None,
     window_events: WindowEventsOption = None,
     depth: Annotated[str | None, typer.Option(
-        help="Depth source: truth (the recording's /truth/depth; the default for REC) or model (ONNX; live).")] = None,
+        help="Depth source: truth (a virtual-rig recording's /truth/depth) or model (the network). Default: model "
+             "with --model, live or a recording without /truth/depth; else truth.")] = None,
     model: Annotated[Path | None, typer.Option(
         help="Depth network: an .onnx with its card, or a bundled one (default, sae-only); "
              "default: newest in models/, else bundled.")] = None,
@@ -93,7 +94,9 @@ def run(
                  "--save-recording": save_recording, "--max-lag-ms": max_lag_ms}
     if given := [flag for flag, value in live_only.items() if value is not None]:
         raise LabrigError(f"{', '.join(given)} only apply to --live; drop them to run a recording")
-    depth = depth or "truth"
+    if depth == "truth" and model is not None:
+        raise LabrigError("--model names a depth network and --depth truth reads the recording's true depth: "
+                          "drop one of them")
     windows = WindowSpec.from_options(window_ms, window_events)
     check_view(view)
     if not recording.exists():
@@ -105,6 +108,9 @@ def run(
             rec, rig=load_rig(rig_path) if rig_path else None,
             calibration_dir=calibration_folder(calibration),
             youngs_modulus_mpa=youngs_modulus_mpa)
+        if depth is None:
+            has_truth = "truth/depth" in rec.streams and rec.rows("truth/depth") > 0
+            depth = "truth" if model is None and has_truth else "model"
         source = depth_sources.depth_source(depth, setup, rec, model)
         pipe = runtime.Pipeline(setup, source, keep_sae=view is not None)
         attrs = {"recording": str(recording), "depth_source": source.name, "window_us": window_us or 0,

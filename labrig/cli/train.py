@@ -32,6 +32,8 @@ def train_command(
         help="Stop after this many minutes of training (all sessions of a resumed run together).")] = None,
     batch_size: Annotated[int, typer.Option(help="Windows per step.")] = 16,
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
+    lr_schedule: Annotated[str, typer.Option(
+        help="constant, or cosine: from --lr down to 1/20 of it at the last of --steps.")] = "constant",
     seed: Annotated[int, typer.Option(help="Seed of the initial weights and the window sampler.")] = 0,
     out: Annotated[Path | None, typer.Option(
         help="Output stem: writes OUT.onnx, OUT.json (model card), OUT.ckpt.pt (default models/depth-wW-LOSS-Tms).")] = None,
@@ -46,6 +48,10 @@ def train_command(
     noise_hz: Annotated[float, typer.Option(
         help="Background-noise augmentation: half the windows get extra noise events up to this rate "
              "(Hz per pixel, log-uniform from 0.02); 0: off.")] = 0.0,
+    shift_cells: Annotated[int | None, typer.Option(
+        help="Translation augmentation: each window, input and ground truth together, moved by up to this many grid "
+             "cells per axis (about 0.27 mm each on the reference rig), so that the answer does not depend on where "
+             "the campaign pressed; 0: off; default 12).")] = None,
     inputs: Annotated[str | None, typer.Option(
         help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
              "sae+disp+prev (+ the previous depth map), sae+bright (+ the brightness change since rest, the events' "
@@ -71,7 +77,9 @@ def train_command(
         loss=loss, lambda_c=lambda_c, steps=steps, time_budget_min=time_budget_min, batch_size=batch_size, lr=lr,
         seed=seed, checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows, phases=phases,
         device=device, threads=threads, noise_hz=noise_hz, calibration_dir=str(calibration_folder(calibration)),
-        workers=workers)
+        workers=workers, lr_schedule=lr_schedule)
+    if shift_cells is not None:
+        settings["shift_cells"] = shift_cells
     shape: dict[str, Any] = {"width": width, "pools": pools, "window_ms": window_ms, "inputs": inputs}
     if init is not None:
         given = [f"--{k.replace('_', '-')}" for k, v in shape.items() if v is not None]

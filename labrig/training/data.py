@@ -41,6 +41,7 @@ from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import pad_for_unet, sae_grid
 from labrig.recording import EVENT_DTYPE, Recording
+from labrig.training.shift import ShiftAugment
 from labrig.training.state_data import StateChannels
 
 SAE_ONLY = InputSpec()
@@ -248,11 +249,13 @@ class WindowSampler:
     """Random windows from a list of sources, with a seeded generator whose state can be saved.
 
     Iterating yields :class:`Sample` s forever; :meth:`batch` stacks them as numpy
-    arrays; :meth:`state` / :meth:`set_state` capture the generator for resume.
+    arrays; :meth:`state` / :meth:`set_state` capture the generator for resume. ``shift``: each window
+    moved across the grid (:mod:`labrig.training.shift`), else where it was recorded.
     """
 
     def __init__(self, sources: list[Source], window_us: float, seed: int, noise: NoiseAugment | None = None,
-                 inputs: InputSpec = SAE_ONLY, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR) -> None:
+                 inputs: InputSpec = SAE_ONLY, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR,
+                 shift: ShiftAugment | None = None) -> None:
         if not sources:
             raise LabrigError("no recordings to sample from")
         self.sources = sources
@@ -261,6 +264,7 @@ class WindowSampler:
         self.rng = np.random.default_rng(seed)
         self.inputs = inputs
         self.calibration_dir = calibration_dir
+        self.shift = shift
         self._state: dict[int, StateChannels] = {}
 
     def state_channels(self, k: int) -> StateChannels | None:
@@ -280,7 +284,10 @@ class WindowSampler:
         if self.noise is not None:
             rate_hz = self.noise.draw_hz(self.rng)
             extra = background_noise(src.roi, start, start + self.window_us, rate_hz, self.rng) if rate_hz else None
-        return src.window(start, self.window_us, k, extra, self.state_channels(k), self.rng, rate_hz)
+        sample = src.window(start, self.window_us, k, extra, self.state_channels(k), self.rng, rate_hz)
+        if self.shift is None:
+            return sample
+        return self.shift.apply(sample, *self.shift.draw(self.rng))
 
     def __iter__(self) -> Iterator[Sample]:
         while True:

@@ -52,6 +52,7 @@ from labrig.pipeline.rest import RestParams, RestRefiner
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
 from labrig.pipeline.windows import recording_windows
 from labrig.recording import Recording
+from labrig.training.shift import shifted
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -91,22 +92,13 @@ class PreviousAugment:
             return np.zeros_like(previous)
         out = previous * np.float32(rng.uniform(1.0 - self.scale, 1.0 + self.scale))
         dr, dc = (int(v) for v in rng.integers(-self.shift_cells, self.shift_cells + 1, 2))
-        out = _shift(out, dr, dc)
+        out = shifted(out, dr, dc)
         out = out + rng.normal(0.0, self.noise, out.shape).astype(np.float32)
         return np.clip(out, 0.0, 1.0).astype(np.float32)
 
     def describe(self) -> dict[str, float]:
         return {"p_zero": self.p_zero, "scale": self.scale, "shift_cells": self.shift_cells, "noise": self.noise,
                 "p_stale": self.p_stale, "max_lag_windows": self.max_lag_windows}
-
-
-def _shift(a: F32, dr: int, dc: int) -> F32:
-    """``a`` moved by (dr, dc) cells, zeros where it came from outside."""
-    out = np.zeros_like(a)
-    rows, cols = a.shape
-    out[max(dr, 0):rows + min(dr, 0), max(dc, 0):cols + min(dc, 0)] = \
-        a[max(-dr, 0):rows + min(-dr, 0), max(-dc, 0):cols + min(-dc, 0)]
-    return out
 
 
 @dataclass(frozen=True)

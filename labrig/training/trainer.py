@@ -11,6 +11,7 @@ time of all sessions together.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import platform
 import time
@@ -32,15 +33,22 @@ from labrig.pipeline.sae import crop_from_unet
 from labrig.training.data import NoiseAugment, WindowSampler, fixed_set, open_campaign
 from labrig.training.init import initial_network
 from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
+from labrig.training.shift import ShiftAugment
 from labrig.training.state_data import SELF_FEED_MAX, PreviousAugment, prepare_states, self_feed
 
 DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
 #: Settings that must match for a resume.
 RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases", "noise_hz",
-               "inputs", "init")
+               "inputs", "init", "shift_cells", "lr_schedule")
 #: Resume keys a checkpoint may predate, with the value it then had.
-RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae", "init": None}
+RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae", "init": None, "shift_cells": 0,
+                                      "lr_schedule": "constant"}
+#: Learning-rate schedules: constant, or a cosine from ``lr`` down to ``lr * COSINE_FLOOR`` at the last step.
+LR_SCHEDULES = ("constant", "cosine")
+COSINE_FLOOR = 0.05
+#: Translation augmentation by default (grid cells per axis, about 0.27 mm each on the reference rig).
+DEFAULT_SHIFT_CELLS = 12
 #: Lowest extra noise rate of the augmentation (Hz per pixel): below the sensor's own.
 NOISE_MIN_HZ = 0.02
 
@@ -72,6 +80,10 @@ class TrainConfig:
     #: The network to fine-tune (:func:`labrig.training.init.initial_network`: a bundled name or an .onnx), or None
     #: (fresh weights). Its width, pools, window and inputs must be this config's (:meth:`from_init` sets them).
     init: str | None = None
+    #: Translation augmentation (:mod:`labrig.training.shift`): windows moved by up to this many grid cells per
+    #: axis; 0: off.
+    shift_cells: int = DEFAULT_SHIFT_CELLS
+    lr_schedule: str = "constant"
 
     @classmethod
     def from_init(cls, init: str, **settings: Any) -> TrainConfig:
@@ -99,6 +111,12 @@ class TrainConfig:
             raise LabrigError("--noise-hz must be 0 (off) or a positive rate in Hz per pixel")
         if self.workers is not None and self.workers < 1:
             raise LabrigError("--workers must be at least 1")
+        if not 0 <= self.shift_cells < 45:
+            raise LabrigError("--shift-cells must be 0 (off) or a whole number of grid cells under 45 (half the grid)")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise LabrigError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, not {self.lr_schedule!r}")
+        if self.lr_schedule == "cosine" and self.steps is None:
+            raise LabrigError("--lr-schedule cosine decays over --steps: give --steps")
         self.input_spec  # noqa: B018  (checks --inputs)
 
     @property
@@ -110,6 +128,18 @@ class TrainConfig:
     def noise(self) -> NoiseAugment | None:
         """The background-noise augmentation, or None."""
         return NoiseAugment(max_hz=self.noise_hz, min_hz=min(NOISE_MIN_HZ, self.noise_hz)) if self.noise_hz > 0 else None
+
+    @property
+    def shift(self) -> ShiftAugment | None:
+        """The translation augmentation, or None."""
+        return ShiftAugment(self.shift_cells) if self.shift_cells > 0 else None
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of step ``step`` (0-based) under ``lr_schedule``."""
+        if self.lr_schedule == "constant" or not self.steps:
+            return self.lr
+        progress = min(step / self.steps, 1.0)
+        return self.lr * (COSINE_FLOOR + (1.0 - COSINE_FLOOR) * 0.5 * (1.0 + math.cos(math.pi * progress)))
 
     @property
     def max_steps(self) -> int | None:
@@ -181,7 +211,8 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
         optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
         prepare_states([src.path for split in ("train", "val") for src in data.sources.get(split, [])], spec,
                        config.calibration_dir, workers=config.workers)
-        sampler = WindowSampler(data.sources["train"], window_us, config.seed, config.noise, spec, config.calibration_dir)
+        sampler = WindowSampler(data.sources["train"], window_us, config.seed, config.noise, spec, config.calibration_dir,
+                                config.shift)
         val_sources = data.sources.get("val", [])
         val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET, spec,
                         config.calibration_dir) if val_sources else None
@@ -243,6 +274,8 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
                     x = self_feed(model, x, previous_channel, int(torch.randint(0, SELF_FEED_MAX + 1, (1,))))
                 pred = crop_from_unet(model(x)[:, 0])
                 loss = loss_fn(pred, y, c)
+                for group in optimizer.param_groups:
+                    group["lr"] = config.lr_at(step)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -282,7 +315,8 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
             "augmentation": _augmentation(config),
             "init": init_card,
             "training": {"steps": step, "batch_size": config.batch_size, "samples": n_samples, "optimizer": "Adam",
-                         "lr": config.lr, "seed": config.seed, "seconds": round(elapsed_s, 1),
+                         "lr": config.lr, "lr_schedule": config.lr_schedule,
+                         "lr_final": config.lr_at(max(step - 1, 0)), "seed": config.seed, "seconds": round(elapsed_s, 1),
                          "samples_per_s": round(n_samples / elapsed_s, 1) if elapsed_s > 0 else None,
                          "sampling_share": round(samples_s / elapsed_s, 3) if elapsed_s > 0 else None,
                          "time_budget_min": config.time_budget_min, "device": str(device),
@@ -332,6 +366,8 @@ def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
     out: dict[str, Any] = {}
     if config.noise:
         out["background_noise"] = config.noise.describe()
+    if config.shift:
+        out["translation"] = config.shift.describe()
     if "previous" in config.input_spec.kinds:
         out["previous_map"] = {**PreviousAugment().describe(), "source": "ground truth nearest the previous window's "
                                "last event", "self_feed_steps": f"0-{SELF_FEED_MAX}, uniform per batch: the channel "
@@ -358,7 +394,9 @@ def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out:
     shape = ["--init", c.init] if c.init is not None else ["--width", str(c.width), "--window-ms", f"{c.window_ms:g}"]
     parts = ["labrig", "train", *folders, *shape,
              "--loss", c.loss, "--steps", str(steps), "--seed", str(c.seed), "--batch-size", str(c.batch_size),
-             "--lr", f"{c.lr:g}", "--out", str(out)]
+             "--lr", f"{c.lr:g}", "--shift-cells", str(c.shift_cells), "--out", str(out)]
+    if c.lr_schedule != "constant":
+        parts += ["--lr-schedule", c.lr_schedule]
     if c.pools != 4 and c.init is None:
         parts += ["--pools", str(c.pools)]
     if c.loss == "contact" and c.lambda_c != DEFAULT_LAMBDA_C:
