@@ -269,6 +269,20 @@ def test_a_breakdown_chart_draws_a_method_whose_baseline_failed() -> None:
     assert any(label.startswith("ok: breaks at") for label in labels)
 
 
+def test_a_breakdown_below_the_reference_is_read_from_it_downwards() -> None:
+    x = [1.0, 1.5, 2.5, 3.0, 4.0]
+    error = [4.0, 2.5, 1.0, 1.5, 3.0]
+    # below 2.5: 2 x 1.0 is reached between 1.5 (2.5) and 2.5 (1.0), at 2.5 - (2 - 1) / (2.5 - 1) = 1.833...
+    assert charts.breakdown_point_below(x, error, 2.5) == pytest.approx(2.5 - 1.0 / 1.5)
+    assert charts.breakdown_point_below(x, [1.5, 1.2, 1.0, 9.0, 9.0], 2.5) is None  # only above it
+    assert charts.breakdown_point_below([1.0, 10.0, 100.0], [3.0, 1.0, 1.0], 100.0, log_x=True) == pytest.approx(
+        10.0**0.5)
+    figure = charts.breakdown(np.array(x), {"m": np.array(error)}, x_name="x", x_unit="u", error_name="e",
+                              error_unit="%", reference=2.5)
+    labels = [t.get_text() for t in figure.axes[0].get_legend().get_texts()]
+    assert labels[0] == "m: breaks below at 1.83, above at 3.33 u" and "reference 2.5 u" in labels
+
+
 def test_group_by_range() -> None:
     groups = charts.group_by_range([0.5, 1.0, 2.0, 3.0, -1.0, np.nan], [1, 2, 3, 4, 5, 6], [0.0, 1.0, 2.0])
     assert [g.tolist() for g in groups] == [[1.0], [2.0, 3.0]]

@@ -146,6 +146,26 @@ def test_breakdown_by_doubling_or_by_lost_tracks() -> None:
     assert breakdown_of(failed).value == 2.0  # no answer counts as broken
 
 
+def test_an_axis_pushed_both_ways_breaks_on_each_side_of_its_reference() -> None:
+    """Read from the reference sensor outwards: the error there is the baseline, under it ``below``, above it
+    ``value``; lost tracks count against the reference's too."""
+    curve = StressCurve("a", "forces", "f", [0.15, 0.18, 0.22, 0.30, 0.40], [9.0, 4.0, 2.0, 3.0, 5.0])
+    b = breakdown_of(curve, reference=0.22)
+    assert b.below == pytest.approx(0.18) and b.below_cause == "error x2"
+    assert b.value == pytest.approx(0.30 + 0.10 * (4.0 - 3.0) / 2.0) and b.cause == "error x2"
+    assert breakdown_of(curve).value is None  # read from the first value (a poor sensor) it only gets better
+    lost = StressCurve("a", "tracking", "t", [1.0, 2.0, 3.0, 4.0], [1.0, 1.0, 1.0, 1.0], [3, 1, 1, 2])
+    b = breakdown_of(lost, reference=2.0)
+    assert (b.below, b.below_cause, b.value, b.cause) == (1.0, "tracks lost", 4.0, "tracks lost")
+    held = breakdown_of(StressCurve("a", "forces", "f", [1.0, 2.5, 4.0], [1.5, 1.0, 1.9]), reference=2.5)
+    assert (held.below, held.value, held.below_cause, held.cause) == (None, None, "", "")
+    for axis in AXES:
+        assert axis.reference is None or (axis.reference in axis.full and axis.reference in axis.reduced)
+    assert axis_named("contrast_threshold").two_sided and axis_named("led_slope_gain").two_sided
+    with pytest.raises(LabrigError, match="must be on both grids"):
+        replace(axis_named("led_slope_gain"), reduced=(1.0, 4.0))
+
+
 def test_every_axis_turns_a_real_knob() -> None:
     fields = set(StressScene.__dataclass_fields__) | {"window_ms"}
     for axis in AXES:

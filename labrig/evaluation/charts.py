@@ -324,6 +324,23 @@ def breakdown_point(
     return float(10.0**xb if log_x else xb)
 
 
+def breakdown_point_below(
+    x: ArrayLike, error: ArrayLike, reference: float, factor: float = 2.0, baseline: float | None = None,
+    log_x: bool = False,
+) -> float | None:
+    """The stress ``x`` below ``reference`` at which ``error`` first reaches ``factor`` times its baseline,
+    read from ``reference`` downwards (the error at ``reference`` unless ``baseline``), or None: the
+    mirror of :func:`breakdown_point` for an axis that can be pushed both ways (``log_x``: ``x`` > 0)."""
+    xs, es = np.asarray(x, dtype=float), np.asarray(error, dtype=float)
+    below = xs <= reference
+    if not below.any():
+        raise ValueError(f"no sample at or below the reference {reference}")
+    mirrored = 1.0 / xs[below] if log_x else -xs[below]
+    base = es[below][np.argmax(xs[below])] if baseline is None else baseline
+    point = breakdown_point(mirrored, es[below], factor, base, log_x)
+    return None if point is None else (1.0 / point if log_x else -point)
+
+
 def breakdown(
     x: Series,
     error: Series,
@@ -335,6 +352,7 @@ def breakdown(
     factor: float = 2.0,
     baseline: float | Mapping[str, float] | None = None,
     log_x: bool = False,
+    reference: float | None = None,
     title: str = "",
     out: PathLike | None = None,
 ) -> Figure:
@@ -343,6 +361,8 @@ def breakdown(
 
     ``error`` is an array or a mapping from method name to arrays; ``x`` is shared or given
     per method the same way. Samples without a finite error are marked along the top edge.
+    ``reference``: the unstressed ``x`` of an axis pushed both ways (its error the baseline unless
+    given); the breakdown is then read from it outwards, below (:func:`breakdown_point_below`) and above.
     """
     errors = _named(error)
     xs = _named(x) if isinstance(x, Mapping) else dict.fromkeys(errors, np.asarray(x, dtype=float))
@@ -356,24 +376,36 @@ def breakdown(
         xm = xs[name]
         order = np.argsort(xm, kind="stable")
         base = baseline.get(name) if isinstance(baseline, Mapping) else baseline
-        reference = float(e[order][0] if base is None else base)
-        measurable = bool(np.isfinite(reference) and reference > 0)  # no baseline (its scene failed): no breakdown
-        point = breakdown_point(xm, e, factor, base, log_x) if measurable else None
-        threshold = factor * reference
+        start = 0 if reference is None else int(np.argmin(np.abs(xm[order] - reference)))
+        base_error = float(e[order][start] if base is None else base)
+        measurable = bool(np.isfinite(base_error) and base_error > 0)  # no baseline (its scene failed): no breakdown
+        above = xm >= (xm[order][start])
+        point = breakdown_point(xm[above], e[above], factor, base_error, log_x) if measurable else None
+        low = (breakdown_point_below(xm, e, float(xm[order][start]), factor, base_error, log_x)
+               if measurable and start > 0 else None)
+        threshold = factor * base_error
         where = (
             f"breaks at {point:.3g} {x_unit}".rstrip() if point is not None
             else f"no breakdown up to {np.max(xm):.3g} {x_unit}" if measurable else "no baseline error"
         )
+        if start > 0 and measurable:
+            sides = [f"{side} {v:.3g}" for side, v in (("below at", low), ("above at", point)) if v is not None]
+            where = (f"breaks {', '.join(sides)} {x_unit}".rstrip() if sides
+                     else f"no breakdown within {np.min(xm):.3g}-{np.max(xm):.3g} {x_unit}".rstrip())
         ax.plot(xm[order], e[order], marker="o", ms=4, color=color, label=f"{name}: {where}".lstrip(": "))
         if measurable:
             ax.axhline(threshold, color=color, ls=":", lw=1, alpha=0.8)
         failed = ~np.isfinite(e)
         if failed.any():
             ax.plot(xm[failed], np.full(failed.sum(), 0.97), "x", color=color, ms=7, transform=top, clip_on=False)
-        if point is not None:
-            ax.axvline(point, color=color, ls="--", lw=1)
-            if point not in xm[failed]:
-                ax.plot([point], [threshold], marker="D", ms=8, color=color, markeredgecolor="black", zorder=4)
+        for found in (low, point):
+            if found is None:
+                continue
+            ax.axvline(found, color=color, ls="--", lw=1)
+            if found not in xm[failed]:
+                ax.plot([found], [threshold], marker="D", ms=8, color=color, markeredgecolor="black", zorder=4)
+    if reference is not None:
+        ax.axvline(reference, color="#555555", ls="-", lw=0.8, alpha=0.6, label=f"reference {reference:g} {x_unit}".rstrip())
     if log_x:
         ax.set_xscale("log")
     ax.set_xlabel(axis_label(x_name, x_unit))

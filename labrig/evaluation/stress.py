@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from matplotlib.lines import Line2D
 
 from labrig.config import DEFAULT_CALIBRATION_DIR, DEFAULT_RIG
@@ -202,7 +203,8 @@ def force_errors(result: ForceResult) -> ForceStress:
 
 @dataclass(frozen=True)
 class Breakdown:
-    """Where one method broke on one axis: ``value`` (axis unit; None: not within the grid) and why."""
+    """Where one method broke on one axis: ``value`` (axis unit; None: not within the grid) and why; on an axis
+    pushed both ways from its reference, ``value`` is above the reference and ``below`` under it."""
 
     axis: str
     metric: str
@@ -211,6 +213,8 @@ class Breakdown:
     cause: str  # "error x2", "tracks lost", "" when it did not break
     error_doubles_at: float | None
     tracks_lost_at: float | None
+    below: float | None = None
+    below_cause: str = ""
 
 
 @dataclass(frozen=True)
@@ -283,7 +287,7 @@ def run_stress(run: Run, *, grid: str = "full", axes: Sequence[StressAxis] | Non
             for method in _methods(metric, model, axis):
                 curve = _curve(axis, metric, method, values, measured)
                 curves.append(curve)
-                breakdowns.append(breakdown_of(curve, log_x=axis.log_x))
+                breakdowns.append(breakdown_of(curve, log_x=axis.log_x, reference=axis.reference))
     return StressResult(grid, list(axes), curves, breakdowns, facts)
 
 
@@ -331,20 +335,38 @@ def _curve(axis: StressAxis, metric: str, method: str, values: list[float],
                        newtons if metric == "forces" else None)
 
 
-def breakdown_of(curve: StressCurve, factor: float = FACTOR, log_x: bool = False) -> Breakdown:
-    """The first value where the error reaches ``factor`` x the least-stressed value's or more tracks are lost."""
+def breakdown_of(curve: StressCurve, factor: float = FACTOR, log_x: bool = False,
+                 reference: float | None = None) -> Breakdown:
+    """The first value, going out from the least-stressed one, where the error reaches ``factor`` x that value's
+    or more tracks are lost than there. The least-stressed value is the curve's first, or ``reference`` (one of
+    its values) on an axis pushed both ways: then ``value`` is read above it and ``below`` under it."""
     x, error = np.asarray(curve.values, float), np.asarray(curve.error, float)
-    doubles = None
-    if np.isfinite(error[0]) and error[0] > 0:
-        doubles = charts.breakdown_point(x, error, factor, log_x=log_x and bool(np.all(x > 0)))
-    lost_at = None
-    if curve.lost is not None:
-        lost = np.asarray(curve.lost)
-        more = np.flatnonzero(lost > lost[0])
-        lost_at = float(x[more[0]]) if more.size else None
-    found = [(v, cause) for v, cause in ((doubles, "error x2"), (lost_at, "tracks lost")) if v is not None]
-    value, cause = min(found, key=lambda item: item[0]) if found else (None, "")
-    return Breakdown(curve.axis, curve.metric, curve.method, value, cause, doubles, lost_at)
+    start = 0 if reference is None else int(np.argmin(np.abs(x - reference)))
+    base = error[start]
+    measurable = bool(np.isfinite(base) and base > 0)
+    lost = None if curve.lost is None else np.asarray(curve.lost)
+    log_x = log_x and bool(np.all(x > 0))
+
+    def first_lost(side: npt.NDArray[np.int64]) -> float | None:
+        if lost is None:
+            return None
+        more = side[lost[side] > lost[start]]
+        return float(x[more[0]]) if more.size else None
+
+    def earliest(doubles: float | None, lost_at: float | None, outward: int) -> tuple[float | None, str]:
+        found = [(v, cause) for v, cause in ((doubles, "error x2"), (lost_at, "tracks lost")) if v is not None]
+        return min(found, key=lambda item: outward * item[0]) if found else (None, "")
+
+    above = np.arange(start, len(x))
+    doubles = charts.breakdown_point(x[above], error[above], factor, base, log_x) if measurable else None
+    lost_at = first_lost(above)
+    value, cause = earliest(doubles, lost_at, 1)
+    below, below_cause = None, ""
+    if start > 0:
+        low = charts.breakdown_point_below(x[:start + 1], error[:start + 1], x[start], factor, base, log_x) \
+            if measurable else None
+        below, below_cause = earliest(low, first_lost(np.arange(start, -1, -1)), -1)
+    return Breakdown(curve.axis, curve.metric, curve.method, value, cause, doubles, lost_at, below, below_cause)
 
 
 # -- report and summary ----------------------------------------------------------------------------
@@ -376,17 +398,20 @@ def add_stress_to_report(report: Report, result: StressResult) -> None:
                 f"{m} {', '.join(str(n) for n in v)}" for m, v in lost.items()) if lost else ""
             figure = charts.breakdown(np.asarray(curves[0].values), {c.method: np.asarray(c.error) for c in curves},
                                       x_name=axis.x_name, x_unit=axis.unit, error_name=name, error_unit=unit,
-                                      factor=FACTOR, log_x=axis.log_x)
+                                      factor=FACTOR, log_x=axis.log_x, reference=axis.reference)
             mark_breakdowns(figure, curves, [b for c in curves for b in result.breakdowns
-                                             if (b.axis, b.metric, b.method) == (c.axis, c.metric, c.method)], axis.unit)
+                                             if (b.axis, b.metric, b.method) == (c.axis, c.metric, c.method)], axis.unit,
+                            reference=axis.reference)
             report.add_figure(f"stress_{axis.key}_{metric}", f"{axis.title}: {name}", figure, caption=caption)
     titles = {a.key: a for a in result.axes}
-    report.add_table("stress_breakdown", "Breakdown points", ["axis", "metric", "method", "breaks at", "unit", "cause",
-                                                              "error x2 at", "tracks lost at"],
-                     [[titles[b.axis].title, b.metric, b.method, b.value, titles[b.axis].unit, b.cause or "did not break",
+    report.add_table("stress_breakdown", "Breakdown points", ["axis", "metric", "method", "breaks below", "breaks at",
+                                                              "unit", "cause", "error x2 at", "tracks lost at"],
+                     [[titles[b.axis].title, b.metric, b.method, b.below, b.value, titles[b.axis].unit,
+                       "; ".join(c for c in (b.below_cause, b.cause) if c) or "did not break",
                        b.error_doubles_at, b.tracks_lost_at] for b in result.breakdowns],
-                     caption="The first value (in the axis' unit) where the method's error doubles or it loses tracks; "
-                             "a dash: not within the grid.")
+                     caption="The first value (in the axis' unit) where the method's error doubles or it loses tracks, "
+                             "going out from the least-stressed value: the first of the grid, or the reference sensor's on "
+                             "an axis pushed both ways (breaks below: under it); a dash: not within the grid.")
     rows = []
     for axis in result.axes:
         for value, facts in zip(axis.values(result.grid), result.scenes.get(axis.key, [])):
@@ -403,18 +428,19 @@ def add_stress_to_report(report: Report, result: StressResult) -> None:
                                "curves": [asdict(c) for c in result.curves]})
 
 
-def mark_breakdowns(figure: Any, curves: Sequence[StressCurve], breakdowns: Sequence[Breakdown], unit: str) -> None:
+def mark_breakdowns(figure: Any, curves: Sequence[StressCurve], breakdowns: Sequence[Breakdown], unit: str,
+                    reference: float | None = None) -> None:
     """Finish a :func:`charts.breakdown` figure: a triangle where each tracker first loses tracks (its colour)
-    and legend entries that give each method's breakdown, by doubling or by lost tracks."""
+    and legend entries that give each method's breakdown, by doubling or by lost tracks (both sides of
+    ``reference`` on an axis pushed both ways)."""
     ax = figure.axes[0]
     for i, (curve, b) in enumerate(zip(curves, breakdowns)):
         if b.tracks_lost_at is not None:
             k = curve.values.index(b.tracks_lost_at)
             ax.plot([b.tracks_lost_at], [curve.error[k]], marker="v", ms=10, ls="", zorder=5,
                     color=charts.CYCLE[i % len(charts.CYCLE)], markeredgecolor="black")
-    handles, _ = ax.get_legend_handles_labels()
-    labels = [f"{b.method}: breaks at {b.value:.3g} {unit} ({b.cause})" if b.value is not None
-              else f"{b.method}: no breakdown up to {max(c.values):.3g} {unit}" for c, b in zip(curves, breakdowns)]
+    handles, labels = ax.get_legend_handles_labels()
+    labels = [_breakdown_label(c, b, unit, reference) for c, b in zip(curves, breakdowns)] + labels[len(curves):]
     if any(not np.all(np.isfinite(c.error)) for c in curves):
         handles.append(Line2D([], [], ls="", marker="x", color="#555555"))
         labels.append("no finite error (top edge)")
@@ -424,10 +450,25 @@ def mark_breakdowns(figure: Any, curves: Sequence[StressCurve], breakdowns: Sequ
     ax.legend(handles, labels, fontsize=8, title=f"dotted: {FACTOR:g} x baseline error", title_fontsize=7)
 
 
+def _breakdown_label(curve: StressCurve, b: Breakdown, unit: str, reference: float | None) -> str:
+    """One method's legend entry: where it broke (and why), or the span it held over."""
+    if reference is None or reference <= min(curve.values):
+        return (f"{b.method}: breaks at {b.value:.3g} {unit} ({b.cause})" if b.value is not None
+                else f"{b.method}: no breakdown up to {max(curve.values):.3g} {unit}")
+    sides = [f"{side} {v:.3g} ({cause})" for side, v, cause in (("below at", b.below, b.below_cause),
+                                                                  ("above at", b.value, b.cause)) if v is not None]
+    return (f"{b.method}: breaks {', '.join(sides)} {unit}" if sides
+            else f"{b.method}: no breakdown within {min(curve.values):.3g}-{max(curve.values):.3g} {unit}")
+
+
 def stress_summary(result: StressResult) -> dict[str, dict[str, float | None]]:
-    """``{axis_unit: {method: breakdown value or None}}`` (e.g. ``event_noise_hz``), for ``--json``."""
-    keys = {a.key: a.json_key for a in result.axes}
+    """``{axis_unit: {method: breakdown value or None}}`` (e.g. ``event_noise_hz``), for ``--json``; an axis pushed
+    both ways from its reference adds ``{axis_unit}_below`` (the breakdown under the reference)."""
+    axes = {a.key: a for a in result.axes}
     out: dict[str, dict[str, float | None]] = {}
     for b in result.breakdowns:
-        out.setdefault(keys[b.axis], {})[b.method] = b.value
+        axis = axes[b.axis]
+        out.setdefault(axis.json_key, {})[b.method] = b.value
+        if axis.two_sided:
+            out.setdefault(f"{axis.json_key}_below", {})[b.method] = b.below
     return out

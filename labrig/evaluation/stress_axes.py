@@ -44,6 +44,18 @@ class StressAxis:
     what: str  # how a value changes the scene, one sentence
     log_x: bool = False
     event_calibration: bool = False  # the scenes change the camera or its light: measured with and without recalibrating
+    #: The reference sensor's value, on both of the grids, when the axis pushes both ways from it (None: from its first
+    #: value up): the breakdown is read from it outwards, under it and above it.
+    reference: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.reference is not None and not (self.reference in self.full and self.reference in self.reduced):
+            raise LabrigError(f"stress axis {self.key}: its reference {self.reference} must be on both grids")
+
+    @property
+    def two_sided(self) -> bool:
+        """Whether the axis pushes below its reference as well as above it."""
+        return self.reference is not None and self.reference > min(self.full)
 
     def values(self, grid: str) -> tuple[float, ...]:
         if grid not in GRIDS:
@@ -122,10 +134,11 @@ AXES: tuple[StressAxis, ...] = (
              "recording's clock fit rests on the prompt pairs (lower envelope) and the trigger edges"),
     StressAxis(
         "contrast_threshold", "Contrast threshold (a less sensitive bias setting)", "contrast threshold, ON and OFF",
-        "ln", "ln", "contrast_threshold", full=(0.22, 0.26, 0.30, 0.35, 0.40), reduced=(0.22, 0.30, 0.40),
-        metrics=("forces",), event_calibration=True,
-        what="raises both contrast thresholds (the reference camera's 0.22 ln); fewer events for the same change, "
-             "measured with the thresholds recalibrated (labrig calibrate events) and with the reference camera's"),
+        "ln", "ln", "contrast_threshold", full=(0.15, 0.18, 0.22, 0.26, 0.30, 0.35, 0.40), reduced=(0.15, 0.22, 0.40),
+        metrics=("forces",), event_calibration=True, reference=0.22,
+        what="sets both contrast thresholds, below and above the reference camera's 0.22 ln (a more or a less sensitive "
+             "bias setting); more or fewer events for the same change, measured with the thresholds recalibrated "
+             "(labrig calibrate events) and with the reference camera's"),
     StressAxis(
         "on_off_ratio", "ON/OFF threshold asymmetry", "C_on / C_off", "x", "x", "on_off_ratio",
         full=(1.0, 1.15, 1.3, 1.45, 1.6), reduced=(1.0, 1.3, 1.6), metrics=("forces",), event_calibration=True,
@@ -133,8 +146,10 @@ AXES: tuple[StressAxis, ...] = (
              "ON and OFF counts; measured recalibrated and with the reference camera's thresholds"),
     StressAxis(
         "led_slope_gain", "LED ring slope gain", "brightening per unit surface slope", "x", "x", "slope_gain",
-        full=(2.5, 3.0, 3.5, 4.0), reduced=(2.5, 3.0, 4.0), metrics=("forces",), event_calibration=True,
-        what="changes how much brighter a sloped membrane looks under the LED ring (the reference 2.5): the same dent "
+        full=(1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0), reduced=(1.0, 2.5, 4.0), metrics=("forces",), event_calibration=True,
+        reference=2.5,
+        what="changes how much brighter a sloped membrane looks under the LED ring, dimmer or brighter than the "
+             "reference 2.5: the same dent "
              "changes the log intensity more or less; measured with the light recalibrated (labrig calibrate events "
              "with its press) and with the reference light's slope response"),
     StressAxis(
