@@ -138,3 +138,25 @@ def test_the_card_chooses_the_depth_source_and_bad_settings_are_refused(rig: Rig
         depth_sources.model_depth("sae-only", quiet="sometimes")
     with pytest.raises(TypeError):
         depth_sources.ModelDepth(bright.model, setup, None)  # type: ignore[abstract]  # a design is a subclass
+
+
+def test_a_bundled_networks_rebuild_names_every_training_it_was_fine_tuned_through(tmp_path: Path) -> None:
+    """tools/bundle_model.py: a network fine-tuned from another lists the first training before its own."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("bundle_model", Path(__file__).resolve().parent.parent / "tools"
+                                                  / "bundle_model.py")
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = tool
+    spec.loader.exec_module(tool)
+    base = _bundled("default").to_json()
+    first = write_card({**base, "command": "labrig train DATA --out first", "init": None}, tmp_path / "first.json")
+    tuned = write_card({**base, "command": "labrig train DATA --init first.onnx --out tuned",
+                        "init": {"model": "first", "onnx": str(tmp_path / "first.onnx"), "onnx_sha256": "ab"}},
+                       tmp_path / "tuned.json")
+    assert tool.training_commands(ModelCard.load(tuned)) == ["labrig train DATA --out first",
+                                                             "labrig train DATA --init first.onnx --out tuned"]
+    first.unlink()
+    assert tool.training_commands(ModelCard.load(tuned))[0].startswith("(fine-tuned from ")

@@ -112,6 +112,25 @@ def test_sampling_windows_and_nearest_ground_truth(campaign: Path) -> None:
         data.close()
 
 
+def test_windows_can_be_drawn_further_into_the_released_gel(campaign: Path, tmp_path: Path) -> None:
+    default, none = open_campaign(campaign), open_campaign(campaign, after_s=0.0)
+    try:
+        a, b = default.sources["train"][0], none.sources["train"][0]
+        end = {p.name: p for p in a.rec.phases()}["normal_up"].t_end_us
+        assert a.span_us[0] == b.span_us[0] and b.span_us[1] == pytest.approx(end)
+        # this short recording's ground truth stops before the default margin does
+        assert a.span_us[1] == pytest.approx(min(end + PHASE_MARGIN_S * 1e6, a.t_gt[-1]))
+        assert a.span_us[1] > end
+    finally:
+        default.close()
+        none.close()
+    card = train(campaign, TrainConfig(steps=1, after_release_s=0.6, val_every=0, **TINY), tmp_path / "r",
+                 show_progress=False)
+    assert "--after-release-s 0.6" in card["reproduce"] and "0.6 s after Normal Up" in card["sampling"]
+    with pytest.raises(LabrigError, match="--after-release-s"):
+        TrainConfig(after_release_s=-1.0).check()
+
+
 def test_missing_ground_truth_says_what_to_run(campaign: Path, tmp_path: Path) -> None:
     shutil.copy(campaign / "a.h5", tmp_path / "a.h5")
     (tmp_path / "manifest.csv").write_text("id,split,status,file,sha256\na,train,complete,a.h5,\n")

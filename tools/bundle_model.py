@@ -29,6 +29,24 @@ from labrig.pipeline.model_card import ModelCard, card_path, write_card
 MAX_BYTES = 10_000_000
 
 
+def training_commands(card: ModelCard) -> list[str]:
+    """The ``labrig train`` commands that made the network, in order: those of the networks it was fine-tuned from
+    (each card's ``init.onnx``, when its card is still there), then its own."""
+    commands = [str(card.raw.get("command") or card.raw.get("reproduce") or "")]
+    seen = {card.path}
+    init = card.raw.get("init")
+    while isinstance(init, dict) and init.get("onnx"):
+        parent = card_path(Path(str(init["onnx"])))
+        if parent in seen or not parent.exists():
+            commands.insert(0, f"(fine-tuned from {init['onnx']}, sha256 {init.get('onnx_sha256')})")
+            break
+        seen.add(parent)
+        earlier = ModelCard.load(parent)
+        commands.insert(0, str(earlier.raw.get("command") or earlier.raw.get("reproduce") or ""))
+        init = earlier.raw.get("init")
+    return commands
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model", type=Path, help="the trained .onnx (its .json card beside it)")
@@ -56,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         "sweep": sweep,
         "campaign_manifest_sha256": sha256_of(manifest) if manifest.exists() else None,
         "rebuild": [args.campaign_command, args.groundtruth_command or f"labrig groundtruth {data}",
-                    card.command, f"python tools/bundle_model.py {onnx} ..."],
+                    *training_commands(card), f"python tools/bundle_model.py {onnx} ..."],
     }
     checkpoint = onnx.with_name(onnx.stem + ".ckpt.pt")
     if not checkpoint.exists():

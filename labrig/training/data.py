@@ -8,10 +8,14 @@ nearest in time to the window's last event. Times are host microseconds througho
 base, the base of the sidecar's ``t_host_us``.
 
 Times are drawn uniformly over the recording's probing phases (``normal_down`` to
-``normal_up``) widened by :data:`PHASE_MARGIN_S` on each side, intersected with the span of
-its ground truth and with the camera's stream: the approach and retract (seconds of an
-undeformed gel at rest with hardly any events) would otherwise fill most windows, while the
-margins still show the network the gel at rest. ``phases="all"`` uses the whole recording.
+``normal_up``) widened by :data:`PHASE_MARGIN_S` before and ``after_s`` (the same by default) after,
+intersected with the span of its ground truth and with the camera's stream: the approach and
+retract (seconds of an undeformed gel at rest with hardly any events) would otherwise fill most
+windows, while the margins still show the network the gel at rest. The gel leaves the indenter
+about 0.1 s after ``normal_up`` ends, and the brightness change since rest then holds what its
+events did not bring back (the pixels' threshold quantisation, their leak's bias: about one event
+per pixel); a longer ``after_s`` shows the network more of that released gel, which it must read as
+flat. ``phases="all"`` uses the whole recording.
 Where a camera stream stopped early (a stalled camera) there are no events, not even noise,
 beside a dented gel: such windows taught the network to draw a dimple from nothing.
 
@@ -104,7 +108,8 @@ class Sample:
 class Source:
     """One recording and its sidecar: lazy map reads (one compressed chunk per map)."""
 
-    def __init__(self, recording: Path, sidecar: Path, split: str, phases: str = "probing") -> None:
+    def __init__(self, recording: Path, sidecar: Path, split: str, phases: str = "probing",
+                 after_s: float = PHASE_MARGIN_S) -> None:
         self.path = recording
         self.sidecar = sidecar
         self.split = split
@@ -119,15 +124,15 @@ class Source:
         self.indenter = str(attrs.get("indenter", self.rec.attrs.get("indenter", "")))
         x0, y0, x1, y1 = (int(v) for v in attrs["roi_px"])
         self.roi = Roi(x0, y0, x1, y1)
-        self.span_us = self._span(phases)
+        self.span_us = self._span(phases, after_s)
 
-    def _span(self, phases: str) -> tuple[float, float]:
+    def _span(self, phases: str, after_s: float) -> tuple[float, float]:
         t0, t1 = float(self.t_gt[0]), float(self.t_gt[-1])
         if phases == "probing":
             chosen = [p for p in self.rec.phases() if p.name in PROBING_PHASES]
             if chosen:
-                margin = PHASE_MARGIN_S * 1e6
-                t0, t1 = max(t0, chosen[0].t_start_us - margin), min(t1, chosen[-1].t_end_us + margin)
+                t0 = max(t0, chosen[0].t_start_us - PHASE_MARGIN_S * 1e6)
+                t1 = min(t1, chosen[-1].t_end_us + after_s * 1e6)
         elif phases != "all":
             raise LabrigError(f"phases must be 'probing' or 'all', not {phases!r}")
         events_end = self.rec.events_end_us()
@@ -218,7 +223,8 @@ class CampaignData:
                 s.close()
 
 
-def open_campaign(folder: str | Path | Sequence[str | Path], phases: str = "probing") -> CampaignData:
+def open_campaign(folder: str | Path | Sequence[str | Path], phases: str = "probing",
+                  after_s: float = PHASE_MARGIN_S) -> CampaignData:
     """Pair each complete recording of a campaign folder's manifest with its ``NAME.gt.h5``, by split.
 
     Several folders (e.g. the paper campaign and a training campaign) pool their recordings
@@ -236,7 +242,8 @@ def open_campaign(folder: str | Path | Sequence[str | Path], phases: str = "prob
         for recording in recordings:
             split = recording.split if recording.split in SPLITS else "train"
             try:
-                data.sources.setdefault(split, []).append(Source(recording.path, recording.sidecar, split, phases))
+                data.sources.setdefault(split, []).append(Source(recording.path, recording.sidecar, split, phases,
+                                                                      after_s))
             except LabrigError as exc:
                 data.skipped.append(f"{recording.path.name}: {exc}")
     if not data.sources.get("train"):

@@ -30,7 +30,7 @@ from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.depthnet import DepthModel, UNetConfig, benchmark_ms, build_unet, export_onnx, parameter_count
 from labrig.pipeline.model_card import write_card
 from labrig.pipeline.sae import crop_from_unet
-from labrig.training.data import NoiseAugment, WindowSampler, fixed_set, open_campaign
+from labrig.training.data import PHASE_MARGIN_S, NoiseAugment, WindowSampler, fixed_set, open_campaign
 from labrig.training.init import initial_network
 from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
 from labrig.training.shift import ShiftAugment
@@ -40,10 +40,10 @@ DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
 #: Settings that must match for a resume.
 RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases", "noise_hz",
-               "inputs", "init", "shift_cells", "lr_schedule")
+               "inputs", "init", "shift_cells", "lr_schedule", "after_release_s")
 #: Resume keys a checkpoint may predate, with the value it then had.
 RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae", "init": None, "shift_cells": 0,
-                                      "lr_schedule": "constant"}
+                                      "lr_schedule": "constant", "after_release_s": PHASE_MARGIN_S}
 #: Learning-rate schedules: constant, or a cosine from ``lr`` down to ``lr * COSINE_FLOOR`` at the last step.
 LR_SCHEDULES = ("constant", "cosine")
 COSINE_FLOOR = 0.05
@@ -84,6 +84,8 @@ class TrainConfig:
     #: axis; 0: off.
     shift_cells: int = DEFAULT_SHIFT_CELLS
     lr_schedule: str = "constant"
+    #: With ``phases`` "probing": windows drawn until this long after Normal Up ends (s).
+    after_release_s: float = PHASE_MARGIN_S
 
     @classmethod
     def from_init(cls, init: str, **settings: Any) -> TrainConfig:
@@ -113,6 +115,8 @@ class TrainConfig:
             raise LabrigError("--workers must be at least 1")
         if not 0 <= self.shift_cells < 45:
             raise LabrigError("--shift-cells must be 0 (off) or a whole number of grid cells under 45 (half the grid)")
+        if not 0.0 <= self.after_release_s <= 10.0:
+            raise LabrigError("--after-release-s must be within [0, 10] s")
         if self.lr_schedule not in LR_SCHEDULES:
             raise LabrigError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, not {self.lr_schedule!r}")
         if self.lr_schedule == "cosine" and self.steps is None:
@@ -198,7 +202,7 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
     if config.threads:
         torch.set_num_threads(config.threads)
     device = pick_device(config.device)
-    data = open_campaign(data_dir, config.phases)
+    data = open_campaign(data_dir, config.phases, config.after_release_s)
     try:
         window_us = config.window_ms * 1000.0
         torch.manual_seed(config.seed)
@@ -310,8 +314,9 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
             "inputs": spec.to_card(),
             "loss": {"name": config.loss, "lambda_c": config.lambda_c if config.loss == "contact" else None},
             "training_data": data.describe(),
-            "sampling": f"uniform recording, uniform start time within its {config.phases} phases; ground truth "
-                        "nearest to the window's last event",
+            "sampling": f"uniform recording, uniform start time within its {config.phases} phases"
+                        + (f" (from {PHASE_MARGIN_S:g} s before Normal Down to {config.after_release_s:g} s after Normal Up)"
+                           if config.phases == "probing" else "") + "; ground truth nearest to the window's last event",
             "augmentation": _augmentation(config),
             "init": init_card,
             "training": {"steps": step, "batch_size": config.batch_size, "samples": n_samples, "optimizer": "Adam",
@@ -403,6 +408,8 @@ def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out:
         parts += ["--lambda-c", f"{c.lambda_c:g}"]
     if c.phases != "probing":
         parts += ["--phases", c.phases]
+    if c.after_release_s != PHASE_MARGIN_S:
+        parts += ["--after-release-s", f"{c.after_release_s:g}"]
     if c.noise_hz > 0:
         parts += ["--noise-hz", f"{c.noise_hz:g}"]
     if c.inputs != "sae":
