@@ -173,6 +173,7 @@ def test_the_bundled_network_follows_a_press_and_returns_to_zero_after_normal_up
     has left the gel the depth and the force are back at zero, with no rest gate to reset it."""
     from labrig.evaluation.forces import ForceTask, evaluate_forces
     from labrig.models import bundled_model_path
+    from labrig.pipeline.model_card import ModelCard
     from labrig.recording import Recording
 
     with Recording(virtual_press) as rec:
@@ -181,7 +182,8 @@ def test_the_bundled_network_follows_a_press_and_returns_to_zero_after_normal_up
     waits = [(p.t_start_us, p.t_end_us) for p in phases if p.name == "wait"]
     result = evaluate_forces(ForceTask(str(virtual_press), str(bundled_model_path()), window_events=None,
                                        window_us=10_000, calibration_dir="calibration"))
-    assert "bright" in result.depth_source
+    assert result.depth_source == f"model:{bundled_model_path().stem}"
+    assert ModelCard.load(bundled_model_path().with_suffix(".json")).sees_brightness
     held = np.zeros(len(result.t1_us), bool)
     for a, b in waits:
         held |= (result.t1_us > a + 50_000) & (result.t1_us <= b)
@@ -190,8 +192,11 @@ def test_the_bundled_network_follows_a_press_and_returns_to_zero_after_normal_up
     assert np.all(np.abs(result.predicted_n[held, 2] - fz_true) < 0.2 * np.abs(fz_true) + 0.2)
     after = result.t1_us > released_us + RELEASE_LAG_US
     assert after.sum() >= 10
-    fz_after = np.abs(result.predicted_n[after, 2])  # the truth: 0; held 4.6 N; a stale SAE-only dent: 2-3 N
-    assert fz_after.mean() < 0.35 and fz_after.max() < 0.6, "a stale dent outlived the press"
+    # the truth: 0; held 4.6 N; a stale SAE-only dent: 2-3 N. The released gel's brightness change is not quite zero
+    # (each pixel's threshold quantisation and its leak's bias, about one event per pixel where the dent was) and the
+    # gated leak holds it: the bundled network reads 0.3-0.4 N from it (docs/depthnet.md, the release).
+    fz_after = np.abs(result.predicted_n[after, 2])
+    assert fz_after.mean() < 0.45 and fz_after.max() < 0.6, "a stale dent outlived the press"
 
 
 def test_a_stateful_networks_depth_table_uses_the_force_evaluations_windows(virtual_press, monkeypatch) -> None:  # type: ignore[no-untyped-def]

@@ -18,7 +18,8 @@ def test_each_bundled_network_ships_with_its_card(name: str) -> None:
     assert path.stat().st_size < 10_000_000
     assert card["window_ms"] == 10.0 and card["bundled"]["reason"]
     assert card["reproduce"].startswith("labrig train ")
-    assert ("--inputs sae+bright" in card["reproduce"]) == (name == "default")
+    rebuild = " ".join(card["bundled"].get("rebuild") or [card["reproduce"]])
+    assert ("--inputs sae+bright" in rebuild) == (name == "default")
 
 
 def test_the_default_sees_the_gels_state_and_the_baseline_does_not() -> None:
@@ -26,6 +27,8 @@ def test_the_default_sees_the_gels_state_and_the_baseline_does_not() -> None:
 
     default = ModelCard.load(bundled_model_path().with_suffix(".json")).to_json()
     assert InputSpec.from_card(default).kinds == ("sae", "brightness")
+    held = default["inputs"]["brightness"]
+    assert held["rest_tau_s"] > 0 and held["reference_slope_gain"] > 0  # the gated leak, the reference light
     assert InputSpec.from_card(ModelCard.load(bundled_model_path("sae-only").with_suffix(".json")).to_json()).kinds == ("sae",)
 
 

@@ -5,7 +5,8 @@ augmentation, val and test errors, and the exact command that reproduces it), an
 ``NAME.weights.pt`` (its torch weights, which ``labrig train --init`` fine-tunes).
 ``labrig evaluate`` and ``labrig run --depth model`` use ``default`` unless given another model:
 the SAE and the brightness change since rest (:mod:`labrig.pipeline.brightness`), the gel's
-state. ``--model sae-only`` picks the paper's network, the SAE alone, kept as the baseline it
+state, held while the gel is loaded (the gated leak) and read under the reference light (the
+camera's calibrated slope gain); ``labrig train --init default`` fine-tunes it. ``--model sae-only`` picks the paper's network, the SAE alone, kept as the baseline it
 is compared with (it needs the quiet hold, :mod:`labrig.pipeline.quiet`). The noise-robust
 SAE-only network of earlier releases is retired: the default holds to more noise and is
 better on the clean sensor (docs/depthnet.md).
@@ -18,7 +19,7 @@ from pathlib import Path
 from labrig.errors import LabrigError
 
 #: Bundled networks by the name ``--model`` accepts.
-BUNDLED = {"default": "depth-w4-bright-10ms", "sae-only": "depth-w4-contact-10ms"}
+BUNDLED = {"default": "depth-w4-release-10ms", "sae-only": "depth-w4-contact-10ms"}
 BUNDLED_NAME = BUNDLED["default"]
 FOLDER = Path(__file__).resolve().parent
 #: A network's torch weights (its ``state_dict``) beside its ``.onnx``: ``NAME`` + this.
