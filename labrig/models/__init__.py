@@ -6,10 +6,9 @@ augmentation, val and test errors, and the exact command that reproduces it), an
 ``labrig evaluate`` and ``labrig run --depth model`` use ``default`` unless given another model:
 the SAE and the brightness change since rest (:mod:`labrig.pipeline.brightness`), the gel's
 state, held while the gel is loaded (the gated leak) and read under the reference light (the
-camera's calibrated slope gain); ``labrig train --init default`` fine-tunes it. ``--model sae-only`` picks the paper's network, the SAE alone, kept as the baseline it
-is compared with (it needs the quiet hold, :mod:`labrig.pipeline.quiet`). The noise-robust
-SAE-only network of earlier releases is retired: the default holds to more noise and is
-better on the clean sensor (docs/depthnet.md).
+camera's calibrated slope gain); ``labrig train --init default`` fine-tunes it. ``--model
+sae-only`` picks the paper's network, the SAE alone, kept as the baseline it is compared with
+(it needs the quiet hold, :mod:`labrig.pipeline.quiet`; docs/depthnet.md).
 """
 
 from __future__ import annotations
