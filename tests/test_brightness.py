@@ -287,3 +287,62 @@ def test_a_gated_leak_is_stepped_at_most_every_10_ms_and_round_trips_the_card() 
     assert integrator.counts.sum() < 1.0
     with pytest.raises(LabrigError, match="rest_tau_s"):
         BrightnessParams(tau_s=1.0, rest_tau_s=2.0)
+
+
+def _released() -> BrightnessParams:
+    return BrightnessParams(tau_s=36_000.0, rest_tau_s=0.5, floor_events_per_px=0.3, release_fraction=0.5,
+                            release_s=0.2)
+
+
+def _dent_off_events(n_per_px: int) -> np.ndarray:
+    off = _dent_events(n_per_px)
+    off["p"] = 0
+    return off
+
+
+def test_the_release_starts_again_once_an_undone_press_has_settled() -> None:
+    """A dent of 8 events per pixel held 60 s is kept; undone over 1 s down to the dead band's one event per pixel,
+    it is not released while it still falls, and is released (zero) once it has stayed that low for 0.2 s."""
+    integrator = BrightnessIntegrator(ROI, _released())
+    integrator.add_events(_dent_events(8), 10_000)
+    empty = np.zeros(0, dtype=EVENT_DTYPE)
+    t = 10_000
+    for _ in range(6000):  # 60 s still
+        t += 10_000
+        integrator.add_events(empty, t)
+    held = integrator.held_total
+    assert held > 0 and integrator.counts.max() > 0
+    for _ in range(7):  # unloading: one event per pixel off every 150 ms
+        for _ in range(15):
+            t += 10_000
+            integrator.add_events(empty, t)
+            assert integrator.held_total > 0, "released while the press was still being undone"
+        integrator.add_events(_dent_off_events(1), t)
+    assert integrator.held_total < 0.5 * held
+    for _ in range(25):  # settled at one event per pixel for 0.25 s
+        t += 10_000
+        integrator.add_events(empty, t)
+    assert integrator.held_total == 0 and not integrator.counts.any()
+
+
+def test_a_press_undone_by_less_than_the_release_fraction_is_held() -> None:
+    """Half of the dent taken back (a shallower hold, or the indenter sheared away from part of it) is not a release."""
+    integrator = BrightnessIntegrator(ROI, _released())
+    integrator.add_events(_dent_events(8), 10_000)
+    integrator.add_events(_dent_off_events(3), 20_000)
+    cell = (int((330 - ROI.y0_px + 0.5) * 90 / ROI.height_px), int((630 - ROI.x0_px + 0.5) * 112 / ROI.width_px))
+    left = float(integrator.channel()[cell])  # about 5 events per pixel / 2 per unit
+    empty = np.zeros(0, dtype=EVENT_DTYPE)
+    for k in range(3, 1003):  # 10 s
+        integrator.add_events(empty, k * 10_000)
+    assert left > 2.4 and integrator.channel()[cell] == pytest.approx(left, rel=1e-3)
+
+
+def test_the_release_round_trips_the_card_and_needs_the_gated_leak() -> None:
+    spec = InputSpec(("sae", "brightness"), brightness=_released())
+    assert InputSpec.from_card({"inputs": spec.to_card()}) == spec
+    assert BrightnessParams.from_card(_gated().to_card()).release_fraction is None  # older cards: no release
+    with pytest.raises(LabrigError, match="release"):
+        BrightnessParams(release_fraction=0.5)  # no gated leak
+    with pytest.raises(LabrigError, match="release"):
+        BrightnessParams(rest_tau_s=0.5, release_fraction=1.5)

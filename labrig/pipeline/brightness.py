@@ -25,6 +25,11 @@ seconds). The leak forgets what a pixel's threshold mismatch and background nois
 minutes, and with them a press held that long. The gated leak (``BrightnessParams.rest_tau_s``)
 leaks only where the gel is at rest: each 10 ms step removes the uniform drift and decays the
 quiet cells quickly, while the cells that hold a change keep it (:meth:`BrightnessIntegrator._gated_leak`).
+A DVS pixel is silent inside its dead band, so a press that is undone leaves about one event per
+pixel where it was; with ``BrightnessParams.release_fraction`` the integrator starts again from zero
+once the change its held cells keep has fallen under that fraction of its peak and stopped falling
+(the release: the image says the press is undone; a press hardly moves the markers at the gel's
+centre, so they cannot say it).
 :func:`brightness_channel` turns it into the network's channel: events per pixel
 (the count over the cell's pixel area) minus the map's median (the uniform drift of the
 sensor's leak events, which fire ON at a steady rate on every pixel), over
@@ -63,6 +68,8 @@ LEAK_STEP_US = 10_000
 #: in. Any fixed value would serve; this one is the reference sensor's as the calibration press measures it
 #: (:mod:`labrig.protocol.light_calibration`), so that sensor's channel is about unchanged.
 REFERENCE_SLOPE_GAIN = 2.4
+#: The release waits while the held change still falls by more than this fraction of itself (the gel unloading).
+RELEASE_SETTLE = 0.1
 
 
 @dataclass(frozen=True)
@@ -76,6 +83,12 @@ class BrightnessParams:
     its 8 neighbours, is at least ``floor_events_per_px`` (reference events per pixel) holds it and
     leaks only with ``tau_s``, so a press is kept as long as it lasts.
 
+    ``release_fraction`` (dimensionless; None: off; needs ``rest_tau_s``): the release. The press is
+    undone, and the integrator starts again from zero, once the change the held cells keep, summed, has
+    stayed under this fraction of the most it has been since the last start for ``release_s`` (s): an
+    undone press leaves about one event per pixel where it was (each pixel's dead band), which the
+    gate would otherwise hold as a shallow dent.
+
     ``reference_slope_gain`` (dimensionless; None: the light as it is): the slope gain the channel is
     expressed in (:func:`reference_light`)."""
 
@@ -84,6 +97,8 @@ class BrightnessParams:
     clip: float = 4.0
     rest_tau_s: float | None = None
     floor_events_per_px: float = 0.3
+    release_fraction: float | None = None
+    release_s: float = 0.2
     reference_slope_gain: float | None = None
 
     def __post_init__(self) -> None:
@@ -92,6 +107,10 @@ class BrightnessParams:
                               "be positive")
         if self.rest_tau_s is not None and not 0 < self.rest_tau_s <= self.tau_s:
             raise LabrigError("the brightness channel's rest_tau_s must be positive and at most tau_s")
+        if self.release_fraction is not None and (self.rest_tau_s is None or not 0 < self.release_fraction < 1
+                                                  or not self.release_s >= 0):
+            raise LabrigError("the brightness channel's release needs rest_tau_s, a release_fraction between 0 and 1 "
+                              "and a release_s of zero or more")
         if self.reference_slope_gain is not None and not self.reference_slope_gain > 0:
             raise LabrigError("the brightness channel's reference_slope_gain must be positive")
 
@@ -99,13 +118,16 @@ class BrightnessParams:
         card = {"tau_s": self.tau_s, "scale_events_per_px": self.scale_events_per_px, "clip": self.clip}
         if self.rest_tau_s is not None:
             card.update(rest_tau_s=self.rest_tau_s, floor_events_per_px=self.floor_events_per_px)
+        if self.release_fraction is not None:
+            card.update(release_fraction=self.release_fraction, release_s=self.release_s)
         if self.reference_slope_gain is not None:
             card["reference_slope_gain"] = self.reference_slope_gain
         return card
 
     @classmethod
     def from_card(cls, section: dict[str, float] | None) -> BrightnessParams:
-        keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px", "reference_slope_gain")
+        keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px", "release_fraction",
+                "release_s", "reference_slope_gain")
         return cls(**{k: float(v) for k, v in (section or {}).items() if k in keys})
 
 
@@ -122,6 +144,10 @@ class BrightnessIntegrator:
         self.pixels_per_cell = roi.width_px * roi.height_px / float(grid_shape[0] * grid_shape[1])
         self.counts = np.zeros(grid_shape, np.float32)
         self._added = np.zeros(grid_shape, np.float32)  # gated leak: the counts since its last step
+        self.held_total = 0.0  # release: the change the held cells keep, summed (reference events)
+        self._held_peak = 0.0  # the most it has been since the last start
+        self._undone_s = 0.0  # how long it has stayed under release_fraction of that, without falling further
+        self._undone_from = 0.0  # the held change when that began
         self.t_us: float | None = None
 
     def add(self, counts: F32, t1_us: float) -> F32:
@@ -148,16 +174,35 @@ class BrightnessIntegrator:
         """One step of the gated leak over ``dt_s``: the step's uniform drift (the mean of what the quiet cells
         gained: the sensor's leak events, a change of the light) leaves every cell, then the quiet cells
         decay with ``rest_tau_s`` and the others with ``tau_s``. A cell is quiet when its change, less the
-        map's median and averaged with its 8 neighbours, is under ``floor_events_per_px``."""
+        map's median and averaged with its 8 neighbours, is under ``floor_events_per_px``. With
+        ``release_fraction`` set, a step that finds the press undone (:meth:`_released`) starts again from zero."""
         change = self.counts - np.float32(np.median(self.counts))
-        floor = np.float32(self.params.floor_events_per_px * self.pixels_per_cell)
-        quiet = np.abs(uniform_filter(change, 3, mode="nearest")) < floor
+        smoothed = np.abs(uniform_filter(change, 3, mode="nearest"))
+        quiet = smoothed < np.float32(self.params.floor_events_per_px * self.pixels_per_cell)
+        if self.params.release_fraction is not None and self._released(float(smoothed[~quiet].sum()), dt_s):
+            self.reset(self.t_us)
+            return
         drift = np.float32(self._added[quiet].mean() if quiet.any() else np.median(self._added))
         self.counts -= drift
         rest = np.float32(math.exp(-dt_s / rest_tau_s))
         hold = np.float32(math.exp(-dt_s / self.params.tau_s))
         self.counts *= np.where(quiet, rest, hold)
         self._added[...] = 0.0
+
+    def _released(self, held_total: float, dt_s: float) -> bool:
+        """Whether the held change, ``held_total`` (reference events) now, has stayed under ``release_fraction``
+        of its peak for ``release_s`` without falling by more than :data:`RELEASE_SETTLE` of itself (the
+        gel still unloading), ``dt_s`` being the time since the last step."""
+        self.held_total = held_total
+        self._held_peak = max(self._held_peak, held_total)
+        assert self.params.release_fraction is not None
+        if not held_total < self.params.release_fraction * self._held_peak:
+            self._undone_s = self._undone_from = 0.0
+        elif self._undone_from == 0.0 or held_total < (1.0 - RELEASE_SETTLE) * self._undone_from:
+            self._undone_s, self._undone_from = 0.0, held_total
+        else:
+            self._undone_s += dt_s
+        return self._undone_s >= self.params.release_s
 
     def add_events(self, events: npt.NDArray, t1_us: float) -> F32:
         return self.add(signed_counts(events, self.roi, self.grid_shape, self.thresholds), t1_us)
@@ -166,6 +211,7 @@ class BrightnessIntegrator:
         """Forget the count (the gel is at rest)."""
         self.counts[...] = 0.0
         self._added[...] = 0.0
+        self.held_total = self._held_peak = self._undone_s = self._undone_from = 0.0
         self.t_us = t_us
 
     def channel(self) -> F32:
