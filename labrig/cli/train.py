@@ -43,9 +43,9 @@ def train_command(
     val_windows: Annotated[int, typer.Option(help="Windows drawn once from the val split for validation.")] = 128,
     phases: Annotated[str, typer.Option(
         help="Sample windows in the probing phases (normal_down to normal_up, +-0.3 s) or all.")] = "probing",
-    after_release_s: Annotated[float, typer.Option(
+    after_release_s: Annotated[float | None, typer.Option(
         help="With --phases probing: draw windows until this long after Normal Up ends (s): the released gel, which "
-             "the brightness change since rest must read as flat.")] = 0.3,
+             "the brightness change since rest must read as flat (default 0.3).")] = None,
     device: Annotated[str, typer.Option(help="auto (CUDA when present), cpu, cuda.")] = "auto",
     threads: Annotated[int | None, typer.Option(help="Torch CPU threads (default: torch's).")] = None,
     noise_hz: Annotated[float, typer.Option(
@@ -80,9 +80,10 @@ def train_command(
         loss=loss, lambda_c=lambda_c, steps=steps, time_budget_min=time_budget_min, batch_size=batch_size, lr=lr,
         seed=seed, checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows, phases=phases,
         device=device, threads=threads, noise_hz=noise_hz, calibration_dir=str(calibration_folder(calibration)),
-        workers=workers, lr_schedule=lr_schedule, after_release_s=after_release_s)
-    if shift_cells is not None:
-        settings["shift_cells"] = shift_cells
+        workers=workers, lr_schedule=lr_schedule)
+    for name, value in (("shift_cells", shift_cells), ("after_release_s", after_release_s)):
+        if value is not None:
+            settings[name] = value
     shape: dict[str, Any] = {"width": width, "pools": pools, "window_ms": window_ms, "inputs": inputs}
     if init is not None:
         given = [f"--{k.replace('_', '-')}" for k, v in shape.items() if v is not None]

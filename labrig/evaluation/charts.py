@@ -341,6 +341,28 @@ def breakdown_point_below(
     return None if point is None else (1.0 / point if log_x else -point)
 
 
+def breakdown_points(
+    x: ArrayLike, error: ArrayLike, reference: float | None = None, factor: float = 2.0,
+    baseline: float | None = None, log_x: bool = False,
+) -> tuple[float | None, float | None]:
+    """The stress at which ``error`` first reaches ``factor`` times its baseline, read outwards from the
+    least-stressed sample: ``(below, above)``. That sample is the one nearest ``reference`` on an axis pushed
+    both ways (:func:`breakdown_point_below` under it, :func:`breakdown_point` over it), else the lowest ``x``
+    (``below`` None); the baseline is its error unless given. (None, None) when the baseline is not a
+    positive, finite error (its scene failed: no breakdown can be read)."""
+    xs, es = np.asarray(x, dtype=float), np.asarray(error, dtype=float)
+    order = np.argsort(xs, kind="stable")
+    xs, es = xs[order], es[order]
+    start = 0 if reference is None else int(np.argmin(np.abs(xs - reference)))
+    base = float(es[start] if baseline is None else baseline)
+    if not (np.isfinite(base) and base > 0):
+        return None, None
+    above = breakdown_point(xs[start:], es[start:], factor, base, log_x)
+    below = (breakdown_point_below(xs[:start + 1], es[:start + 1], float(xs[start]), factor, base, log_x)
+             if start > 0 else None)
+    return below, above
+
+
 def breakdown(
     x: Series,
     error: Series,
@@ -379,10 +401,7 @@ def breakdown(
         start = 0 if reference is None else int(np.argmin(np.abs(xm[order] - reference)))
         base_error = float(e[order][start] if base is None else base)
         measurable = bool(np.isfinite(base_error) and base_error > 0)  # no baseline (its scene failed): no breakdown
-        above = xm >= (xm[order][start])
-        point = breakdown_point(xm[above], e[above], factor, base_error, log_x) if measurable else None
-        low = (breakdown_point_below(xm, e, float(xm[order][start]), factor, base_error, log_x)
-               if measurable and start > 0 else None)
+        low, point = breakdown_points(xm, e, reference, factor, base_error, log_x)
         threshold = factor * base_error
         where = (
             f"breaks at {point:.3g} {x_unit}".rstrip() if point is not None

@@ -342,8 +342,6 @@ def breakdown_of(curve: StressCurve, factor: float = FACTOR, log_x: bool = False
     its values) on an axis pushed both ways: then ``value`` is read above it and ``below`` under it."""
     x, error = np.asarray(curve.values, float), np.asarray(curve.error, float)
     start = 0 if reference is None else int(np.argmin(np.abs(x - reference)))
-    base = error[start]
-    measurable = bool(np.isfinite(base) and base > 0)
     lost = None if curve.lost is None else np.asarray(curve.lost)
     log_x = log_x and bool(np.all(x > 0))
 
@@ -357,14 +355,11 @@ def breakdown_of(curve: StressCurve, factor: float = FACTOR, log_x: bool = False
         found = [(v, cause) for v, cause in ((doubles, "error x2"), (lost_at, "tracks lost")) if v is not None]
         return min(found, key=lambda item: outward * item[0]) if found else (None, "")
 
-    above = np.arange(start, len(x))
-    doubles = charts.breakdown_point(x[above], error[above], factor, base, log_x) if measurable else None
-    lost_at = first_lost(above)
+    low, doubles = charts.breakdown_points(x, error, reference, factor, None, log_x)
+    lost_at = first_lost(np.arange(start, len(x)))
     value, cause = earliest(doubles, lost_at, 1)
     below, below_cause = None, ""
     if start > 0:
-        low = charts.breakdown_point_below(x[:start + 1], error[:start + 1], x[start], factor, base, log_x) \
-            if measurable else None
         below, below_cause = earliest(low, first_lost(np.arange(start, -1, -1)), -1)
     return Breakdown(curve.axis, curve.metric, curve.method, value, cause, doubles, lost_at, below, below_cause)
 
