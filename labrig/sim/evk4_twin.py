@@ -190,7 +190,8 @@ class Evk4Twin:
     def _serve(self) -> None:
         assert self._server is not None
         while not self._stop.is_set():
-            readable, _, _ = select.select([self._server, self._wake_r], [], [], 0.2)
+            watch_r: list[socket.socket | int] = [self._server, self._wake_r]
+            readable, _, _ = select.select(watch_r, [], [], 0.2)
             if self._wake_r in readable:
                 self._drain_wake()
             if self._server in readable:
@@ -234,7 +235,8 @@ class Evk4Twin:
                 self.events_sent += int(events.size)
                 self.triggers_sent += int(triggers.size)
             watch_w = [client] if out else []
-            readable, writable, _ = select.select([client, self._wake_r], watch_w, [], wait_s)
+            watch_r: list[socket.socket | int] = [client, self._wake_r]
+            readable, writable, _ = select.select(watch_r, watch_w, [], wait_s)
             if self._wake_r in readable:
                 self._drain_wake()
             if client in readable:

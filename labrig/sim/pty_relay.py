@@ -40,8 +40,9 @@ def relay(sock: socket.socket) -> None:
     tty.setraw(slave)
     os.set_blocking(master, False)
     sock.send(os.ttyname(slave).encode())
+    watched: list[int | socket.socket] = [master, sock]
     while True:
-        readable, _, _ = select.select([master, sock], [], [])
+        readable, _, _ = select.select(watched, [], [])
         stamp_ns = time.monotonic_ns()
         if master in readable:
             data = _read(master)
