@@ -41,7 +41,7 @@ import math
 import struct
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -74,7 +74,7 @@ from labrig.devices.bota_protocol import (
 
 Vec3 = tuple[float, float, float]
 #: Host time [us] -> (force [N] (3,), torque [N m] (3,)) in the sensor frame.
-WrenchSource = Callable[[int], tuple[npt.ArrayLike, npt.ArrayLike]]
+WrenchSource = Callable[[int], tuple[Iterable[float], Iterable[float]]]
 #: Rewrites one encoded frame (37 bytes) before it is queued; may return any bytes.
 FrameHook = Callable[[bytes], bytes]
 #: A frame's float32 and uint32 fields, for decoding a frame as a receiver would without its bytes.

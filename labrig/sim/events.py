@@ -243,9 +243,9 @@ class EventSensor:
         self._stamp += 1
         has_block = block is not None
         pix, pol, t, key, self._active, self._leak_candidates = _k.sensor_step(
-            t0_us, t1_us, pixels, log_new, self._active, has_block, block.y0 if has_block else 0,
-            block.x0 if has_block else 0, block.changed if has_block else _NO_BLOCK,
-            block.values if has_block else _NO_BLOCK_VALUES, float(p.eps), self.width, self._mark, self._stamp,
+            t0_us, t1_us, pixels, log_new, self._active, has_block, block.y0 if block is not None else 0,
+            block.x0 if block is not None else 0, block.changed if block is not None else _NO_BLOCK,
+            block.values if block is not None else _NO_BLOCK_VALUES, float(p.eps), self.width, self._mark, self._stamp,
             self.log_input, self.log_filtered, self._hi, self._lo, self._is_active, a, b, c, p.settle_log,
             self.reference, self.c_on, self.c_off, self._k, p.leak_rate_hz > 0, self._t_start_us,
             float(self._epoch_start_us), float(self._epoch_end_us), self.last_event_us, self._refractory_us,

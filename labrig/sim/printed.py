@@ -17,6 +17,8 @@ carries that through the rig:
 
 from __future__ import annotations
 
+from typing import TypedDict, TypeVar
+
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
@@ -26,6 +28,15 @@ from labrig.sim.imperfections import PrintedMarkers, printed_markers
 from labrig.sim.truth_config import sim_config
 
 F64 = npt.NDArray[np.float64]
+FloatArray = TypeVar("FloatArray", bound=npt.NDArray[np.floating])
+
+
+class RendererOptions(TypedDict, total=False):
+    """The printed markers' keyword arguments for :class:`~labrig.sim.optics.Renderer`."""
+
+    marker_xyz_mm: F64
+    marker_diameter_mm: F64
+    marker_contrast: F64
 
 
 class PrintedLayout:
@@ -46,7 +57,7 @@ class PrintedLayout:
         """(N, 3) printed rest centres, gel mm (a missing marker's: where it would have been)."""
         return self.markers.rest_mm
 
-    def renderer_options(self) -> dict[str, F64]:
+    def renderer_options(self) -> RendererOptions:
         """Keyword arguments for :class:`~labrig.sim.optics.Renderer` (none for the ideal lattice)."""
         if self.ideal:
             return {}
@@ -58,7 +69,7 @@ class PrintedLayout:
         """The printed markers' rows of (N, 3) marker centres."""
         return markers_mm if self.drawn_index is None else markers_mm[self.drawn_index]
 
-    def mask_truth(self, values: npt.NDArray[np.floating], axis: int = 0) -> npt.NDArray[np.floating]:
+    def mask_truth(self, values: FloatArray, axis: int = 0) -> FloatArray:
         """``values`` with NaN at the missing markers along ``axis`` (in place; returned)."""
         if self.drawn_index is not None:
             index: list[slice | npt.NDArray[np.bool_]] = [slice(None)] * values.ndim

@@ -412,7 +412,7 @@ class VirtualRig:
         assert prev is not None and nxt is not None
         if prev.fields is not nxt.fields or (prev.anchor_mm is None) != (nxt.anchor_mm is None):
             return False
-        if prev.anchor_mm is not None and not np.array_equal(prev.anchor_mm, nxt.anchor_mm):
+        if prev.anchor_mm is not None and nxt.anchor_mm is not None and not np.array_equal(prev.anchor_mm, nxt.anchor_mm):
             return False
         return bool(np.array_equal(prev.markers_mm, nxt.markers_mm))
 
