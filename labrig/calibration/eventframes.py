@@ -53,6 +53,7 @@ of the same scene add no information about it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -142,7 +143,8 @@ def find_switches(rec: Recording, bin_us: int = 1000, min_events: int = 500) -> 
     label = np.where(frac_on >= 0.75, 1, np.where(frac_on <= 0.25, 0, -1))
     switches: list[Switch] = []
     current: list[int] = []  # [polarity, first bin, last bin]
-    for k in np.flatnonzero(active):
+    active_bins: list[int] = np.flatnonzero(active).tolist()
+    for k in active_bins:
         pol = int(label[k])
         if current and k == current[2] + 1 and pol in (-1, current[0]):
             current[2] = k
@@ -194,7 +196,7 @@ def accumulate(rec: Recording, blink: Blink, width: int, height: int) -> npt.NDA
     return counts.reshape(height, width)
 
 
-def otsu_threshold(values: npt.NDArray[np.float64]) -> float:
+def otsu_threshold(values: npt.NDArray[np.floating]) -> float:
     """Otsu's two-class threshold of non-negative values (on a 256-level histogram)."""
     values = values[np.isfinite(values)]
     if values.size == 0:
@@ -232,7 +234,7 @@ def detect_blobs(
     threshold = otsu_threshold(smooth[smooth > 0])
     mask = (smooth > threshold).astype(np.uint8)
     kernel = np.ones((3, 3), np.uint8)
-    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
+    mask = cast(npt.NDArray[np.uint8], cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel))
     n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     interior = cv2.erode(mask, kernel) > 0
     lit = float(np.median(frame[interior])) if interior.any() else float(frame.max())
@@ -327,10 +329,10 @@ def disc_response(frame: npt.ArrayLike, radius: float) -> npt.NDArray[np.float32
     ring = _disc_kernel(2 * radius + 2, size) - _disc_kernel(radius + 1.5, size)
 
     def filt(a: npt.NDArray[np.float32], k: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-        return cv2.filter2D(a, -1, k, borderType=cv2.BORDER_CONSTANT)
+        return cast(npt.NDArray[np.float32], cv2.filter2D(a, -1, k, borderType=cv2.BORDER_CONSTANT))
 
     n_in, n_ring = filt(lit, inner), filt(lit, ring)
-    out = filt(f, inner) / np.maximum(n_in, 1e-6) - filt(f, ring) / np.maximum(n_ring, 1e-6)
+    out = cast(npt.NDArray[np.float32], filt(f, inner) / np.maximum(n_in, 1e-6) - filt(f, ring) / np.maximum(n_ring, 1e-6))
     out[(n_in < 0.9 * inner.sum()) | (n_ring < 0.5 * ring.sum())] = 0.0
     return out
 
@@ -374,10 +376,10 @@ def find_discs(
         size = 2 * int(np.ceil(2 * radius)) + 1
         peak = (response >= cv2.dilate(response, np.ones((size, size), np.uint8))) & (response > 0)
         ys, xs = np.nonzero(peak)
-        strength = response[ys, xs] / sigma
-        order = np.argsort(-strength)
+        response_strength = response[ys, xs] / sigma
+        order = np.argsort(-response_strength)
         xy = np.stack([xs[order], ys[order]], axis=1).astype(np.float64)
-        strength = strength[order].astype(np.float64)
+        strength = response_strength[order].astype(np.float64)
         score = float(strength[:n_expected].mean()) if strength.size else 0.0
         if best is None or score > best[0]:
             best = (score, float(radius), xy, strength)

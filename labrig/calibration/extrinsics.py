@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -230,7 +231,7 @@ def choose_orientation(
             rot = rotvec_to_matrix(rvec.ravel())
             angle = float(np.arccos(np.clip((np.trace(nominal.T @ rot) - 1) / 2, -1, 1)))
             if best is None or angle < best[0]:
-                best = (angle, index, rvec.ravel(), tvec.ravel())
+                best = (angle, index, cast(Array, rvec.ravel()), cast(Array, tvec.ravel()))
     if best is None:
         raise CalibrationError("PnP failed for every orientation of the marker grid")
     return best[1], best[2], best[3]
@@ -238,9 +239,10 @@ def choose_orientation(
 
 def _pose(obj: Array, img: Array, intrinsics: Intrinsics, rvec: Array, tvec: Array) -> tuple[Array, Array]:
     """solvePnPRefineLM from (rvec, tvec)."""
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, intrinsics.matrix, np.asarray(intrinsics.distortion),
-                                      rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy(),
-                                      criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+    refined = cv2.solvePnPRefineLM(obj, img, intrinsics.matrix, np.asarray(intrinsics.distortion),
+                                   rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy(),
+                                   criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+    rvec, tvec = cast(tuple[Array, Array], refined)
     return rvec.ravel(), tvec.ravel()
 
 
@@ -280,7 +282,7 @@ def measure_markers(
     dist = np.asarray(intrinsics.distortion)
     missing = np.flatnonzero(~np.isfinite(measured[:, 0]))
     if missing.size:
-        predicted = cv2.projectPoints(rest[missing], rvec, tvec, intrinsics.matrix, dist)[0].reshape(-1, 2)
+        predicted = cast(Array, cv2.projectPoints(rest[missing], rvec, tvec, intrinsics.matrix, dist)[0].reshape(-1, 2))
         predicted = _nearest_free_candidates(predicted, candidates.xy, index >= 0,
                                              _pitch_px(rest, rvec, tvec, intrinsics, markers.cols))
         guided = fit_discs(frame, predicted, radius, fixed_radius=radius, edge_px=edge, max_shift=2.0)
@@ -388,7 +390,7 @@ def extrinsics_from_frame(
         )
     rest = markers.rest_positions_mm()
     projected, _ = cv2.projectPoints(rest, rvec, tvec, intrinsics.matrix, np.asarray(intrinsics.distortion))
-    rest_px = projected.reshape(-1, 2)
+    rest_px = cast(Array, projected.reshape(-1, 2))
     errors = np.linalg.norm(measured - rest_px, axis=1)
     camera = CameraModel(intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px, intrinsics.cy_px, intrinsics.distortion,
                          tuple(float(v) for v in rvec), tuple(float(v) for v in tvec),  # type: ignore[arg-type]

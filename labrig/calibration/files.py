@@ -23,13 +23,13 @@ import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
 
 from labrig import __version__
-from labrig.calibration.marker_map import MarkerMap
+from labrig.calibration.marker_map import BoolArray, MarkerMap
 from labrig.config import CameraGeometry, RigConfig
 from labrig.errors import CalibrationError, LabrigError
 from labrig.physics.camera import CameraModel
@@ -237,7 +237,7 @@ def _marker_map(path: Path, data: dict[str, Any], version: int, rest_px: Array, 
     if version < 2:
         measured = (_array(path, data, "markers", "measured_px", (n, 2)) if "measured_px" in data["markers"]
                     else rest_px.copy())
-        found = np.isfinite(measured).all(axis=1)
+        found = cast(BoolArray, np.isfinite(measured).all(axis=1))
         measured = np.where(found[:, None], measured, rest_px)
         return MarkerMap(cols, rest_px, measured, found, np.full((n, 2), np.nan))
     measured = _array(path, data, "markers", "measured_px", (n, 2))

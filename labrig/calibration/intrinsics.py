@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -73,7 +74,7 @@ class IntrinsicsResult:
         projected, _ = cv2.projectPoints(self.object_points, self.rvecs[k], self.tvecs[k], self.camera_matrix, self.distortion)
         image_points = self.views[view].image_points
         assert image_points is not None
-        return image_points, projected.reshape(-1, 2)
+        return image_points, cast(Array, projected.reshape(-1, 2))
 
 
 def target_from_recording(rec: Recording) -> DotGridTarget | None:
@@ -106,11 +107,11 @@ def find_grid(blobs: Blobs, rows: int, cols: int, width: int, height: int) -> Ar
     canvas = np.full((height, width), 255, np.uint8)
     for x, y in blobs.xy:
         cv2.circle(canvas, (int(np.rint(x * 16)), int(np.rint(y * 16))), radius * 16, 0, -1, shift=4)
-    params = cv2.SimpleBlobDetector_Params()
+    params = cv2.SimpleBlobDetector_Params()  # type: ignore[attr-defined]  # cv2 stubs: the legacy alias is missing
     params.minArea = 0.5 * np.pi * radius**2
     params.maxArea = 2.0 * np.pi * radius**2
     params.filterByConvexity = params.filterByInertia = False
-    detector = cv2.SimpleBlobDetector_create(params)
+    detector = cv2.SimpleBlobDetector_create(params)  # type: ignore[attr-defined]  # cv2 stubs: the legacy alias is missing
     for flags in (cv2.CALIB_CB_SYMMETRIC_GRID, cv2.CALIB_CB_SYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING):
         found, centres = cv2.findCirclesGrid(canvas, (cols, rows), flags=flags, blobDetector=detector)
         if found:
@@ -196,7 +197,9 @@ def calibrate_intrinsics(
         rms, matrix, dist, rvecs, tvecs = _solve(object_points, [views[i].image_points for i in used], width, height, flags)
         for i, rvec, tvec in zip(used, rvecs, tvecs):
             projected, _ = cv2.projectPoints(object_points, rvec, tvec, matrix, dist)
-            err = projected.reshape(-1, 2) - views[i].image_points
+            image_points = views[i].image_points
+            assert image_points is not None
+            err = projected.reshape(-1, 2) - image_points
             views[i].rms_px = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
         errors = np.array([views[i].rms_px for i in used])
         limit = max(3.0 * float(np.median(errors)), max_view_rms_px)
@@ -226,7 +229,7 @@ def _solve(object_points: npt.NDArray[np.float32], image_points: list[Array | No
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     rms, matrix, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (width, height), None, None, flags=flags,
                                                           criteria=criteria)
-    return float(rms), matrix, dist, list(rvecs), list(tvecs)
+    return float(rms), cast(Array, matrix), cast(Array, dist), cast(list[Array], list(rvecs)), cast(list[Array], list(tvecs))
 
 
 def write_intrinsics(result: IntrinsicsResult, path: str | Path = DEFAULT_INTRINSICS) -> Path:

@@ -21,6 +21,7 @@ measured centre, the nominal projection only where nothing was measured) and ski
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -85,7 +86,7 @@ class MarkerMap:
     @property
     def missing(self) -> BoolArray:
         """(M,) True where no marker was measured (never printed, or not visible)."""
-        return ~np.isfinite(self.measured_px).all(axis=1)
+        return cast(BoolArray, ~np.isfinite(self.measured_px).all(axis=1))
 
     @property
     def missing_indices(self) -> list[int]:
