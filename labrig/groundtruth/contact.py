@@ -68,8 +68,11 @@ _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(96)
 class ContactModel(Protocol):
     """What the ground-truth generator needs from a contact model."""
 
-    elastic: str
-    method: str
+    @property
+    def elastic(self) -> str: ...
+
+    @property
+    def method(self) -> str: ...
 
     def fields(self, delta_mm: float, dx_mm: F64, dy_mm: F64) -> tuple[F64, npt.NDArray[np.bool_]]:
         """(uz mm, contact mask) at points (dx, dy) relative to the contact centre."""
@@ -275,7 +278,7 @@ class DepthTable:
         """From the cache, or solved (about 1-5 s per indenter at 0.1 mm) and cached."""
         if mode not in ELASTIC_MODELS:
             raise ValueError(f"elastic model must be one of {', '.join(ELASTIC_MODELS)}, not {mode!r}")
-        spec = {
+        spec: dict[str, Any] = {
             "version": DEPTH_TABLE_VERSION,
             "indenter": {"kind": indenter.kind, **{k: v for k, v in indenter.geometry.items() if k != "file"}},
             "gel": _gel_dict(gel),
