@@ -23,6 +23,7 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -149,11 +150,12 @@ def assemble(mesh: StructuredMesh, youngs_modulus_mpa: float, poisson_ratio: flo
     """The global stiffness (3 n_nodes square, N/mm) of the structured mesh, no boundary conditions."""
     nx, ny, nz = mesh.shape
     dx, dy, dz = np.diff(mesh.x_mm), np.diff(mesh.y_mm), np.diff(mesh.z_mm)
-    ex, ey, ez = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), np.arange(nz - 1), indexing="ij")
-    ex, ey, ez = ex.ravel(), ey.ravel(), ez.ravel()
+    grid_x, grid_y, grid_z = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), np.arange(nz - 1), indexing="ij")
+    ex, ey, ez = grid_x.ravel(), grid_y.ravel(), grid_z.ravel()
     sizes = np.round(np.stack([dx[ex], dy[ey], dz[ez]], axis=1), 12)
     unique, kind = np.unique(sizes, axis=0, return_inverse=True)
-    ke = np.stack([element_stiffness(*s, youngs_modulus_mpa, poisson_ratio, integration) for s in unique])
+    ke = np.stack([element_stiffness(size_x, size_y, size_z, youngs_modulus_mpa, poisson_ratio, integration)
+                   for size_x, size_y, size_z in unique])
     nodes = mesh.node(ex[:, None] + (_LOCAL[:, 0] > 0), ey[:, None] + (_LOCAL[:, 1] > 0), ez[:, None] + (_LOCAL[:, 2] > 0))
     dofs = (3 * nodes[:, :, None] + np.arange(3)).reshape(len(ex), 24)
     rows = np.broadcast_to(dofs[:, :, None], (len(ex), 24, 24)).ravel()
@@ -169,6 +171,7 @@ def _axis_nodes(n_markers: int, pitch_mm: float, refinement: int, half_size_mm: 
     margin = 0.0 if half_size_mm is None else half_size_mm - half_span
     if margin <= 1e-9:
         return inner, 0
+    assert half_size_mm is not None
     n_margin = int(np.ceil(margin / (pitch_mm / refinement) - 1e-9))
     outer = np.linspace(half_span, half_size_mm, n_margin + 1)[1:]
     return np.concatenate([-outer[::-1], inner, outer]), n_margin
@@ -541,8 +544,8 @@ def compute_surface_operator(rig: RigConfig, params: SurfaceParams = SurfacePara
     top = mesh.node(gx.ravel()[inside], gy.ravel()[inside], nz - 1)
     bottom = mesh.node(gx.ravel(), gy.ravel(), 0)
     fixed = (3 * bottom[:, None] + np.arange(3)).ravel()
-    cx = (np.arange(mk.cols) - (mk.cols - 1) / 2) * mk.pitch_mm
-    cy = (np.arange(mk.rows) - (mk.rows - 1) / 2) * mk.pitch_mm
+    cx = cast(Array, (np.arange(mk.cols) - (mk.cols - 1) / 2) * mk.pitch_mm)
+    cy = cast(Array, (np.arange(mk.rows) - (mk.rows - 1) / 2) * mk.pitch_mm)
     xi, yi = x[inside], y[inside]
     wx, wy = cell_weights(xi, mesh.x_mm, cx, mk.pitch_mm), cell_weights(yi, mesh.y_mm, cy, mk.pitch_mm)
     cells = np.ascontiguousarray((wy[:, :, None] * wx[:, None, :]).reshape(len(xi), -1).T)  # (M, N): node -> cell
@@ -580,8 +583,8 @@ def build_surface_operator(rig: RigConfig, params: SurfaceParams = SurfaceParams
     if use_cache and path.exists():
         try:
             with np.load(path) as data:
-                unit = SurfaceOperator(*(np.array(data[name]) for name in _SURFACE_ARRAYS),
-                                       build_seconds=float(data["build_seconds"]))
+                node_xy_mm, k_zz, k_tt, cells, interp = (np.array(data[name]) for name in _SURFACE_ARRAYS)
+                unit = SurfaceOperator(node_xy_mm, k_zz, k_tt, cells, interp, build_seconds=float(data["build_seconds"]))
             return unit.scaled(e)
         except (OSError, ValueError, KeyError):
             pass  # a damaged cache file: rebuild it
