@@ -313,7 +313,8 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
                     continue
                 value = float(value)
             pf.values[field] = value
-    normal = data.get("normal") if isinstance(data.get("normal"), dict) else {}
+    normal_table = data.get("normal")
+    normal = normal_table if isinstance(normal_table, dict) else {}
     if "depth_mm" in normal and "force_n" in normal:
         problems.add((pf.path, locator.line("normal", "force_n")), "normal", "both depth_mm and force_n; keep one of them")
         pf.values.pop("force_n", None)
@@ -787,8 +788,8 @@ def _expand_group(
     out: list[tuple[int, int, ProbeSpec]] = []
     names_axes = list(axes)
     for combo in itertools.product(*(axes[k] for k in names_axes)):
-        values = {**defaults, **dict(zip(names_axes, combo))}
-        spec = _build_spec(values)
+        combo_values = {**defaults, **dict(zip(names_axes, combo))}
+        spec = _build_spec(combo_values)
         for field, message in check_spec(spec, rig, indenters):
             problems.add(where(field), field_label(field), message)
         out.extend((g, rep, spec) for rep in range(reps))
