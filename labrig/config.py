@@ -161,7 +161,7 @@ def parse_rig(text: str, path: Path) -> RigConfig:
 #: true gel and CNC limits (:mod:`labrig.sim.truth_config`; their defaults: the ideal sensor, [gel], GRBL's own).
 OPTIONAL_SECTIONS = ("mechanics", "sim.gel", "sim.markers", "sim.camera_delivery", "sim.ft", "sim.grbl")
 
-TomlValue = bool | int | float | str | tuple[float, ...] | tuple[int, ...] | tuple[tuple[float, float], ...]
+TomlValue = bool | int | float | str | tuple[float, ...] | tuple[int, ...] | tuple[tuple[float, float], ...] | list[int]
 
 
 def rig_with(rig: RigConfig, changes: Mapping[str, TomlValue]) -> RigConfig:

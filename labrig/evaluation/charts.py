@@ -75,7 +75,7 @@ def _color(name: str, i: int) -> str:
 # -- error per ground-truth range ---------------------------------------------------------------
 
 
-def group_by_range(values_true: ArrayLike, errors: ArrayLike, edges: Sequence[float]) -> list[np.ndarray]:
+def group_by_range(values_true: ArrayLike, errors: ArrayLike, edges: ArrayLike) -> list[np.ndarray]:
     """The finite ``errors`` whose ``values_true`` fall in each range ``[edges[i], edges[i+1])``.
 
     The last range includes its upper edge; values outside ``[edges[0], edges[-1]]`` are left out.

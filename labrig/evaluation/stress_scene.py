@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from labrig.clock import ClockModel
-from labrig.config import DEFAULT_RIG, RigConfig, Roi, load_rig, rig_with
+from labrig.config import DEFAULT_RIG, RigConfig, Roi, TomlValue, load_rig, rig_with
 from labrig.dataset import sidecar_path
 from labrig.errors import LabrigError
 from labrig.groundtruth import generate, write_sidecar
@@ -123,7 +123,7 @@ def stressed_rig(scene: StressScene) -> RigConfig:
     """The scene's rig: the rig file with the scene's noise rate, marker brightness, stiffening, printed markers,
     USB bursts, contrast thresholds and light (its text says so)."""
     rig = load_rig(scene.rig)
-    changes: dict[str, float | int | list[int]] = {}
+    changes: dict[str, TomlValue] = {}
     if scene.stiffening is not None:
         changes["sim.mechanics.stiffening"] = float(scene.stiffening)
     if scene.shot_noise_rate_hz is not None:
