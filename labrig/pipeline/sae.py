@@ -14,6 +14,8 @@ the grid zero-padded to 96 x 112 for the U-Net's down-sampling.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any, TypeVar
+
 import numpy as np
 import numpy.typing as npt
 from numba import njit
@@ -21,10 +23,15 @@ from numba import njit
 from labrig.config import Roi
 from labrig.physics.grid import GRID_SHAPE
 
+if TYPE_CHECKING:
+    import torch
+
 #: The network grid zero-padded for the U-Net's down-sampling.
 UNET_SHAPE = (96, 112)
 
 Sae = npt.NDArray[np.float32]
+#: A network output: numpy's (ONNX Runtime) or torch's (training).
+NetworkOutput = TypeVar("NetworkOutput", npt.NDArray[Any], "torch.Tensor")
 
 
 @njit(cache=True, nogil=True)
@@ -102,7 +109,7 @@ def pad_for_unet(sae: Sae, shape: tuple[int, int] = UNET_SHAPE) -> Sae:
     return np.pad(sae, pad)
 
 
-def crop_from_unet(array: npt.NDArray, shape: tuple[int, int] = GRID_SHAPE) -> npt.NDArray:
+def crop_from_unet(array: NetworkOutput, shape: tuple[int, int] = GRID_SHAPE) -> NetworkOutput:
     """Undo :func:`pad_for_unet` on a network output (..., 96, 112) -> (..., 90, 112)."""
     dr, dc = array.shape[-2] - shape[0], array.shape[-1] - shape[1]
     return array[..., dr // 2: dr // 2 + shape[0], dc // 2: dc // 2 + shape[1]]

@@ -266,7 +266,7 @@ class StateChannels:
             self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
             self.tracks = track_recording(recording, calibration_dir, cache_root)
 
-    def __call__(self, t_end_us: float, previous_at: Callable[[float], F32] | None, rng: np.random.Generator,
+    def __call__(self, t_end_us: float, previous_at: Callable[[int], F32] | None, rng: np.random.Generator,
                  events: npt.NDArray | None = None, noise_hz: float = 0.0) -> F32:
         """(channels - 2, 96, 112): the displacement field at ``t_end_us``, the perturbed previous map and the
         brightness change (``events``: the window's own, ending at ``t_end_us``; ``noise_hz``: the window's
