@@ -170,7 +170,8 @@ def virtual_press(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-
 def test_the_bundled_network_follows_a_press_and_returns_to_zero_after_normal_up(virtual_press) -> None:  # type: ignore[no-untyped-def]
     """The bundled default (SAE + brightness since rest) through the whole pipeline on a virtual press: the normal
     force follows the sim's while the gel is held still (where a 10 ms SAE shows nothing), and once the indenter
-    has left the gel the depth and the force are back at zero, with no rest gate to reset it."""
+    has left the gel the depth and the force are back at zero: the brightness integrator's release, not the markers'
+    rest gate, starts it again."""
     from labrig.evaluation.forces import ForceTask, evaluate_forces
     from labrig.models import bundled_model_path
     from labrig.pipeline.model_card import ModelCard
@@ -192,11 +193,12 @@ def test_the_bundled_network_follows_a_press_and_returns_to_zero_after_normal_up
     assert np.all(np.abs(result.predicted_n[held, 2] - fz_true) < 0.2 * np.abs(fz_true) + 0.2)
     after = result.t1_us > released_us + RELEASE_LAG_US
     assert after.sum() >= 10
-    # the truth: 0; held 4.6 N; a stale SAE-only dent: 2-3 N. The released gel's brightness change is not quite zero
-    # (each pixel's threshold quantisation and its leak's bias, about one event per pixel where the dent was) and the
-    # gated leak holds it: the bundled network reads 0.3-0.4 N from it (docs/depthnet.md, the release).
+    # the truth: 0; held 4.6 N; a stale SAE-only dent: 2-3 N; the dead band's remainder held by the gated leak without
+    # the release: 0.3-0.4 N (docs/depthnet.md, The release)
     fz_after = np.abs(result.predicted_n[after, 2])
-    assert fz_after.mean() < 0.45 and fz_after.max() < 0.6, "a stale dent outlived the press"
+    released = result.t1_us[after] > released_us + 200_000  # the release has fired: settled for its 0.2 s
+    assert fz_after.mean() < 0.2 and released.sum() >= 10 and fz_after[released].max() < 0.05, \
+        f"a stale dent outlived the press: {np.round(fz_after, 2)} at {(result.t1_us[after] - released_us) // 1000} ms"
 
 
 def test_a_stateful_networks_depth_table_uses_the_force_evaluations_windows(virtual_press, monkeypatch) -> None:  # type: ignore[no-untyped-def]
