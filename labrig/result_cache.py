@@ -8,8 +8,9 @@ Layout: ``cache_dir/<module.function>/<key>.npz``; ``key`` = SHA-256 (:func:`lab
 * the task's inputs as canonical JSON (``1`` and ``1.0`` are different inputs);
 * for every string input naming an existing file: its size, modification time (ns) and a
   sampled BLAKE2 hash (the first and last 64 KiB and 16 evenly spaced 64 KiB blocks, so at
-  most 1.1 MiB read even for a recording of hundreds of MB); for an existing directory: the
-  name, size and mtime of each file directly in it.
+  most 1.1 MiB read even for a recording of hundreds of MB), and the same of the files that
+  decide how it is read (:data:`COMPANIONS`: a depth network's model card beside its ``.onnx``);
+  for an existing directory: the name, size and mtime of each file directly in it.
 
 A result is a frozen dataclass (or a dict) of numbers, strings, None, numpy arrays, lists,
 and dicts and dataclasses of them: arrays are stored as ``.npz`` members, the rest as one JSON
@@ -42,6 +43,9 @@ from labrig.cache import cache_key
 CACHE_FORMAT = 2
 SAMPLE_BLOCK_BYTES = 64 * 1024
 SAMPLE_BLOCKS = 16
+#: Files beside an input file that decide what it means, by the input's suffix: a depth network's card (its inputs,
+#: their integrator's settings, the gates) changes its results as much as its weights do.
+COMPANIONS = {".onnx": (".json",)}
 _ARRAY = "__array__"
 _DATACLASS = "__dataclass__"
 _FIELDS = "fields"
@@ -63,6 +67,10 @@ class ResultCache:
                 continue
             if os.path.isfile(text):
                 files[text] = file_fingerprint(text, memo)
+                for suffix in COMPANIONS.get(Path(text).suffix, ()):
+                    companion = str(Path(text).with_suffix(suffix))
+                    if os.path.isfile(companion):
+                        files[companion] = file_fingerprint(companion, memo)
             elif os.path.isdir(text):
                 files[text] = _directory_fingerprint(text)
         return cache_key([CACHE_FORMAT, self.name, self.version, inputs, files], digits=64)

@@ -124,6 +124,20 @@ def test_cache_round_trip_hits_and_misses(tmp_path: Path, files: list[Path]) -> 
     assert run_tasks(summarise_file, tasks, workers=1, cache_dir=tmp_path / "cache", use_cache=False).misses == 3
 
 
+def test_a_networks_card_is_part_of_its_key(tmp_path: Path) -> None:
+    """A depth network is its .onnx and the card beside it: a card edited (another integrator setting) is a miss."""
+    onnx, card = tmp_path / "net.onnx", tmp_path / "net.json"
+    onnx.write_bytes(b"weights")
+    card.write_text('{"inputs": {"brightness": {"tau_s": 3600.0}}}')
+    cache = ResultCache(tmp_path / "cache", summarise_file)
+    before = cache.key({"model": str(onnx)})
+    assert cache.key({"model": str(onnx)}) == before
+    stat = card.stat()
+    card.write_text('{"inputs": {"brightness": {"tau_s": 36000.0}}}')
+    os.utime(card, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert cache.key({"model": str(onnx)}) != before
+
+
 def test_cache_version_and_dataclass_tasks(tmp_path: Path, files: list[Path], monkeypatch: pytest.MonkeyPatch) -> None:
     tasks = [FileTask(str(p)) for p in files[:2]]
     assert run_tasks(summarise_file_task, tasks, workers=1, cache_dir=tmp_path).misses == 2
