@@ -86,6 +86,18 @@ def test_the_file_round_trips_and_refuses_a_malformed_map(asymmetric_scene: tupl
     toml_path.write_text(text.replace("[map]", "[maps]"))
     with pytest.raises(CalibrationError, match="malformed"):
         load_event_thresholds(toml_path)
+    # the maps as a person might edit them (one line, a comment, a table after them) read the same through tomllib
+    head, maps = text.split("[map]")
+    on_rows = "[" + ", ".join("[" + ", ".join(f"{v:.5g}" for v in row) + "]" for row in back.on_ln) + "]"
+    off_rows = maps.split("off_ln = ")[1]
+    edited = f"{head}[map]\n# edited\non_ln = {on_rows}\noff_ln = {off_rows}\n[extra]\nnote = 1\n"
+    toml_path.write_text(edited)
+    again = load_event_thresholds(toml_path)
+    np.testing.assert_array_equal(again.on_ln, back.on_ln)
+    np.testing.assert_array_equal(again.off_ln, back.off_ln)
+    toml_path.write_text(text.replace("    [", "    [1, ", 1))  # a row longer than the rest
+    with pytest.raises(CalibrationError, match="malformed"):
+        load_event_thresholds(toml_path)
 
 
 def test_a_recording_without_the_ramps_is_refused_in_one_line(small_recording: Path) -> None:

@@ -15,6 +15,7 @@ from labrig.config import RigConfig
 from labrig.errors import LabrigError
 from labrig.indenters import Indenter
 from labrig.training import TrainConfig, contact_aware_l1, depth_errors_mm, output_paths, train, uniform_l1
+from labrig.training.crop import CropAugment
 from labrig.training.data import PHASE_MARGIN_S, WindowSampler, open_campaign, torch_dataset
 from labrig.training.shift import ShiftAugment, shifted
 from labrig.training.trainer import COSINE_FLOOR, DEFAULT_SHIFT_CELLS
@@ -454,3 +455,60 @@ def test_fine_tuning_starts_from_the_network_and_says_what_it_gained(campaign: P
     assert isinstance(bare.exception, LabrigError) and "no torch weights" in str(bare.exception)
     nothing = runner.invoke(app, ["train", str(campaign), "--init", str(tmp_path / "nothing.onnx")])
     assert isinstance(nothing.exception, LabrigError) and "no network" in str(nothing.exception)
+
+
+def test_a_patch_holds_the_contact_and_stays_in_register(campaign: Path) -> None:
+    """Patch training cuts the input (without the U-Net's padding), the depth and the contact mask at one place,
+    one that holds the contact's centre; a window without contact gets a patch anywhere in the grid."""
+    from labrig.pipeline.sae import crop_from_unet
+
+    data = open_campaign(campaign)
+    try:
+        src = data.sources["train"][0]
+        phases = {p.name: p for p in src.rec.phases()}
+        window = src.window(phases["normal_down"].t_end_us - 10_000, 10_000)
+        assert window.contact.any()
+        patch = CropAugment(32)
+        cut = patch.apply(window, 20, 40)
+        assert cut.sae.shape == (window.sae.shape[0], 32, 32) and cut.target.shape == cut.contact.shape == (32, 32)
+        np.testing.assert_array_equal(cut.sae, crop_from_unet(window.sae)[:, 20:52, 40:72])
+        np.testing.assert_array_equal(cut.target, window.target[20:52, 40:72])
+        np.testing.assert_array_equal(cut.contact, window.contact[20:52, 40:72])
+        centre = np.argwhere(window.contact).mean(0)
+        rng = np.random.default_rng(3)
+        for _ in range(50):
+            r0, c0 = patch.draw(rng, window.contact)
+            assert r0 <= centre[0] < r0 + 32 and c0 <= centre[1] < c0 + 32
+            assert 0 <= r0 <= 90 - 32 and 0 <= c0 <= 112 - 32
+        corners = {patch.draw(rng, np.zeros((90, 112), bool)) for _ in range(200)}
+        assert max(r for r, _ in corners) > 45 and min(c for _, c in corners) < 20
+    finally:
+        data.close()
+    with pytest.raises(LabrigError, match=r"--crop-cells must be 0 \(the whole grid\) or a multiple of 16"):
+        TrainConfig(steps=2, crop_cells=40).check()
+
+
+def test_preloaded_windows_are_the_files_windows(campaign: Path) -> None:
+    """A source whose sampled span is held in memory serves each window with the events the file gives, in
+    its order, so a seeded sampler draws the same batches either way."""
+    data = open_campaign(campaign)
+    try:
+        sources = data.sources["train"]
+        from_file = WindowSampler(sources, 10_000, seed=2).batch(6)
+        held = WindowSampler(sources, 10_000, seed=2, preload=True)
+        from_memory = held.batch(6)
+        assert sources[0]._events is not None and len(sources[0]._events)
+        for a, b in zip(from_file, from_memory):
+            np.testing.assert_array_equal(a, b)
+        t0, t1 = sources[0].span_us
+        for start in np.linspace(t0, t1 - 10_000, 7):
+            np.testing.assert_array_equal(sources[0].events_between(start + 0.5, start + 10_000.5),
+                                          sources[0].rec.events_between(start + 0.5, start + 10_000.5))
+    finally:
+        data.close()
+
+
+def test_a_patch_trained_network_runs_on_the_whole_grid(campaign: Path, tmp_path: Path) -> None:
+    card = train(campaign, TrainConfig(steps=2, crop_cells=32, val_every=0, **TINY), tmp_path / "p", show_progress=False)
+    assert card["augmentation"]["crop"]["cells"] == 32 and "--crop-cells 32" in card["reproduce"]
+    assert card["architecture"]["input_shape"][1:] == [96, 112] and card["val"]["maps"] > 0

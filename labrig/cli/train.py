@@ -55,6 +55,10 @@ def train_command(
         help="Translation augmentation: each window, input and ground truth together, moved by up to this many grid "
              "cells per axis (about 0.27 mm each on the reference rig), so that the answer does not depend on where "
              "the campaign pressed; 0: off; default 12).")] = None,
+    crop_cells: Annotated[int, typer.Option(
+        help="Patch training: each window cut to this many grid cells square around its contact (a multiple of "
+             "2**pools, e.g. 64: about 0.4 of a step's cost on the whole grid); the network still runs on the whole "
+             "grid; 0: off.")] = 0,
     inputs: Annotated[str | None, typer.Option(
         help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
              "sae+disp+prev (+ the previous depth map), sae+bright (+ the brightness change since rest, the events' "
@@ -80,7 +84,7 @@ def train_command(
         loss=loss, lambda_c=lambda_c, steps=steps, time_budget_min=time_budget_min, batch_size=batch_size, lr=lr,
         seed=seed, checkpoint_every=checkpoint_every, val_every=val_every, val_windows=val_windows, phases=phases,
         device=device, threads=threads, noise_hz=noise_hz, calibration_dir=str(calibration_folder(calibration)),
-        workers=workers, lr_schedule=lr_schedule)
+        workers=workers, lr_schedule=lr_schedule, crop_cells=crop_cells)
     for name, value in (("shift_cells", shift_cells), ("after_release_s", after_release_s)):
         if value is not None:
             settings[name] = value

@@ -45,6 +45,7 @@ from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import pad_for_unet, sae_grid
 from labrig.recording import EVENT_DTYPE, Recording
+from labrig.training.crop import CropAugment
 from labrig.training.shift import ShiftAugment
 from labrig.training.state_data import StateChannels
 
@@ -52,6 +53,9 @@ SAE_ONLY = InputSpec()
 PROBING_PHASES = ("normal_down", "wait", "shear", "shear_opposite", "normal_up")
 #: Margin around the probing phases (s): windows of the gel at rest, no contact, few events.
 PHASE_MARGIN_S = 0.3
+#: Events of the sampled spans a campaign keeps in memory (bytes): random windows over hundreds of recordings
+#: would otherwise each cost a compressed read.
+PRELOAD_BUDGET_BYTES = 6 << 30
 
 
 @dataclass(frozen=True)
@@ -125,6 +129,34 @@ class Source:
         x0, y0, x1, y1 = (int(v) for v in attrs["roi_px"])
         self.roi = Roi(x0, y0, x1, y1)
         self.span_us = self._span(phases, after_s)
+        self._events: npt.NDArray | None = None  # the span's events, once preloaded
+        self._t_max: npt.NDArray = np.zeros(0, np.int64)  # their running maximum time (host us)
+        self._back_step_us = 0.0
+
+    def preload(self, window_us: float) -> int:
+        """Read the events of the sampled span (and one window past it) into memory, in the file's order; their
+        size in bytes."""
+        if self._events is None:
+            events = self.rec.events_between(self.span_us[0], self.span_us[1] + window_us)
+            t = np.ascontiguousarray(events["t"])
+            self._t_max = np.maximum.accumulate(t)  # device times may step back a little
+            self._back_step_us = float((self._t_max - t).max()) if len(t) else 0.0
+            self._events = events
+        return int(self._events.nbytes + self._t_max.nbytes)
+
+    def events_between(self, t0_us: float, t1_us: float) -> npt.NDArray:
+        """Events with host time in ``[t0_us, t1_us)`` in the file's order (as
+        :meth:`Recording.events_between`): from memory when preloaded and within the span."""
+        held = self._events
+        if held is None or t0_us < self.span_us[0] or (len(held) and t1_us > self._t_max[-1] + 1):
+            return self.rec.events_between(t0_us, t1_us)
+        # Integer keys: a float key would make numpy convert the whole column to float first.
+        i0 = int(np.searchsorted(self._t_max, np.int64(np.ceil(t0_us)), side="left"))
+        i1 = int(np.searchsorted(self._t_max, np.int64(np.ceil(t1_us + self._back_step_us)), side="left"))
+        rows = held[i0:i1]
+        if self._back_step_us:
+            rows = rows[(rows["t"] >= t0_us) & (rows["t"] < t1_us)]
+        return rows
 
     def _span(self, phases: str, after_s: float) -> tuple[float, float]:
         t0, t1 = float(self.t_gt[0]), float(self.t_gt[-1])
@@ -158,7 +190,7 @@ class Source:
         channels (:mod:`labrig.training.state_data`) appended to the SAE; their previous map is
         the one nearest the previous window's last event (or one further back), perturbed with ``rng``.
         """
-        events = self.rec.events_between(t0_us, t0_us + window_us)
+        events = self.events_between(t0_us, t0_us + window_us)
         own_events = events
         t_last = float(events["t"].max()) if len(events) else t0_us + window_us
         if noise is not None and len(noise):
@@ -257,12 +289,14 @@ class WindowSampler:
 
     Iterating yields :class:`Sample` s forever; :meth:`batch` stacks them as numpy
     arrays; :meth:`state` / :meth:`set_state` capture the generator for resume. ``shift``: each window
-    moved across the grid (:mod:`labrig.training.shift`), else where it was recorded.
+    moved across the grid (:mod:`labrig.training.shift`), else where it was recorded; ``crop``: then cut to a
+    patch that holds its contact (:mod:`labrig.training.crop`), else the whole grid. ``preload``: the
+    recordings' sampled spans read into memory, up to :data:`PRELOAD_BUDGET_BYTES` in all, as they are first drawn.
     """
 
     def __init__(self, sources: list[Source], window_us: float, seed: int, noise: NoiseAugment | None = None,
                  inputs: InputSpec = SAE_ONLY, calibration_dir: str | Path | None = DEFAULT_CALIBRATION_DIR,
-                 shift: ShiftAugment | None = None) -> None:
+                 shift: ShiftAugment | None = None, crop: CropAugment | None = None, preload: bool = False) -> None:
         if not sources:
             raise LabrigError("no recordings to sample from")
         self.sources = sources
@@ -272,6 +306,8 @@ class WindowSampler:
         self.inputs = inputs
         self.calibration_dir = calibration_dir
         self.shift = shift
+        self.crop = crop
+        self._preload_left = PRELOAD_BUDGET_BYTES if preload else 0
         self._state: dict[int, StateChannels] = {}
 
     def state_channels(self, k: int) -> StateChannels | None:
@@ -285,6 +321,8 @@ class WindowSampler:
     def sample(self) -> Sample:
         k = int(self.rng.integers(len(self.sources)))
         src = self.sources[k]
+        if self._preload_left > 0 and src._events is None:
+            self._preload_left -= src.preload(self.window_us)
         t0, t1 = src.span_us
         start = float(self.rng.uniform(t0, max(t0, t1 - self.window_us)))
         extra, rate_hz = None, 0.0
@@ -292,9 +330,11 @@ class WindowSampler:
             rate_hz = self.noise.draw_hz(self.rng)
             extra = background_noise(src.roi, start, start + self.window_us, rate_hz, self.rng) if rate_hz else None
         sample = src.window(start, self.window_us, k, extra, self.state_channels(k), self.rng, rate_hz)
-        if self.shift is None:
-            return sample
-        return self.shift.apply(sample, *self.shift.draw(self.rng))
+        if self.shift is not None:
+            sample = self.shift.apply(sample, *self.shift.draw(self.rng))
+        if self.crop is not None:
+            sample = self.crop.apply(sample, *self.crop.draw(self.rng, sample.contact))
+        return sample
 
     def __iter__(self) -> Iterator[Sample]:
         while True:

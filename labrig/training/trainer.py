@@ -26,10 +26,12 @@ import numpy as np
 from labrig import __version__
 from labrig.config import DEFAULT_CALIBRATION_DIR
 from labrig.errors import LabrigError
+from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.depthnet import DepthModel, UNetConfig, benchmark_ms, build_unet, export_onnx, parameter_count
 from labrig.pipeline.model_card import write_card
 from labrig.pipeline.sae import crop_from_unet
+from labrig.training.crop import CropAugment
 from labrig.training.data import PHASE_MARGIN_S, NoiseAugment, WindowSampler, fixed_set, open_campaign
 from labrig.training.init import initial_network
 from labrig.training.loss import DEFAULT_LAMBDA_C, LOSSES, depth_errors_mm, loss_function
@@ -40,10 +42,10 @@ DEFAULT_STEPS = 2000
 VAL_SEED_OFFSET = 1_000_003
 #: Settings that must match for a resume.
 RESUME_KEYS = ("width", "pools", "window_ms", "loss", "lambda_c", "batch_size", "lr", "seed", "phases", "noise_hz",
-               "inputs", "init", "shift_cells", "lr_schedule", "after_release_s")
+               "inputs", "init", "shift_cells", "lr_schedule", "after_release_s", "crop_cells")
 #: Resume keys a checkpoint may predate, with the value it then had.
 RESUME_DEFAULTS: dict[str, object] = {"noise_hz": 0.0, "inputs": "sae", "init": None, "shift_cells": 0,
-                                      "lr_schedule": "constant", "after_release_s": PHASE_MARGIN_S}
+                                      "lr_schedule": "constant", "after_release_s": PHASE_MARGIN_S, "crop_cells": 0}
 #: Learning-rate schedules: constant, or a cosine from ``lr`` down to ``lr * COSINE_FLOOR`` at the last step.
 LR_SCHEDULES = ("constant", "cosine")
 COSINE_FLOOR = 0.05
@@ -86,6 +88,8 @@ class TrainConfig:
     lr_schedule: str = "constant"
     #: With ``phases`` "probing": windows drawn until this long after Normal Up ends (s).
     after_release_s: float = PHASE_MARGIN_S
+    #: Patch training (:mod:`labrig.training.crop`): windows cut to this many grid cells square; 0: the whole grid.
+    crop_cells: int = 0
 
     @classmethod
     def from_init(cls, init: str, **settings: Any) -> TrainConfig:
@@ -117,6 +121,9 @@ class TrainConfig:
             raise LabrigError("--shift-cells must be 0 (off) or a whole number of grid cells under 45 (half the grid)")
         if not 0.0 <= self.after_release_s <= 10.0:
             raise LabrigError("--after-release-s must be within [0, 10] s")
+        if self.crop_cells and not (self.crop_cells % 2**self.pools == 0 and 0 < self.crop_cells <= GRID_SHAPE[0]):
+            raise LabrigError(f"--crop-cells must be 0 (the whole grid) or a multiple of {2**self.pools} (2**pools) "
+                              f"up to {GRID_SHAPE[0]}, not {self.crop_cells}")
         if self.lr_schedule not in LR_SCHEDULES:
             raise LabrigError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, not {self.lr_schedule!r}")
         if self.lr_schedule == "cosine" and self.steps is None:
@@ -132,6 +139,11 @@ class TrainConfig:
     def noise(self) -> NoiseAugment | None:
         """The background-noise augmentation, or None."""
         return NoiseAugment(max_hz=self.noise_hz, min_hz=min(NOISE_MIN_HZ, self.noise_hz)) if self.noise_hz > 0 else None
+
+    @property
+    def crop(self) -> CropAugment | None:
+        """The patch cut, or None."""
+        return CropAugment(self.crop_cells) if self.crop_cells else None
 
     @property
     def shift(self) -> ShiftAugment | None:
@@ -216,7 +228,7 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
         prepare_states([src.path for split in ("train", "val") for src in data.sources.get(split, [])], spec,
                        config.calibration_dir, workers=config.workers)
         sampler = WindowSampler(data.sources["train"], window_us, config.seed, config.noise, spec, config.calibration_dir,
-                                config.shift)
+                                config.shift, config.crop, preload=True)
         val_sources = data.sources.get("val", [])
         val = fixed_set(val_sources, window_us, config.val_windows, config.seed + VAL_SEED_OFFSET, spec,
                         config.calibration_dir) if val_sources else None
@@ -276,7 +288,7 @@ def train(data_dir: str | Path | Sequence[str | Path], config: TrainConfig, out:
                 c = torch.from_numpy(contact).to(device)
                 if previous_channel is not None:
                     x = self_feed(model, x, previous_channel, int(torch.randint(0, SELF_FEED_MAX + 1, (1,))))
-                pred = crop_from_unet(model(x)[:, 0])
+                pred = model(x)[:, 0] if config.crop else crop_from_unet(model(x)[:, 0])
                 loss = loss_fn(pred, y, c)
                 for group in optimizer.param_groups:
                     group["lr"] = config.lr_at(step)
@@ -373,6 +385,8 @@ def _augmentation(config: TrainConfig) -> dict[str, Any] | None:
         out["background_noise"] = config.noise.describe()
     if config.shift:
         out["translation"] = config.shift.describe()
+    if config.crop:
+        out["crop"] = config.crop.describe()
     if "previous" in config.input_spec.kinds:
         out["previous_map"] = {**PreviousAugment().describe(), "source": "ground truth nearest the previous window's "
                                "last event", "self_feed_steps": f"0-{SELF_FEED_MAX}, uniform per batch: the channel "
@@ -408,6 +422,8 @@ def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out:
         parts += ["--lambda-c", f"{c.lambda_c:g}"]
     if c.phases != "probing":
         parts += ["--phases", c.phases]
+    if c.crop_cells:
+        parts += ["--crop-cells", str(c.crop_cells)]
     if c.after_release_s != PHASE_MARGIN_S:
         parts += ["--after-release-s", f"{c.after_release_s:g}"]
     if c.noise_hz > 0:
