@@ -39,6 +39,7 @@ import numpy.typing as npt
 from labrig.config import DEFAULT_CALIBRATION_DIR, load_rig
 from labrig.errors import LabrigError
 from labrig.pipeline.evetac import EvetacParams, EvetacTracker
+from labrig.pipeline.marker_stage import MarkerStage, MarkerTracker
 from labrig.pipeline.run_setup import rig_from_recording, setup_for_recording
 from labrig.pipeline.tracking import (
     CircleFitParams,
@@ -139,7 +140,8 @@ class TrackingResult:
     markers_missing: int | None
 
 
-def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float, observed: npt.ArrayLike | None = None) -> Any:
+def tracker_for(task: TrackingTask, rest_px: Array, diameter_px: float,
+                observed: npt.ArrayLike | None = None) -> MarkerTracker:
     """The tracker ``task`` asks for, starting at ``rest_px`` (M, 2) with markers ``diameter_px`` wide;
     ``observed`` (M,): False for markers to skip (missing), None: all tracked."""
     if task.patch_scale <= 0:
@@ -167,11 +169,11 @@ def track_recording(task: TrackingTask | Mapping[str, Any]) -> TrackingResult:
     with Recording(task.recording) as rec:
         rig, camera, rest_px, rest_source, observed = rest_pixels(rec, task.rest, task.calibration_dir)
         diameter = marker_diameter_px(rig, camera)
-        tracker = tracker_for(task, rest_px, diameter, observed)
+        markers = MarkerStage(tracker_for(task, rest_px, diameter, observed))  # the rest held: trackers compared alike
         ends, positions, seconds = [], [], []
-        for _, t1, events in recording_windows(rec, window_us=task.window_us, window_events=task.window_events):
+        for t0, t1, events in recording_windows(rec, window_us=task.window_us, window_events=task.window_events):
             tic = time.perf_counter()
-            p, _ = tracker.update(events, t1) if isinstance(tracker, Tracker) else tracker.update(events)
+            p, _ = markers.update(events, t0, t1)
             seconds.append(time.perf_counter() - tic)
             ends.append(t1)
             positions.append(p)

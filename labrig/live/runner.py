@@ -193,7 +193,7 @@ class LiveRunner:
             stats.first_t_us = window.t0_us
         stats.last_t_us = window.t1_us
         if handoff.full():  # this thread is the only producer: room now stays until the put
-            self.pipeline.tracker.update(window.events)
+            self.pipeline.markers.update(window.events, window.t0_us, window.t1_us)
             stats.skipped += 1
             return
         tracked = self.pipeline.front(window.t0_us, window.t1_us, window.events, read_s)

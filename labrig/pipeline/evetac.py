@@ -261,8 +261,9 @@ class EvetacTracker:
         self.positions_px = self.rest_px.copy() if positions_px is None else np.array(positions_px, np.float64)
         self._surface = np.full((self.params.height_px, self.params.width_px), np.iinfo(np.int64).min // 2, np.int64)
 
-    def update(self, events: npt.NDArray) -> tuple[Array, BoolArray]:
-        """Advance by one window of events (EVENT_DTYPE, time order), slice by slice; copies of positions and moved mask."""
+    def update(self, events: npt.NDArray, t_end_us: float | None = None) -> tuple[Array, BoolArray]:
+        """Advance by one window of events (EVENT_DTYPE, time order), slice by slice (by the events' own times:
+        ``t_end_us`` is not used); copies of positions and moved mask."""
         p, geo = self.params, self.geometry
         moved = np.zeros(len(self._dots), np.bool_)
         if len(events) == 0:

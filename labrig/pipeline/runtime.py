@@ -4,7 +4,9 @@ Windows (:mod:`labrig.pipeline.windows`) are fixed in time (``window_us``, 10 ms
 in event count (``window_events``, 20,000 in the paper's evaluation). Per window:
 
 1. front stage (:meth:`Pipeline.front`): the SAE on the network grid (only when the depth source
-   needs it) and the marker tracker; its output is a :class:`TrackedWindow`;
+   needs it), the signed event counts (when it needs them) and the markers' stage
+   (:class:`~labrig.pipeline.marker_stage.MarkerStage`: the tracker and the rest refinement); its output is a
+   :class:`TrackedWindow`;
 2. back stage (:meth:`Pipeline.back`): the depth map from a
    :class:`~labrig.pipeline.depth_sources.DepthSource` (the recording's ``/truth/depth``
    nearest in time, or the ONNX network of :mod:`labrig.pipeline.depthnet`), the markers'
@@ -35,7 +37,8 @@ from labrig.pipeline import brightness, displacement, forces, ifem, sae, trackin
 from labrig.pipeline.anchor import AnchorFilter, anchor_px
 from labrig.pipeline.depth_sources import DepthSource
 from labrig.pipeline.front_thread import FrontThread, Handoff
-from labrig.pipeline.rest import RestParams, RestRefiner
+from labrig.pipeline.marker_stage import MarkerStage
+from labrig.pipeline.rest import RestParams
 from labrig.pipeline.run_setup import PipelineSetup
 from labrig.pipeline.windows import DEFAULT_WINDOW_US, Events, WindowSpec, recording_windows
 from labrig.recording import Recording
@@ -109,10 +112,8 @@ class Pipeline:
         self.setup = setup
         self.depth = depth
         rig = setup.rig
-        params = tracker_params or tracking.TrackerParams(marker_diameter_px=tracking.marker_diameter_px(rig, setup.camera))
-        self.tracker = tracking.Tracker(setup.rest_px, params, observed=setup.observed)
-        self.rest = RestRefiner(setup.rest_px, setup.observed, rest_params or RestParams())
-        self._rest_px, self._rest_mm = self.rest.rest_px, setup.rest_mm()
+        self.markers = MarkerStage.for_setup(setup, tracker_params, rest_params)
+        self._rest_px, self._rest_mm = self.markers.rest_px, setup.rest_mm()
         base = surface_params or ifem.SurfaceParams()
         self.surface_params = replace(base, youngs_modulus_mpa=setup.youngs_modulus_mpa,
                                       poisson_ratio=setup.poisson_ratio)
@@ -147,13 +148,10 @@ class Pipeline:
                   if self.depth.needs_counts else None)
         seconds["sae"] = time.perf_counter() - start
         start = time.perf_counter()
-        positions, updated = self.tracker.update(events, t1_us)
-        if not self.rest.frozen:
-            self.rest.add(positions, len(events), t1_us - t0_us)
-            self.tracker.rest_px = self.rest.rest_px  # the neighbour prior's offsets
+        positions, updated = self.markers.update(events, t0_us, t1_us)
         seconds["track"] = time.perf_counter() - start
         tracked = TrackedWindow(self._index, t0_us, t1_us, len(events), positions.copy(), updated.copy(),
-                                d0_us, len(d_events), grid, seconds, self.rest.rest_px, counts, due)
+                                d0_us, len(d_events), grid, seconds, self.markers.rest_px, counts, due)
         self._index += 1
         return tracked
 

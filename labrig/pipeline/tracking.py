@@ -615,7 +615,9 @@ class CircleFitTracker(_PatchTracker):
         self._sums = np.zeros((len(self.rest_px), 3))
         self.reset()
 
-    def update(self, events: npt.NDArray) -> tuple[Array, BoolArray]:
+    def update(self, events: npt.NDArray, t_end_us: float | None = None) -> tuple[Array, BoolArray]:
+        """Advance by one window of events (EVENT_DTYPE); ``t_end_us`` is not used (a circle fit has no
+        time in it). Copies of the positions and the update mask."""
         p = self.params
         r = p.marker_diameter_px / 2
         pos = self.positions_px.copy()

@@ -1,8 +1,8 @@
 """Training inputs that carry the gel's state: the tracker's displacement field and a perturbed previous map.
 
-**Displacement field.** The channels come from running the pipeline's own tracker
-(:class:`labrig.pipeline.tracking.Tracker` with the rest refinement of
-:class:`labrig.pipeline.rest.RestRefiner`, 10 ms windows, the recording's calibration) over
+**Displacement field.** The channels come from running the pipeline's own markers' stage
+(:class:`labrig.pipeline.marker_stage.MarkerStage`: its tracker and the rest refinement, 10 ms
+windows ending at each window's end, the recording's calibration) over
 the whole recording once, cached under ``$LABRIG_CACHE/tracks`` (:mod:`labrig.cache`), not
 from the virtual rig's ``/truth/markers``: a real recording has no true markers, and the
 tracker's errors (lag in fast motion, drift that survives a shear, markers that slip) are
@@ -48,7 +48,8 @@ from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import run_setup, tracking
 from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams
 from labrig.pipeline.depth_inputs import DisplacementRaster, InputSpec, gel_plane_displacement_mm, network_input
-from labrig.pipeline.rest import RestParams, RestRefiner
+from labrig.pipeline.marker_stage import MarkerStage
+from labrig.pipeline.rest import RestParams
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet
 from labrig.pipeline.windows import recording_windows
 from labrig.recording import Recording
@@ -58,7 +59,7 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 #: The tracker's windows over a recording (us).
 TRACK_WINDOW_US = 10_000
-TRACKS_VERSION = 1
+TRACKS_VERSION = 2
 BRIGHTNESS_VERSION = 2
 #: The most times a batch's previous-map channel is replaced by the network's own answer (:func:`self_feed`).
 SELF_FEED_MAX = 2
@@ -134,19 +135,15 @@ def track_recording(path: str | Path, calibration_dir: str | Path | None, cache_
         if cached.exists():
             with np.load(cached) as data:
                 return Tracks(data["t_us"], data["positions_px"], data["rest_px"])
-        tracker = tracking.Tracker(setup.rest_px, params, observed=setup.observed)
-        rest = RestRefiner(setup.rest_px, setup.observed, RestParams())
+        markers = MarkerStage.for_setup(setup, params, RestParams())
         ends, positions = [], []
         for t0, t1, events in recording_windows(rec, window_us=TRACK_WINDOW_US):
-            p, _ = tracker.update(events)
-            if not rest.frozen:
-                rest.add(p, len(events), t1 - t0)
-                tracker.rest_px = rest.rest_px
+            p, _ = markers.update(events, t0, t1)
             ends.append(t1)
             positions.append(p.copy())
     if not ends:
         raise LabrigError(f"{path}: no camera windows to track")
-    tracks = Tracks(np.asarray(ends, np.int64), np.asarray(positions, np.float64), np.asarray(rest.rest_px, np.float64))
+    tracks = Tracks(np.asarray(ends, np.int64), np.asarray(positions, np.float64), np.asarray(markers.rest_px, np.float64))
     cached.parent.mkdir(parents=True, exist_ok=True)
     tmp = cached.with_name(f".{cached.stem}.tmp.npz")
     np.savez(tmp, t_us=tracks.t_us, positions_px=tracks.positions_px, rest_px=tracks.rest_px)
