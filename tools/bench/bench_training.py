@@ -6,7 +6,8 @@ sidecar, as a tiny campaign (the same recording as train and val).
 Measured side by side in one run, per U-Net width (default 4, 8, 16, 32):
 * training: ``--steps`` Adam steps of batch 16 through :func:`labrig.training.train`
   (windows made in the main process, as in a real run); samples per second and the ratio
-  to the paper-size width 32;
+  to the paper-size width 32; then the smallest width again with patch training
+  (``--crop-cells``, 64 by default), its windows per second against the whole grid's;
 * inference: onnxruntime on one thread against torch eager on one thread (median per
   window), and the onnxruntime latency as a share of the 5 ms the pipeline allows the depth
   stage (below 1: within budget) and of a 10 ms window.
@@ -33,6 +34,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--widths", default="4,8,16,32", help="comma-separated U-Net base widths")
     ap.add_argument("--steps", type=int, default=12, help="timed training steps per width (after 2 warm-up steps)")
     ap.add_argument("--repeats", type=int, default=100, help="inference runs per width (median kept)")
+    ap.add_argument("--crop-cells", type=int, default=64, help="the patch of the patch-training row (0: no such row)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     return ap.parse_args(argv)
 
@@ -75,7 +77,8 @@ def torch_eager_ms(width: int, repeats: int) -> float:
     return float(np.median(times) * 1e3)
 
 
-def run(widths: str = "4,8,16,32", steps: int = 12, repeats: int = 100, progress: bool = True) -> dict[str, Any]:
+def run(widths: str = "4,8,16,32", steps: int = 12, repeats: int = 100, crop_cells: int = 64,
+        progress: bool = True) -> dict[str, Any]:
     import torch
 
     from labrig.pipeline.depthnet import benchmark_ms
@@ -100,10 +103,19 @@ def run(widths: str = "4,8,16,32", steps: int = 12, repeats: int = 100, progress
                          "samples_per_s": history["samples_per_s"], "window_share": history.get("sampling_share"),
                          "ort_ms": ort_ms, "torch_eager_ms": eager_ms, "ort_vs_eager": ort_ms / eager_ms,
                          "ort_vs_budget": ort_ms / DEPTH_BUDGET_MS, "ort_vs_window": ort_ms / 10.0})
+        patch = None
+        if crop_cells:
+            width = min(int(w) for w in widths.split(","))
+            card = train(data, TrainConfig(width=width, steps=steps + 2, val_every=0, val_windows=8, checkpoint_every=10_000,
+                                           crop_cells=crop_cells), Path(tmp) / "patch", show_progress=False)
+            whole = next(r for r in rows if r["width"] == width)
+            patch = {"width": width, "crop_cells": crop_cells, "samples_per_s": card["training"]["samples_per_s"],
+                     "window_share": card["training"]["sampling_share"],
+                     "throughput_vs_whole_grid": card["training"]["samples_per_s"] / whole["samples_per_s"]}
     ref = next((r for r in rows if r["width"] == 32), rows[-1])
     for r in rows:
         r["throughput_vs_w32"] = r["samples_per_s"] / ref["samples_per_s"]
-    return {"rows": rows, "torch_threads": torch_threads, "batch_size": 16, "budget_ms": DEPTH_BUDGET_MS}
+    return {"rows": rows, "patch": patch, "torch_threads": torch_threads, "batch_size": 16, "budget_ms": DEPTH_BUDGET_MS}
 
 
 def render(f: dict[str, Any]) -> None:
@@ -118,6 +130,12 @@ def render(f: dict[str, Any]) -> None:
         ["Training windows/s include making each window (SAE from the recording) in the main process. "
          "Budget: the pipeline allows the depth stage 5 ms of a 10 ms window on one core."],
     )
+    patch = f.get("patch")
+    if patch:
+        emit(f"Patch training, width {patch['width']}: windows cut to {patch['crop_cells']} x {patch['crop_cells']} cells",
+             ["train windows/s", "vs the whole grid", "share making windows"],
+             [[f"{patch['samples_per_s']:.1f}", f"{patch['throughput_vs_whole_grid']:.2f}",
+               f"{patch['window_share']:.2f}"]], [])
 
 
 SINGLE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
