@@ -158,13 +158,47 @@ def file_size(path: Path) -> int:
     return os.stat(path).st_size
 
 
-def trees_to_compare(root: Path, baseline: Path | None) -> dict[str, Path]:
-    """This tree, and a baseline checkout to compare it with (its repository root), by name."""
+def baseline_tree(root: Path, baseline: str | Path) -> Path:
+    """The labrig tree ``--baseline`` names: a folder holding a checkout, else a git revision of ``root``'s
+    repository (a commit, a tag, ``HEAD~3``), exported once per process into a temporary folder
+    (``git archive``) that is removed at exit."""
+    import atexit
+    import shutil
+    import subprocess
+    import tempfile
+
+    folder = Path(baseline)
+    if folder.is_dir():
+        if not (folder / "labrig" / "__init__.py").exists():
+            raise SystemExit(f"--baseline {folder} is not a labrig checkout (no labrig/__init__.py there)")
+        return folder.resolve()
+    revision = str(baseline)
+    if revision in _EXPORTED:
+        return _EXPORTED[revision]
+    commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--verify", "--quiet", f"{revision}^{{commit}}"],
+                            capture_output=True, text=True, check=False).stdout.strip()
+    if not commit:
+        raise SystemExit(f"--baseline {revision}: neither a folder nor a git revision of {root}; give a commit "
+                         "(e.g. HEAD~1) or a labrig checkout's folder")
+    out = Path(tempfile.mkdtemp(prefix=f"labrig-baseline-{commit[:10]}-"))
+    atexit.register(shutil.rmtree, out, ignore_errors=True)
+    archive = subprocess.Popen(["git", "-C", str(root), "archive", commit], stdout=subprocess.PIPE)
+    subprocess.run(["tar", "-x", "-C", str(out)], stdin=archive.stdout, check=True)
+    if archive.wait() != 0 or not (out / "labrig" / "__init__.py").exists():
+        raise SystemExit(f"--baseline {revision}: could not export {commit[:10]} (git archive failed)")
+    _EXPORTED[revision] = out
+    return out
+
+
+_EXPORTED: dict[str, Path] = {}
+
+
+def trees_to_compare(root: Path, baseline: str | Path | None) -> dict[str, Path]:
+    """This tree, and the baseline to compare it with (:func:`baseline_tree`: a checkout's folder or a git
+    revision), by name."""
     trees = {"this_tree": root}
     if baseline is not None:
-        if not (baseline / "labrig" / "__init__.py").exists():
-            raise SystemExit(f"--baseline {baseline} is not a labrig checkout (no labrig/__init__.py there)")
-        trees["baseline"] = baseline.resolve()
+        trees["baseline"] = baseline_tree(root, baseline)
     return trees
 
 

@@ -10,8 +10,8 @@ tree: the thread CPU of the replay (every run, the fastest, the median) and the 
 the speed-up is baseline / this tree from the fastest runs. The two trees must give the same
 events (a sensor change that moves events is not a speed-up; the benchmark says so).
 
-Usage: ``bench_sensor_replay.py --baseline DIR [--recording 117] [--repeat 5]``, DIR from
-``git archive <commit> | tar -x -C DIR``.
+Usage: ``bench_sensor_replay.py --baseline REV [--recording 117] [--repeat 5]``, REV a git revision of this
+repository (exported for the run) or a labrig checkout's folder.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline", type=Path, default=None, help="a labrig checkout to compare with (its repository root)")
+    ap.add_argument("--baseline", default=None,
+                    help="what to compare with: a git revision of this repository (e.g. HEAD~1) or a labrig checkout's folder")
     ap.add_argument("--recording", type=int, default=117, help="index into the paper campaign (default 117, square)")
     ap.add_argument("--repeat", type=int, default=5, help="replays per tree, alternately")
     ap.add_argument("--replay", nargs=2, default=None, help=argparse.SUPPRESS)  # internal: INPUTS N, JSON out
@@ -113,7 +114,7 @@ def _replay_in(tree: Path, inputs: Path, runs: int) -> dict[str, Any]:
     return json_from_tree(tree, Path(__file__).resolve(), "--replay", str(inputs), str(runs))  # type: ignore[no-any-return]
 
 
-def run(baseline: Path | None = None, recording: int = 117, repeat: int = 5, replay: list[str] | None = None,
+def run(baseline: str | Path | None = None, recording: int = 117, repeat: int = 5, replay: list[str] | None = None,
         progress: bool = True) -> dict[str, Any]:
     trees = trees_to_compare(ROOT, baseline)
     with tempfile.TemporaryDirectory() as tmp:

@@ -23,8 +23,8 @@ numpy's small operations): what a faster kernel can gain, and what only fewer Py
 Process start, imports, the contact table's load, the compiled kernels' load and the camera's
 per-pixel rays (one rig built and dropped) are left out (warmed before timing): they are paid
 once per worker process, not per recording (the campaign
-benchmark, bench_virtual_campaign.py, measures whole CLI runs with them). With ``--baseline DIR``
-(a labrig checkout, e.g. ``git archive <commit> | tar -x -C DIR``) every recording is made by both
+benchmark, bench_virtual_campaign.py, measures whole CLI runs with them). With ``--baseline REV``
+(a git revision of this repository, exported for the run, or a labrig checkout's folder) every recording is made by both
 trees, alternately, and the ratios baseline / this tree are reported. Reported: simulated
 seconds per CPU second (the real-time factor per core; the target is >= 3) from each recording's
 median run and from its fastest (load only ever slows a run down, so the fastest runs are the
@@ -64,7 +64,8 @@ TIMED = {
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline", type=Path, default=None, help="a labrig checkout to compare with (its repository root)")
+    ap.add_argument("--baseline", default=None,
+                    help="what to compare with: a git revision of this repository (e.g. HEAD~1) or a labrig checkout's folder")
     ap.add_argument("--recordings", default="", help="comma-separated indices into the paper campaign "
                                                      "(default: the first of each indenter and depth)")
     ap.add_argument("--repeat", type=int, default=1, help="runs per recording and tree (the median is kept, and the fastest)")
@@ -219,7 +220,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "cpu_s_per_sim_s": {s: v / sim for s, v in stages.items()}}
 
 
-def run(baseline: Path | None = None, recordings: str = "", repeat: int = 1, probe: str | None = None,
+def run(baseline: str | Path | None = None, recordings: str = "", repeat: int = 1, probe: str | None = None,
         progress: bool = True) -> dict[str, Any]:
     indices = [int(i) for i in recordings.split(",") if i.strip()] or _default_indices()
     trees = trees_to_compare(ROOT, baseline)

@@ -7,7 +7,9 @@ EVT3 decode of the same events), GRBL streaming (character counting /
 send-response), Bota reader (frames lost, jitter; decode / real
 time), virtual rig (wall time / simulated time), camera clock under load (drift
 error / 10 ppm, residual / 50 us). Full runs take several
-minutes on 2 cores; --quick shortens them.
+minutes on 2 cores; --quick shortens them. ``--baseline REV`` (a git revision, or a checkout's
+folder) adds the benchmarks that compare two trees side by side (the virtual camera's event
+sensor, the virtual-time stages), this tree against REV.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ BENCHES = (
     "bench_campaign", "bench_groundtruth", "bench_training", "bench_tracker", "bench_depth_state", "bench_ifem",
     "bench_pipeline", "bench_clock", "bench_view",
 )
+#: Benchmarks of this tree against a baseline tree (``--baseline``).
+AGAINST_BASELINE = ("bench_sensor_replay", "bench_virtual_stages")
 QUICK: dict[str, dict[str, Any]] = {
     "bench_writer": {"duration_s": 3.0, "repeat": 1, "codecs": "bitshuffle-lz4,lz4,gzip"},
     "bench_reader": {"duration_s": 20.0, "events": 15e6, "positions": 50, "naive_calls": 3},
@@ -39,14 +43,23 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--only", default=",".join(BENCHES), help="comma-separated benchmarks to run")
     ap.add_argument("--quick", action="store_true", help="shorter runs (noisier figures)")
     ap.add_argument("--json", action="store_true", help="print all figures as JSON")
+    ap.add_argument("--baseline", default=None,
+                    help="also compare this tree with REV (a git revision or a labrig checkout's folder) side by side")
     args = ap.parse_args(argv)
     t = time.perf_counter()
     figures: dict[str, Any] = {}
-    for name in [b.strip() for b in args.only.split(",") if b.strip()]:
-        if name not in BENCHES:
-            raise SystemExit(f"unknown benchmark {name!r}; choose from {', '.join(BENCHES)}")
+    names = [b.strip() for b in args.only.split(",") if b.strip()]
+    if args.baseline is not None and args.only == ap.get_default("only"):
+        names += list(AGAINST_BASELINE)
+    for name in names:
+        if name not in BENCHES + AGAINST_BASELINE:
+            raise SystemExit(f"unknown benchmark {name!r}; choose from {', '.join(BENCHES + AGAINST_BASELINE)}")
+        if name in AGAINST_BASELINE and args.baseline is None:
+            raise SystemExit(f"{name} compares two trees: give --baseline REV")
         module = importlib.import_module(name)
         kwargs = dict(QUICK.get(name, {})) if args.quick else {}
+        if name in AGAINST_BASELINE:
+            kwargs["baseline"] = args.baseline
         figures[name] = module.run(progress=not args.json, **kwargs)
         if not args.json:
             module.render(figures[name])
