@@ -65,6 +65,20 @@ def table(rig: RigConfig, sphere: Indenter) -> ContactTable:
     return true_contact_table(sphere, rig)
 
 
+@pytest.fixture(scope="session")
+def sphere_press(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
+    """One short virtual-rig probe (about 1 s): the sphere 0.8 mm deep at (1, -1) mm, 0.3 mm of shear, 4 mm/s
+    (read-only: copy it before changing it)."""
+    from labrig.sim.live import record_live
+    from labrig.sim.motion import probing_path
+
+    path = tmp_path_factory.mktemp("sphere-press") / "press.h5"
+    tool = probing_path(rig, sphere, location_mm=(1.0, -1.0), depth_mm=0.8, shear_mm=0.3, normal_speed_mm_s=4.0,
+                        shear_speed_mm_s=4.0, wait_s=0.05)
+    record_live(path, rig, sphere, tool, realtime=False)
+    return path
+
+
 @pytest.fixture()
 def time_limit_20s() -> Iterator[None]:
     """Fail a test that runs over 20 s (a hung socket, numba compiling on a cold cache) instead of hanging."""

@@ -8,8 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labrig.config import RigConfig
-from labrig.indenters import Indenter
 from labrig.pipeline import depth_sources, run_setup, runtime, tracking
 from labrig.pipeline.marker_stage import MarkerStage
 from labrig.pipeline.rest import RestParams
@@ -20,16 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def press(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
-    """One short probe on the virtual rig (about 1 s)."""
-    from labrig.sim.live import record_live
-    from labrig.sim.motion import probing_path
-
-    path = tmp_path_factory.mktemp("marker-stage") / "press.h5"
-    tool = probing_path(rig, sphere, location_mm=(1.0, -1.0), depth_mm=0.8, shear_mm=0.3, normal_speed_mm_s=4.0,
-                        shear_speed_mm_s=4.0, wait_s=0.05)
-    record_live(path, rig, sphere, tool, realtime=False)
-    return path
+def press(sphere_press: Path) -> Path:
+    return sphere_press
 
 
 def test_the_runtime_and_the_training_tracks_see_the_same_markers(press: Path, tmp_path: Path) -> None:
@@ -56,7 +46,7 @@ def test_the_stage_feeds_the_rest_refinement_until_it_freezes(press: Path) -> No
         alone = tracking.Tracker(setup.rest_px, stage.tracker.params, observed=setup.observed)
         held = MarkerStage(tracking.Tracker(setup.rest_px, stage.tracker.params, observed=setup.observed))
         for k, (t0, t1, events) in enumerate(recording_windows(rec, window_us=10_000)):
-            p, _ = stage.update(events, t0, t1)
+            stage.update(events, t0, t1)
             q, _ = held.update(events, t0, t1)
             np.testing.assert_array_equal(q, alone.update(events, t1)[0])  # no refinement: the tracker alone
             if k == 10:

@@ -6,6 +6,7 @@ import itertools
 import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,7 +14,6 @@ import torch
 
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
-from labrig.indenters import Indenter
 from labrig.training import TrainConfig, contact_aware_l1, depth_errors_mm, output_paths, train, uniform_l1
 from labrig.training.crop import CropAugment
 from labrig.training.data import PHASE_MARGIN_S, WindowSampler, open_campaign, torch_dataset
@@ -22,17 +22,13 @@ from labrig.training.trainer import COSINE_FLOOR, DEFAULT_SHIFT_CELLS
 
 
 @pytest.fixture(scope="session")
-def campaign(tmp_path_factory: pytest.TempPathFactory, rig: RigConfig, sphere: Indenter) -> Path:
+def campaign(tmp_path_factory: pytest.TempPathFactory, sphere_press: Path) -> Path:
     """A tiny campaign folder: one short simulated probe (~1 s) as a train and a val recording, with sidecars."""
     from labrig.dataset import sidecar_path
     from labrig.groundtruth import generate, write_sidecar
-    from labrig.sim.live import record_live
-    from labrig.sim.motion import probing_path
 
     folder = tmp_path_factory.mktemp("campaign")
-    tool = probing_path(rig, sphere, location_mm=(1.0, -1.0), depth_mm=0.8, shear_mm=0.3, normal_speed_mm_s=4.0,
-                        shear_speed_mm_s=4.0, wait_s=0.05)
-    record_live(folder / "a.h5", rig, sphere, tool, realtime=False)
+    shutil.copy(sphere_press, folder / "a.h5")
     write_sidecar(generate(folder / "a.h5", rate_hz=100), sidecar_path(folder / "a.h5"))
     shutil.copy(folder / "a.h5", folder / "b.h5")
     shutil.copy(folder / "a.gt.h5", folder / "b.gt.h5")
@@ -144,6 +140,14 @@ def test_missing_ground_truth_says_what_to_run(campaign: Path, tmp_path: Path) -
 # ----------------------------------------------------------------------------------------- training
 
 TINY = {"width": 4, "batch_size": 4, "lr": 3e-3, "val_windows": 8, "threads": 1}
+
+
+def pressed_window(src: Any) -> Any:
+    """The window (10 ms) of a source that ends with Normal Down: the deepest press, in contact."""
+    phases = {p.name: p for p in src.rec.phases()}
+    window = src.window(phases["normal_down"].t_end_us - 10_000, 10_000)
+    assert window.contact.any()
+    return window
 
 
 def test_short_run_lowers_the_loss_and_writes_a_loadable_model(campaign: Path, tmp_path: Path) -> None:
@@ -318,9 +322,7 @@ def test_a_shifted_window_keeps_its_input_and_its_depth_in_register(campaign: Pa
     data = open_campaign(campaign)
     try:
         src = data.sources["train"][0]
-        phases = {p.name: p for p in src.rec.phases()}
-        window = src.window(phases["normal_down"].t_end_us - 10_000, 10_000)
-        assert window.contact.any()
+        window = pressed_window(src)
         moved = ShiftAugment(12).apply(window, 7, -9)
         np.testing.assert_array_equal(crop_from_unet(moved.sae)[:, 7:, :-9], crop_from_unet(window.sae)[:, :-7, 9:])
         np.testing.assert_array_equal(moved.target[7:, :-9], window.target[:-7, 9:])
@@ -465,9 +467,7 @@ def test_a_patch_holds_the_contact_and_stays_in_register(campaign: Path) -> None
     data = open_campaign(campaign)
     try:
         src = data.sources["train"][0]
-        phases = {p.name: p for p in src.rec.phases()}
-        window = src.window(phases["normal_down"].t_end_us - 10_000, 10_000)
-        assert window.contact.any()
+        window = pressed_window(src)
         patch = CropAugment(32)
         cut = patch.apply(window, 20, 40)
         assert cut.sae.shape == (window.sae.shape[0], 32, 32) and cut.target.shape == cut.contact.shape == (32, 32)
