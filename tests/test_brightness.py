@@ -348,3 +348,73 @@ def test_the_release_round_trips_the_card_and_needs_the_gated_leak() -> None:
         BrightnessParams(release_fraction=0.5)  # no gated leak
     with pytest.raises(LabrigError, match="release"):
         BrightnessParams(rest_tau_s=0.5, release_fraction=1.5)
+
+
+
+def _still_gated(moving_ratio: float | None = 2.0) -> BrightnessParams:
+    return BrightnessParams(tau_s=36_000.0, rest_tau_s=0.5, floor_events_per_px=0.3, moving_ratio=moving_ratio)
+
+
+def _shot_noise(rng: np.random.Generator, per_px_per_window: float) -> np.ndarray:
+    """Shot noise over the whole ROI for one window: independent ON and OFF events, zero mean."""
+    n = rng.poisson(per_px_per_window * ROI.width_px * ROI.height_px)
+    return _events(list(rng.integers(ROI.x0_px, ROI.x0_px + ROI.width_px, n)),
+                   list(rng.integers(ROI.y0_px, ROI.y0_px + ROI.height_px, n)), list(rng.integers(0, 2, n)))
+
+
+def _dent_cells(channel: np.ndarray) -> np.ndarray:
+    return channel > 0.5
+
+
+def test_the_still_gate_keeps_a_still_press_from_random_walking() -> None:
+    """A dent held 30 s under zero-mean shot noise (0.3 events per pixel per second everywhere): without the
+    still gate its cells walk (the 10 h leak keeps the walk); with it they walk a third as far or less."""
+    walked = {}
+    for ratio in (2.0, None):
+        integrator = BrightnessIntegrator(ROI, _still_gated(ratio))
+        integrator.add_events(_dent_events(4), 10_000)
+        integrator.add(np.zeros(GRID_SHAPE, np.float32), 20_000)
+        pressed = integrator.channel().copy()
+        rng = np.random.default_rng(7)
+        for k in range(3, 3003):
+            integrator.add_events(_shot_noise(rng, 0.003), k * 10_000)
+        dent = _dent_cells(pressed)
+        walked[ratio] = float(np.abs(integrator.channel() - pressed)[dent].mean())
+    assert walked[None] > 0.05  # the walk the gate is for: events per pixel / 2 per unit
+    assert walked[2.0] * 3 < walked[None]
+
+
+def test_the_still_gate_lets_a_press_that_moves_through_whole() -> None:
+    """A press that deepens while held (two more events per pixel over 50 ms, under the same noise) reaches
+    the count whole: it gains what it gains without the gate, and only its steps are found moving."""
+    gained, moved = {}, {}
+    for ratio in (2.0, None):
+        integrator = BrightnessIntegrator(ROI, _still_gated(ratio))
+        t = 10_000
+        integrator.add_events(_dent_events(4), t)
+        t += 10_000
+        integrator.add(np.zeros(GRID_SHAPE, np.float32), t)
+        pressed = integrator.channel().copy()
+        rng = np.random.default_rng(3)
+        moved[ratio] = []
+        for step in range(100):  # 1 s held, then 2 events per pixel more in five 10 ms steps
+            t += 10_000
+            window = _shot_noise(rng, 0.003)
+            if 50 <= step < 55:
+                window = np.concatenate([window, _dent_events(2)[::5]])
+            integrator.add_events(window, t)
+            moved[ratio].append(integrator.moving)
+        gained[ratio] = (integrator.channel() - pressed)[_dent_cells(pressed)]
+    assert np.median(gained[None]) > 0.5
+    assert np.median(np.abs(gained[2.0] - gained[None])) < 0.05
+    assert all(moved[2.0][50:55]) and sum(moved[2.0][:50]) <= 2
+
+
+def test_the_still_gate_round_trips_the_card_and_needs_the_gated_leak() -> None:
+    spec = InputSpec(("sae", "brightness"), brightness=_still_gated())
+    assert InputSpec.from_card({"inputs": spec.to_card()}) == spec
+    assert BrightnessParams.from_card(_gated().to_card()).moving_ratio is None  # older cards: no gate
+    with pytest.raises(LabrigError, match="still gate"):
+        BrightnessParams(moving_ratio=2.0)  # no gated leak
+    with pytest.raises(LabrigError, match="still gate"):
+        BrightnessParams(rest_tau_s=0.5, moving_ratio=0.5)

@@ -89,6 +89,12 @@ class BrightnessParams:
     undone press leaves about one event per pixel where it was (each pixel's dead band), which the
     gate would otherwise hold as a shallow dent.
 
+    ``moving_ratio`` (dimensionless; None: off; needs ``rest_tau_s``): the still gate. A step's held cells
+    count their events only when the press moves: when their mean |change| over the step is more than
+    ``moving_ratio`` times the quiet cells' (the sensor's noise, measured live). In a still step their
+    events are the same noise, which a 10 h leak would otherwise keep for the whole press as a random walk
+    (shot noise, the leak's mismatch from pixel to pixel), and are left out.
+
     ``reference_slope_gain`` (dimensionless; None: the light as it is): the slope gain the channel is
     expressed in (:func:`reference_light`)."""
 
@@ -99,6 +105,7 @@ class BrightnessParams:
     floor_events_per_px: float = 0.3
     release_fraction: float | None = None
     release_s: float = 0.2
+    moving_ratio: float | None = None
     reference_slope_gain: float | None = None
 
     def __post_init__(self) -> None:
@@ -111,6 +118,8 @@ class BrightnessParams:
                                                   or not self.release_s >= 0):
             raise LabrigError("the brightness channel's release needs rest_tau_s, a release_fraction between 0 and 1 "
                               "and a release_s of zero or more")
+        if self.moving_ratio is not None and (self.rest_tau_s is None or not self.moving_ratio >= 1):
+            raise LabrigError("the brightness channel's still gate needs rest_tau_s and a moving_ratio of 1 or more")
         if self.reference_slope_gain is not None and not self.reference_slope_gain > 0:
             raise LabrigError("the brightness channel's reference_slope_gain must be positive")
 
@@ -120,6 +129,8 @@ class BrightnessParams:
             card.update(rest_tau_s=self.rest_tau_s, floor_events_per_px=self.floor_events_per_px)
         if self.release_fraction is not None:
             card.update(release_fraction=self.release_fraction, release_s=self.release_s)
+        if self.moving_ratio is not None:
+            card["moving_ratio"] = self.moving_ratio
         if self.reference_slope_gain is not None:
             card["reference_slope_gain"] = self.reference_slope_gain
         return card
@@ -127,7 +138,7 @@ class BrightnessParams:
     @classmethod
     def from_card(cls, section: dict[str, float] | None) -> BrightnessParams:
         keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px", "release_fraction",
-                "release_s", "reference_slope_gain")
+                "release_s", "moving_ratio", "reference_slope_gain")
         return cls(**{k: float(v) for k, v in (section or {}).items() if k in keys})
 
 
@@ -144,6 +155,7 @@ class BrightnessIntegrator:
         self.pixels_per_cell = roi.width_px * roi.height_px / float(grid_shape[0] * grid_shape[1])
         self.counts = np.zeros(grid_shape, np.float32)
         self._added = np.zeros(grid_shape, np.float32)  # gated leak: the counts since its last step
+        self.moving = True  # still gate: whether the last step found the press moving
         self.held_total = 0.0  # release: the change the held cells keep, summed (reference events)
         self._held_peak = 0.0  # the most it has been since the last start
         self._undone_s = 0.0  # how long it has stayed under release_fraction of that, without falling further
@@ -175,7 +187,8 @@ class BrightnessIntegrator:
         gained: the sensor's leak events, a change of the light) leaves every cell, then the quiet cells
         decay with ``rest_tau_s`` and the others with ``tau_s``. A cell is quiet when its change, less the
         map's median and averaged with its 8 neighbours, is under ``floor_events_per_px``. With
-        ``release_fraction`` set, a step that finds the press undone (:meth:`_released`) starts again from zero."""
+        ``release_fraction`` set, a step that finds the press undone (:meth:`_released`) starts again from zero;
+        with ``moving_ratio``, the held cells' changes pass :meth:`_still_gate`."""
         change = self.counts - np.float32(np.median(self.counts))
         smoothed = np.abs(uniform_filter(change, 3, mode="nearest"))
         quiet = smoothed < np.float32(self.params.floor_events_per_px * self.pixels_per_cell)
@@ -184,10 +197,25 @@ class BrightnessIntegrator:
             return
         drift = np.float32(self._added[quiet].mean() if quiet.any() else np.median(self._added))
         self.counts -= drift
+        if self.params.moving_ratio is not None:
+            self._still_gate(quiet, self._added - drift)
         rest = np.float32(math.exp(-dt_s / rest_tau_s))
         hold = np.float32(math.exp(-dt_s / self.params.tau_s))
         self.counts *= np.where(quiet, rest, hold)
         self._added[...] = 0.0
+
+    def _still_gate(self, quiet: npt.NDArray[np.bool_], step: F32) -> None:
+        """Take the held cells' ``step`` (their change over this step, less the drift) back out of their counts
+        unless they are more active than ``moving_ratio`` times the quiet cells (the press moves)."""
+        assert self.params.moving_ratio is not None
+        held = ~quiet
+        if not held.any():
+            self.moving = True
+            return
+        noise = float(np.abs(step[quiet]).mean()) if quiet.any() else 0.0
+        self.moving = float(np.abs(step[held]).mean()) > self.params.moving_ratio * noise
+        if not self.moving:
+            self.counts[held] -= step[held]
 
     def _released(self, held_total: float, dt_s: float) -> bool:
         """Whether the held change, ``held_total`` (reference events) now, has stayed under ``release_fraction``
@@ -211,6 +239,7 @@ class BrightnessIntegrator:
         """Forget the count (the gel is at rest)."""
         self.counts[...] = 0.0
         self._added[...] = 0.0
+        self.moving = True
         self.held_total = self._held_peak = self._undone_s = self._undone_from = 0.0
         self.t_us = t_us
 

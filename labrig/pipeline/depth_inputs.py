@@ -47,10 +47,11 @@ INPUT_SETS = {"sae": ("sae",), "sae+disp": ("sae", "displacement"), "sae+disp+pr
               "sae+bright-hold": ("sae", "brightness")}
 #: The brightness change integrated with the gated leak: a press held as long as it lasts
 #: (:class:`~labrig.pipeline.brightness.BrightnessParams` ``rest_tau_s``; the held cells' own leak, 10 h, is
-#: longer than any press), started again once a press is undone (``release_fraction``), under the reference
+#: longer than any press), its cells counting events only while the press moves (``moving_ratio``: a still
+#: press's events are noise), started again once a press is undone (``release_fraction``), under the reference
 #: light (the camera's measured slope gain divided out); the other sets keep one 30 s leak and the light as it is.
 HOLD_BRIGHTNESS = BrightnessParams(tau_s=36_000.0, rest_tau_s=0.5, floor_events_per_px=0.3, release_fraction=0.5,
-                                   release_s=0.2, reference_slope_gain=REFERENCE_SLOPE_GAIN)
+                                   release_s=0.2, moving_ratio=2.0, reference_slope_gain=REFERENCE_SLOPE_GAIN)
 INPUT_BRIGHTNESS = {"sae+bright-hold": HOLD_BRIGHTNESS}
 #: Gel-plane displacement (mm) that makes one unit of a displacement channel.
 DEFAULT_DISPLACEMENT_SCALE_MM = 1.0
