@@ -6,8 +6,9 @@ RAW codec (decode rate / the evt3 package's), Metavision HDF5 (ECF decode /
 EVT3 decode of the same events), GRBL streaming (character counting /
 send-response), Bota reader (frames lost, jitter; decode / real
 time), virtual rig (wall time / simulated time), camera clock under load (drift
-error / 10 ppm, residual / 50 us). Full runs take several
-minutes on 2 cores; --quick shortens them. ``--baseline REV`` (a git revision, or a checkout's
+error / 10 ppm, residual / 50 us), the virtual rig's time resolution against its CPU, its truth
+codecs, virtual-time campaigns against through-driver ones. Full runs take tens of minutes on
+2 cores; --quick shortens them. ``--baseline REV`` (a git revision, or a checkout's
 folder) adds the benchmarks that compare two trees side by side (the virtual camera's event
 sensor, the virtual-time stages), this tree against REV.
 """
@@ -24,7 +25,8 @@ from _common import print_json
 BENCHES = (
     "bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live",
     "bench_campaign", "bench_groundtruth", "bench_training", "bench_tracker", "bench_depth_state", "bench_ifem",
-    "bench_pipeline", "bench_clock", "bench_view",
+    "bench_pipeline", "bench_clock", "bench_view", "bench_sim_resolution", "bench_truth_codecs",
+    "bench_virtual_campaign",
 )
 #: Benchmarks of this tree against a baseline tree (``--baseline``).
 AGAINST_BASELINE = ("bench_sensor_replay", "bench_virtual_stages")
@@ -35,6 +37,9 @@ QUICK: dict[str, dict[str, Any]] = {
     "bench_grbl": {"lines": 300, "repeat": 1},
     "bench_bota": {"seconds": 3.0},
     "bench_clock": {"drifts": "-500,500", "seeds": 3},
+    "bench_sim_resolution": {"settings": "0.1,0.01 0.2,0.02 0.4,0.04", "recordings": "0"},
+    "bench_truth_codecs": {"codecs": "blosc2-lz4-shuffle,zstd,gzip", "repeat": 1},
+    "bench_virtual_campaign": {"recordings": 2, "skip_drivers": True},
 }
 
 
