@@ -92,6 +92,14 @@ def test_evaluate_writes_a_checked_report(campaign: Path, models: Path, tmp_path
     cache = json.loads(again.stdout)["cache"]
     assert set(cache) == {"forces", "forces-truth", "depth", "tracking", "labels"}
     assert all(" 0 computed" in line for line in cache.values()), cache
+    assert set(summary["labels"]) == {"layer/lab", "halfspace/lab"}
+
+    both = runner.invoke(app, [*args, "--label-poses", "lab,true"])  # the labels again with the sim's own gel pose
+    assert both.exit_code == 0, both.output
+    labels = json.loads(both.stdout)["labels"]
+    assert set(labels) == {"layer/lab", "halfspace/lab", "layer/true", "halfspace/true"}
+    assert all(row["recordings"] == 2 and row["mae_contact_mm"] >= 0 for row in labels.values())
+    assert "true (the sim's)" in (out / "tables" / "label_errors.csv").read_text()
 
 
 def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
@@ -102,6 +110,7 @@ def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
              ([str(campaign), "--model", str(tmp_path / "x.onnx")], "no such file"),
              ([str(campaign), "--trackers", "paper,kalman"], "--trackers: kalman"),
              ([str(campaign), "--trackers", ","], "--trackers: none given"),
+             ([str(campaign), "--label-poses", "lab,sideways"], "--label-poses: lab, sideways"),
              ([str(campaign), "--calibration", str(tmp_path / "no-calibration")], "--calibration"),]
     bare = tmp_path / "bare"
     shutil.copytree(campaign, bare)

@@ -59,6 +59,9 @@ def evaluate_command(
     stress_grid: Annotated[str, typer.Option(help="The stress axes' values: full, or reduced (3 per axis).")] = "full",
     stress_axes: Annotated[str | None, typer.Option(
         help="Only these stress axes, comma-separated keys (e.g. contrast_threshold,hold; default: every axis).")] = None,
+    label_poses: Annotated[str, typer.Option(
+        help="The gel poses the label errors are measured with: lab (the registration), or lab,true (also the sim's "
+             "own pose: what the registration costs the labels).")] = "lab",
     as_json: JsonOption = False,
 ) -> None:
     """Evaluate the pipeline on DATA: Tables I-III, errors per range, runtime, dense and label errors; a report."""
@@ -73,6 +76,7 @@ def evaluate_command(
         cache_dir=cache,
         use_cache=not no_cache, table1=table1, trackers=tuple(t.strip() for t in trackers.split(",") if t.strip()),
         sweep=sweep, sweep_recordings=sweep_recordings or None,
+        label_poses=tuple(p.strip() for p in label_poses.split(",") if p.strip()),
         stress=stress or stress_axes is not None, stress_grid=stress_grid,
         stress_axes=tuple(a.strip() for a in stress_axes.split(",") if a.strip()) if stress_axes else None)
     if sweep_recordings < 0:

@@ -9,7 +9,7 @@ keeps their results (frozen dataclasses) in an :class:`Evaluation` with the head
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,12 @@ from labrig.evaluation import stress as stress_suite
 from labrig.evaluation import tables
 from labrig.evaluation.depth import DepthResult, DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
-from labrig.evaluation.groundtruth_error import GroundTruthErrorResult, GroundTruthErrorTask, evaluate_groundtruth
+from labrig.evaluation.groundtruth_error import (
+    LABEL_POSES,
+    GroundTruthErrorResult,
+    GroundTruthErrorTask,
+    evaluate_groundtruth,
+)
 from labrig.evaluation.hold import hold_summary
 from labrig.evaluation.stress import StressResult
 from labrig.evaluation.stress_axes import axis_named
@@ -80,6 +85,9 @@ class EvaluationSettings:
     table1: bool = True
     trackers: tuple[str, ...] = DEFAULT_TABLE1_TRACKERS  # Table I's trackers (keys of TABLE1_TRACKERS)
     label_errors: bool = True
+    #: The gel poses the labels are made with: "lab" (the registration in the calibration folder), "true" (the
+    #: sim's own: a perfect registration, which shows what the registration costs the labels).
+    label_poses: tuple[str, ...] = ("lab",)
     sweep: bool = False
     sweep_recordings: int | None = 4  # the sweep's recordings: the first N of the split (None: all)
     stress: bool = False  # the stress suite on the virtual rig (labrig.evaluation.stress)
@@ -100,6 +108,8 @@ class EvaluationSettings:
             raise LabrigError(f"--stress-grid must be full or reduced, not {self.stress_grid!r}")
         for key in self.stress_axes or ():
             axis_named(key)  # one line naming the axes there are
+        if not self.label_poses or any(p not in LABEL_POSES for p in self.label_poses):
+            raise LabrigError(f"--label-poses: {', '.join(self.label_poses) or 'none given'}; use lab, true or lab,true")
         if self.model is not None and not model_path(self.model).exists():
             raise LabrigError(f"--model {self.model}: no such file (give a depth network .onnx with its .json card, "
                               f"or a bundled one: {', '.join(BUNDLED)})")
@@ -194,7 +204,8 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
             ForceTask(p, "truth", calibration_dir=calibration, sidecar=str(sidecar_path(p)), **windows)
             for p in simulated])
     if settings.label_errors and simulated:
-        ev.labels = run("labels", evaluate_groundtruth, [GroundTruthErrorTask(p, elastic, "lab", calibration)
+        ev.labels = run("labels", evaluate_groundtruth, [GroundTruthErrorTask(p, elastic, pose, calibration)
+                                                          for pose in settings.label_poses
                                                           for elastic in ("layer", "halfspace") for p in simulated])
     if settings.sweep:
         chosen = paths if settings.sweep_recordings is None else _spread(paths, settings.sweep_recordings)
@@ -283,6 +294,25 @@ def headline(ev: Evaluation) -> dict[str, Any]:
         out["sweep_recommended"] = {metric: {"setting": p.label, "latency_ms": p.latency_ms, "error": p.error}
                                     for metric, p in ev.sweep.recommendations.items()}
         out["sweep_knee"] = {metric: (p.label if p else None) for metric, p in ev.sweep.knees.items()}
+    if ev.labels:
+        out["labels"] = label_summary(ev.labels)
     if ev.stress is not None:
         out["stress_breakdown"] = stress_suite.stress_summary(ev.stress)
+    return out
+
+
+def label_summary(results: Sequence[GroundTruthErrorResult | None]) -> dict[str, dict[str, float | int | None]]:
+    """Per elastic model and gel pose ("layer/lab", ...): the labels' mean errors over the recordings, mm, and the
+    mean IoU of their contact masks."""
+    out: dict[str, dict[str, float | int | None]] = {}
+    for r in results:
+        if r is not None:
+            out.setdefault(f"{r.elastic}/{r.pose}", {})
+    for key in out:
+        group = [r for r in results if r is not None and f"{r.elastic}/{r.pose}" == key]
+        out[key] = {"recordings": len(group),
+                    "mae_contact_mm": _finite(float(np.mean([r.mae_contact_mm for r in group]))),
+                    "mae_noncontact_mm": _finite(float(np.mean([r.mae_noncontact_mm for r in group]))),
+                    "p95_noncontact_mm": _finite(float(np.mean([r.p95_noncontact_mm for r in group]))),
+                    "mask_iou": _finite(float(np.mean([r.mask_iou for r in group])))}
     return out

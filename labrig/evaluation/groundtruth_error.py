@@ -22,6 +22,9 @@ from labrig.pipeline.depth_sources import truth_between
 from labrig.recording import Recording
 from labrig.sim.motion import true_gel_in_machine
 
+#: The gel poses labels can be made with (:class:`GroundTruthErrorTask`).
+LABEL_POSES = ("lab", "true")
+
 
 @dataclass(frozen=True)
 class GroundTruthErrorTask:

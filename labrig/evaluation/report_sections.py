@@ -238,16 +238,24 @@ def _runtime_section(report: Report, ev: Evaluation) -> None:
                       charts.runtime_bars({s: [r.stage_ms[s] for r in ev.forces] for s in stages}))
 
 
+POSE_LABELS = {"lab": "registered", "true": "true (the sim's)"}
+
+
 def _labels_section(report: Report, ev: Evaluation) -> None:
     report.section("Ground-truth labels against the sim's truth", "labels")
     rows = []
-    for elastic in ("layer", "halfspace"):
-        group = [r for r in ev.labels if r and r.elastic == elastic]
-        if group:
-            rows.append([elastic, MeanStd.of([r.mae_contact_mm for r in group]), MeanStd.of([r.mae_noncontact_mm for r in group]),
-                         MeanStd.of([r.p95_noncontact_mm for r in group]), MeanStd.of([r.mask_iou for r in group])])
-    report.add_table("label_errors", "Label error per elastic model", ["model", "in contact", "out of contact",
-                                                                        "p95 out", "mask IoU"], rows,
+    poses = [p for p in ("lab", "true") if any(r and r.pose == p for r in ev.labels)]
+    for pose in poses:
+        for elastic in ("layer", "halfspace"):
+            group = [r for r in ev.labels if r and r.elastic == elastic and r.pose == pose]
+            if group:
+                rows.append([elastic, POSE_LABELS[pose], MeanStd.of([r.mae_contact_mm for r in group]),
+                             MeanStd.of([r.mae_noncontact_mm for r in group]),
+                             MeanStd.of([r.p95_noncontact_mm for r in group]), MeanStd.of([r.mask_iou for r in group])])
+    report.add_table("label_errors", "Label error per elastic model and gel pose",
+                     ["model", "gel pose", "in contact", "out of contact", "p95 out", "mask IoU"], rows,
                      units={"in contact": "mm", "out of contact": "mm", "p95 out": "mm"},
                      caption="Maps made from what a lab has (CNC pose, registration, calibration, fitted modulus) against "
-                             "the sim's true normal displacement, frames in contact, mean ± std over recordings.")
+                             "the sim's true normal displacement, frames in contact, mean ± std over recordings. "
+                             "Gel pose: the registration's, or the sim's own (a perfect registration: "
+                             "`--label-poses lab,true`).")
