@@ -111,6 +111,7 @@ def test_evaluate_says_what_is_wrong(campaign: Path, tmp_path: Path) -> None:
              ([str(campaign), "--trackers", "paper,kalman"], "--trackers: kalman"),
              ([str(campaign), "--trackers", ","], "--trackers: none given"),
              ([str(campaign), "--label-poses", "lab,sideways"], "--label-poses: lab, sideways"),
+             ([str(campaign), "--stress-metrics", "tracking,speed"], "--stress-metrics: tracking, speed"),
              ([str(campaign), "--calibration", str(tmp_path / "no-calibration")], "--calibration"),]
     bare = tmp_path / "bare"
     shutil.copytree(campaign, bare)

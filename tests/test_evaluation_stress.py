@@ -260,3 +260,15 @@ def test_stress_axes_narrows_the_suite_to_the_axes_named(suite: StressResult, sh
                                       "--out", str(tmp_path / "report"), "--json"])
     assert result.exit_code == 0, result.output
     assert [a.key for a in asked["axes"]] == ["hold", "contrast_threshold"]  # --stress-axes implies --stress
+
+
+def test_stress_metrics_keep_the_axes_that_measure_them() -> None:
+    from labrig.evaluation.evaluate import stress_axes_measured
+
+    assert stress_axes_measured(None, None) is None
+    tracking = stress_axes_measured(None, ("tracking",))
+    assert tracking and all(a.metrics == ("tracking",) for a in tracking)
+    assert {a.key for a in tracking} == {a.key for a in AXES if "tracking" in a.metrics}
+    assert [a.metrics for a in stress_axes_measured(["speed", "hold"], ("forces",)) or []] == [("forces",), ("forces",)]
+    with pytest.raises(LabrigError, match="no stress axis measures tracking"):
+        stress_axes_measured(["hold"], ("tracking",))

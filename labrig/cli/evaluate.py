@@ -59,6 +59,8 @@ def evaluate_command(
     stress_grid: Annotated[str, typer.Option(help="The stress axes' values: full, or reduced (3 per axis).")] = "full",
     stress_axes: Annotated[str | None, typer.Option(
         help="Only these stress axes, comma-separated keys (e.g. contrast_threshold,hold; default: every axis).")] = None,
+    stress_metrics: Annotated[str | None, typer.Option(
+        help="Only these of the stress axes' measures, comma-separated: tracking, forces, depth (default: all).")] = None,
     label_poses: Annotated[str, typer.Option(
         help="The gel poses the label errors are measured with: lab (the registration), or lab,true (also the sim's "
              "own pose: what the registration costs the labels).")] = "lab",
@@ -77,8 +79,10 @@ def evaluate_command(
         use_cache=not no_cache, table1=table1, trackers=tuple(t.strip() for t in trackers.split(",") if t.strip()),
         sweep=sweep, sweep_recordings=sweep_recordings or None,
         label_poses=tuple(p.strip() for p in label_poses.split(",") if p.strip()),
-        stress=stress or stress_axes is not None, stress_grid=stress_grid,
-        stress_axes=tuple(a.strip() for a in stress_axes.split(",") if a.strip()) if stress_axes else None)
+        stress=stress or stress_axes is not None or stress_metrics is not None, stress_grid=stress_grid,
+        stress_axes=tuple(a.strip() for a in stress_axes.split(",") if a.strip()) if stress_axes else None,
+        stress_metrics=tuple(m.strip() for m in stress_metrics.split(",") if m.strip()) if stress_metrics is not None
+        else None)
     if sweep_recordings < 0:
         from labrig.errors import LabrigError
 

@@ -10,7 +10,7 @@ keeps their results (frozen dataclasses) in an :class:`Evaluation` with the head
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +39,9 @@ from labrig.evaluation.groundtruth_error import (
 )
 from labrig.evaluation.hold import hold_summary
 from labrig.evaluation.stress import StressResult
-from labrig.evaluation.stress_axes import axis_named
+from labrig.evaluation.stress_axes import AXES as STRESS_AXES
+from labrig.evaluation.stress_axes import METRICS as STRESS_METRICS
+from labrig.evaluation.stress_axes import StressAxis, axis_named
 from labrig.evaluation.sweep import SweepResult, run_sweep
 from labrig.evaluation.tracking import (
     FIXED_BAND_TRACKERS,
@@ -93,6 +95,7 @@ class EvaluationSettings:
     stress: bool = False  # the stress suite on the virtual rig (labrig.evaluation.stress)
     stress_grid: str = "full"  # or "reduced"
     stress_axes: tuple[str, ...] | None = None  # the axes' keys (labrig.evaluation.stress_axes); None: every axis
+    stress_metrics: tuple[str, ...] | None = None  # only these of the axes' metrics (tracking, forces, depth); None: all
 
     def check(self) -> None:
         if self.split not in SPLIT_CHOICES:
@@ -108,6 +111,10 @@ class EvaluationSettings:
             raise LabrigError(f"--stress-grid must be full or reduced, not {self.stress_grid!r}")
         for key in self.stress_axes or ():
             axis_named(key)  # one line naming the axes there are
+        if self.stress_metrics is not None and (not self.stress_metrics
+                                                or any(m not in STRESS_METRICS for m in self.stress_metrics)):
+            raise LabrigError(f"--stress-metrics: {', '.join(self.stress_metrics) or 'none given'}; use a "
+                              f"comma-separated list of {', '.join(STRESS_METRICS)}")
         if not self.label_poses or any(p not in LABEL_POSES for p in self.label_poses):
             raise LabrigError(f"--label-poses: {', '.join(self.label_poses) or 'none given'}; use lab, true or lab,true")
         if self.model is not None and not model_path(self.model).exists():
@@ -211,7 +218,7 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
         chosen = paths if settings.sweep_recordings is None else _spread(paths, settings.sweep_recordings)
         ev.sweep = run_sweep(chosen, model, settings.models_dir, run, calibration, **windows)
     if settings.stress:
-        axes = [axis_named(key) for key in settings.stress_axes] if settings.stress_axes else None
+        axes = stress_axes_measured(settings.stress_axes, settings.stress_metrics)
         ev.stress = stress_suite.run_stress(run, grid=settings.stress_grid, axes=axes, model=str(model),
                                             calibration_dir=calibration)
     ev.summary = headline(ev)
@@ -248,6 +255,21 @@ def _scan_recordings(paths: list[str], tolerance_s: float = 0.1) -> tuple[list[s
         if missing_s > tolerance_s:
             short[Path(path).name] = round(missing_s, 2)
     return simulated, short
+
+
+def stress_axes_measured(keys: Sequence[str] | None, metrics: Sequence[str] | None) -> list[StressAxis] | None:
+    """The stress axes named by ``keys`` (None: every axis), each measuring only ``metrics`` of its own (None:
+    all); an axis left with none is dropped. None: every axis as it is."""
+    if keys is None and metrics is None:
+        return None
+    axes = [axis_named(key) for key in keys] if keys else list(STRESS_AXES)
+    if metrics is None:
+        return axes
+    kept = [replace(a, metrics=tuple(m for m in a.metrics if m in metrics)) for a in axes]
+    chosen = [a for a in kept if a.metrics]
+    if not chosen:
+        raise LabrigError(f"no stress axis measures {', '.join(metrics)}; leave out --stress-metrics or choose other axes")
+    return chosen
 
 
 # -- headline numbers --------------------------------------------------------------------------
