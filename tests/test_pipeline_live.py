@@ -25,6 +25,7 @@ from labrig.indenters import Indenter
 from labrig.live.runner import LiveRunner
 from labrig.live.sources import ChunkTap
 from labrig.pipeline import depth_sources, results, run_setup, runtime
+from labrig.pipeline.brightness import signed_counts
 from labrig.pipeline.windows import EventWindower, windows_from_chunks
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -225,6 +226,38 @@ def test_a_stale_backlog_is_skipped_up_to_the_newest_window(setup: run_setup.Pip
     done = [r.t0_us // 10_000 for r in runner.run()]
     # the back stage never computes a stale window; once behind it jumps to the newest queued
     assert done in ([5, 6], [6]) and runner.stats.skipped == 7 - len(done)
+
+
+class _CountingDepth(_FlatDepth):
+    """A depth source that integrates the signed counts (like the brightness network) and keeps what it observed."""
+
+    needs_counts = True
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.observed_t1_us: list[int] = []
+        self.total = np.zeros((90, 112), np.float32)
+
+    def observe(self, positions_px: Any, rest_px: Any, counts: Any, t1_us: int) -> None:
+        self.observed_t1_us.append(t1_us)
+        self.total += counts
+
+
+def test_skipped_windows_still_reach_the_depth_sources_state(setup: run_setup.PipelineSetup) -> None:
+    """Every window's signed counts reach the depth source once and in order, skipped or not."""
+    depth = _CountingDepth()
+    now, minute = time.monotonic_ns(), 60 * 10**9
+    chunks = _window_chunks(setup, [now - minute] * 6 + [now + minute])
+    for chunk in chunks:
+        chunk.events["p"] = 1  # all ON: the counts add up
+    every_event = np.concatenate([c.events for c in chunks])
+    runner = LiveRunner(runtime.Pipeline(setup, depth), _ListSource(chunks), window_us=10_000, max_lag_ms=100)
+    results = list(runner.run())
+    assert runner.stats.skipped >= 5 and len(results) <= 2
+    assert len(depth.observed_t1_us) == runner.stats.windows == 7
+    assert depth.observed_t1_us[:-1] == [10_000 * (k + 1) for k in range(6)]  # in order; the last ends at the stream's end
+    np.testing.assert_allclose(depth.total, signed_counts(every_event, setup.rig.roi))
+    assert depth.total.any()
 
 
 def test_the_front_runs_ahead_without_overwriting_the_sae_the_back_stage_reads(setup: run_setup.PipelineSetup) -> None:

@@ -10,7 +10,8 @@ stay tracked; the back stage (depth, displacements, forces, and whatever the cal
 each result) runs in the caller's thread. A window's age is the host time since the chunk that
 closed it arrived. When the back stage reaches a window older than ``max_lag_ms`` (default
 100 ms), it **skips** it and every window queued behind it but the newest, and goes on with that
-one: skipped windows are tracked only, no depth, forces or result. So the forces shown are never
+one: skipped windows are tracked and their events counted into the depth source's state (the
+brightness change), but get no depth, forces or result. So the forces shown are never
 much older than ``max_lag_ms`` and a slow stretch is caught up at once; a pipeline slower than
 real time gives runs of consecutive windows with jumps between them. (Also skipped: windows that
 find the queue between the stages full, 256 windows.) A processed window whose result was ready
@@ -33,8 +34,9 @@ import numpy as np
 
 from labrig.clock import HostClock, MonotonicClock
 from labrig.live.sources import ChunkSource
+from labrig.pipeline.front_stage import TrackedWindow
 from labrig.pipeline.front_thread import FrontThread, Handoff
-from labrig.pipeline.runtime import Pipeline, TrackedWindow, WindowResult
+from labrig.pipeline.runtime import Pipeline, WindowResult
 from labrig.pipeline.windows import DEFAULT_WINDOW_US, EventWindower, LiveWindow, WindowSpec
 
 #: The back stage skips windows older than this (host time since the chunk that closed them arrived), ms.
@@ -136,12 +138,14 @@ class LiveRunner:
 
     def _newest(self, pending_windows: FrontThread[PendingWindow], stale: PendingWindow) -> PendingWindow | None:
         """Catch up after ``stale``: skip it and every window queued behind it but the newest, which
-        is returned unless it is stale too."""
+        is returned unless it is stale too. A skipped window is still observed (:meth:`Pipeline.observe`)."""
         newest = stale
         for pending in pending_windows.queued():
+            self.pipeline.observe(newest.tracked)
             self.stats.skipped += 1
             newest = pending
         if self._stale(newest):
+            self.pipeline.observe(newest.tracked)
             self.stats.skipped += 1
             return None
         return newest
@@ -186,14 +190,15 @@ class LiveRunner:
             self.stats.time_jumps = self.windower.time_jumps
 
     def _dispatch(self, window: LiveWindow, handoff: Handoff[PendingWindow], read_s: float) -> None:
-        """Track every window; queue it for the back stage if there is room, else skip its forces."""
+        """Every window through the front stage; queued for the back stage if there is room, else its forces
+        are skipped (its events still count: :meth:`Pipeline.skip`)."""
         stats = self.stats
         stats.windows += 1
         if stats.first_t_us is None:
             stats.first_t_us = window.t0_us
         stats.last_t_us = window.t1_us
         if handoff.full():  # this thread is the only producer: room now stays until the put
-            self.pipeline.markers.update(window.events, window.t0_us, window.t1_us)
+            self.pipeline.skip(window.t0_us, window.t1_us, window.events)
             stats.skipped += 1
             return
         tracked = self.pipeline.front(window.t0_us, window.t1_us, window.events, read_s)

@@ -3,10 +3,11 @@
 Windows (:mod:`labrig.pipeline.windows`) are fixed in time (``window_us``, 10 ms by default) or
 in event count (``window_events``, 20,000 in the paper's evaluation). Per window:
 
-1. front stage (:meth:`Pipeline.front`): the SAE on the network grid (only when the depth source
-   needs it), the signed event counts (when it needs them) and the markers' stage
-   (:class:`~labrig.pipeline.marker_stage.MarkerStage`: the tracker and the rest refinement); its output is a
-   :class:`TrackedWindow`;
+1. front stage (:meth:`Pipeline.front`, :class:`~labrig.pipeline.front_stage.FrontStage`): the SAE on the
+   network grid (only when the depth source needs it), the signed event counts (when it needs them) and
+   the markers' stage (the tracker and the rest refinement); its output is a
+   :class:`~labrig.pipeline.front_stage.TrackedWindow`. A window whose forces are skipped still passes
+   through it (:meth:`Pipeline.skip`);
 2. back stage (:meth:`Pipeline.back`): the depth map from a
    :class:`~labrig.pipeline.depth_sources.DepthSource` (the recording's ``/truth/depth``
    nearest in time, or the ONNX network of :mod:`labrig.pipeline.depthnet`), the markers'
@@ -25,7 +26,7 @@ the inverse FEM (:mod:`labrig.pipeline.unobserved`).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -33,9 +34,10 @@ import numpy as np
 import numpy.typing as npt
 
 from labrig.physics.grid import GRID_SHAPE
-from labrig.pipeline import brightness, displacement, forces, ifem, sae, tracking
+from labrig.pipeline import displacement, forces, ifem, tracking
 from labrig.pipeline.anchor import AnchorFilter, anchor_px
 from labrig.pipeline.depth_sources import DepthSource
+from labrig.pipeline.front_stage import FrontStage, TrackedWindow
 from labrig.pipeline.front_thread import FrontThread, Handoff
 from labrig.pipeline.marker_stage import MarkerStage
 from labrig.pipeline.rest import RestParams
@@ -48,32 +50,6 @@ Array = npt.NDArray[np.float64]
 STAGES = ("read", "sae", "track", "depth", "displacement", "forces")
 #: Tracked windows that may wait for the back stage when the stages run in two threads.
 QUEUED_WINDOWS = 2
-
-
-@dataclass(frozen=True)
-class TrackedWindow:
-    """A window through the front stage, waiting for the back stage (depth, displacements, forces).
-
-    Times are in the stream's time base (us): a recording's host time, a live camera's device time.
-    """
-
-    index: int  # windows since the pipeline was built
-    t0_us: int  # window start
-    t1_us: int  # window end (exclusive)
-    n_events: int
-    positions_px: Array  # (M, 2) tracked marker centres, this window's own copy
-    updated: npt.NDArray[np.bool_]  # (M,) markers the window's events moved
-    depth_t0_us: int  # start of the depth source's span, which ends at t1_us
-    depth_n_events: int  # events in that span
-    # (2, 90, 112) SAE of the depth source's span (None unless it needs one or keep_sae). Each window
-    # has its own array: the front runs ahead of the back stage, which must still see this one.
-    sae: npt.NDArray[np.float32] | None
-    seconds: Mapping[str, float]  # the front stage's processing time: read, sae, track
-    rest_px: Array | None = None  # (M, 2) the rest this window's displacements are measured from (None: the setup's)
-    # (90, 112) ON minus OFF events per grid cell over the whole window, for a source that integrates
-    # the brightness change (None unless it ``needs_counts``): every event counted once, in order.
-    counts: npt.NDArray[np.float32] | None = None
-    depth_due: bool = True  # the depth source runs on this window (False: the back stage keeps the last map)
 
 
 @dataclass
@@ -107,13 +83,13 @@ class Pipeline:
         """``depth_every_us``: run the depth source only on the first window ending at least this long after
         the last one it ran on, and keep its map in between (tracking and forces every window, e.g. 1 ms
         windows with depth every 10 ms); None: every window."""
-        if depth_every_us is not None and depth_every_us <= 0:
-            raise ValueError(f"depth_every_us must be positive or None, not {depth_every_us}")
         self.setup = setup
         self.depth = depth
         rig = setup.rig
-        self.markers = MarkerStage.for_setup(setup, tracker_params, rest_params)
-        self._rest_px, self._rest_mm = self.markers.rest_px, setup.rest_mm()
+        self.front_stage = FrontStage(setup, MarkerStage.for_setup(setup, tracker_params, rest_params),
+                                      depth_window_us=depth.window_us, needs_sae=depth.needs_sae,
+                                      needs_counts=depth.needs_counts, keep_sae=keep_sae, depth_every_us=depth_every_us)
+        self._rest_px, self._rest_mm = self.front_stage.markers.rest_px, setup.rest_mm()
         base = surface_params or ifem.SurfaceParams()
         self.surface_params = replace(base, youngs_modulus_mpa=setup.youngs_modulus_mpa,
                                       poisson_ratio=setup.poisson_ratio)
@@ -122,38 +98,32 @@ class Pipeline:
         self.normal_mode = normal_mode
         self.threshold_mm = threshold_mm
         self.keep_sae = keep_sae
-        self._index = 0
-        self._recent: list[Events] = []  # events of the depth source's window
         self.anchor = AnchorFilter(depth.anchor) if depth.anchor is not None else None
         self._last_t1_us: int | None = None
-        self.depth_every_us = depth_every_us
-        self._depth_ran_us: int | None = None  # the end of the last window the depth source ran on (front stage)
         self._depth_map: npt.NDArray[np.float32] | None = None  # its map (back stage)
 
     # The two stages.
 
+    @property
+    def markers(self) -> MarkerStage:
+        """The markers' stage (tracker and rest refinement) of the front stage."""
+        return self.front_stage.markers
+
     def front(self, t0_us: int, t1_us: int, events: Events, read_s: float = 0.0) -> TrackedWindow:
-        """SAE (if needed) and tracking of the window ``[t0_us, t1_us)``; ``read_s``: the time its events took to read."""
-        seconds = {"read": read_s}
-        grid = None
-        start = time.perf_counter()
-        d0_us, d_events = self._depth_window(t0_us, t1_us, events)
-        due = (self.depth_every_us is None or self._depth_ran_us is None
-               or t1_us - self._depth_ran_us >= self.depth_every_us)
-        if due:
-            self._depth_ran_us = t1_us
-        if (self.depth.needs_sae and due) or self.keep_sae:
-            grid = sae.sae_grid(d_events, d0_us, t1_us, self.setup.rig.roi)
-        counts = (brightness.signed_counts(events, self.setup.rig.roi, thresholds=self.setup.thresholds)
-                  if self.depth.needs_counts else None)
-        seconds["sae"] = time.perf_counter() - start
-        start = time.perf_counter()
-        positions, updated = self.markers.update(events, t0_us, t1_us)
-        seconds["track"] = time.perf_counter() - start
-        tracked = TrackedWindow(self._index, t0_us, t1_us, len(events), positions.copy(), updated.copy(),
-                                d0_us, len(d_events), grid, seconds, self.markers.rest_px, counts, due)
-        self._index += 1
-        return tracked
+        """SAE (if needed), signed counts (if needed) and tracking of the window ``[t0_us, t1_us)``;
+        ``read_s``: the time its events took to read."""
+        return self.front_stage.window(t0_us, t1_us, events, read_s)
+
+    def skip(self, t0_us: int, t1_us: int, events: Events) -> None:
+        """A window whose back stage is skipped (a live run behind): tracked, its events kept for the next
+        window's SAE span and counts (:meth:`FrontStage.skip`)."""
+        self.front_stage.skip(t0_us, t1_us, events)
+
+    def observe(self, tracked: TrackedWindow) -> None:
+        """A tracked window whose depth and forces are skipped (a live run catching up): the depth source still
+        observes it (its markers, its signed counts), so a state integrated from them misses nothing."""
+        rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
+        self.depth.observe(tracked.positions_px, rest_px, tracked.counts, tracked.t1_us)
 
     def back(self, tracked: TrackedWindow) -> WindowResult:
         """Depth, displacements, forces, net force and contact location."""
@@ -198,23 +168,6 @@ class Pipeline:
         if rest_px is not self._rest_px:
             self._rest_px, self._rest_mm = rest_px, self.setup.rest_mm(rest_px)
         return self._rest_mm
-
-    def _depth_window(self, t0_us: int, t1_us: int, events: Events) -> tuple[int, Events]:
-        """(start, events) of the depth source's window ending at ``t1_us``.
-
-        Windows shorter than the source's (count windows in a fast press) reach back into the
-        events of earlier windows, kept here; longer ones (count windows at rest) are cut."""
-        span = self.depth.window_us
-        if span is None:
-            return t0_us, events
-        d0 = round(t1_us - span)
-        self._recent.append(events)
-        while len(self._recent) > 1 and (len(self._recent[0]) == 0 or int(self._recent[0]["t"][-1]) < d0):
-            self._recent.pop(0)
-        held = np.concatenate(self._recent) if len(self._recent) > 1 else self._recent[0]
-        first = int(np.searchsorted(held["t"], d0))
-        self._recent = [held[first:]]
-        return d0, self._recent[0]
 
     def process(self, t0_us: int, t1_us: int, events: Events) -> WindowResult:
         return self.back(self.front(t0_us, t1_us, events))
