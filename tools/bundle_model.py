@@ -3,7 +3,7 @@
 Copies ``MODEL.onnx`` and its card to ``labrig/models/NAME.{onnx,json}``, and the torch weights of
 its checkpoint (``MODEL.ckpt.pt``, the ``state_dict`` alone) to ``NAME.weights.pt`` for
 ``labrig train --init`` (``--as``: the slot in
-``labrig.models.BUNDLED``, ``default`` or ``sae-only``), adding to
+``labrig.models.BUNDLED``, ``default`` or ``sae-only``, whose name the card takes), adding to
 the card a ``bundled`` section: the sweep it was chosen from (``sweep.json`` beside it: each
 width's val/test errors and latency), why it was chosen, the campaign's manifest digest and
 the commands that rebuild it from nothing (campaign, ground truth, training).
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{onnx}: needs its checkpoint {checkpoint.name} (the weights that labrig train --init fine-tunes)")
     target = FOLDER / f"{BUNDLED[args.slot]}.onnx"
     shutil.copyfile(onnx, target)
-    write_card({**card.to_json(), "bundled": bundled}, card_path(target))
+    write_card({**card.to_json(), "name": target.stem, "bundled": bundled}, card_path(target))
     import torch
 
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)["model"]

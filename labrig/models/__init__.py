@@ -18,7 +18,7 @@ from pathlib import Path
 from labrig.errors import LabrigError
 
 #: Bundled networks by the name ``--model`` accepts.
-BUNDLED = {"default": "depth-w4-release-10ms", "sae-only": "depth-w4-contact-10ms"}
+BUNDLED = {"default": "depth-w4-patch-10ms", "sae-only": "depth-w4-contact-10ms"}
 BUNDLED_NAME = BUNDLED["default"]
 FOLDER = Path(__file__).resolve().parent
 #: A network's torch weights (its ``state_dict``) beside its ``.onnx``: ``NAME`` + this.
