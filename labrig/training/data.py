@@ -133,6 +133,11 @@ class Source:
         self._t_max: npt.NDArray = np.zeros(0, np.int64)  # their running maximum time (host us)
         self._back_step_us = 0.0
 
+    @property
+    def preloaded(self) -> bool:
+        """Whether the sampled span's events are held in memory (:meth:`preload`)."""
+        return self._events is not None
+
     def preload(self, window_us: float) -> int:
         """Read the events of the sampled span (and one window past it) into memory, in the file's order; their
         size in bytes."""
@@ -321,7 +326,7 @@ class WindowSampler:
     def sample(self) -> Sample:
         k = int(self.rng.integers(len(self.sources)))
         src = self.sources[k]
-        if self._preload_left > 0 and src._events is None:
+        if self._preload_left > 0 and not src.preloaded:
             self._preload_left -= src.preload(self.window_us)
         t0, t1 = src.span_us
         start = float(self.rng.uniform(t0, max(t0, t1 - self.window_us)))
