@@ -166,3 +166,48 @@ def test_the_default_calibration_does_not_depend_on_the_working_folder(rig: RigC
     assert setup.sources["modulus"] == gel_toml
     assert setup.stiffening > 0
     assert "extrinsics.toml" in setup.sources["camera"]
+
+
+@pytest.mark.parametrize("mode", ["contact", "field"])
+def test_a_prepared_map_gives_the_operators_forces(operator: ifem.SurfaceOperator, mode: str) -> None:
+    """map_forces.prepare(...)(u) equals the operator's per-window solve: small and large pressed sets (the
+    Schur branch), none pressed, and missing markers filled in."""
+    from labrig.pipeline import map_forces
+    from labrig.pipeline.unobserved import fill_in_plane, in_plane_fill
+
+    rng = np.random.default_rng(7)
+    xy = operator.node_xy_mm
+    missing = np.zeros(operator.n_markers, bool)
+    missing[[5, 77]] = True
+    fill = in_plane_fill(operator, ~missing)
+    for radius_mm in (0.0, 3.0, 40.0):  # no contact, a dimple, the whole surface pressed
+        r = np.hypot(xy[:, 0] - 1.0, xy[:, 1] + 2.0)
+        uz = -1.2 * np.clip(1 - (r / radius_mm) ** 2, 0, None) if radius_mm else np.zeros(len(xy))
+        prepared = map_forces.prepare(operator, uz, mode, 0.01, fill)
+        for _ in range(3):
+            u = rng.normal(0, 0.2, (operator.n_markers, 3))
+            u[missing] = np.nan
+            expected = operator.forces_n(uz, fill_in_plane(fill, u), mode, 0.01)
+            got = prepared(u)
+            assert np.abs(got - expected).max() <= 1e-9 * max(1.0, np.abs(expected).max())
+        if mode == "contact" and radius_mm == 0.0:
+            assert np.all(prepared(u) == 0.0)
+
+
+def test_the_map_work_path_gives_the_reference_forces_window_by_window(recording: Path) -> None:
+    """1 ms windows, depth every 10 ms, three markers missing: the default path (each depth map's work done once,
+    compiled back-projection) and the reference path agree per marker within 1e-6 N, window by window."""
+    with Recording(recording) as rec:
+        setup = run_setup.setup_for_recording(rec, calibration_dir=None)
+        missing = np.zeros(len(setup.rest_px), bool)
+        missing[[20, 84, 150]] = True
+        setup = replace(setup, missing=missing)
+        runs = [list(runtime.Pipeline(setup, depth_sources.TruthDepth(rec), depth_every_us=10_000, reference=ref)
+                     .run(rec, window_us=1_000, concurrent=False, end_us=900_000)) for ref in (False, True)]
+    fast, reference = runs
+    assert len(fast) == len(reference) == 900
+    for a, b in zip(fast, reference, strict=True):
+        assert np.abs(a.forces_n - b.forces_n).max() <= 1e-6
+        assert np.abs(a.displacement_mm - b.displacement_mm).max() <= 1e-9
+        assert np.array_equal(a.contact_px, b.contact_px, equal_nan=True)
+    assert min(r.net_force_n[2] for r in fast) < -1.0 and max(np.abs(r.net_force_n[0]) for r in fast) > 0.1

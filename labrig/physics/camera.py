@@ -58,6 +58,39 @@ def _camera_points_to_pixels(points, fx, fy, cx, cy, k1, k2, p1, p2, k3, out):  
     return out
 
 
+@njit(cache=True, nogil=True)
+def _pixels_to_planes(xy_px, z_mm, fx, fy, cx, cy, k1, k2, p1, p2, k3, rotation, origin, tol, max_iter, out):  # type: ignore[no-untyped-def]
+    """Pixels (N, 2) -> points (N, 3) on the planes z = ``z_mm`` (N,) of the frame whose ``rotation`` (camera
+    axes to the frame's) and camera centre ``origin`` are given: :func:`undistort_normalized` per pixel, the
+    unit ray, rotated and met with its plane, as :meth:`CameraModel.backproject_to_plane` does, in one
+    compiled pass."""
+    for n in range(xy_px.shape[0]):
+        xd = (xy_px[n, 0] - cx) / fx
+        yd = (xy_px[n, 1] - cy) / fy
+        x, y = xd, yd
+        for _ in range(max_iter):
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+            nx = (xd - dx) / radial
+            ny = (yd - dy) / radial
+            change = max(abs(nx - x), abs(ny - y))
+            x, y = nx, ny
+            if change < tol:
+                break
+        norm = np.sqrt(x * x + y * y + 1.0)
+        rx, ry, rz = x / norm, y / norm, 1.0 / norm
+        g0 = rx * rotation[0, 0] + ry * rotation[0, 1] + rz * rotation[0, 2]
+        g1 = rx * rotation[1, 0] + ry * rotation[1, 1] + rz * rotation[1, 2]
+        g2 = rx * rotation[2, 0] + ry * rotation[2, 1] + rz * rotation[2, 2]
+        s = (z_mm[n] - origin[2]) / g2
+        out[n, 0] = origin[0] + s * g0
+        out[n, 1] = origin[1] + s * g1
+        out[n, 2] = origin[2] + s * g2
+    return out
+
+
 def undistort_normalized(
     xy_distorted: npt.ArrayLike, distortion: tuple[float, ...], *, tol: float = 1e-14, max_iter: int = 100
 ) -> Array:
@@ -174,6 +207,23 @@ class CameraModel:
         rays = inv.rotate(rays_cam)
         s = (z_mm - origin[2]) / rays[..., 2]
         return origin + s[..., None] * rays
+
+    def backproject_to_planes(self, xy_px: npt.ArrayLike, z_mm: npt.ArrayLike) -> Array:
+        """Points (N, 3) of the gel frame seen by the pixels (N, 2), each on its own plane z = ``z_mm`` (N,):
+        :meth:`backproject_to_plane` per pixel, compiled (the runtime back-projects every marker every window)."""
+        xy = np.ascontiguousarray(np.asarray(xy_px, dtype=np.float64).reshape(-1, 2))
+        z = np.ascontiguousarray(np.broadcast_to(np.asarray(z_mm, dtype=np.float64), (len(xy),)))
+        rotation, origin = self._camera_in_gel
+        out = np.empty((len(xy), 3))
+        _pixels_to_planes(xy, z, self.fx_px, self.fy_px, self.cx_px, self.cy_px, *self.distortion, rotation, origin,
+                          1e-14, 100, out)
+        return out
+
+    @cached_property
+    def _camera_in_gel(self) -> tuple[Array, Array]:
+        """The camera's axes in the gel frame (3, 3) and its centre (3,) mm, contiguous for the compiled kernels."""
+        inv = self.gel_to_camera.inverse()
+        return np.ascontiguousarray(inv.rotation), np.ascontiguousarray(inv.translation_mm)
 
     def jacobian_px_per_mm(self, points_mm: npt.ArrayLike, pose: Pose | None = None) -> Array:
         """d(pixel)/d(point) at points (N, 3) of the gel frame (or ``pose``'s frame): (N, 2, 3), px per mm.

@@ -26,6 +26,7 @@ from labrig.config import Roi
 from labrig.physics.camera import CameraModel
 from labrig.pipeline.displacement import grid_sampling_matrix
 from labrig.pipeline.ifem import SurfaceOperator
+from labrig.pipeline.map_forces import MapForces, prepare
 from labrig.pipeline.unobserved import condense_unobserved, fill_in_plane, in_plane_fill
 
 Array = npt.NDArray[np.float64]
@@ -79,6 +80,11 @@ class SurfaceForces:
         the rest of the surface is traction-free; "field": the whole map is prescribed."""
         u = fill_in_plane(self.fill, displacements_mm)
         return self.operator.forces_n(-self.node_depths_mm(depth_map_mm), u, mode, threshold_mm)
+
+    def prepare(self, depth_map_mm: npt.ArrayLike, mode: str = "contact", threshold_mm: float = 0.01) -> MapForces:
+        """The forces of one map for every window until it changes (:mod:`labrig.pipeline.map_forces`):
+        ``prepare(d, mode, t)(u)`` is ``self(d, u, mode, t)`` to rounding, at a fraction of its cost per window."""
+        return prepare(self.operator, -self.node_depths_mm(depth_map_mm), mode, threshold_mm, self.fill)
 
 
 def stiffening_factor(depth_map_mm: npt.ArrayLike, thickness_mm: float, stiffening: float) -> float:

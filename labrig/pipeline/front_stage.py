@@ -16,6 +16,7 @@ of them.
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -77,7 +78,7 @@ class FrontStage:
         self.keep_sae = keep_sae
         self.depth_every_us = depth_every_us
         self._index = 0
-        self._recent: list[Events] = []  # events of the depth source's span
+        self._recent: deque[Events] = deque()  # events of the depth source's span, a view per window
         self._depth_ran_us: int | None = None  # the end of the last window the depth source ran on
         self._skipped_counts: npt.NDArray[np.float32] | None = None  # the skipped windows' counts, not yet handed on
 
@@ -86,13 +87,13 @@ class FrontStage:
         seconds = {"read": read_s}
         grid = None
         start = time.perf_counter()
-        d0_us, d_events = self._depth_span(t0_us, t1_us, events)
+        d0_us, d_count = self._depth_span(t0_us, t1_us, events)
         due = (self.depth_every_us is None or self._depth_ran_us is None
                or t1_us - self._depth_ran_us >= self.depth_every_us)
         if due:
             self._depth_ran_us = t1_us
         if (self.needs_sae and due) or self.keep_sae:
-            grid = sae.sae_grid(d_events, d0_us, t1_us, self.setup.rig.roi)
+            grid = sae.sae_grid(self._span_events(), d0_us, t1_us, self.setup.rig.roi)
         counts = self._counts(events)
         if counts is not None and self._skipped_counts is not None:
             counts += self._skipped_counts
@@ -102,7 +103,7 @@ class FrontStage:
         positions, updated = self.markers.update(events, t0_us, t1_us)
         seconds["track"] = time.perf_counter() - start
         tracked = TrackedWindow(self._index, t0_us, t1_us, len(events), positions.copy(), updated.copy(),
-                                d0_us, len(d_events), grid, seconds, self.markers.rest_px, counts, due)
+                                d0_us, d_count, grid, seconds, self.markers.rest_px, counts, due)
         self._index += 1
         return tracked
 
@@ -120,19 +121,28 @@ class FrontStage:
             return None
         return brightness.signed_counts(events, self.setup.rig.roi, thresholds=self.setup.thresholds)
 
-    def _depth_span(self, t0_us: int, t1_us: int, events: Events) -> tuple[int, Events]:
-        """(start, events) of the depth source's span ending at ``t1_us``.
+    def _depth_span(self, t0_us: int, t1_us: int, events: Events) -> tuple[int, int]:
+        """(start, number of events) of the depth source's span ending at ``t1_us``, its events kept.
 
-        Windows shorter than the span (count windows in a fast press) reach back into the events of
-        earlier windows, kept here; longer ones (count windows at rest) are cut."""
+        Windows shorter than the span (count windows in a fast press, 1 ms windows) reach back into the
+        events of earlier windows, kept here as views and joined only when the span is read
+        (:meth:`_span_events`); longer ones (count windows at rest) are cut."""
         span = self.depth_window_us
         if span is None:
-            return t0_us, events
+            self._recent = deque([events])
+            return t0_us, len(events)
         d0 = round(t1_us - span)
-        self._recent.append(events)
-        while len(self._recent) > 1 and (len(self._recent[0]) == 0 or int(self._recent[0]["t"][-1]) < d0):
-            self._recent.pop(0)
-        held = np.concatenate(self._recent) if len(self._recent) > 1 else self._recent[0]
-        first = int(np.searchsorted(held["t"], d0))
-        self._recent = [held[first:]]
-        return d0, self._recent[0]
+        recent = self._recent
+        recent.append(events)
+        while len(recent) > 1 and (len(recent[0]) == 0 or int(recent[0]["t"][-1]) < d0):
+            recent.popleft()
+        first = int(np.searchsorted(recent[0]["t"], d0))
+        if first:
+            recent[0] = recent[0][first:]
+        return d0, sum(len(e) for e in recent)
+
+    def _span_events(self) -> Events:
+        """The events of the last :meth:`_depth_span`, joined."""
+        if len(self._recent) > 1:
+            self._recent = deque([np.concatenate(self._recent)])
+        return self._recent[0]

@@ -37,8 +37,10 @@ from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import displacement, forces, ifem, tracking
 from labrig.pipeline.anchor import AnchorFilter, anchor_px
 from labrig.pipeline.depth_sources import DepthSource
+from labrig.pipeline.forces import ContactLocation
 from labrig.pipeline.front_stage import FrontStage, TrackedWindow
 from labrig.pipeline.front_thread import FrontThread, Handoff
+from labrig.pipeline.map_forces import MapForces
 from labrig.pipeline.marker_stage import MarkerStage
 from labrig.pipeline.rest import RestParams
 from labrig.pipeline.run_setup import PipelineSetup
@@ -50,6 +52,20 @@ Array = npt.NDArray[np.float64]
 STAGES = ("read", "sae", "track", "depth", "displacement", "forces")
 #: Tracked windows that may wait for the back stage when the stages run in two threads.
 QUEUED_WINDOWS = 2
+
+
+@dataclass(frozen=True)
+class MapWork:
+    """What one depth map gives every window until the depth source runs again: its forces
+    (:mod:`labrig.pipeline.map_forces`), the large-strain factor, the contact's core and the deepest point
+    (mm), and the markers' normal displacements (M,) mm read at ``rest_px`` (the rest they were read at)."""
+
+    forces: MapForces
+    stiffening: float
+    contact: ContactLocation | None
+    peak_mm: float
+    rest_px: Array
+    marker_depths_mm: Array
 
 
 @dataclass
@@ -79,10 +95,12 @@ class Pipeline:
                  tracker_params: tracking.TrackerParams | None = None,
                  surface_params: ifem.SurfaceParams | None = None, normal_mode: str = "contact",
                  threshold_mm: float = 0.01, keep_sae: bool = False, cache_dir: str | Path | None = None,
-                 rest_params: RestParams | None = None, depth_every_us: int | None = None) -> None:
+                 rest_params: RestParams | None = None, depth_every_us: int | None = None,
+                 reference: bool = False) -> None:
         """``depth_every_us``: run the depth source only on the first window ending at least this long after
         the last one it ran on, and keep its map in between (tracking and forces every window, e.g. 1 ms
-        windows with depth every 10 ms); None: every window."""
+        windows with depth every 10 ms); None: every window. ``reference``: redo every window's work that
+        depends on the depth map alone (the path the default one, :class:`MapWork`, is tested against)."""
         self.setup = setup
         self.depth = depth
         rig = setup.rig
@@ -99,8 +117,10 @@ class Pipeline:
         self.threshold_mm = threshold_mm
         self.keep_sae = keep_sae
         self.anchor = AnchorFilter(depth.anchor) if depth.anchor is not None else None
+        self.reference = reference
         self._last_t1_us: int | None = None
         self._depth_map: npt.NDArray[np.float32] | None = None  # its map (back stage)
+        self._map_work: MapWork | None = None
 
     # The two stages.
 
@@ -133,30 +153,58 @@ class Pipeline:
         self.depth.observe(tracked.positions_px, rest_px, tracked.counts, tracked.t1_us)
         if tracked.depth_due or self._depth_map is None:
             depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
-            self._depth_map = depth
+            self._depth_map, self._map_work = depth, None
         else:
             depth = self._depth_map
         seconds["depth"] = time.perf_counter() - start
         start = time.perf_counter()
-        u = displacement.displacements_mm(tracked.positions_px, depth, self.setup.camera, self._rest_points(rest_px),
-                                          self.setup.rig.roi, sample_px=rest_px)
+        work = None if self.reference else self._work_for(depth, rest_px)
+        prepare_s = time.perf_counter() - start  # the map's forces: counted with them
+        start = time.perf_counter()
+        rest_mm = self._rest_points(rest_px)
+        if work is None:
+            u = displacement.displacements_mm(tracked.positions_px, depth, self.setup.camera, rest_mm,
+                                              self.setup.rig.roi, sample_px=rest_px)
+        else:
+            u = self.setup.camera.backproject_to_planes(tracked.positions_px, -work.marker_depths_mm) - rest_mm
         seconds["displacement"] = time.perf_counter() - start
         start = time.perf_counter()
-        f = self.surface(depth, u, self.normal_mode, self.threshold_mm)
-        f *= forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening)
-        contact_px, contact_mm = self._contact(depth, tracked.t0_us, tracked.t1_us)
-        seconds["forces"] = time.perf_counter() - start
+        if work is None:
+            f = self.surface(depth, u, self.normal_mode, self.threshold_mm)
+            f *= forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening)
+            where = forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm)
+        else:
+            f = work.forces(u)
+            f *= work.stiffening
+            where = work.contact
+        contact_px, contact_mm = self._contact(where, float(np.max(depth)) if work is None else work.peak_mm,
+                                               tracked.t0_us, tracked.t1_us)
+        seconds["forces"] = time.perf_counter() - start + prepare_s
         return WindowResult(tracked.index, tracked.t0_us, tracked.t1_us, tracked.n_events, tracked.positions_px,
                             tracked.updated, u, f, forces.net_force_n(f), contact_px, contact_mm, depth,
                             tracked.sae if self.keep_sae else None, seconds)
 
-    def _contact(self, depth: npt.NDArray[np.float32], t0_us: int, t1_us: int) -> tuple[Array, Array]:
+    def _work_for(self, depth: npt.NDArray[np.float32], rest_px: Array) -> MapWork:
+        """The work of ``depth`` that every window until the next map reuses (redone when the rest changes)."""
+        work = self._map_work
+        if work is None:
+            work = MapWork(self.surface.prepare(depth, self.normal_mode, self.threshold_mm),
+                           forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening),
+                           forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm),
+                           float(np.max(depth)), rest_px, displacement.marker_depths_mm(depth, rest_px, self.setup.rig.roi))
+        elif work.rest_px is not rest_px:
+            work = replace(work, rest_px=rest_px,
+                           marker_depths_mm=displacement.marker_depths_mm(depth, rest_px, self.setup.rig.roi))
+        self._map_work = work
+        return work
+
+    def _contact(self, where: ContactLocation | None, peak_mm: float, t0_us: int,
+                 t1_us: int) -> tuple[Array, Array]:
         """The contact's location (px, mm; nan without a dent): the dent's core, through the anchor filter."""
-        where = forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm)
         dt_s = (t1_us - (t0_us if self._last_t1_us is None else self._last_t1_us)) / 1e6
         self._last_t1_us = t1_us
         if self.anchor is not None:
-            anchor_mm = self.anchor.update(where.position_mm if where else None, float(np.max(depth)), dt_s)
+            anchor_mm = self.anchor.update(where.position_mm if where else None, peak_mm, dt_s)
             if anchor_mm is not None:
                 return anchor_px(anchor_mm, self.setup.camera), anchor_mm
         elif where is not None:

@@ -349,17 +349,41 @@ def subtract_background(sums: npt.NDArray[np.float64], outside: npt.NDArray[np.f
     deviations is dropped (that marker is not updated): at 5-10 Hz per pixel the excess of a
     slow marker is itself noise, and a centroid of noise minus its mean random-walks.
     """
-    side = (patches[:, 1] - patches[:, 0]) * (patches[:, 3] - patches[:, 2])
-    ring_px2 = side - np.pi * gate2_px2
-    usable = ring_px2 > 0.25 * np.maximum(side, 1)
-    if not usable.any():
+    _subtract_background(sums, outside, patches, float(gate2_px2), np.ascontiguousarray(centre_px, np.float64),
+                         NOISE_SIGMAS)
+
+
+@njit(cache=True, nogil=True)
+def _subtract_background(sums, outside, patches, gate2_px2, centre_px, sigmas):  # type: ignore[no-untyped-def]
+    """:func:`subtract_background`, compiled (every window, every marker)."""
+    m = patches.shape[0]
+    ring = np.empty(m)
+    usable = np.zeros(m, np.bool_)
+    n_usable = 0
+    for i in range(m):
+        side = (patches[i, 1] - patches[i, 0]) * (patches[i, 3] - patches[i, 2])
+        ring[i] = side - np.pi * gate2_px2
+        usable[i] = ring[i] > 0.25 * max(side, 1)
+        n_usable += usable[i]
+    if n_usable == 0:
         return
-    rho = np.median(outside[usable] / ring_px2[usable, None], axis=0)  # (2,): OFF, ON
-    expected = rho * np.pi * gate2_px2
-    sums[:, :, 0] -= expected
-    sums[:, :, 1] -= expected * centre_px[:, 0:1]
-    sums[:, :, 2] -= expected * centre_px[:, 1:2]
-    sums[sums[:, :, 0] < NOISE_SIGMAS * np.sqrt(expected)] = 0.0
+    density = np.empty(n_usable)
+    for pol in range(2):
+        k = 0
+        for i in range(m):
+            if usable[i]:
+                density[k] = outside[i, pol] / ring[i]
+                k += 1
+        expected = np.median(density) * np.pi * gate2_px2
+        floor = sigmas * np.sqrt(expected)
+        for i in range(m):
+            sums[i, pol, 0] -= expected
+            sums[i, pol, 1] -= expected * centre_px[i, 0]
+            sums[i, pol, 2] -= expected * centre_px[i, 1]
+            if sums[i, pol, 0] < floor:
+                sums[i, pol, 0] = 0.0
+                sums[i, pol, 1] = 0.0
+                sums[i, pol, 2] = 0.0
 
 
 def drop_unobserved(neighbours: npt.NDArray[np.int64], observed: BoolArray) -> npt.NDArray[np.int64]:
