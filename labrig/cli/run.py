@@ -24,7 +24,7 @@ from labrig.cli.console import (
     print_json,
     progress_bar,
 )
-from labrig.cli.run_report import check_out, check_view, print_run
+from labrig.cli.run_report import check_out, check_view, depth_every_option, print_run
 from labrig.errors import LabrigError
 
 
@@ -45,6 +45,9 @@ def run(
         help="--live: skip depth and forces of windows older than this, ms (default 100; tracking goes on).")] = None,
     window_ms: WindowMsOption = None,
     window_events: WindowEventsOption = None,
+    depth_every_ms: Annotated[float | None, typer.Option(help=(
+        "Run the depth source only every this many ms and keep its map in between; tracking and forces still "
+        "run every window (--window-ms 1 --depth-every-ms 10: dense forces at 1 kHz)."))] = None,
     depth: Annotated[str | None, typer.Option(
         help="Depth source: truth (a virtual-rig recording's /truth/depth) or model (the network). Default: model "
              "with --model, live or a recording without /truth/depth; else truth.")] = None,
@@ -86,7 +89,7 @@ def run(
 
         run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every or 3, calibration, rig_path,
                              youngs_modulus_mpa, seconds, indenter, protocol, at, depth_mm, save_recording, max_lag_ms,
-                             as_json))
+                             as_json, depth_every_ms))
         return
     if recording is None:
         raise LabrigError("give a recording (labrig run REC) or --live (the rig's camera)")
@@ -98,6 +101,7 @@ def run(
         raise LabrigError("--model names a depth network and --depth truth reads the recording's true depth: "
                           "drop one of them")
     windows = WindowSpec.from_options(window_ms, window_events)
+    depth_every_us = depth_every_option(depth_every_ms)
     check_view(view)
     if not recording.exists():
         raise LabrigError(f"{recording}: no such recording")
@@ -112,8 +116,9 @@ def run(
             has_truth = "truth/depth" in rec.streams and rec.rows("truth/depth") > 0
             depth = "truth" if model is None and has_truth else "model"
         source = depth_sources.depth_source(depth, setup, rec, model)
-        pipe = runtime.Pipeline(setup, source, keep_sae=view is not None)
+        pipe = runtime.Pipeline(setup, source, keep_sae=view is not None, depth_every_us=depth_every_us)
         attrs = {"recording": str(recording), "depth_source": source.name, "window_us": window_us or 0,
+                 "depth_every_us": depth_every_us or 0,
                  "window_events": window_events or 0, "youngs_modulus_mpa": setup.youngs_modulus_mpa,
                  "poisson_ratio": setup.poisson_ratio, "sources": json.dumps(setup.sources)}
         writer = results.ResultWriter(out, len(setup.rest_px), attrs) if out is not None else None

@@ -24,7 +24,7 @@ import typer
 from labrig.calibration.ft_frame import ft_axes_in_gel
 from labrig.cli.console import err_console, on_ctrl_c, print_json, stop_probing_run
 from labrig.cli.live_view import LiveView, showing
-from labrig.cli.run_report import check_view, print_live_run
+from labrig.cli.run_report import check_view, depth_every_option, print_live_run
 from labrig.config import DEFAULT_RIG, RigConfig, load_rig
 from labrig.errors import LabrigError
 from labrig.indenters import DEFAULT_INDENTERS, load_indenters
@@ -69,6 +69,7 @@ class LiveOptions:
     save_recording: Path | None
     max_lag_ms: float | None
     as_json: bool
+    depth_every_ms: float | None = None
 
     @property
     def probe_options_given(self) -> bool:
@@ -92,11 +93,12 @@ def run_live(o: LiveOptions) -> None:
     depth = depth_sources.depth_source("model", setup, model_path=o.model or _default_model())
     assert isinstance(depth, depth_sources.ModelDepth)
     window_us, window_events = _windows(o, depth.model.window_ms)
-    pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None)
+    pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None, depth_every_us=depth_every_option(o.depth_every_ms))
     source = "virtual rig (embedded)" if devices.virtual else f"camera {live_rig.describe_camera(devices)}"
     sink = _Sink(o, len(setup.rest_px), {
         "source": f"live: {source}", "live": 1, "time_base": "camera device time, us", "depth_source": depth.name,
         "window_us": window_us or 0, "window_events": window_events or 0,
+        "depth_every_us": depth_every_option(o.depth_every_ms) or 0,
         "youngs_modulus_mpa": setup.youngs_modulus_mpa, "poisson_ratio": setup.poisson_ratio,
         "sources": json.dumps(setup.sources)})
     try:
@@ -135,6 +137,7 @@ def _check(o: LiveOptions) -> None:
     if o.seconds is not None and o.seconds <= 0:
         raise LabrigError(f"--seconds must be positive, not {o.seconds:g}")
     WindowSpec.from_options(o.window_ms, o.window_events)  # refused before the network loads
+    depth_every_option(o.depth_every_ms)
     check_view(o.view)
     if o.save_recording is not None and o.save_recording.exists():
         raise LabrigError(f"--save-recording {o.save_recording} exists; give a new path")
@@ -149,11 +152,9 @@ def _default_model() -> Path:
 
 
 def _windows(o: LiveOptions, trained_ms: float) -> tuple[int | None, int | None]:
-    """(window_us, window_events): the network's trained window unless told otherwise."""
+    """(window_us, window_events): the network's trained window unless told otherwise (its SAE spans the trained
+    window whatever the pipeline's: :class:`~labrig.pipeline.front_stage.FrontStage`)."""
     windows = WindowSpec.from_options(o.window_ms, o.window_events, default_ms=trained_ms)
-    if windows.window_us is not None and o.window_ms is not None and abs(o.window_ms - trained_ms) > 1e-9:
-        err_console.print(f"[yellow]warning:[/] the network was trained on {trained_ms:g} ms windows; "
-                          f"--window-ms {o.window_ms:g} gives it SAEs of another span")
     return windows.window_us, windows.window_events
 
 

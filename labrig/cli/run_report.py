@@ -12,6 +12,15 @@ from labrig.cli.console import console
 from labrig.errors import LabrigError
 
 
+def depth_every_option(depth_every_ms: float | None) -> int | None:
+    """``--depth-every-ms`` in us (None: the depth source on every window), or one line saying what is wrong."""
+    if depth_every_ms is None:
+        return None
+    if not depth_every_ms > 0:
+        raise LabrigError(f"--depth-every-ms must be positive, not {depth_every_ms:g}")
+    return round(depth_every_ms * 1000)
+
+
 def check_view(view: Path | None) -> None:
     """Refuse a --view that is not a GIF before anything runs."""
     if view is not None and view.suffix.lower() != ".gif":
@@ -64,6 +73,9 @@ def print_live_run(s: dict[str, Any]) -> None:
     console.print(f"[{style}]processing {s['processing_per_window_ms']:.2f} ms per window (real-time factor "
                   f"{s['real_time_factor']:.2f}); latency median {s['latency_median_ms']:.1f} ms, p95 "
                   f"{s['latency_p95_ms']:.1f} ms; dropped chunks {s['dropped_chunks']}[/]")
+    if s.get("event_to_force_p99_ms") is not None:
+        console.print(f"event to force (a window's newest event to its forces): median "
+                      f"{s['event_to_force_median_ms']:.1f} ms, p99 {s['event_to_force_p99_ms']:.1f} ms")
     f = s["peak_net_force_on_gel_n"]
     console.print(f"peak normal force {s['peak_normal_force_on_gel_n']:.2f} N (net force on the gel, gel frame: "
                   f"{f[0]:+.2f}, {f[1]:+.2f}, {f[2]:+.2f} N); E = {s['youngs_modulus_mpa']:.3g} MPa "

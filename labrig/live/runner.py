@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from labrig.clock import HostClock, MonotonicClock
 from labrig.live.sources import ChunkSource
@@ -58,15 +59,36 @@ class LiveStats:
     skipped: int = 0  # tracked only: older than max_lag_ms when the back stage reached them (or the queue was full)
     late: int = 0  # processed, but ready more than one window span after the window closed
     latency_ms: array[float] = field(default_factory=lambda: array("d"))  # per processed window
+    #: Per processed window: its end (device us) and when its result was ready (host us), for the event-to-force
+    #: latency; the camera's clock offset (host us - device us) is the lower envelope of the chunks' arrivals.
+    window_end_us: array[int] = field(default_factory=lambda: array("q"))
+    ready_host_us: array[float] = field(default_factory=lambda: array("d"))
+    camera_offset_us: float | None = None
     first_t_us: int | None = None  # device time of the first window's start
     last_t_us: int | None = None  # device time of the last window's end
     time_jumps: int = 0
     wall_s: float = 0.0
     end_reason: str = ""
 
+    def arrived(self, t_device_us: int, t_host_ns: int) -> None:
+        """A chunk whose newest event (device us) arrived at ``t_host_ns``: the envelope of the camera's clock."""
+        offset = t_host_ns / 1000 - t_device_us
+        if self.camera_offset_us is None or offset < self.camera_offset_us:
+            self.camera_offset_us = offset
+
+    def event_to_force_ms(self) -> npt.NDArray[np.float64]:
+        """Per processed window, ms: from its newest event's camera time (on the host clock, through the lower
+        envelope of the chunks' arrivals: the least-delayed chunk arrived the moment it was stamped) to its result
+        (its oldest event waited one window longer)."""
+        if self.camera_offset_us is None:
+            return np.zeros(0)
+        end_host_us = np.asarray(self.window_end_us, np.float64) + self.camera_offset_us
+        return (np.asarray(self.ready_host_us, np.float64) - end_host_us) / 1000
+
     def summary(self) -> dict[str, Any]:
         """Stable keys, units in names."""
         lat = np.asarray(self.latency_ms, np.float64)
+        e2f = self.event_to_force_ms()
         span = 0.0 if self.first_t_us is None or self.last_t_us is None else (self.last_t_us - self.first_t_us) / 1e6
         return {
             "chunks": self.chunks, "events": self.events, "windows_tracked": self.windows,
@@ -74,6 +96,8 @@ class LiveStats:
             "latency_median_ms": float(np.median(lat)) if lat.size else None,
             "latency_p95_ms": float(np.percentile(lat, 95)) if lat.size else None,
             "latency_max_ms": float(lat.max()) if lat.size else None,
+            "event_to_force_median_ms": float(np.median(e2f)) if e2f.size else None,
+            "event_to_force_p99_ms": float(np.percentile(e2f, 99)) if e2f.size else None,
             "stream_s": span, "stream_wall_s": self.wall_s, "time_jumps": self.time_jumps, "end_reason": self.end_reason,
         }
 
@@ -151,9 +175,12 @@ class LiveRunner:
         return newest
 
     def _account(self, pending: PendingWindow, result: WindowResult) -> None:
-        latency_ms = (self.clock.now_ns() - pending.t_host_ns) / 1e6
+        now_ns = self.clock.now_ns()
+        latency_ms = (now_ns - pending.t_host_ns) / 1e6
         self.stats.processed += 1
         self.stats.latency_ms.append(latency_ms)
+        self.stats.window_end_us.append(result.t1_us)
+        self.stats.ready_host_us.append(now_ns / 1000)
         if latency_ms * 1000 > result.t1_us - result.t0_us:
             self.stats.late += 1
 
@@ -176,6 +203,8 @@ class LiveRunner:
                     continue
                 self.stats.chunks += 1
                 self.stats.events += int(chunk.events.size)
+                if chunk.events.size:
+                    self.stats.arrived(int(chunk.events["t"][-1]), chunk.t_host_ns)
                 start = time.perf_counter()
                 windows = self.windower.push(chunk.events, chunk.t_host_ns)
                 read_s = time.perf_counter() - start
