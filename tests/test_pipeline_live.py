@@ -228,6 +228,23 @@ def test_a_stale_backlog_is_skipped_up_to_the_newest_window(setup: run_setup.Pip
     assert done in ([5, 6], [6]) and runner.stats.skipped == 7 - len(done)
 
 
+def test_skipping_the_window_depth_was_due_on_leaves_the_gel_flat_until_the_next(
+        setup: run_setup.PipelineSetup) -> None:
+    """1 ms windows with depth every 10 ms: a live run that skips its first windows (the one whose depth was due
+    among them) processes the next ones on a flat gel, without an SAE, until depth is due again."""
+    depth = _FlatDepth()
+    now, minute = time.monotonic_ns(), 60 * 10**9
+    events = _marker_events(setup, 0, 3)  # 30 ms
+    chunks = [EventChunk(events[k * 20:(k + 1) * 20], np.zeros(0, TRIGGER_DTYPE), now - minute if k < 3 else now + minute)
+              for k in range(30)]
+    runner = LiveRunner(runtime.Pipeline(setup, depth, depth_every_us=10_000), _ListSource(chunks, {3: 0.3}),
+                        window_us=1_000, max_lag_ms=100)
+    results = list(runner.run())
+    assert runner.stats.skipped >= 2 and results and results[0].t0_us < 10_000
+    assert all(not r.depth_mm.any() and np.isfinite(r.forces_n).all() for r in results)
+    assert len(depth.seen) == 2  # depth ran where due again: at 10 and 20 ms
+
+
 class _CountingDepth(_FlatDepth):
     """A depth source that integrates the signed counts (like the brightness network) and keeps what it observed."""
 

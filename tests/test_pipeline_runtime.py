@@ -102,10 +102,22 @@ def test_labrig_run_writes_results_and_an_animation(recording: Path, tmp_path: P
     assert Image.open(gif).n_frames >= 5
 
 
+def test_labrig_run_at_1_khz_runs_depth_every_10_ms(recording: Path, tmp_path: Path) -> None:
+    """--window-ms 1 --depth-every-ms 10: a result per millisecond, the depth map changing at most every 10 ms."""
+    out = tmp_path / "khz.h5"
+    result = _invoke(str(recording), "--window-ms", "1", "--depth-every-ms", "10", "--out", str(out),
+                     "--calibration", str(tmp_path), "--json")
+    assert result.exit_code == 0, result.output
+    data = results.load_result(out)
+    assert data["attrs"]["window_us"] == 1_000 and data["attrs"]["depth_every_us"] == 10_000
+    assert np.all(np.diff(data["t0_us"]) == 1_000) and json.loads(result.output)["peak_normal_force_on_gel_n"] > 1.0
+
+
 def test_labrig_run_rejects_bad_options(recording: Path, tmp_path: Path) -> None:
     for args, message in (((str(recording), "--window-ms", "10", "--window-events", "100"), "not both"),
                           ((str(recording), "--view", str(tmp_path / "a.mp4")), "GIF"),
-                          ((str(tmp_path / "none.h5"),), "no such recording")):
+                          ((str(tmp_path / "none.h5"),), "no such recording"),
+                          ((str(recording), "--depth-every-ms", "0"), "--depth-every-ms must be positive")):
         result = _invoke(*args)
         assert result.exit_code != 0 and message in (result.output + str(result.exception))
 

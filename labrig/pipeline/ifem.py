@@ -399,6 +399,13 @@ class SurfaceOperator:
             object.__setattr__(self, f"_inv_{name}", c)
         return c
 
+    def precompute(self) -> SurfaceOperator:
+        """Invert the stiffnesses the mixed solves read (C = K^-1, some hundred ms once), so that the first
+        window does not pay for it; returns ``self``."""
+        self._inverse("k_zz")
+        self._inverse("k_tt")
+        return self
+
     def node_forces_n(self, uz_nodes_mm: npt.ArrayLike, u_markers_mm: npt.ArrayLike, mode: str = "contact",
                       threshold_mm: float = 0.01) -> Array:
         """(N, 3) nodal forces on the gel; ``uz_nodes_mm`` (N,) up positive (pressed in: negative),

@@ -60,6 +60,7 @@ class MapWork:
     (:mod:`labrig.pipeline.map_forces`), the large-strain factor, the contact's core and the deepest point
     (mm), and the markers' normal displacements (M,) mm read at ``rest_px`` (the rest they were read at)."""
 
+    depth: npt.NDArray[np.float32]
     forces: MapForces
     stiffening: float
     contact: ContactLocation | None
@@ -111,7 +112,7 @@ class Pipeline:
         base = surface_params or ifem.SurfaceParams()
         self.surface_params = replace(base, youngs_modulus_mpa=setup.youngs_modulus_mpa,
                                       poisson_ratio=setup.poisson_ratio)
-        self.operator = ifem.build_surface_operator(rig, self.surface_params, cache_dir=cache_dir)
+        self.operator = ifem.build_surface_operator(rig, self.surface_params, cache_dir=cache_dir).precompute()
         self.surface = forces.SurfaceForces(self.operator, setup.camera, rig.roi, GRID_SHAPE, observed=setup.observed)
         self.normal_mode = normal_mode
         self.threshold_mm = threshold_mm
@@ -121,6 +122,7 @@ class Pipeline:
         self._last_t1_us: int | None = None
         self._depth_map: npt.NDArray[np.float32] | None = None  # its map (back stage)
         self._map_work: MapWork | None = None
+        self._flat_map = np.zeros(GRID_SHAPE, np.float32)
 
     # The two stages.
 
@@ -151,7 +153,11 @@ class Pipeline:
         start = time.perf_counter()
         rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
         self.depth.observe(tracked.positions_px, rest_px, tracked.counts, tracked.t1_us)
-        if tracked.depth_due or self._depth_map is None:
+        if tracked.sae is None and self.depth.needs_sae and self._depth_map is None:
+            # no map yet and no SAE to make one (a live run that skipped the window its depth was due on): the gel
+            # is taken as flat until the next window with an SAE
+            depth = self._flat_map
+        elif tracked.depth_due or self._depth_map is None:
             depth = self.depth.depth_mm(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
             self._depth_map, self._map_work = depth, None
         else:
@@ -187,8 +193,8 @@ class Pipeline:
     def _work_for(self, depth: npt.NDArray[np.float32], rest_px: Array) -> MapWork:
         """The work of ``depth`` that every window until the next map reuses (redone when the rest changes)."""
         work = self._map_work
-        if work is None:
-            work = MapWork(self.surface.prepare(depth, self.normal_mode, self.threshold_mm),
+        if work is None or work.depth is not depth:
+            work = MapWork(depth, self.surface.prepare(depth, self.normal_mode, self.threshold_mm),
                            forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening),
                            forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm),
                            float(np.max(depth)), rest_px, displacement.marker_depths_mm(depth, rest_px, self.setup.rig.roi))

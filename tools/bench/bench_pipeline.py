@@ -76,13 +76,14 @@ def _networks(folder: Path, widths: list[int]) -> list[tuple[str, Path]]:
 
 def _measure(setup: run_setup.PipelineSetup, rec: Recording, depth: str | Path, concurrent: bool,
              repeat: int, window_events: int | None = None, window_us: int = WINDOW_US,
-             depth_every_us: int | None = None) -> dict[str, Any]:
-    """``depth``: "truth" or a network's path; a fresh source each pass (a network may carry state)."""
+             depth_every_us: int | None = None, reference: bool = False) -> dict[str, Any]:
+    """``depth``: "truth" or a network's path; a fresh source each pass (a network may carry state);
+    ``reference``: the per-window reference path (``Pipeline(reference=True)``)."""
     best: dict[str, Any] | None = None
     for _ in range(repeat):
         source = depth_sources.depth_source("truth" if depth == "truth" else "model", setup, rec,
                                             None if depth == "truth" else depth, threads=1)
-        pipe = runtime.Pipeline(setup, source, depth_every_us=depth_every_us)
+        pipe = runtime.Pipeline(setup, source, depth_every_us=depth_every_us, reference=reference)
         start = time.perf_counter()
         results = list(pipe.run(rec, window_us=None if window_events else window_us, window_events=window_events,
                                 concurrent=concurrent))
@@ -98,6 +99,7 @@ def _measure(setup: run_setup.PipelineSetup, rec: Recording, depth: str | Path, 
             "rtf_mean": float(np.mean(busy) / (np.median(span_us) / 1e6)),
             "rtf_median": float(np.median(busy / span_us * 1e6)),
             "rtf_p95": float(np.percentile(busy / span_us * 1e6, 95)),
+            "rtf_p99": float(np.percentile(busy / span_us * 1e6, 99)),
             "stream_wall_over_duration": wall / duration_s,
             "stage_ms_median": {k: float(np.median([r.seconds[k] for r in results]) * 1e3) for k in runtime.STAGES},
             "window_ms_median": float(np.median(span_us) / 1e3),
@@ -142,13 +144,34 @@ def run(widths: str = "16,32", repeat: int = 2, progress: bool = True) -> dict[s
                 print("timing 20,000-event windows ...", flush=True)
             figures["configs"]["truth / threads / 20k events"] = _measure(setup, rec, sources[0][1], True, repeat,
                                                                           window_events=20_000)
-            if progress:
-                print("timing 1 ms windows, depth every 10 ms ...", flush=True)
             name, network = sources[1]
-            figures["configs"][f"{name} / serial / 1 ms, depth 10 ms"] = _measure(
-                setup, rec, network, False, repeat, window_us=1_000, depth_every_us=10_000)
+            for reference in (True, False):
+                key = f"{name} / serial / 1 ms, depth 10 ms{' / reference path' if reference else ''}"
+                if progress:
+                    print(f"timing {key} ...", flush=True)
+                figures["configs"][key] = _measure(setup, rec, network, False, repeat, window_us=1_000,
+                                                   depth_every_us=10_000, reference=reference)
+            key = f"{name} / serial / reference path"
+            if progress:
+                print(f"timing {key} ...", flush=True)
+            figures["configs"][key] = _measure(setup, rec, network, False, repeat, reference=True)
     figures["peak_rss_mb"] = _peak_rss_mb()
+    figures.update(headline(figures["configs"], name))
     return figures
+
+
+def headline(configs: dict[str, Any], network: str) -> dict[str, float]:
+    """The issue's figures (stable keys): the 1 kHz stretch's mean and p99 processing per 1 ms window, the whole
+    pipeline's median per 10 ms window (the default network, serial, one core), and the same on the reference
+    path (``_reference``: every window's depth-map work redone), measured in the same run."""
+    fast, ref = f"{network} / serial / 1 ms, depth 10 ms", f"{network} / serial / 1 ms, depth 10 ms / reference path"
+    out = {}
+    pairs = (("", fast, f"{network} / serial"), ("_reference", ref, f"{network} / serial / reference path"))
+    for suffix, one_ms, ten_ms in pairs:
+        out[f"rtf_1ms_mean{suffix}"] = configs[one_ms]["rtf_mean"]
+        out[f"rtf_1ms_p99{suffix}"] = configs[one_ms]["rtf_p99"]
+        out[f"rtf_10ms_median{suffix}"] = configs[ten_ms]["rtf_median"]
+    return out
 
 
 def render(f: dict[str, Any]) -> None:
@@ -165,7 +188,10 @@ def render(f: dict[str, Any]) -> None:
             for key, c in f["configs"].items() if "1 ms" in key),
           f"{f['events']:,} events; surface operator: {f['operator_nodes']} nodes, built in "
           f"{f['operator_build_s']:.1f} s once, loaded in {f['operator_load_s'] * 1e3:.0f} ms; peak RSS "
-          f"{f['peak_rss_mb']:.0f} MB ({f['rss_before_mb']:.0f} MB before the networks). Target RTF <= 1 (aim 0.5)."])
+          f"{f['peak_rss_mb']:.0f} MB ({f['rss_before_mb']:.0f} MB before the networks). Target RTF <= 1 (aim 0.5).",
+          "Headline (default path / reference path, same run): " + ", ".join(
+              f"{k} {f[k]:.3f} / {f[k + '_reference']:.3f}" for k in ("rtf_1ms_mean", "rtf_1ms_p99", "rtf_10ms_median"))
+          + " (targets 1.0, 2.0, 0.20; aims 0.5, 1.0, 0.10)"])
 
 
 def main(argv: list[str] | None = None) -> None:
