@@ -93,12 +93,14 @@ def run_live(o: LiveOptions) -> None:
     depth = depth_sources.depth_source("model", setup, model_path=o.model or _default_model())
     assert isinstance(depth, depth_sources.ModelDepth)
     window_us, window_events = _windows(o, depth.model.window_ms)
-    pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None, depth_every_us=depth_every_option(o.depth_every_ms))
+    depth_every_us = depth_every_option(o.depth_every_ms)
+    pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None, depth_every_us=depth_every_us,
+                            depth_lane=depth_every_us is not None)
     source = "virtual rig (embedded)" if devices.virtual else f"camera {live_rig.describe_camera(devices)}"
     sink = _Sink(o, len(setup.rest_px), {
         "source": f"live: {source}", "live": 1, "time_base": "camera device time, us", "depth_source": depth.name,
         "window_us": window_us or 0, "window_events": window_events or 0,
-        "depth_every_us": depth_every_option(o.depth_every_ms) or 0,
+        "depth_every_us": depth_every_us or 0,
         "youngs_modulus_mpa": setup.youngs_modulus_mpa, "poisson_ratio": setup.poisson_ratio,
         "sources": json.dumps(setup.sources)})
     try:
@@ -108,6 +110,7 @@ def run_live(o: LiveOptions) -> None:
             extra = _camera_only(o, devices, pipe, sink, window_us, window_events)
     finally:
         sink.close()
+        pipe.close()
     stats = extra.pop("stats")
     if not len(sink.log):
         raise LabrigError(f"no windows: no camera events reached the pipeline ({stats.end_reason or 'stopped'}); "

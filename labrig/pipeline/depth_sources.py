@@ -31,6 +31,7 @@ from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.anchor import AnchorParams
 from labrig.pipeline.brightness import BrightnessIntegrator
 from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
+from labrig.pipeline.depth_lane import DepthJob
 from labrig.pipeline.depthnet import DepthModel
 from labrig.pipeline.model_card import ModelCard
 from labrig.pipeline.quiet import QuietHold, QuietParams
@@ -75,6 +76,14 @@ class DepthSource(Protocol):
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]: ...
+
+    def depth_job(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                  n_events: int) -> DepthJob:
+        """:meth:`depth_mm` as a job another thread may run (:mod:`labrig.pipeline.depth_lane`): whatever reads or
+        changes this source's state is done now, in the caller, and the job only computes. By default all of
+        :meth:`depth_mm` is done now."""
+        depth = self.depth_mm(sae_grid, t0_us, t1_us, n_events)
+        return lambda: depth
 
 
 def truth_between(t_maps_us: npt.NDArray[np.int64], t_us: npt.ArrayLike
@@ -180,9 +189,15 @@ class ModelDepth(DepthSource):
 
     def estimate(self, sae_grid: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
         """The network's map for this window's SAE and state; it becomes the previous estimate."""
+        return self._remember(self.model.depth_mm(self._input(sae_grid)))
+
+    def _input(self, sae_grid: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
         if sae_grid is None:
             raise ValueError(f"{self.name} needs the SAE: the pipeline must compute it (needs_sae)")
-        depth = self.model.depth_mm(self.network_input(sae_grid))
+        return self.network_input(sae_grid)
+
+    def _remember(self, depth: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """``depth`` becomes the previous estimate."""
         self.previous_norm = depth / np.float32(self.model.scale_mm)
         return depth
 
@@ -269,6 +284,17 @@ class BrightnessNetworkDepth(ModelDepth):
             self.reset(t1_us)
             return np.zeros(GRID_SHAPE, np.float32)
         return self.estimate(sae_grid)
+
+    def depth_job(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                  n_events: int) -> DepthJob:
+        """The rest gate and the network's input (the SAE and a snapshot of the brightness state) now; the job
+        runs the network."""
+        if self.at_rest:
+            self.reset(t1_us)
+            zeros = np.zeros(GRID_SHAPE, np.float32)
+            return lambda: zeros
+        inputs = self._input(sae_grid)
+        return lambda: self._remember(self.model.depth_mm(inputs))
 
     def reset(self, t_us: int | None = None) -> None:
         """Forget the previous estimate and the brightness change (the gel is at rest at ``t_us``)."""

@@ -36,6 +36,7 @@ import numpy.typing as npt
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import displacement, forces, ifem, tracking
 from labrig.pipeline.anchor import AnchorFilter, anchor_px
+from labrig.pipeline.depth_lane import DepthLane
 from labrig.pipeline.depth_sources import DepthSource
 from labrig.pipeline.forces import ContactLocation
 from labrig.pipeline.front_stage import FrontStage, TrackedWindow
@@ -97,11 +98,13 @@ class Pipeline:
                  surface_params: ifem.SurfaceParams | None = None, normal_mode: str = "contact",
                  threshold_mm: float = 0.01, keep_sae: bool = False, cache_dir: str | Path | None = None,
                  rest_params: RestParams | None = None, depth_every_us: int | None = None,
-                 reference: bool = False) -> None:
+                 reference: bool = False, depth_lane: bool = False) -> None:
         """``depth_every_us``: run the depth source only on the first window ending at least this long after
         the last one it ran on, and keep its map in between (tracking and forces every window, e.g. 1 ms
         windows with depth every 10 ms); None: every window. ``reference``: redo every window's work that
-        depends on the depth map alone (the path the default one, :class:`MapWork`, is tested against)."""
+        depends on the depth map alone (the path the default one, :class:`MapWork`, is tested against).
+        ``depth_lane``: run the depth source's jobs in a thread of their own (:mod:`labrig.pipeline.depth_lane`;
+        each window takes the newest finished map); :meth:`close` stops it."""
         self.setup = setup
         self.depth = depth
         rig = setup.rig
@@ -123,6 +126,7 @@ class Pipeline:
         self._depth_map: npt.NDArray[np.float32] | None = None  # its map (back stage)
         self._map_work: MapWork | None = None
         self._flat_map = np.zeros(GRID_SHAPE, np.float32)
+        self.lane = DepthLane() if depth_lane else None
 
     # The two stages.
 
@@ -153,7 +157,9 @@ class Pipeline:
         start = time.perf_counter()
         rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
         self.depth.observe(tracked.positions_px, rest_px, tracked.counts, tracked.t1_us)
-        if tracked.sae is None and self.depth.needs_sae and self._depth_map is None:
+        if self.lane is not None:
+            depth = self._lane_depth(tracked)
+        elif tracked.sae is None and self.depth.needs_sae and self._depth_map is None:
             # no map yet and no SAE to make one (a live run that skipped the window its depth was due on): the gel
             # is taken as flat until the next window with an SAE
             depth = self._flat_map
@@ -189,6 +195,23 @@ class Pipeline:
         return WindowResult(tracked.index, tracked.t0_us, tracked.t1_us, tracked.n_events, tracked.positions_px,
                             tracked.updated, u, f, forces.net_force_n(f), contact_px, contact_mm, depth,
                             tracked.sae if self.keep_sae else None, seconds)
+
+    def _lane_depth(self, tracked: TrackedWindow) -> npt.NDArray[np.float32]:
+        """The newest map the depth lane has finished (flat before its first), after handing it this window's job
+        when depth is due."""
+        assert self.lane is not None
+        if tracked.depth_due and (tracked.sae is not None or not self.depth.needs_sae):
+            self.lane.submit(self.depth.depth_job(tracked.sae, tracked.depth_t0_us, tracked.t1_us,
+                                                  tracked.depth_n_events), tracked.t1_us)
+        done = self.lane.poll()
+        if done is not None:
+            self._depth_map, self._map_work = done[0], None
+        return self._depth_map if self._depth_map is not None else self._flat_map
+
+    def close(self) -> None:
+        """Stop the depth lane (if any); the pipeline can no longer run."""
+        if self.lane is not None:
+            self.lane.close()
 
     def _work_for(self, depth: npt.NDArray[np.float32], rest_px: Array) -> MapWork:
         """The work of ``depth`` that every window until the next map reuses (redone when the rest changes)."""

@@ -7,7 +7,7 @@ in a temp dir deleted at the end.
 
 Measured, median over ``--repeat`` interleaved runs (page cache warm; the best-of ratio too):
 * decode: labrig ``read_raw(path)`` and, if importable, ``evt3.decode_file(path)`` (the peer:
-  Rust, PyPI) on the same EVT3 file, in Mev/s, and their ratio (target >= 1, aim >= 2);
+  Rust, PyPI) on the same EVT3 file, in Mev/s, and their ratio (target >= 2, aim >= 3);
   both outputs are checked equal to the input events once;
 * streaming decode: ``Evt3Decoder.feed`` in ``--chunk-kib`` chunks;
 * encode: ``encode_evt3`` / ``encode_evt2`` in Mev/s, and bytes per event of each stream;
@@ -36,8 +36,8 @@ from _common import bench_main, emit
 from labrig.devices.raw import Evt3Decoder, encode_evt2, encode_evt3, make_header, read_raw
 from labrig.devices.raw.synthetic import synthetic_events, synthetic_triggers
 
-TARGET_RATIO = 1.0
-AIM_RATIO = 2.0
+TARGET_RATIO = 2.0
+AIM_RATIO = 3.0
 
 # Run in a fresh interpreter: import time, then the first decode call (compile or cache load), then a second call.
 _FIRST_CALL = r"""
@@ -195,6 +195,7 @@ def run(
         figures["peer_decode_rate_mev_per_s"] = ev.size / figures["peer_decode_s"] / 1e6 if theirs else None
         figures["peer_decode_exact"] = exact_peer
         figures["decode_ratio_vs_peer"] = figures["peer_decode_s"] / figures["evt3_decode_s"] if theirs else None
+        figures["evt3_decode_ratio"] = figures["decode_ratio_vs_peer"]  # the stable headline key
         # best-of ratio: least disturbed by other load on the machine
         figures["evt3_decode_min_s"] = min(ours)
         figures["peer_decode_min_s"] = min(theirs) if theirs else None

@@ -25,7 +25,7 @@ from _common import print_json
 BENCHES = (
     "bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live",
     "bench_campaign", "bench_groundtruth", "bench_training", "bench_tracker", "bench_depth_state", "bench_ifem",
-    "bench_pipeline", "bench_clock", "bench_view", "bench_sim_resolution", "bench_truth_codecs",
+    "bench_pipeline", "bench_live_latency", "bench_clock", "bench_view", "bench_sim_resolution", "bench_truth_codecs",
     "bench_virtual_campaign",
 )
 #: Benchmarks of this tree against a baseline tree (``--baseline``).
