@@ -418,3 +418,11 @@ def test_the_still_gate_round_trips_the_card_and_needs_the_gated_leak() -> None:
         BrightnessParams(moving_ratio=2.0)  # no gated leak
     with pytest.raises(LabrigError, match="still gate"):
         BrightnessParams(rest_tau_s=0.5, moving_ratio=0.5)
+
+
+def test_a_light_too_dim_in_its_slope_response_is_warned_with_what_to_do() -> None:
+    from labrig.pipeline.brightness import DIM_LIGHT_SLOPE_GAIN, dim_light_warning
+
+    assert dim_light_warning(None) is None and dim_light_warning(DIM_LIGHT_SLOPE_GAIN) is None
+    line = dim_light_warning(1.0)
+    assert line is not None and "1.00" in line and "grazing" in line and "\n" not in line

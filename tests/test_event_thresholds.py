@@ -118,7 +118,8 @@ def test_the_command_writes_the_files_and_never_replaces_the_default_unasked(
     assert summary["path"] == str(folder / "events.toml")
     first_text = (folder / "events.toml").read_text()
     assert Path(summary["plot"]).stat().st_size > 10_000
-    assert {"on_ln_median", "off_ln_median", "on_off_ratio", "pixels_rejected", "cells_filled"} <= summary.keys()
+    assert {"on_ln_median", "off_ln_median", "on_off_ratio", "pixels_rejected", "cells_filled",
+            "dim_light_warning"} <= summary.keys()
     again = _labrig("calibrate", "events", path, "--rig", rig_file)
     assert again.returncode == 2 and "--force" in again.stderr and "Traceback" not in again.stderr
     assert len(again.stderr.strip().splitlines()) == 1

@@ -206,6 +206,7 @@ def events_command(
     from labrig.config import DEFAULT_RIG, load_rig
     from labrig.errors import CalibrationError
     from labrig.indenters import load_indenters
+    from labrig.pipeline.brightness import dim_light_warning
     from labrig.protocol.light_calibration import measure_slope_response, record_slope_press
 
     rig = load_rig(rig_path or DEFAULT_RIG)
@@ -241,6 +242,7 @@ def events_command(
                               "press": None if press is None else str(press)}
     if plot is not None:
         result["plot"] = str(plot_event_thresholds(fit, plot))
+    result["dim_light_warning"] = dim_light_warning(result["slope_gain"])
     if as_json:
         print_json(result)
         return
@@ -260,6 +262,8 @@ def events_command(
                   f"{response.maps} maps, rms {response.rms_ln:.3f} ln)")
     calibration_file_rows(table, result)
     console.print(table)
+    if (dim := dim_light_warning(result["slope_gain"])) is not None:
+        err_console.print(f"[yellow]warning:[/] {dim}")
 
 
 def _marker_rows(table: Table, marker_map: MarkerMap, worst: int) -> None:

@@ -19,20 +19,22 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from types import TracebackType
+from typing import Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 DepthJob = Callable[[], npt.NDArray[np.float32]]
+T = TypeVar("T")
 
 
-class DepthLane:
+class DepthLane(Generic[T]):
     """One worker thread running depth jobs, newest first; :meth:`poll` returns finished maps in the caller."""
 
     def __init__(self, name: str = "labrig-depth-lane") -> None:
         self._lock = threading.Condition()
-        self._pending: tuple[DepthJob, int] | None = None
-        self._done: tuple[npt.NDArray[np.float32], int] | None = None
+        self._pending: tuple[Callable[[], T], int] | None = None
+        self._done: tuple[T, int] | None = None
         self._error: BaseException | None = None
         self._closed = False
         self.submitted = 0
@@ -41,7 +43,7 @@ class DepthLane:
         self._thread = threading.Thread(target=self._work, name=name, daemon=True)
         self._thread.start()
 
-    def submit(self, job: DepthJob, t1_us: int) -> None:
+    def submit(self, job: Callable[[], T], t1_us: int) -> None:
         """Queue the job of the window ending at ``t1_us`` (a job still waiting is replaced)."""
         with self._lock:
             if self._closed:
@@ -52,9 +54,9 @@ class DepthLane:
             self.submitted += 1
             self._lock.notify()
 
-    def poll(self) -> tuple[npt.NDArray[np.float32], int] | None:
-        """The newest finished map and its window's end (us) since the last poll, else None; a job's failure
-        is raised here."""
+    def poll(self) -> tuple[T, int] | None:
+        """The newest finished job's result (a map and what goes with it) and its window's end (us) since the
+        last poll, else None; a job's failure is raised here."""
         with self._lock:
             if self._error is not None:
                 error, self._error = self._error, None
@@ -70,7 +72,7 @@ class DepthLane:
             self._lock.notify()
         self._thread.join()
 
-    def __enter__(self) -> DepthLane:
+    def __enter__(self) -> DepthLane[T]:
         return self
 
     def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,

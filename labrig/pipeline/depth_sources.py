@@ -29,7 +29,7 @@ from labrig import models
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.anchor import AnchorParams
-from labrig.pipeline.brightness import BrightnessIntegrator
+from labrig.pipeline.brightness import BrightnessIntegrator, dim_light_warning
 from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
 from labrig.pipeline.depth_lane import DepthJob
 from labrig.pipeline.depthnet import DepthModel
@@ -277,6 +277,9 @@ class BrightnessNetworkDepth(ModelDepth):
                 setup.thresholds is None or setup.thresholds.slope_gain is None):
             _warn_once(f"{model.path.name} reads the brightness under the reference light, and this camera's slope gain "
                        "is not measured: the reference light is assumed (measure it: `labrig calibrate events`)")
+        dim = dim_light_warning(None if setup.thresholds is None else setup.thresholds.slope_gain)
+        if dim is not None:
+            _warn_once(f"{model.path.name}: {dim}")
 
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]:

@@ -126,7 +126,7 @@ class Pipeline:
         self._depth_map: npt.NDArray[np.float32] | None = None  # its map (back stage)
         self._map_work: MapWork | None = None
         self._flat_map = np.zeros(GRID_SHAPE, np.float32)
-        self.lane = DepthLane() if depth_lane else None
+        self.lane: DepthLane[MapWork] | None = DepthLane() if depth_lane else None
 
     # The two stages.
 
@@ -201,11 +201,13 @@ class Pipeline:
         when depth is due."""
         assert self.lane is not None
         if tracked.depth_due and (tracked.sae is not None or not self.depth.needs_sae):
-            self.lane.submit(self.depth.depth_job(tracked.sae, tracked.depth_t0_us, tracked.t1_us,
-                                                  tracked.depth_n_events), tracked.t1_us)
+            job = self.depth.depth_job(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
+            rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
+            self.lane.submit(lambda: self._new_work(job(), rest_px), tracked.t1_us)  # the map's work in the lane too
         done = self.lane.poll()
         if done is not None:
-            self._depth_map, self._map_work = done[0], None
+            self._map_work = done[0]
+            self._depth_map = self._map_work.depth
         return self._depth_map if self._depth_map is not None else self._flat_map
 
     def close(self) -> None:
@@ -217,15 +219,20 @@ class Pipeline:
         """The work of ``depth`` that every window until the next map reuses (redone when the rest changes)."""
         work = self._map_work
         if work is None or work.depth is not depth:
-            work = MapWork(depth, self.surface.prepare(depth, self.normal_mode, self.threshold_mm),
-                           forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening),
-                           forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm),
-                           float(np.max(depth)), rest_px, displacement.marker_depths_mm(depth, rest_px, self.setup.rig.roi))
+            work = self._new_work(depth, rest_px)
         elif work.rest_px is not rest_px:
             work = replace(work, rest_px=rest_px,
                            marker_depths_mm=displacement.marker_depths_mm(depth, rest_px, self.setup.rig.roi))
         self._map_work = work
         return work
+
+    def _new_work(self, depth: npt.NDArray[np.float32], rest_px: Array) -> MapWork:
+        """Everything of ``depth`` the windows reuse (it reads only the map, the setup and the operator: the depth
+        lane may run it)."""
+        return MapWork(depth, self.surface.prepare(depth, self.normal_mode, self.threshold_mm),
+                       forces.stiffening_factor(depth, self.setup.rig.gel.thickness_mm, self.setup.stiffening),
+                       forces.contact_location(depth, self.setup.rig.roi, self.setup.camera, self.threshold_mm),
+                       float(np.max(depth)), rest_px, displacement.marker_depths_mm(depth, rest_px, self.setup.rig.roi))
 
     def _contact(self, where: ContactLocation | None, peak_mm: float, t0_us: int,
                  t1_us: int) -> tuple[Array, Array]:
