@@ -211,3 +211,21 @@ def test_the_map_work_path_gives_the_reference_forces_window_by_window(recording
         assert np.abs(a.displacement_mm - b.displacement_mm).max() <= 1e-9
         assert np.array_equal(a.contact_px, b.contact_px, equal_nan=True)
     assert min(r.net_force_n[2] for r in fast) < -1.0 and max(np.abs(r.net_force_n[0]) for r in fast) > 0.1
+
+
+def test_a_pressed_set_seen_again_reuses_its_factorisation(operator: ifem.SurfaceOperator) -> None:
+    from labrig.pipeline import map_forces
+
+    xy = operator.node_xy_mm
+    dimple = -np.clip(1 - (np.hypot(xy[:, 0], xy[:, 1]) / 3.0) ** 2, 0, None)
+    cache = map_forces.SolverCache(size=2)
+    u = np.random.default_rng(1).normal(0, 0.1, (operator.n_markers, 3))
+    first = map_forces.prepare(operator, dimple, cache=cache)(u)
+    deeper = map_forces.prepare(operator, 1.5 * dimple, cache=cache)(u)  # the same nodes pressed
+    assert (cache.hits, cache.misses) == (1, 1)
+    np.testing.assert_allclose(deeper[:, 2], 1.5 * first[:, 2], rtol=1e-9)
+    np.testing.assert_allclose(deeper, operator.forces_n(1.5 * dimple, u), atol=1e-9)
+    for radius_mm in (2.0, 4.0):  # two new sets: the first one is dropped
+        map_forces.prepare(operator, -np.clip(1 - (np.hypot(xy[:, 0], xy[:, 1]) / radius_mm) ** 2, 0, None), cache=cache)
+    map_forces.prepare(operator, dimple, cache=cache)
+    assert cache.misses == 4

@@ -26,7 +26,7 @@ from labrig.config import Roi
 from labrig.physics.camera import CameraModel
 from labrig.pipeline.displacement import grid_sampling_matrix
 from labrig.pipeline.ifem import SurfaceOperator
-from labrig.pipeline.map_forces import MapForces, prepare
+from labrig.pipeline.map_forces import MapForces, SolverCache, prepare
 from labrig.pipeline.unobserved import condense_unobserved, fill_in_plane, in_plane_fill
 
 Array = npt.NDArray[np.float64]
@@ -65,6 +65,7 @@ class SurfaceForces:
         xy = operator.node_xy_mm
         self.node_px = camera.project(np.column_stack([xy, np.zeros(len(xy))]))
         self.sampler = grid_sampling_matrix(self.node_px, roi, grid_shape)
+        self.solvers = SolverCache()
 
     def node_depths_mm(self, depth_map_mm: npt.ArrayLike) -> Array:
         d = np.asarray(depth_map_mm, np.float64)
@@ -84,7 +85,7 @@ class SurfaceForces:
     def prepare(self, depth_map_mm: npt.ArrayLike, mode: str = "contact", threshold_mm: float = 0.01) -> MapForces:
         """The forces of one map for every window until it changes (:mod:`labrig.pipeline.map_forces`):
         ``prepare(d, mode, t)(u)`` is ``self(d, u, mode, t)`` to rounding, at a fraction of its cost per window."""
-        return prepare(self.operator, -self.node_depths_mm(depth_map_mm), mode, threshold_mm, self.fill)
+        return prepare(self.operator, -self.node_depths_mm(depth_map_mm), mode, threshold_mm, self.fill, self.solvers)
 
 
 def stiffening_factor(depth_map_mm: npt.ArrayLike, thickness_mm: float, stiffening: float) -> float:

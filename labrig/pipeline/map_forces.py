@@ -4,7 +4,8 @@ Between two runs of the depth source (1 ms windows, depth every 10 ms) the map d
 neither does anything the surface operator derives from it alone: the prescribed (pressed) nodes, their
 normal forces, and the factorisation of the in-plane system on those nodes. :func:`prepare` does that
 work once per map; :meth:`MapForces.__call__` then costs two small products and one triangular solve
-per window. The arithmetic is :meth:`labrig.pipeline.ifem.SurfaceOperator.node_forces_n`'s, reordered
+per window; the factorisation of a pressed set is kept for the maps that press the same nodes
+(:class:`SolverCache`). The arithmetic is :meth:`labrig.pipeline.ifem.SurfaceOperator.node_forces_n`'s, reordered
 only where a sum skips nodes that carry no force (the result agrees to rounding).
 
 Units and frames as :mod:`labrig.pipeline.forces`: displacements mm, forces N on the gel (pressing:
@@ -13,6 +14,7 @@ Fz < 0), gel frame; M markers, N top nodes, P pressed nodes.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -84,14 +86,41 @@ class MapForces:
         return out
 
 
+class SolverCache:
+    """The factorised systems of the last ``size`` pressed sets (a held press keeps its set from map to map, so
+    its factorisation is done once), least recently used dropped first."""
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self._solvers: OrderedDict[bytes, tuple[HeldSolve, HeldSolve]] = OrderedDict()
+        self.hits = 0
+        self.misses = 0
+
+    def solvers(self, operator: SurfaceOperator, held: npt.NDArray[np.int64]) -> tuple[HeldSolve, HeldSolve]:
+        """(normal, in-plane) solvers of the pressed nodes ``held``."""
+        key = held.tobytes()
+        found = self._solvers.get(key)
+        if found is not None:
+            self._solvers.move_to_end(key)
+            self.hits += 1
+            return found
+        self.misses += 1
+        n = len(operator.node_xy_mm)
+        found = (held_solver(operator, "k_zz", held), held_solver(operator, "k_tt", np.concatenate([held, held + n])))
+        self._solvers[key] = found
+        if len(self._solvers) > self.size:
+            self._solvers.popitem(last=False)
+        return found
+
+
 def prepare(operator: SurfaceOperator, uz_nodes_mm: npt.ArrayLike, mode: str = "contact", threshold_mm: float = 0.01,
-            fill: Array | None = None) -> MapForces:
+            fill: Array | None = None, cache: SolverCache | None = None) -> MapForces:
     """The :class:`MapForces` of one map: ``uz_nodes_mm`` (N,) the top nodes' normal displacement (up positive,
-    pressed in: negative); ``mode`` and ``threshold_mm`` as :meth:`SurfaceOperator.node_forces_n`."""
+    pressed in: negative); ``mode`` and ``threshold_mm`` as :meth:`SurfaceOperator.node_forces_n`; ``cache``: the
+    factorisations of recent pressed sets (one operator per cache)."""
     if mode not in FORCE_MODES:
         raise ValueError(f"mode must be one of {FORCE_MODES}, not {mode!r}")
     uz = np.asarray(uz_nodes_mm, np.float64)
-    n = len(uz)
     if mode == "field":
         normal = operator.cells @ (operator.k_zz @ uz)
         k_tt = operator.k_tt
@@ -101,6 +130,6 @@ def prepare(operator: SurfaceOperator, uz_nodes_mm: npt.ArrayLike, mode: str = "
         return MapForces(np.zeros(operator.n_markers), operator.interp[:0], operator.cells[:, :0],
                          lambda u: u, fill)
     cells_held = np.ascontiguousarray(operator.cells[:, held])
-    normal = cells_held @ held_solver(operator, "k_zz", held)(uz[held])
-    tangential = held_solver(operator, "k_tt", np.concatenate([held, held + n]))
-    return MapForces(normal, np.ascontiguousarray(operator.interp[held]), cells_held, tangential, fill)
+    normal_solve, tangential = (cache or SolverCache(0)).solvers(operator, held)
+    return MapForces(cells_held @ normal_solve(uz[held]), np.ascontiguousarray(operator.interp[held]), cells_held,
+                     tangential, fill)
