@@ -1,7 +1,7 @@
 """The live path end to end: from an event's camera time to the forces that include it.
 
 Setup (not timed): a simulated press (6 mm sphere, 1 mm deep, 0.5 mm shear at 3 mm/s; about 1.6 s)
-exported to an EVT3 RAW file, and a short probing protocol for the embedded virtual rig.
+exported to an EVT3 RAW file; the embedded virtual rig runs `protocols/probe.toml`.
 
 Measured, each in a fresh ``labrig run --live --json`` process (as a lab runs it), with the bundled
 depth network: windows of 10 ms (depth every window) and of 1 ms with depth every 10 ms (dense forces at
@@ -36,28 +36,6 @@ from labrig.sim.live import record_live
 from labrig.sim.motion import probing_path
 
 ROOT = Path(__file__).resolve().parents[2]
-PROTOCOL = """
-[probe]
-indenter = "sphere"
-location_mm = [0.0, 0.0]
-[approach]
-start_height_mm = 0.4
-speed_mm_s = 1.0
-contact_force_n = 0.1
-max_travel_mm = 1.5
-[normal]
-depth_mm = 0.8
-speed_mm_s = 2.0
-[wait]
-duration_s = 0.3
-[shear]
-direction_deg = 0.0
-distance_mm = 0.5
-speed_mm_s = 2.0
-[retract]
-height_mm = 1.0
-speed_mm_s = 5.0
-"""
 #: (name, labrig run options) of the window settings.
 WINDOWS = (("10 ms", ["--window-ms", "10"]), ("1 ms, depth 10 ms", ["--window-ms", "1", "--depth-every-ms", "10"]))
 
@@ -115,8 +93,7 @@ def run(sources: str = "raw,virtual", progress: bool = True) -> dict[str, Any]:
                 figures["configs"][key] = _figures(_live(["--rig", str(rig_file), "--calibration",
                                                           str(rig.path.parent), "--seconds", "30", *options], ROOT))
         if "virtual" in wanted:
-            protocol = folder / "quick.toml"
-            protocol.write_text(PROTOCOL)
+            protocol = ROOT / "protocols" / "probe.toml"
             for name, options in WINDOWS:
                 key = f"virtual rig / {name}"
                 if progress:
