@@ -391,7 +391,8 @@ class SurfaceOperator:
     def n_markers(self) -> int:
         return self.cells.shape[0]
 
-    def _inverse(self, name: str) -> Array:
+    def compliance(self, name: str) -> Array:
+        """C = K^-1 (N/mm)^-1 of ``k_zz`` or ``k_tt`` (``name``), inverted once and kept."""
         c = self.__dict__.get(f"_inv_{name}")
         if c is None:
             c = np.linalg.inv(getattr(self, name))
@@ -402,8 +403,8 @@ class SurfaceOperator:
     def precompute(self) -> SurfaceOperator:
         """Invert the stiffnesses the mixed solves read (C = K^-1, some hundred ms once), so that the first
         window does not pay for it; returns ``self``."""
-        self._inverse("k_zz")
-        self._inverse("k_tt")
+        self.compliance("k_zz")
+        self.compliance("k_tt")
         return self
 
     def node_forces_n(self, uz_nodes_mm: npt.ArrayLike, u_markers_mm: npt.ArrayLike, mode: str = "contact",
@@ -444,7 +445,7 @@ class SurfaceOperator:
 
         k = getattr(self, name)
         if 2 * held.size <= len(k):
-            return np.asarray(solve(self._inverse(name)[np.ix_(held, held)], u, assume_a="pos"))
+            return np.asarray(solve(self.compliance(name)[np.ix_(held, held)], u, assume_a="pos"))
         free = np.setdiff1d(np.arange(len(k)), held)
         k_hu = k[np.ix_(held, held)] @ u
         if free.size == 0:

@@ -36,7 +36,7 @@ def held_solver(operator: SurfaceOperator, name: str, held: npt.NDArray[np.int64
     Cholesky factor of C_hh, C = K^-1; large ones: that of K_ff for the Schur complement)."""
     k = getattr(operator, name)
     if 2 * held.size <= len(k):
-        c_hh, lower = cho_factor(operator._inverse(name)[np.ix_(held, held)], check_finite=False)
+        c_hh, lower = cho_factor(operator.compliance(name)[np.ix_(held, held)], check_finite=False)
         return lambda u: _cholesky_solve(c_hh, lower, u)
     free = np.setdiff1d(np.arange(len(k)), held)
     k_hh = k[np.ix_(held, held)]

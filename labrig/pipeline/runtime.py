@@ -148,17 +148,20 @@ class Pipeline:
     def observe(self, tracked: TrackedWindow) -> None:
         """A tracked window whose depth and forces are skipped (a live run catching up): the depth source still
         observes it (its markers, its signed counts), so a state integrated from them misses nothing."""
-        rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
-        self.depth.observe(tracked.positions_px, rest_px, tracked.counts, tracked.t1_us)
+        self.depth.observe(tracked.positions_px, self._rest_of(tracked), tracked.counts, tracked.t1_us)
+
+    def _rest_of(self, tracked: TrackedWindow) -> Array:
+        """(M, 2) px: the rest ``tracked``'s positions are measured from."""
+        return self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
 
     def back(self, tracked: TrackedWindow) -> WindowResult:
         """Depth, displacements, forces, net force and contact location."""
         seconds = dict(tracked.seconds)
         start = time.perf_counter()
-        rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
-        self.depth.observe(tracked.positions_px, rest_px, tracked.counts, tracked.t1_us)
+        rest_px = self._rest_of(tracked)
+        self.observe(tracked)
         if self.lane is not None:
-            depth = self._lane_depth(tracked)
+            depth = self._lane_depth(tracked, rest_px)
         elif tracked.sae is None and self.depth.needs_sae and self._depth_map is None:
             # no map yet and no SAE to make one (a live run that skipped the window its depth was due on): the gel
             # is taken as flat until the next window with an SAE
@@ -196,13 +199,12 @@ class Pipeline:
                             tracked.updated, u, f, forces.net_force_n(f), contact_px, contact_mm, depth,
                             tracked.sae if self.keep_sae else None, seconds)
 
-    def _lane_depth(self, tracked: TrackedWindow) -> npt.NDArray[np.float32]:
+    def _lane_depth(self, tracked: TrackedWindow, rest_px: Array) -> npt.NDArray[np.float32]:
         """The newest map the depth lane has finished (flat before its first), after handing it this window's job
         when depth is due."""
         assert self.lane is not None
         if tracked.depth_due and (tracked.sae is not None or not self.depth.needs_sae):
             job = self.depth.depth_job(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
-            rest_px = self.setup.rest_px if tracked.rest_px is None else tracked.rest_px
             self.lane.submit(lambda: self._new_work(job(), rest_px), tracked.t1_us)  # the map's work in the lane too
         done = self.lane.poll()
         if done is not None:
