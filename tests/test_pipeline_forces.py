@@ -229,3 +229,26 @@ def test_a_pressed_set_seen_again_reuses_its_factorisation(operator: ifem.Surfac
         map_forces.prepare(operator, -np.clip(1 - (np.hypot(xy[:, 0], xy[:, 1]) / radius_mm) ** 2, 0, None), cache=cache)
     map_forces.prepare(operator, dimple, cache=cache)
     assert cache.misses == 4
+
+
+def test_warming_up_leaves_the_run_as_it_was(recording: Path) -> None:
+    """A pipeline taken through :meth:`Pipeline.warm_up` (throwaway state) gives the same windows as one that was not,
+    with the bundled network (whose source keeps the brightness state) at 1 ms windows, depth every 10 ms."""
+    from labrig.models import bundled_model_path
+
+    with Recording(recording) as rec:
+        setup = run_setup.setup_for_recording(rec, calibration_dir=None)
+        runs = []
+        for warm in (True, False):
+            source = depth_sources.depth_source("model", setup, rec, bundled_model_path(), threads=1)
+            pipe = runtime.Pipeline(setup, source, depth_every_us=10_000)
+            if warm:
+                assert pipe.warm_up() > 0
+            runs.append(list(pipe.run(rec, window_us=1_000, concurrent=False, end_us=700_000)))
+    warmed, cold = runs
+    assert len(warmed) == len(cold) == 700
+    for a, b in zip(warmed, cold, strict=True):
+        assert np.array_equal(a.positions_px, b.positions_px)
+        assert np.array_equal(a.forces_n, b.forces_n)
+        assert np.array_equal(a.depth_mm, b.depth_mm)
+    assert min(r.net_force_n[2] for r in warmed) < -0.5

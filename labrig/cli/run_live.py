@@ -96,6 +96,7 @@ def run_live(o: LiveOptions) -> None:
     depth_every_us = depth_every_option(o.depth_every_ms)
     pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None, depth_every_us=depth_every_us,
                             depth_lane=depth_every_us is not None)
+    pipe.warm_up()  # before the stream starts: a first window's kernel loads would delay the windows behind it
     source = "virtual rig (embedded)" if devices.virtual else f"camera {live_rig.describe_camera(devices)}"
     sink = _Sink(o, len(setup.rest_px), {
         "source": f"live: {source}", "live": 1, "time_base": "camera device time, us", "depth_source": depth.name,

@@ -85,6 +85,11 @@ class DepthSource(Protocol):
         depth = self.depth_mm(sae_grid, t0_us, t1_us, n_events)
         return lambda: depth
 
+    def warm_up(self) -> None:
+        """Pay the first run's costs (a network's buffers) now, leaving the source's state as it is. By default
+        nothing."""
+        return None
+
 
 def truth_between(t_maps_us: npt.NDArray[np.int64], t_us: npt.ArrayLike
                   ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.float64]]:
@@ -200,6 +205,12 @@ class ModelDepth(DepthSource):
         """``depth`` becomes the previous estimate."""
         self.previous_norm = depth / np.float32(self.model.scale_mm)
         return depth
+
+    def warm_up(self) -> None:
+        """The network run twice on zeros (its state, the previous estimate, untouched)."""
+        zeros = np.zeros((self.inputs.channels, *GRID_SHAPE), np.float32)
+        for _ in range(2):
+            self.model.depth_mm(zeros)
 
     def network_input(self, sae_grid: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
         """The channels the card names for this window: the SAE, then the state."""

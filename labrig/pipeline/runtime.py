@@ -45,6 +45,7 @@ from labrig.pipeline.map_forces import MapForces
 from labrig.pipeline.marker_stage import MarkerStage
 from labrig.pipeline.rest import RestParams
 from labrig.pipeline.run_setup import PipelineSetup
+from labrig.pipeline.warm_up import dent_map, press_windows
 from labrig.pipeline.windows import DEFAULT_WINDOW_US, Events, WindowSpec, recording_windows
 from labrig.recording import Recording
 
@@ -127,6 +128,32 @@ class Pipeline:
         self._map_work: MapWork | None = None
         self._flat_map = np.zeros(GRID_SHAPE, np.float32)
         self.lane: DepthLane[MapWork] | None = DepthLane() if depth_lane else None
+        self._tracker_params, self._rest_params = tracker_params, rest_params
+
+    def warm_up(self) -> float:
+        """Take every stage through its first-window costs (compiled kernels loaded, the depth source's first run)
+        on throwaway state: a fresh front stage on synthetic windows (:mod:`labrig.pipeline.warm_up`), the depth
+        source's :meth:`~labrig.pipeline.depth_sources.DepthSource.warm_up`, and the forces of a flat map and a dent.
+        This pipeline's own state (tracks, rest, the depth source's state, the last map) is untouched. Returns the
+        seconds it took."""
+        start = time.perf_counter()
+        setup, depth = self.setup, self.depth
+        front = FrontStage(setup, MarkerStage.for_setup(setup, self._tracker_params, self._rest_params),
+                           depth_window_us=depth.window_us, needs_sae=True, needs_counts=True)
+        for t0, t1, events in press_windows(setup.rest_px, setup.observed, DEFAULT_WINDOW_US):
+            tracked = front.window(t0, t1, events)
+        depth.warm_up()
+        rest_px = setup.rest_px
+        rest_mm = setup.rest_mm(rest_px)
+        for depth_map in (self._flat_map, dent_map()):
+            work = self._new_work(depth_map, rest_px)
+            u = setup.camera.backproject_to_planes(tracked.positions_px, -work.marker_depths_mm) - rest_mm
+            work.forces(u)
+            if self.reference:
+                u = displacement.displacements_mm(tracked.positions_px, depth_map, setup.camera, rest_mm, setup.rig.roi,
+                                                  sample_px=rest_px)
+                self.surface(depth_map, u, self.normal_mode, self.threshold_mm)
+        return time.perf_counter() - start
 
     # The two stages.
 

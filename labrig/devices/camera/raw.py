@@ -19,6 +19,8 @@ from labrig.devices.raw import RawFormatError, open_decoder
 
 #: Every trigger input a RAW file can hold edges of (``I_TriggerIn.Channel``'s numbering).
 FILE_TRIGGER_INPUTS = {"main": 0, "aux": 1, "loopback": 2}
+#: Bytes of the file decoded when the camera opens (a throwaway decode), bytes.
+WARM_UP_BYTES = 1 << 12
 
 
 class RawReplayCamera(Camera):
@@ -55,7 +57,10 @@ class RawReplayCamera(Camera):
         if not self.path.is_file():
             raise CameraError(f"{self.path}: no such RAW file")
         try:
-            header, fmt, geo, _ = open_decoder(self.path)
+            header, fmt, geo, decoder = open_decoder(self.path)
+            with open(self.path, "rb") as raw:  # the decoder's kernels load now, not in the stream's first chunk
+                raw.seek(header.size)
+                decoder.feed(raw.read(WARM_UP_BYTES))
         except RawFormatError as exc:
             raise CameraError(str(exc)) from None
         width, height = geo or (1280, 720)
