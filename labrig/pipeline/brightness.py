@@ -53,7 +53,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import uniform_filter
 
 from labrig.calibration.event_counts import signed_counts
 from labrig.calibration.event_thresholds_file import NOMINAL_THRESHOLD_LN, ContrastThresholds
@@ -204,13 +203,13 @@ class BrightnessIntegrator:
         map's median and averaged with its 8 neighbours, is under ``floor_events_per_px``. With
         ``release_fraction`` set, a step that finds the press undone (:meth:`_released`) starts again from zero;
         with ``moving_ratio``, the held cells' changes pass :meth:`_still_gate`."""
-        change = self.counts - np.float32(np.median(self.counts))
-        smoothed = np.abs(uniform_filter(change, 3, mode="nearest"))
+        change = self.counts - map_median(self.counts)
+        smoothed = np.abs(box_mean_3x3(change))
         quiet = smoothed < np.float32(self.params.floor_events_per_px * self.pixels_per_cell)
         if self.params.release_fraction is not None and self._released(float(smoothed[~quiet].sum()), dt_s):
             self.reset(self.t_us)
             return
-        drift = np.float32(self._added[quiet].mean() if quiet.any() else np.median(self._added))
+        drift = np.float32(self._added[quiet].mean() if quiet.any() else map_median(self._added))
         self.counts -= drift
         if self.params.moving_ratio is not None:
             self._still_gate(quiet, self._added - drift)
@@ -267,7 +266,25 @@ def change_per_px(counts: npt.ArrayLike, pixels_per_cell: float) -> F32:
     """(rows, cols) float32: integrated counts (reference events per cell) per pixel, less their median (the
     uniform drift), in reference events; times ``NOMINAL_THRESHOLD_LN`` it is the log-intensity change (ln)."""
     per_px = np.asarray(counts, np.float32) / np.float32(pixels_per_cell)
-    return per_px - np.float32(np.median(per_px))
+    return per_px - map_median(per_px)
+
+
+def map_median(values: F32) -> np.float32:
+    """The median of a float32 map (``np.median``'s value; the maps hold no NaN, so none is looked for)."""
+    flat = values.ravel()
+    k = flat.size // 2
+    if flat.size % 2:
+        return np.float32(np.partition(flat, k)[k])
+    middle = np.partition(flat, (k - 1, k))
+    return np.float32((middle[k - 1] + middle[k]) / 2)
+
+
+def box_mean_3x3(values: F32) -> F32:
+    """(rows, cols) float32: each cell's mean with its 8 neighbours, the edge cells repeated outwards (scipy's
+    ``uniform_filter(values, 3, mode="nearest")`` to float32 rounding)."""
+    import cv2  # deferred: OpenCV is heavy to import
+
+    return np.asarray(cv2.blur(np.asarray(values, np.float32), (3, 3), borderType=cv2.BORDER_REPLICATE))
 
 
 def reference_light(change_ln: npt.ArrayLike, slope_gain: float, reference_slope_gain: float,

@@ -34,7 +34,7 @@ from labrig.physics.camera import CameraModel
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.brightness import REFERENCE_SLOPE_GAIN, BrightnessParams
 from labrig.pipeline.displacement import grid_coordinates
-from labrig.pipeline.sae import pad_for_unet
+from labrig.pipeline.sae import UNET_SHAPE
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -191,7 +191,9 @@ def network_input(spec: InputSpec, sae: npt.ArrayLike, displacement: npt.ArrayLi
     (90, 112) normalised depth; ``brightness``: (90, 112) the channel of
     :func:`labrig.pipeline.brightness.brightness_channel`. A part the spec names must be given.
     """
-    parts: list[F32] = []
+    out = np.zeros((spec.channels, *UNET_SHAPE), np.float32)
+    top = (UNET_SHAPE[0] - GRID_SHAPE[0]) // 2  # the zero padding of :func:`~labrig.pipeline.sae.pad_for_unet`
+    channel = 0
     for kind in spec.kinds:
         if kind == "sae":
             part = np.asarray(sae, np.float32)
@@ -207,5 +209,7 @@ def network_input(spec: InputSpec, sae: npt.ArrayLike, displacement: npt.ArrayLi
             if previous_norm is None:
                 raise LabrigError("this depth network takes its previous depth map; none was given")
             part = np.asarray(previous_norm, np.float32)[None]
-        parts.append(part if part.shape[-2] != GRID_SHAPE[0] else pad_for_unet(part))
-    return np.ascontiguousarray(np.concatenate(parts, axis=0), dtype=np.float32)
+        rows = slice(top, top + GRID_SHAPE[0]) if part.shape[-2] == GRID_SHAPE[0] else slice(None)
+        out[channel:channel + len(part), rows] = part
+        channel += len(part)
+    return out

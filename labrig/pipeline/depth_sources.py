@@ -29,9 +29,9 @@ from labrig import models
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.anchor import AnchorParams
-from labrig.pipeline.brightness import BrightnessIntegrator, dim_light_warning
+from labrig.pipeline.brightness import LEAK_STEP_US, BrightnessIntegrator, dim_light_warning
 from labrig.pipeline.depth_inputs import DisplacementRaster, gel_plane_displacement_mm, gel_plane_mm, network_input
-from labrig.pipeline.depth_lane import DepthJob
+from labrig.pipeline.depth_lane import DepthJob, DepthSteps, one_step
 from labrig.pipeline.depthnet import DepthModel
 from labrig.pipeline.model_card import ModelCard
 from labrig.pipeline.quiet import QuietHold, QuietParams
@@ -84,6 +84,18 @@ class DepthSource(Protocol):
         :meth:`depth_mm` is done now."""
         depth = self.depth_mm(sae_grid, t0_us, t1_us, n_events)
         return lambda: depth
+
+    def depth_steps(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                    n_events: int) -> DepthSteps:
+        """:meth:`depth_job` in steps the caller runs one at a time (:class:`~labrig.pipeline.depth_lane.SteppedLane`):
+        the state's work now, then the computation; a network cut by :meth:`split_network` runs one part per step.
+        By default the job is one step."""
+        return one_step(self.depth_job(sae_grid, t0_us, t1_us, n_events))
+
+    def split_network(self, parts: int) -> int:
+        """Cut the source's network into ``parts`` steps for :meth:`depth_steps`; the steps it will take (by
+        default 1: no network)."""
+        return 1
 
     def warm_up(self) -> None:
         """Pay the first run's costs (a network's buffers) now, leaving the source's state as it is. By default
@@ -207,10 +219,15 @@ class ModelDepth(DepthSource):
         return depth
 
     def warm_up(self) -> None:
-        """The network run twice on zeros (its state, the previous estimate, untouched)."""
+        """The network run twice on zeros, whole and in its parts (its state, the previous estimate, untouched)."""
         zeros = np.zeros((self.inputs.channels, *GRID_SHAPE), np.float32)
         for _ in range(2):
             self.model.depth_mm(zeros)
+            for _ in self.model.depth_mm_steps(zeros):
+                pass
+
+    def split_network(self, parts: int) -> int:
+        return self.model.split(parts)
 
     def network_input(self, sae_grid: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
         """The channels the card names for this window: the SAE, then the state."""
@@ -299,6 +316,18 @@ class BrightnessNetworkDepth(ModelDepth):
             return np.zeros(GRID_SHAPE, np.float32)
         return self.estimate(sae_grid)
 
+    def warm_up(self) -> None:
+        """The network's warm-up, and a throwaway integrator's leak steps and channel (their first calls load what
+        they use)."""
+        super().warm_up()
+        assert self.integrator is not None
+        scratch = BrightnessIntegrator(self.integrator.roi, self.integrator.params, self.integrator.grid_shape,
+                                       self.integrator.thresholds)
+        counts = np.zeros(self.integrator.grid_shape, np.float32)
+        for step in range(3):
+            scratch.add(counts, step * LEAK_STEP_US)
+        scratch.channel()
+
     def depth_job(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                   n_events: int) -> DepthJob:
         """The rest gate and the network's input (the SAE and a snapshot of the brightness state) now; the job
@@ -309,6 +338,19 @@ class BrightnessNetworkDepth(ModelDepth):
             return lambda: zeros
         inputs = self._input(sae_grid)
         return lambda: self._remember(self.model.depth_mm(inputs))
+
+    def depth_steps(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
+                    n_events: int) -> DepthSteps:
+        """The rest gate and the network's input now (as :meth:`depth_job`); then the network, a part per step."""
+        if self.at_rest:
+            self.reset(t1_us)
+            zeros = np.zeros(GRID_SHAPE, np.float32)
+            return one_step(lambda: zeros)
+        return self._network_steps(self._input(sae_grid))
+
+    def _network_steps(self, inputs: npt.NDArray[np.float32]) -> DepthSteps:
+        depth = yield from self.model.depth_mm_steps(inputs)
+        return self._remember(depth)
 
     def reset(self, t_us: int | None = None) -> None:
         """Forget the previous estimate and the brightness change (the gel is at rest at ``t_us``)."""

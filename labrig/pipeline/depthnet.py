@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ import numpy.typing as npt
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.model_card import ModelCard, UNetConfig, card_path, write_card
+from labrig.pipeline.onnx_parts import PartedSession
 from labrig.pipeline.sae import UNET_SHAPE, crop_from_unet, pad_for_unet
 
 INPUT_NAME = "sae"  # the SAE-only network's input; a network with state channels takes STATE_INPUT_NAME
@@ -140,6 +142,8 @@ class DepthModel:
         except Exception as exc:  # onnxruntime raises its own exception types
             raise LabrigError(f"{self.path} cannot be loaded by onnxruntime ({str(exc).splitlines()[0]})") from None
         self.threads = options.intra_op_num_threads
+        self._options = options
+        self._parted: PartedSession | None = None
         self.input_name = self.session.get_inputs()[0].name
         declared = self.session.get_inputs()[0].shape
         if len(declared) == 4 and isinstance(declared[1], int) and declared[1] != self.inputs.channels:
@@ -150,9 +154,8 @@ class DepthModel:
     def name(self) -> str:
         return self.path.stem
 
-    def normalised(self, sae: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-        """Raw network output in normalised units on the padded grid: (..., 96, 112) for (..., C, 90|96, 112),
-        C the card's channels (2 for the SAE alone; see :func:`labrig.pipeline.depth_inputs.network_input`)."""
+    def _batch(self, sae: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float32], bool]:
+        """(B, C, 96, 112) contiguous input of ``sae`` (..., C, 90|96, 112), and whether it was a single map."""
         x = np.asarray(sae, dtype=np.float32)
         if x.shape[-2:] == GRID_SHAPE:
             x = pad_for_unet(x)
@@ -161,12 +164,42 @@ class DepthModel:
             raise LabrigError(f"the depth network {self.name} takes ({c}, 90 or 96, 112) inputs "
                               f"({', '.join(self.inputs.kinds)}), not {x.shape}")
         single = x.ndim == 3
-        out = self.session.run([OUTPUT_NAME], {self.input_name: np.ascontiguousarray(x[None] if single else x)})[0]
+        return np.ascontiguousarray(x[None] if single else x), single
+
+    def normalised(self, sae: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """Raw network output in normalised units on the padded grid: (..., 96, 112) for (..., C, 90|96, 112),
+        C the card's channels (2 for the SAE alone; see :func:`labrig.pipeline.depth_inputs.network_input`)."""
+        x, single = self._batch(sae)
+        out = self.session.run([OUTPUT_NAME], {self.input_name: x})[0]
         return out[0, 0] if single else out[:, 0]
+
+    def split(self, parts: int) -> int:
+        """Cut the network into ``parts`` runs of about equal cost for :meth:`depth_mm_steps`
+        (:mod:`labrig.pipeline.onnx_parts`; the same operations, the same output); the number of parts made."""
+        import onnx
+
+        if self._parted is None or self._parted.requested != parts:
+            self._parted = PartedSession(onnx.load(str(self.path)), parts, self._options)
+        return len(self._parted)
+
+    def depth_mm_steps(self, sae: npt.NDArray[np.float32]) -> Generator[None, None, npt.NDArray[np.float32]]:
+        """:meth:`depth_mm` one part of the network per step (:meth:`split`; one part if it was not split): a
+        generator that yields between the parts and returns the map."""
+        x, single = self._batch(sae)
+        if self._parted is None:
+            out = self.session.run([OUTPUT_NAME], {self.input_name: x})[0]
+        else:
+            tensors = {self.input_name: x}
+            yield from self._parted.steps(tensors)
+            out = tensors[OUTPUT_NAME]
+        return self._to_mm(out[0, 0] if single else out[:, 0])
 
     def depth_mm(self, sae: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
         """Depth in mm on the 90 x 112 grid (batched if ``sae`` is (B, 2, ...)), clipped to [0, scale]."""
-        out = crop_from_unet(self.normalised(sae))
+        return self._to_mm(self.normalised(sae))
+
+    def _to_mm(self, normalised: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        out = crop_from_unet(normalised)
         return (np.clip(out, 0.0, 1.0) * np.float32(self.scale_mm)).astype(np.float32)
 
     __call__ = depth_mm

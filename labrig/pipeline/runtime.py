@@ -36,7 +36,7 @@ import numpy.typing as npt
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import displacement, forces, ifem, tracking
 from labrig.pipeline.anchor import AnchorFilter, anchor_px
-from labrig.pipeline.depth_lane import DepthLane
+from labrig.pipeline.depth_lane import DepthLane, DepthSteps, SteppedLane, Steps
 from labrig.pipeline.depth_sources import DepthSource
 from labrig.pipeline.forces import ContactLocation
 from labrig.pipeline.front_stage import FrontStage, TrackedWindow
@@ -99,13 +99,19 @@ class Pipeline:
                  surface_params: ifem.SurfaceParams | None = None, normal_mode: str = "contact",
                  threshold_mm: float = 0.01, keep_sae: bool = False, cache_dir: str | Path | None = None,
                  rest_params: RestParams | None = None, depth_every_us: int | None = None,
-                 reference: bool = False, depth_lane: bool = False) -> None:
+                 reference: bool = False, depth_lane: bool = False, depth_parts: int | None = None) -> None:
         """``depth_every_us``: run the depth source only on the first window ending at least this long after
         the last one it ran on, and keep its map in between (tracking and forces every window, e.g. 1 ms
         windows with depth every 10 ms); None: every window. ``reference``: redo every window's work that
         depends on the depth map alone (the path the default one, :class:`MapWork`, is tested against).
         ``depth_lane``: run the depth source's jobs in a thread of their own (:mod:`labrig.pipeline.depth_lane`;
-        each window takes the newest finished map); :meth:`close` stops it."""
+        each window takes the newest finished map); :meth:`close` stops it. ``depth_parts``: run the depth source's
+        jobs in steps in the windows' own thread instead (:class:`~labrig.pipeline.depth_lane.SteppedLane`, for one
+        core): the network cut into this many parts, one per window, then the map's work in the next window."""
+        if depth_lane and depth_parts is not None:
+            raise ValueError("depth_lane (a thread) and depth_parts (steps in the windows' thread) exclude each other")
+        if depth_parts is not None and depth_parts < 1:
+            raise ValueError(f"depth_parts must be at least 1, not {depth_parts}")
         self.setup = setup
         self.depth = depth
         rig = setup.rig
@@ -128,6 +134,10 @@ class Pipeline:
         self._map_work: MapWork | None = None
         self._flat_map = np.zeros(GRID_SHAPE, np.float32)
         self.lane: DepthLane[MapWork] | None = DepthLane() if depth_lane else None
+        self.stepped: SteppedLane[MapWork] | None = None
+        if depth_parts is not None:
+            depth.split_network(depth_parts)
+            self.stepped = SteppedLane()
         self._tracker_params, self._rest_params = tracker_params, rest_params
 
     def warm_up(self) -> float:
@@ -187,7 +197,7 @@ class Pipeline:
         start = time.perf_counter()
         rest_px = self._rest_of(tracked)
         self.observe(tracked)
-        if self.lane is not None:
+        if self.lane is not None or self.stepped is not None:
             depth = self._lane_depth(tracked, rest_px)
         elif tracked.sae is None and self.depth.needs_sae and self._depth_map is None:
             # no map yet and no SAE to make one (a live run that skipped the window its depth was due on): the gel
@@ -227,22 +237,38 @@ class Pipeline:
                             tracked.sae if self.keep_sae else None, seconds)
 
     def _lane_depth(self, tracked: TrackedWindow, rest_px: Array) -> npt.NDArray[np.float32]:
-        """The newest map the depth lane has finished (flat before its first), after handing it this window's job
-        when depth is due."""
-        assert self.lane is not None
-        if tracked.depth_due and (tracked.sae is not None or not self.depth.needs_sae):
-            job = self.depth.depth_job(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
-            self.lane.submit(lambda: self._new_work(job(), rest_px), tracked.t1_us)  # the map's work in the lane too
-        done = self.lane.poll()
+        """The newest map the depth lane (a thread, or steps run here) has finished (flat before its first), after
+        handing it this window's job when depth is due."""
+        due = tracked.depth_due and (tracked.sae is not None or not self.depth.needs_sae)
+        if self.stepped is not None:
+            if due:
+                steps = self.depth.depth_steps(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
+                self.stepped.submit(self._then_work(steps, rest_px), tracked.t1_us)
+            self.stepped.step()
+            done = self.stepped.poll()
+        else:
+            assert self.lane is not None
+            if due:
+                job = self.depth.depth_job(tracked.sae, tracked.depth_t0_us, tracked.t1_us, tracked.depth_n_events)
+                self.lane.submit(lambda: self._new_work(job(), rest_px), tracked.t1_us)  # the map's work in the lane too
+            done = self.lane.poll()
         if done is not None:
             self._map_work = done[0]
             self._depth_map = self._map_work.depth
         return self._depth_map if self._depth_map is not None else self._flat_map
 
+    def _then_work(self, steps: DepthSteps, rest_px: Array) -> Steps[MapWork]:
+        """The depth source's steps, then the map's work as one step more."""
+        depth = yield from steps
+        yield
+        return self._new_work(depth, rest_px)
+
     def close(self) -> None:
         """Stop the depth lane (if any); the pipeline can no longer run."""
         if self.lane is not None:
             self.lane.close()
+        if self.stepped is not None:
+            self.stepped.close()
 
     def _work_for(self, depth: npt.NDArray[np.float32], rest_px: Array) -> MapWork:
         """The work of ``depth`` that every window until the next map reuses (redone when the rest changes)."""
