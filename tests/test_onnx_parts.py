@@ -34,7 +34,7 @@ def test_cuts_balance_the_cost_and_every_part_reads_only_what_came_before() -> N
     costs = onnx_parts.node_costs(model)
     assert len(costs) == len(model.graph.node) and min(costs) > 0
     cuts = onnx_parts.cut_points(costs, 4)
-    assert cuts == sorted(set(cuts)) and 0 < cuts[0] and cuts[-1] < len(costs)
+    assert cuts == sorted(set(cuts)) and cuts[0] > 0 and cuts[-1] < len(costs)
     shares = np.diff([0, *np.cumsum(costs)[np.array(cuts) - 1], sum(costs)]) / sum(costs)
     assert shares.max() < 0.5  # no part far over a quarter
     made = {"inputs"}

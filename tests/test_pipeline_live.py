@@ -500,3 +500,12 @@ def test_a_camera_whose_stream_breaks_stops_the_live_run_with_its_reason(setup: 
                 if len(results) == 2:
                     camera.unplug()
     assert len(results) >= 2
+
+
+def test_the_live_network_runs_in_a_thread_with_a_second_core_and_in_steps_on_one() -> None:
+    from labrig.cli.run_live import depth_lane_for, usable_cores
+
+    assert depth_lane_for(None, 1) == depth_lane_for(None, 8) == "window"
+    assert depth_lane_for(10_000, 2) == "thread"
+    assert depth_lane_for(10_000, 1) == "steps"
+    assert usable_cores() >= 1

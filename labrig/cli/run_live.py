@@ -11,6 +11,7 @@ this module checks options, shows the live table (:mod:`labrig.cli.live_view`) a
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 import threading
 from collections import deque
@@ -45,6 +46,21 @@ from labrig.protocol.spec import ProtocolError
 
 #: Windows kept for --view (the last ones; every --view-every-th).
 MAX_VIEW_FRAMES = 300
+#: With one core, the network's parts when depth runs less often than every window (one part per window).
+ONE_CORE_DEPTH_PARTS = 3
+
+
+def depth_lane_for(depth_every_us: int | None, cores: int) -> str:
+    """Where the network runs live: "window" (every window runs it), "thread" (depth every few windows, a second
+    core to run it on) or "steps" (depth every few windows on one core: a part per window)."""
+    if depth_every_us is None:
+        return "window"
+    return "thread" if cores >= 2 else "steps"
+
+
+def usable_cores() -> int:
+    """The CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @dataclass(frozen=True)
@@ -94,8 +110,9 @@ def run_live(o: LiveOptions) -> None:
     assert isinstance(depth, depth_sources.ModelDepth)
     window_us, window_events = _windows(o, depth.model.window_ms)
     depth_every_us = depth_every_option(o.depth_every_ms)
+    lane = depth_lane_for(depth_every_us, usable_cores())
     pipe = runtime.Pipeline(setup, depth, keep_sae=o.view is not None, depth_every_us=depth_every_us,
-                            depth_lane=depth_every_us is not None)
+                            depth_lane=lane == "thread", depth_parts=ONE_CORE_DEPTH_PARTS if lane == "steps" else None)
     pipe.warm_up()  # before the stream starts: a first window's kernel loads would delay the windows behind it
     source = "virtual rig (embedded)" if devices.virtual else f"camera {live_rig.describe_camera(devices)}"
     sink = _Sink(o, len(setup.rest_px), {
@@ -118,8 +135,8 @@ def run_live(o: LiveOptions) -> None:
                           "check the camera streams (`labrig devices`, or the `labrig sim serve` terminal)")
     summary = window_summary(extra.pop("recording"), sink.log, stats.wall_s, depth.name, setup, window_us, window_events,
                              o.out, o.view)
-    summary.update({"live": True, "source": source, "virtual_rig": devices.virtual, "time_base": "camera device us",
-                    **stats.summary(), **extra})
+    summary.update({"live": True, "depth_lane": lane, "source": source, "virtual_rig": devices.virtual,
+                    "time_base": "camera device us", **stats.summary(), **extra})
     if o.view is not None:
         write_view(list(sink.frames), setup, o.view)
     if o.as_json:
