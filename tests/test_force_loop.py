@@ -110,3 +110,22 @@ def test_bad_settings_are_refused() -> None:
         ForceLoop(-1.0)
     with pytest.raises(ValueError, match="step"):
         step_response([0.0, 1.0], [1.0, 1.0], 1.0)
+
+
+def test_a_held_move_goes_along_the_plane_and_never_past_its_deepest_point() -> None:
+    from labrig.protocol.force_loop import HeldMove
+
+    normal = (0.0, 0.0, -1.0)  # pressing in is -z
+    held = HeldMove((0.0, 0.0, -10.0), (1.0, 0.0, -12.0), normal, 1.0, ForceLoop(5.0), deepest_mm=(0.0, 0.0, -10.05))
+    assert held.segments == 100
+    ends = []
+    t = 0.0
+    while (out := held.next_segment(t, 0.0)) is not None:  # no force: the loop presses in at full speed
+        assert not isinstance(out, str)
+        end, feed_mm_min = out
+        assert feed_mm_min > 0
+        ends.append(end)
+        t += 0.01
+    ends_mm = np.array(ends)
+    np.testing.assert_allclose(ends_mm[-1, :2], (1.0, 0.0), atol=1e-12)  # the target's place, its depth ignored
+    assert ends_mm[:, 2].min() == pytest.approx(-10.05) and np.all(np.diff(ends_mm[:, 0]) > 0)

@@ -214,3 +214,60 @@ def test_both_executors_play_the_same_steps_phases_moves_and_edges(rig: RigConfi
                 if axis in words_d:
                     shift = (contact_d[i] - contact_v[i]) if after_contact else 0.0
                     assert abs(words_d[axis] - words_v[axis] - shift) < 0.005, (k, axis, words_d, words_v)
+
+
+def test_a_held_force_shears_along_the_gel_plane_with_the_loop_on_the_normal(rig: RigConfig, sphere: Indenter) -> None:
+    from labrig.protocol.procedure import MoveHolding
+
+    spec = replace(QUICK, shear_hold_force_n=2.0)
+    plan = _plan(spec, rig, sphere)
+    contact = plan.approach_start_mm + 0.43 * plan.down
+    steps, _ = _replay(probe(plan, sphere.max_depth_mm), position=contact)
+    held = [s for s in steps if isinstance(s, MoveHolding)]
+    bottom = contact + 0.6 * plan.down
+    assert len(held) == 2 and all(h.hold.target_n == 2.0 and h.hold.feedback == "ft" for h in held)
+    np.testing.assert_allclose(held[0].target_mm, bottom + 0.4 * plan.shear_dir, atol=1e-12)
+    np.testing.assert_allclose(held[1].target_mm, bottom, atol=1e-12)
+    np.testing.assert_allclose(held[0].normal, plan.down)
+    assert [s.target_mm for s in steps if isinstance(s, Move)][1:] != []  # Normal Down, Up and Retract stay moves
+    with pytest.raises(ProcedureAbort, match=r"the force loop holding 2 N stopped: saturated"):
+        play(probe(plan, sphere.max_depth_mm),
+             lambda step: contact if isinstance(step, Position) else
+             (True if isinstance(step, MoveUntil) else ("saturated: ..." if isinstance(step, MoveHolding) else None)))
+
+
+def test_a_held_shear_in_virtual_time_reaches_and_holds_its_force(rig: RigConfig, sphere: Indenter,
+                                                                  tmp_path: Path) -> None:
+    """Pressed 0.6 mm (about 3 N), sheared holding 1.5 N: the loop backs off to it during the shear and holds it
+    through the shear back, within 0.1 N RMS on the F/T; its commands are in the recording's control stream."""
+    from labrig.protocol.virtual_run import record_virtual
+    from labrig.recording import Recording
+
+    spec = replace(QUICK, shear_hold_force_n=1.5, shear_mm=0.8, shear_speed_mm_s=1.0)
+    result = record_virtual(spec, tmp_path / "held.h5", rig, sphere, seed=3)
+    assert result.exit_status == "complete", result.reason
+    with Recording(result.path) as rec:
+        t = rec.column("ft", "t_host_us")
+        fz = np.abs(rec.column("ft", "force_n")[:, 2] - rec.column("ft", "force_n")[:100, 2].mean())
+        phases = {p.name: p for p in rec.phases()}
+        back = phases["shear_opposite"]
+        during = fz[(t >= back.t_start_us) & (t < back.t_end_us)]
+        assert np.sqrt(np.mean((during - 1.5) ** 2)) < 0.1
+        wait = next(p for p in rec.phases() if p.name == "wait")
+        assert fz[(t >= wait.t_start_us) & (t < wait.t_end_us)].mean() > 2.0  # pressed harder than held
+        control = rec.stream("control")
+        assert len(control["t_host_us"]) >= 2 * 0.8 / (1.0 * spec.control.segment_s)
+        assert np.all(control["target_n"] == 1.5) and np.median(np.diff(control["t_host_us"])) == 10_000
+
+
+def test_a_loop_that_stops_aborts_the_run_and_retracts(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:
+    """A loop too slow for its target (0.01 mm/s at most, saturated after 50 ms): the run aborts with the loop's reason
+    and retracts."""
+    from labrig.protocol.force_loop import ForceLoopParams
+    from labrig.protocol.virtual_run import record_virtual
+
+    spec = replace(QUICK, shear_hold_force_n=1.5, control=ForceLoopParams(max_speed_mm_s=0.01, saturation_s=0.05))
+    result = record_virtual(spec, tmp_path / "stale.h5", rig, sphere, seed=3)
+    assert result.exit_status == "aborted"
+    assert "the force loop holding 1.5 N stopped: saturated" in result.reason
+    assert result.phases[-1] == "retract" and "shear_opposite" not in result.phases

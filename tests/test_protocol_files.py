@@ -388,3 +388,46 @@ depth_mm = [2.45]
     assert set(found) == {(7, "group[1].depth_mm"), (13, "group[2].max_depth_mm")}
     assert "no headroom" in found[(7, "group[1].depth_mm")] and "use at most 1.45 mm" in found[(7, "group[1].depth_mm")]
     assert "use at most 2.45 mm" in found[(13, "group[2].max_depth_mm")]
+
+
+def test_a_held_force_and_its_loop_are_read_and_checked(tmp_path: Path, rig: RigConfig,
+                                                        indenters: dict[str, Indenter]) -> None:
+    from labrig.protocol.force_loop import ForceLoopParams
+
+    good = _write(tmp_path, "held.toml", """
+[probe]
+indenter = "sphere"
+[normal]
+depth_mm = 1.0
+[shear]
+distance_mm = 1.0
+hold_force_n = 4.0
+[control]
+feedback = "ft"
+kp_mm_s_per_n = 1.0
+max_speed_mm_s = 1.5
+""")
+    spec = load_protocol(good, rig, indenters)
+    assert spec.shear_hold_force_n == 4.0 and spec.feedback == "ft"
+    assert spec.control == ForceLoopParams(kp_mm_s_per_n=1.0, max_speed_mm_s=1.5)
+    bad = _write(tmp_path, "bad.toml", """
+[probe]
+indenter = "sphere"
+[normal]
+depth_mm = 1.0
+[shear]
+distance_mm = 0.0
+hold_force_n = 400.0
+[control]
+feedback = "events"
+ki_mm_s_per_n_s = -1.0
+gain = 2
+""")
+    with pytest.raises(ProtocolError) as exc:
+        load_protocol(bad, rig, indenters)
+    problems = _problems(exc)
+    assert "must be one of 'ft'" in problems[(9, "control.feedback")]
+    assert "must not be negative" in problems[(10, "control.ki_mm_s_per_n_s")]
+    assert "unknown key" in problems[(11, "control.gain")]
+    text = str(exc.value)
+    assert "distance_mm = 0 has none" in text and "max_normal_force_n" in text

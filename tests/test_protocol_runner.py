@@ -242,3 +242,21 @@ def test_a_twin_starved_for_seconds_answers_late_and_the_run_completes(rig: RigC
     assert result.shortfall.fell_behind and 0.5 < result.shortfall.ft_max_gap_s < 3.0
     with Recording(result.path) as rec:
         assert "F/T frames missing" in rec.attrs["fell_behind"] and 0.5 < rec.attrs["ft_max_gap_s"] < 3.0
+
+
+def test_a_held_shear_through_the_drivers_reaches_and_holds_its_force(rig: RigConfig, sphere: Indenter,
+                                                                     tmp_path: Path) -> None:
+    """Pressed 0.8 mm (about 4.5 N), sheared 1 mm holding 2 N: absolute jog segments every 10 ms on the host clock
+    bring the F/T's |Fz| to the target during the shear and hold it through the shear back."""
+    spec = replace(QUICK, shear_hold_force_n=2.0, shear_mm=1.0, shear_speed_mm_s=1.0)
+    with RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere) as session:
+        result = _runner(session, rig, sphere).run(spec, tmp_path / "held.h5")
+    assert result.exit_status == "complete", result.reason
+    with Recording(result.path) as rec:
+        t = rec.column("ft", "t_host_us")
+        fz = np.abs(rec.column("ft", "force_n")[:, 2] - rec.column("ft", "force_n")[:100, 2].mean())
+        back = next(p for p in rec.phases() if p.name == "shear_opposite")
+        during = fz[(t >= back.t_start_us) & (t < back.t_end_us)]
+        assert np.sqrt(np.mean((during - 2.0) ** 2)) < 0.15
+        control = rec.stream("control")
+        assert len(control["t_host_us"]) >= 150 and np.median(control["reading_age_us"]) < 5_000

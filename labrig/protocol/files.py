@@ -26,9 +26,10 @@ from typing import Any
 from labrig.config import RigConfig
 from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
+from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.rigfile import device_config
 from labrig.protocol.safety import SpeedLimits, depth_problem
-from labrig.protocol.spec import ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
+from labrig.protocol.spec import FEEDBACKS, ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
 from labrig.protocol.split import PAPER_SPLIT, assign_splits, split_counts
 from labrig.protocol.variation import parse_variation, slowest_machine
 
@@ -203,8 +204,18 @@ PROTOCOL_KEYS: dict[str, dict[str, str]] = {
     },
     "normal": {"depth_mm": "depth_mm", "force_n": "force_n", "speed_mm_s": "normal_speed_mm_s", "max_depth_mm": "max_depth_mm"},
     "wait": {"duration_s": "wait_s"},
-    "shear": {"direction_deg": "shear_direction_deg", "distance_mm": "shear_mm", "speed_mm_s": "shear_speed_mm_s"},
+    "shear": {"direction_deg": "shear_direction_deg", "distance_mm": "shear_mm", "speed_mm_s": "shear_speed_mm_s",
+              "hold_force_n": "shear_hold_force_n"},
     "retract": {"height_mm": "retract_height_mm", "speed_mm_s": "retract_speed_mm_s"},
+    "control": {
+        "feedback": "feedback",
+        "kp_mm_s_per_n": "control.kp_mm_s_per_n",
+        "ki_mm_s_per_n_s": "control.ki_mm_s_per_n_s",
+        "max_speed_mm_s": "control.max_speed_mm_s",
+        "segment_s": "control.segment_s",
+        "stale_after_s": "control.stale_after_s",
+        "saturation_s": "control.saturation_s",
+    },
 }
 # How each numeric field may be: "positive", "nonneg" or "any".
 _FIELD_SIGN: dict[str, str] = {
@@ -218,6 +229,13 @@ _FIELD_SIGN: dict[str, str] = {
     "shear_speed_mm_s": "positive",
     "retract_height_mm": "positive",
     "retract_speed_mm_s": "positive",
+    "shear_hold_force_n": "positive",
+    "control.kp_mm_s_per_n": "positive",
+    "control.ki_mm_s_per_n_s": "nonneg",
+    "control.max_speed_mm_s": "positive",
+    "control.segment_s": "positive",
+    "control.stale_after_s": "positive",
+    "control.saturation_s": "positive",
     "approach.start_height_mm": "nonneg",
     "approach.speed_mm_s": "positive",
     "approach.contact_force_n": "positive",
@@ -300,6 +318,11 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
                 if not isinstance(value, str) or not value:
                     problems.add(where, name, f"must be an indenter name in quotes, not {value!r}")
                     continue
+            elif field == "feedback":
+                if value not in FEEDBACKS:
+                    problems.add(where, name, f"must be one of {', '.join(repr(f) for f in FEEDBACKS)} (the F/T sensor), "
+                                              f"not {value!r}")
+                    continue
             elif field == "location_mm":
                 bad = _check_xy(value)
                 if bad:
@@ -326,7 +349,10 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
 def _build_spec(values: Mapping[str, Any]) -> ProbeSpec:
     """A ProbeSpec from field values (missing ones take the dataclass defaults)."""
     approach = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("approach.")}
-    top = {k: v for k, v in values.items() if not k.startswith("approach.")}
+    control = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("control.")}
+    top = {k: v for k, v in values.items() if not k.startswith(("approach.", "control."))}
+    if control:
+        top["control"] = ForceLoopParams(**control)
     if top.get("depth_mm") is None and top.get("force_n") is None:
         top["depth_mm"] = 1.5
     top.setdefault("indenter", "?")
@@ -350,6 +376,9 @@ def check_spec(
             f"{a.max_travel_mm} mm does not reach below the nominal surface (start height {a.start_height_mm} mm);"
             " make it larger than start_height_mm",
         ))
+    if spec.shear_hold_force_n is not None and not spec.has_shear:
+        out.append(("shear_hold_force_n", "holds the normal force during the shears, and distance_mm = 0 has none; "
+                                          "give a shear distance or drop hold_force_n"))
     target = spec.force_n if spec.force_n is not None else None
     if target is not None and a.contact_force_n >= target:
         out.append(("approach.contact_force_n", f"{a.contact_force_n} N is not below the force target {target} N; lower it"))
@@ -363,6 +392,12 @@ def check_spec(
             problem = None if value is None else depth_problem(value, indenter.name, indenter.max_depth_mm)
             if problem is not None:
                 out.append((key, problem))
+        if spec.shear_hold_force_n is not None and spec.shear_hold_force_n > indenter.max_normal_force_n:
+            out.append((
+                "shear_hold_force_n",
+                f"{spec.shear_hold_force_n} N is beyond the {indenter.name}'s max_normal_force_n "
+                f"{indenter.max_normal_force_n}; use at most {indenter.max_normal_force_n} N",
+            ))
         if spec.force_n is not None and spec.force_n > indenter.max_normal_force_n:
             out.append((
                 "force_n",
@@ -491,13 +526,14 @@ CAMPAIGN_KEYS: dict[str, tuple[str, ...]] = {
         "shear_mm",
         "shear_speed_mm_s",
         "wait_s",
+        "shear_hold_force_n",
         "repetitions",
     ),
 }
 GRID_KEYS = ("x_mm", "y_mm", "nx", "ny")
 # Group keys that are lists of numbers, each giving one ProbeSpec field.
 _GROUP_NUMBERS = ("depth_mm", "force_n", "max_depth_mm", "normal_speed_mm_s", "shear_direction_deg", "shear_mm",
-                  "shear_speed_mm_s", "wait_s")
+                  "shear_speed_mm_s", "wait_s", "shear_hold_force_n")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 

@@ -32,12 +32,15 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from labrig.recording.schema import Column, StreamSpec
+
 
 @dataclass(frozen=True)
 class ForceLoopParams:
     """Gains and limits of the normal-force loop (units in the names)."""
 
     kp_mm_s_per_n: float = 1.5  # press-in speed per newton of error
+    segment_s: float = 0.01  # a command's span: the loop reads and commands this often
     ki_mm_s_per_n_s: float = 1.0  # press-in speed per newton-second of accumulated error
     integral_band_n: float = 0.5  # the error accumulates only while within this of the target
     max_speed_mm_s: float = 2.0  # either way along the normal
@@ -48,7 +51,8 @@ class ForceLoopParams:
     oscillation_window_s: float = 1.0  # ... within this long trip the loop
 
     def __post_init__(self) -> None:
-        for name in ("kp_mm_s_per_n", "max_speed_mm_s", "stale_after_s", "saturation_s", "oscillation_window_s"):
+        for name in ("kp_mm_s_per_n", "segment_s", "max_speed_mm_s", "stale_after_s", "saturation_s",
+                     "oscillation_window_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, not {value}")
@@ -195,3 +199,67 @@ def hold_rms_n(force_n: npt.ArrayLike, target_n: float) -> float:
     if f.size == 0:
         raise ValueError("no readings")
     return float(np.sqrt(np.mean((f - target_n) ** 2)))
+
+
+# -- a move with the loop on the normal -------------------------------------------------------------------
+
+
+class HeldMove:
+    """The jog segments of a move along the gel plane with the force loop on the normal.
+
+    From ``start_mm`` (machine mm) toward ``target_mm``'s place in the gel plane (its component along ``normal``,
+    the gel's inward unit normal in machine axes, is ignored) at ``speed_mm_s``, in segments of the loop's
+    ``segment_s``; the loop moves the tool along ``normal`` by its command times the segment, never further in
+    than ``deepest_mm`` (a point the tool's component along ``normal`` stays at or short of: the deepest press
+    allowed). An executor calls :meth:`next_segment` once per segment with the newest reading and sends the
+    segment it returns."""
+
+    def __init__(self, start_mm: npt.ArrayLike, target_mm: npt.ArrayLike, normal: npt.ArrayLike,
+                 speed_mm_s: float, loop: ForceLoop, deepest_mm: npt.ArrayLike | None = None) -> None:
+        self.start = np.asarray(start_mm, np.float64)
+        self.normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+        delta = np.asarray(target_mm, np.float64) - self.start
+        self.lateral = delta - (delta @ self.normal) * self.normal
+        self.loop = loop
+        segment_mm = speed_mm_s * loop.params.segment_s
+        self.segments = max(1, math.ceil(float(np.linalg.norm(self.lateral)) / segment_mm - 1e-9))
+        self.done = 0
+        self.normal_mm = 0.0  # along the inward normal since the start
+        self.last = LoopCommand(0.0, 0.0)
+        self._end = self.start.copy()
+        self.max_normal_mm = math.inf if deepest_mm is None else float(
+            (np.asarray(deepest_mm, np.float64) - self.start) @ self.normal)
+
+    def next_segment(self, t_s: float, force_n: float, reading_t_s: float | None = None
+                     ) -> tuple[npt.NDArray[np.float64], float] | str | None:
+        """The next segment's end (machine mm) and feed (mm/min); the loop's stop (its reason) instead; None once
+        the move's last segment has been handed out."""
+        if self.done >= self.segments:
+            return None
+        command = self.loop.update(t_s, force_n, reading_t_s)
+        self.last = command
+        if command.stop is not None:
+            return command.stop
+        self.done += 1
+        self.normal_mm = min(self.normal_mm + command.speed_mm_s * self.loop.params.segment_s, self.max_normal_mm)
+        end = self.start + self.lateral * (self.done / self.segments) + self.normal * self.normal_mm
+        feed_mm_min = max(float(np.linalg.norm(end - self._end)) / self.loop.params.segment_s * 60, 1.0)
+        self._end = end
+        return end, feed_mm_min
+
+
+#: What the loop did, segment by segment (a recording of a run that holds a force has it).
+CONTROL_STREAM = StreamSpec(
+    "control",
+    (
+        Column("t_host_us", "<i8", "us", "host time the segment was commanded"),
+        Column("target_n", "<f4", "N", "the normal force to hold, on the gel, pressing positive"),
+        Column("feedback_n", "<f4", "N", "the reading the command came from"),
+        Column("reading_age_us", "<i8", "us", "how old the reading was"),
+        Column("speed_mm_s", "<f4", "mm/s", "commanded press-in speed along the gel normal"),
+        Column("clipped", "u1", "", "1: the speed was at its limit"),
+        Column("position_mm", "<f8", "mm", "the segment's end, machine X, Y, Z", (3,)),
+    ),
+    chunk_rows=1024,
+    description="the force loop's commands (feedback, command, segment)",
+)

@@ -14,9 +14,10 @@ Steps and their replies (positions: the CNC's tool reference point, machine mm):
 * :class:`Phase`: toggle the camera trigger output and log the phase at the edge (None).
 * :class:`Move`: a straight feed move, waited to its end (None).
 * :class:`MoveUntil`: an absolute jog cut short when its :class:`ForceAbove` condition holds
-  (whether it held). A force-controlled step (holding a force read from the event sensor's
-  estimate, say) would be one more step type carrying its condition, played by both executors;
-  the procedures keep their shape.
+  (whether it held).
+* :class:`MoveHolding`: a move along the gel plane in short jog segments while the force loop
+  (:mod:`labrig.protocol.force_loop`) holds the normal force (None, or the loop's stop: the
+  procedure then aborts with it).
 * :class:`Dwell`: hold still (None). Through the drivers the trigger output also toggles in pairs
   meanwhile (edges for the camera clock fit on a loaded host, each phase keeping its level); in
   virtual time every edge is exact and a dwell adds none.
@@ -39,6 +40,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.safety import deepest_press_mm
 
@@ -99,6 +101,29 @@ class MoveUntil:
 
 
 @dataclass(frozen=True)
+class HoldForce:
+    """The normal force held at ``target_n`` (N on the gel, pressing positive), read from ``feedback`` ("ft": the
+    F/T sensor's tared |Fz|), by a loop with ``params``."""
+
+    target_n: float
+    feedback: str
+    params: ForceLoopParams
+
+
+@dataclass(frozen=True)
+class MoveHolding:
+    """Along the gel plane toward ``target_mm``'s place at ``speed_mm_s`` (its component along ``normal`` ignored),
+    while ``hold`` moves the tool along ``normal`` (the gel's inward unit normal, machine axes), never deeper than
+    ``deepest_mm``; replies None at the end, or the loop's stop (its reason), the motion then stopped."""
+
+    target_mm: Point
+    speed_mm_s: float
+    hold: HoldForce
+    normal: Point
+    deepest_mm: Point  # the loop never presses further along ``normal`` than this point (the depth cap)
+
+
+@dataclass(frozen=True)
 class Dwell:
     """Hold still for ``seconds``."""
 
@@ -131,7 +156,7 @@ class Retreat:
     limit_s: float
 
 
-Step = Phase | Move | MoveUntil | Dwell | Position | Contact | Halt | Retreat
+Step = Phase | Move | MoveUntil | MoveHolding | Dwell | Position | Contact | Halt | Retreat
 #: A procedure: yields steps, is sent their replies, returns its result.
 Procedure = Generator[Step, Any, Any]
 
@@ -169,11 +194,11 @@ def probe(plan: ProbePlan, indenter_max_depth_mm: float) -> Generator[Step, Any,
     yield Dwell(spec.wait_s)
     if spec.has_shear:
         yield Phase("shear", stoppable=True)
-        yield Move(_point(plan.sheared_mm(bottom)), spec.shear_speed_mm_s)
+        yield from _shear(plan, plan.sheared_mm(bottom), contact, indenter_max_depth_mm)
         yield Phase("wait", stoppable=True)
         yield Dwell(spec.wait_s)
         yield Phase("shear_opposite", stoppable=True)
-        yield Move(_point(bottom), spec.shear_speed_mm_s)
+        yield from _shear(plan, bottom, contact, indenter_max_depth_mm)
         yield Phase("wait", stoppable=True)
         yield Dwell(spec.wait_s)
     yield Phase("normal_up")
@@ -202,6 +227,22 @@ def _press(plan: ProbePlan, contact: F64, indenter_max_depth_mm: float) -> Gener
         if not reached:
             raise ProcedureAbort(f"the force target {spec.force_n} N was not reached at the depth cap {max_depth} mm")
     return np.asarray((yield Position()), dtype=np.float64)
+
+
+def _shear(plan: ProbePlan, target: F64, contact: F64, indenter_max_depth_mm: float) -> Generator[Step, Any, None]:
+    """A shear to ``target``: a straight move, or, with a held force, a move along the gel plane with the loop on
+    the normal, no deeper below ``contact`` than a force target's search may go (aborting with the loop's reason
+    if it stops)."""
+    spec = plan.spec
+    if spec.shear_hold_force_n is None:
+        yield Move(_point(target), spec.shear_speed_mm_s)
+        return
+    hold = HoldForce(spec.shear_hold_force_n, spec.feedback, spec.control)
+    cap = deepest_press_mm(indenter_max_depth_mm)
+    deepest = plan.max_bottom_mm(contact, min(spec.max_depth_mm or cap, cap))
+    stopped = yield MoveHolding(_point(target), spec.shear_speed_mm_s, hold, _point(plan.down), _point(deepest))
+    if stopped is not None:
+        raise ProcedureAbort(f"the force loop holding {hold.target_n:g} N stopped: {stopped}")
 
 
 def recovery(plan: ProbePlan) -> Generator[Step, Any, None]:

@@ -17,11 +17,23 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy.typing as npt
+
 from labrig.clock import NS_PER_US
 from labrig.devices.bota_stream import FtSample
 from labrig.devices.camera import Camera, EventChunk
 from labrig.devices.grbl_channel import StatusSample
+from labrig.protocol.force_loop import HeldMove
 from labrig.recording import RecordingWriter
+
+
+def put_control(writer: RecordingWriter, t_host_ns: int, held: HeldMove, reading_n: float, reading_age_ns: int,
+                end_mm: npt.ArrayLike) -> None:
+    """One segment of a held move into the ``control`` stream (:data:`~labrig.protocol.force_loop.CONTROL_STREAM`):
+    commanded at ``t_host_ns`` from ``reading_n`` (N), ``reading_age_ns`` old, ending at ``end_mm`` (machine mm)."""
+    writer.put("control", t_host_us=(t_host_ns - writer.t0_host_ns) // NS_PER_US, target_n=held.loop.target_n,
+               feedback_n=reading_n, reading_age_us=reading_age_ns // 1000, speed_mm_s=held.last.speed_mm_s,
+               clipped=int(held.last.clipped), position_mm=end_mm)
 
 
 def put_ft(writer: RecordingWriter, sample: FtSample) -> bool:

@@ -24,6 +24,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -37,13 +38,16 @@ from labrig.devices.grbl import Grbl, GrblAlarm, GrblError, GrblTimeout
 from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter, indenter_toml
+from labrig.protocol.force_loop import CONTROL_STREAM, ForceLoop, HeldMove
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.preflight import checked_plan
 from labrig.protocol.procedure import (
+    MOVE_MARGIN_S,
     Contact,
     Dwell,
     Halt,
     Move,
+    MoveHolding,
     MoveUntil,
     Phase,
     Point,
@@ -58,6 +62,7 @@ from labrig.protocol.procedure import (
     recovery,
 )
 from labrig.protocol.realtime import CAMERA_BEHIND_LIMIT_S, Shortfall
+from labrig.protocol.routing import put_control
 from labrig.protocol.safety import SafetyError, SpeedLimits, StopRequest
 from labrig.protocol.session import NS_PER_US, TWIN_PATIENCE_S, RigSession
 from labrig.protocol.spec import ProbeSpec
@@ -243,6 +248,8 @@ class ProbeRunner:
                 self._move(step.target_mm, step.speed_mm_s)
             case MoveUntil():
                 return self._move_until(step)
+            case MoveHolding():
+                return self._move_holding(step)
             case Dwell():
                 self._dwell(step.seconds)
             case Position():
@@ -274,6 +281,42 @@ class ProbeRunner:
         distance = float(np.linalg.norm(np.asarray(target) - here))
         self._checked(lambda: self.grbl.move_to(*target, feed_mm_min=speed_mm_s * 60, machine=True))
         self._wait_motion(move_limit_s(distance, speed_mm_s))
+
+    def _move_holding(self, step: MoveHolding) -> str | None:
+        """The held move in absolute jog segments, one sent per segment's span on the host clock with the next
+        already queued (GRBL's planner runs them without stopping, and a jog cancel drops them); the loop reads the
+        F/T's newest tared |Fz|. A host late by a segment lets the queue run dry: the machine stops and waits."""
+        here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
+        held = HeldMove(here, step.target_mm, step.normal, step.speed_mm_s, ForceLoop(step.hold.target_n, step.hold.params),
+                        step.deepest_mm)
+        period_s = step.hold.params.segment_s
+        clock = self.session.clock
+        queued = 0
+        next_s = time.monotonic()
+        while True:
+            self._check_faults()
+            force_n, t_ns = self.session.monitor.normal_reading()
+            now_ns = clock.now_ns()
+            reading_ns = now_ns if t_ns is None else t_ns
+            out = held.next_segment(now_ns / 1e9, force_n, reading_ns / 1e9)
+            if isinstance(out, str):
+                self.grbl.jog_cancel()
+                self._wait_motion(MOVE_MARGIN_S)
+                return out
+            if out is None:
+                break
+            end, feed_mm_min = out
+            self._checked(partial(self.grbl.jog, *end, feed_mm_min=feed_mm_min, relative=False, machine=True))
+            if self._writer is not None:
+                put_control(self._writer, now_ns, held, force_n, now_ns - reading_ns, end)
+            queued += 1
+            if queued >= 2:  # one segment ahead
+                next_s += period_s
+                time.sleep(max(0.0, next_s - time.monotonic()))
+            else:
+                next_s = time.monotonic()
+        self._wait_motion(move_limit_s(0.0, step.speed_mm_s))
+        return None
 
     def _wait_motion(self, limit_s: float) -> None:
         """Wait for the machine to finish its moves, checking for faults; ``limit_s`` before the twin's patience."""
@@ -445,6 +488,8 @@ class ProbeRunner:
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      indenter_toml=indenter_toml(self.indenter), extra=info)
         streams = truth_streams(len(self.rig.markers.rest_positions_mm())) if self.session.virtual else ()
+        if spec.shear_hold_force_n is not None:
+            streams = (*streams, CONTROL_STREAM)
         if out.exists():
             out.unlink()
         writer = RecordingWriter(out, metadata, clock=self.session.clock, extra_streams=streams).open()

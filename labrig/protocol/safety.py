@@ -190,6 +190,7 @@ class ForceMonitor:
         self._baseline = [0.0, 0.0, 0.0]
         self._peak = [0.0, 0.0, 0.0]
         self._last = (0.0, 0.0, 0.0)
+        self.last_t_host_ns: int | None = None  # when the last sample arrived
         self.trip: Trip | None = None
         self.samples = 0
         self._lock = threading.Lock()
@@ -218,6 +219,11 @@ class ForceMonitor:
     def last_n(self) -> npt.NDArray[np.float64]:
         """The last sample less the baseline (N)."""
         return np.array(self._last)
+
+    def normal_reading(self) -> tuple[float, int | None]:
+        """The last sample's tared |Fz| (N) and when it arrived (host ns; None before any)."""
+        with self._lock:
+            return abs(self._last[2]), self.last_t_host_ns
 
     def set_baseline(self, force_n: npt.ArrayLike) -> None:
         with self._lock:
@@ -249,6 +255,7 @@ class ForceMonitor:
             f = (x - b[0], y - b[1], z - b[2])
             self.samples += 1
             self._last = f
+            self.last_t_host_ns = t_host_ns
             peak = self._peak
             for i in range(3):
                 size = abs(f[i])

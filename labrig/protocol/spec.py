@@ -17,8 +17,11 @@ from pathlib import Path
 
 from labrig.dataset import SPLITS
 from labrig.errors import LabrigError
+from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.variation import SensorVariation
 
+#: Where a held force is read from: the F/T sensor.
+FEEDBACKS = ("ft",)
 #: Depth assumed when timing a force-target run that has no depth cap (see ``nominal_duration_s``).
 FORCE_TARGET_DEPTH_GUESS_MM = 1.5
 
@@ -64,6 +67,9 @@ class ProbeSpec:
     ``force_n`` (|Fz| to reach); a force target stops at ``max_depth_mm`` even if
     the force is not reached (``None``: the indenter's own ``max_depth_mm``).
     ``retract_height_mm`` is the height above the contact point to return to.
+    ``shear_hold_force_n``: during Shear and Shear Opposite the normal force is held at this (N on the gel) by the
+    force loop (:mod:`labrig.protocol.force_loop`, gains and limits ``control``), read from ``feedback``; the tool
+    then moves along the gel normal as the loop commands (None: the shears keep the pressed depth).
     """
 
     indenter: str
@@ -79,6 +85,9 @@ class ProbeSpec:
     retract_height_mm: float = 2.0
     retract_speed_mm_s: float = 5.0
     max_depth_mm: float | None = None
+    shear_hold_force_n: float | None = None
+    feedback: str = "ft"
+    control: ForceLoopParams = field(default_factory=ForceLoopParams)
 
     def __post_init__(self) -> None:
         if (self.depth_mm is None) == (self.force_n is None):

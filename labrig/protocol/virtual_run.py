@@ -27,6 +27,7 @@ from labrig.config import RigConfig
 from labrig.devices.bota_stream import FtSample
 from labrig.indenters import Indenter, indenter_toml
 from labrig.physics.grid import network_grid_gel_mm
+from labrig.protocol.force_loop import CONTROL_STREAM, ForceLoop, HeldMove
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.preflight import checked_plan
 from labrig.protocol.procedure import (
@@ -34,6 +35,7 @@ from labrig.protocol.procedure import (
     Dwell,
     Halt,
     Move,
+    MoveHolding,
     MoveUntil,
     Phase,
     Point,
@@ -48,7 +50,7 @@ from labrig.protocol.procedure import (
     recovery,
 )
 from labrig.protocol.rigfile import safety_limits
-from labrig.protocol.routing import put_chunk, put_ft_rows, put_gcode
+from labrig.protocol.routing import put_chunk, put_control, put_ft_rows, put_gcode
 from labrig.protocol.runner import RunResult
 from labrig.protocol.safety import ForceMonitor, SafetyLimits, SpeedLimits
 from labrig.protocol.session import NS_PER_US
@@ -157,7 +159,8 @@ class _VirtualRun:
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      indenter_toml=indenter_toml(self.indenter), extra=info)
         writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S, wake_on_put=False,
-                                 extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))).open()
+                                 extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))
+                                 + ((CONTROL_STREAM,) if self.plan.spec.shear_hold_force_n is not None else ())).open()
         self.writer = writer
         result = RunResult(out, EXIT_COMPLETE)
         try:
@@ -198,6 +201,8 @@ class _VirtualRun:
                 self._move(step.target_mm, step.speed_mm_s, jog=True)
                 self.monitor.disarm()
                 return reached.is_set()
+            case MoveHolding():
+                return self._move_holding(step)
             case Dwell():
                 d.dwell(round(step.seconds * US), stop=self._tripped)
                 self._check_trip()
@@ -212,6 +217,36 @@ class _VirtualRun:
             case Retreat():
                 d.move(step.target_mm, step.speed_mm_s * 60)
                 d.wait_idle(round(step.limit_s * US))
+        return None
+
+    def _move_holding(self, step: MoveHolding) -> str | None:
+        """The held move in jog segments, one commanded per segment's span with the next already queued (GRBL's
+        planner runs them without stopping); the loop reads the F/T's newest tared |Fz|."""
+        d = self.devices
+        held = HeldMove(d.timeline.tail_mm, step.target_mm, step.normal, step.speed_mm_s,
+                        ForceLoop(step.hold.target_n, step.hold.params), step.deepest_mm)
+        segment_us = round(step.hold.params.segment_s * US)
+        queued = 0
+        while True:
+            force_n, t_ns = self.monitor.normal_reading()
+            now_us = d.now_us
+            reading_us = now_us if t_ns is None else t_ns / 1000
+            out = held.next_segment(now_us / US, force_n, reading_us / US)
+            if isinstance(out, str):
+                d.jog_cancel()
+                d.dwell(segment_us)
+                return out
+            if out is None:
+                break
+            end, feed_mm_min = out
+            d.move(end, feed_mm_min, jog=True)
+            if self.writer is not None:
+                put_control(self.writer, now_us * 1000, held, force_n, round((now_us - reading_us) * 1000), end)
+            queued += 1
+            if queued >= 2:  # one segment ahead
+                d.dwell(segment_us, stop=self._tripped)
+                self._check_trip()
+        self._wait(move_limit_s(0.0, step.speed_mm_s))
         return None
 
     def _phase(self, name: str) -> None:
