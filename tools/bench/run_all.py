@@ -26,7 +26,7 @@ BENCHES = (
     "bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live",
     "bench_campaign", "bench_groundtruth", "bench_training", "bench_tracker", "bench_depth_state", "bench_ifem",
     "bench_pipeline", "bench_live_latency", "bench_clock", "bench_view", "bench_sim_resolution", "bench_truth_codecs",
-    "bench_virtual_campaign",
+    "bench_virtual_campaign", "bench_control",
 )
 #: Benchmarks of this tree against a baseline tree (``--baseline``).
 AGAINST_BASELINE = ("bench_sensor_replay", "bench_virtual_stages")
