@@ -28,11 +28,9 @@ CONVOLUTIONS = ("Conv", "ConvTranspose")
 CHANNEL_BLOCK = 16
 
 
-def _shapes(model: Any) -> dict[str, list[int]]:
-    """Tensor name -> shape (symbolic dims as 1) of every tensor shape inference can type."""
-    import onnx
-
-    inferred = onnx.shape_inference.infer_shapes(model)
+def _shapes(inferred: Any) -> dict[str, list[int]]:
+    """Tensor name -> shape (symbolic dims as 1) of every tensor of ``inferred`` (a model through ONNX's shape
+    inference) that it types."""
     shapes: dict[str, list[int]] = {}
     graph = inferred.graph
     for info in [*graph.input, *graph.value_info, *graph.output]:
@@ -43,10 +41,13 @@ def _shapes(model: Any) -> dict[str, list[int]]:
     return shapes
 
 
-def node_costs(model: Any) -> list[float]:
+def node_costs(model: Any, inferred: Any | None = None) -> list[float]:
     """Per node (stored order): the estimated cost, multiply-adds for a convolution, output elements otherwise
-    (a node whose output shape is unknown counts 1); channel counts under :data:`CHANNEL_BLOCK` count as it."""
-    shapes = _shapes(model)
+    (a node whose output shape is unknown counts 1); channel counts under :data:`CHANNEL_BLOCK` count as it.
+    ``inferred``: ``model`` through ONNX's shape inference, if already made."""
+    import onnx
+
+    shapes = _shapes(inferred if inferred is not None else onnx.shape_inference.infer_shapes(model))
     costs = []
     for node in model.graph.node:
         out = shapes.get(node.output[0]) if node.output else None
@@ -84,9 +85,10 @@ def split(model: Any, parts: int) -> list[Any]:
 
     graph = model.graph
     nodes = list(graph.node)
-    bounds = [0, *cut_points(node_costs(model), parts), len(nodes)]
-    inferred = onnx.shape_inference.infer_shapes(model).graph
-    infos = {i.name: i for i in [*inferred.input, *inferred.value_info, *inferred.output]}
+    inferred = onnx.shape_inference.infer_shapes(model)
+    bounds = [0, *cut_points(node_costs(model, inferred), parts), len(nodes)]
+    typed = inferred.graph
+    infos = {i.name: i for i in [*typed.input, *typed.value_info, *typed.output]}
     initializers = {i.name: i for i in graph.initializer}
     graph_outputs = [o.name for o in graph.output]
     out: list[Any] = []
