@@ -152,8 +152,10 @@ def test_baud_change_is_saved_and_a_too_slow_line_throttles(make_rig) -> None:
     rig.sensor.start()
     rig.wait_samples(100)
     stats = rig.sensor.stats()
-    # 622 frames/s fit the line: about one sample in five is skipped and flagged on the next frame.
-    assert stats.frames_lost > 10 and stats.status_frames["app_took_too_long"] == stats.gaps
+    # 622 frames/s fit the line: about one sample in five is skipped and flagged on the next frame. The
+    # first frame counted may carry the flag of a sample skipped before counting began: no gap to see.
+    flagged = stats.status_frames["app_took_too_long"]
+    assert stats.frames_lost > 10 and stats.gaps <= flagged <= stats.gaps + 1
     assert any("increase it" in w for w in rig.warnings) and any("lost" in w for w in rig.warnings)
 
 
