@@ -261,13 +261,47 @@ def test_a_held_shear_in_virtual_time_reaches_and_holds_its_force(rig: RigConfig
 
 
 def test_a_loop_that_stops_aborts_the_run_and_retracts(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:
-    """A loop too slow for its target (0.01 mm/s at most, saturated after 50 ms): the run aborts with the loop's reason
-    and retracts."""
+    """A held force the depth cap forbids (1.5 N held no deeper than 0.05 mm below contact, saturated after 50 ms):
+    the run aborts with the loop's reason and retracts."""
     from labrig.protocol.force_loop import ForceLoopParams
     from labrig.protocol.virtual_run import record_virtual
 
-    spec = replace(QUICK, shear_hold_force_n=1.5, control=ForceLoopParams(max_speed_mm_s=0.01, saturation_s=0.05))
-    result = record_virtual(spec, tmp_path / "stale.h5", rig, sphere, seed=3)
+    spec = replace(QUICK, depth_mm=None, force_n=1.5, press_hold_s=0.5, max_depth_mm=0.05,
+                   control=ForceLoopParams(saturation_s=0.05))
+    result = record_virtual(spec, tmp_path / "capped.h5", rig, sphere, seed=3)
     assert result.exit_status == "aborted"
     assert "the force loop holding 1.5 N stopped: saturated" in result.reason
-    assert result.phases[-1] == "retract" and "shear_opposite" not in result.phases
+    assert result.phases[-1] == "retract" and "wait" not in result.phases
+
+
+def test_a_held_press_steps_to_its_force_and_holds_it_through_waits_and_shears(rig: RigConfig, sphere: Indenter,
+                                                                               tmp_path: Path) -> None:
+    """From contact the loop presses to 3 N without overshooting it by more than 10 %, holds it through the waits
+    and the shears (0.1 N RMS on the F/T), and every held step is in the control stream."""
+    from labrig.protocol.force_loop import step_response
+    from labrig.protocol.procedure import MoveHolding
+    from labrig.protocol.virtual_run import record_virtual
+    from labrig.recording import Recording
+
+    spec = replace(QUICK, depth_mm=None, force_n=3.0, press_hold_s=1.0, shear_mm=0.5, shear_speed_mm_s=1.0)
+    plan = _plan(spec, rig, sphere)
+    steps, _ = _replay(probe(plan, sphere.max_depth_mm), position=plan.approach_start_mm + 0.43 * plan.down)
+    held = [s for s in steps if isinstance(s, MoveHolding)]
+    assert [h.duration_s for h in held] == [1.0, spec.wait_s, 0.0, spec.wait_s, 0.0, spec.wait_s]
+    assert all(h.hold.target_n == 3.0 for h in held)
+    result = record_virtual(spec, tmp_path / "press.h5", rig, sphere, seed=3)
+    assert result.exit_status == "complete", result.reason
+    with Recording(result.path) as rec:
+        t = rec.column("ft", "t_host_us")
+        fz = np.abs(rec.column("ft", "force_n")[:, 2] - rec.column("ft", "force_n")[:100, 2].mean())
+        phases = rec.phases()
+        press = next(p for p in phases if p.name == "normal_down")
+        inside = (t >= press.t_start_us) & (t < press.t_end_us)
+        assert step_response((t[inside] - press.t_start_us) / 1e6, fz[inside], 3.0, start_n=0.0).overshoot_pct <= 10
+        later = np.zeros(t.shape, bool)
+        for p in phases:
+            if p.name in ("wait", "shear", "shear_opposite"):
+                later |= (t >= p.t_start_us) & (t < p.t_end_us)
+        assert np.sqrt(np.mean((fz[later] - 3.0) ** 2)) < 0.1
+        control = rec.stream("control")
+        assert np.all(control["target_n"] == 3.0) and control["stiffness_n_per_mm"].min() >= 8.0

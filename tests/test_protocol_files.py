@@ -404,30 +404,32 @@ distance_mm = 1.0
 hold_force_n = 4.0
 [control]
 feedback = "ft"
-kp_mm_s_per_n = 1.0
+stiffness_n_per_mm = 12.0
 max_speed_mm_s = 1.5
 """)
     spec = load_protocol(good, rig, indenters)
-    assert spec.shear_hold_force_n == 4.0 and spec.feedback == "ft"
-    assert spec.control == ForceLoopParams(kp_mm_s_per_n=1.0, max_speed_mm_s=1.5)
+    assert spec.shear_hold_force_n == 4.0 and spec.feedback == "ft" and spec.press_hold_s is None
+    assert spec.control == ForceLoopParams(stiffness_n_per_mm=12.0, max_speed_mm_s=1.5)
     bad = _write(tmp_path, "bad.toml", """
 [probe]
 indenter = "sphere"
 [normal]
 depth_mm = 1.0
+hold_s = 1.0
 [shear]
 distance_mm = 0.0
 hold_force_n = 400.0
 [control]
 feedback = "events"
-ki_mm_s_per_n_s = -1.0
+stiffness_n_per_mm = -1.0
 gain = 2
 """)
     with pytest.raises(ProtocolError) as exc:
         load_protocol(bad, rig, indenters)
     problems = _problems(exc)
-    assert "must be one of 'ft'" in problems[(9, "control.feedback")]
-    assert "must not be negative" in problems[(10, "control.ki_mm_s_per_n_s")]
-    assert "unknown key" in problems[(11, "control.gain")]
+    assert "must be one of 'ft'" in problems[(10, "control.feedback")]
+    assert "must be positive" in problems[(11, "control.stiffness_n_per_mm")]
+    assert "unknown key" in problems[(12, "control.gain")]
     text = str(exc.value)
     assert "distance_mm = 0 has none" in text and "max_normal_force_n" in text
+    assert "give [normal] force_n instead of depth_mm, or drop hold_s" in text

@@ -75,6 +75,12 @@ class MachineLimits:
             junction_deviation_mm=float(settings.get(11, d.junction_deviation_mm)),
         )
 
+    def accel_along_mm_s2(self, direction: Sequence[float]) -> float:
+        """The acceleration of a straight move along ``direction`` (mm/s**2): the largest that keeps every axis
+        within its own, as the planner gives a block."""
+        norm = math.sqrt(sum(float(u) * float(u) for u in direction))
+        return min(acc * norm / abs(float(u)) for u, acc in zip(direction, self.accel_mm_s2) if abs(float(u)) > 1e-12)
+
 
 @dataclass(frozen=True)
 class Block:

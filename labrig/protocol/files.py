@@ -202,15 +202,15 @@ PROTOCOL_KEYS: dict[str, dict[str, str]] = {
         "contact_force_n": "approach.contact_force_n",
         "max_travel_mm": "approach.max_travel_mm",
     },
-    "normal": {"depth_mm": "depth_mm", "force_n": "force_n", "speed_mm_s": "normal_speed_mm_s", "max_depth_mm": "max_depth_mm"},
+    "normal": {"depth_mm": "depth_mm", "force_n": "force_n", "speed_mm_s": "normal_speed_mm_s", "max_depth_mm": "max_depth_mm",
+               "hold_s": "press_hold_s"},
     "wait": {"duration_s": "wait_s"},
     "shear": {"direction_deg": "shear_direction_deg", "distance_mm": "shear_mm", "speed_mm_s": "shear_speed_mm_s",
               "hold_force_n": "shear_hold_force_n"},
     "retract": {"height_mm": "retract_height_mm", "speed_mm_s": "retract_speed_mm_s"},
     "control": {
         "feedback": "feedback",
-        "kp_mm_s_per_n": "control.kp_mm_s_per_n",
-        "ki_mm_s_per_n_s": "control.ki_mm_s_per_n_s",
+        "stiffness_n_per_mm": "control.stiffness_n_per_mm",
         "max_speed_mm_s": "control.max_speed_mm_s",
         "segment_s": "control.segment_s",
         "stale_after_s": "control.stale_after_s",
@@ -230,8 +230,8 @@ _FIELD_SIGN: dict[str, str] = {
     "retract_height_mm": "positive",
     "retract_speed_mm_s": "positive",
     "shear_hold_force_n": "positive",
-    "control.kp_mm_s_per_n": "positive",
-    "control.ki_mm_s_per_n_s": "nonneg",
+    "press_hold_s": "positive",
+    "control.stiffness_n_per_mm": "positive",
     "control.max_speed_mm_s": "positive",
     "control.segment_s": "positive",
     "control.stale_after_s": "positive",
@@ -376,6 +376,9 @@ def check_spec(
             f"{a.max_travel_mm} mm does not reach below the nominal surface (start height {a.start_height_mm} mm);"
             " make it larger than start_height_mm",
         ))
+    if spec.press_hold_s is not None and spec.force_n is None:
+        out.append(("press_hold_s", "presses to a force target and holds it, and this run has a depth target; "
+                                    "give [normal] force_n instead of depth_mm, or drop hold_s"))
     if spec.shear_hold_force_n is not None and not spec.has_shear:
         out.append(("shear_hold_force_n", "holds the normal force during the shears, and distance_mm = 0 has none; "
                                           "give a shear distance or drop hold_force_n"))
@@ -527,13 +530,14 @@ CAMPAIGN_KEYS: dict[str, tuple[str, ...]] = {
         "shear_speed_mm_s",
         "wait_s",
         "shear_hold_force_n",
+        "press_hold_s",
         "repetitions",
     ),
 }
 GRID_KEYS = ("x_mm", "y_mm", "nx", "ny")
 # Group keys that are lists of numbers, each giving one ProbeSpec field.
 _GROUP_NUMBERS = ("depth_mm", "force_n", "max_depth_mm", "normal_speed_mm_s", "shear_direction_deg", "shear_mm",
-                  "shear_speed_mm_s", "wait_s", "shear_hold_force_n")
+                  "shear_speed_mm_s", "wait_s", "shear_hold_force_n", "press_hold_s")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 

@@ -1,26 +1,30 @@
-"""Normal-force regulation as a state machine: a force reading in, a velocity along the gel normal out.
+"""Normal-force regulation as a state machine: a force reading in, a place along the gel normal out.
 
-Sans-I/O, in the manner of :mod:`labrig.devices.grbl_protocol`: :meth:`ForceLoop.update` takes the time
-and the newest normal force (N on the gel, pressing positive; from the F/T sensor or from the event
-sensor's estimate) and returns a :class:`LoopCommand`: the speed to press in at (mm/s along the gel's
-inward normal; negative backs off) for the next segment, or a stop with its reason. An executor turns
-the command into motion (a short jog segment through the drivers, the tool's path in virtual time) and
-calls again when the next reading arrives.
+Sans-I/O, in the manner of :mod:`labrig.devices.grbl_protocol`: :meth:`ForceLoop.update` takes the time, the
+newest normal force (N on the gel, pressing positive; from the F/T sensor or from the event sensor's estimate)
+and where the tool was along the gel's inward normal when that force was read, and returns a
+:class:`LoopCommand`: the place to go to (mm along the normal), or a stop with its reason. An executor turns the
+command into motion (a short jog segment through the drivers, the tool's path in virtual time) and calls again
+when the next reading arrives.
 
-The law is proportional-integral on the force error, in velocity: ``v = kp e + ki integral(e)``, clipped to
-``max_speed_mm_s``. The gel is a spring (about 2-10 N/mm for the shipped indenters), so pressing at ``v``
-changes the force at ``k v``: the proportional term alone gives a first-order approach to the target
-with time constant ``1 / (k kp)`` and no steady error for a constant target; the integral term takes out
-the steady error of a drifting load (a shear that unloads the normal). The error accumulates only within
-``integral_band_n`` of the target and while the command is not clipped, so a step's approach winds up no
-integral to be worked off slowly after it.
+The law is a stiffness step: the gel is a spring along the normal, so the force is on target ``e / k`` further
+in, with ``e`` the target minus the reading and ``k`` the contact's stiffness (N/mm). The goal is set from the
+tool's place *at the reading's time*, so a late reading (the F/T's filter, the event pipeline's window) moves
+the goal no further than a fresh one would; and ``k`` is taken no lower than the stiffest the contact has shown
+(``stiffness_n_per_mm``, raised by the secant stiffness measured between readings, with a margin): a stiffer
+guess stops short of the target and the next readings close the rest, so a step does not overshoot. The goal is
+an end point the motion controller plans to stop at (GRBL decelerates to rest at the end of its queue), so the
+machine's acceleration limit cannot carry the tool past it; the executor keeps the goal within what the machine
+can reach in the next segments (:class:`HeldMove`).
 
 Trips, each a stop with one line saying why (the executor then stops the motion and retracts):
 
 * **stalled**: the newest reading is older than ``stale_after_s`` (a camera lost, a pipeline behind);
-* **saturated**: the command stayed clipped for ``saturation_s`` (a target the rig cannot reach);
+* **saturated**: the goal stayed beyond what the tool may reach (the depth cap, the speed limit) for
+  ``saturation_s`` (a target the rig cannot reach);
 * **oscillating**: the error changed sign ``oscillation_crossings`` times within ``oscillation_window_s``
-  with an amplitude over ``oscillation_band_n`` (gains too high for the gel or the feedback's delay).
+  with an amplitude over ``oscillation_band_n`` (a contact stiffer than assumed, a feedback slower than its
+  stamps say).
 """
 
 from __future__ import annotations
@@ -34,44 +38,44 @@ import numpy.typing as npt
 
 from labrig.recording.schema import Column, StreamSpec
 
+#: The secant stiffness is measured between readings at least this far apart along the normal (mm) ...
+STIFFNESS_BASELINE_MM = 0.02
+#: ... and the loop assumes this much more than it measured (a sphere stiffens as it goes in).
+STIFFNESS_MARGIN = 1.25
+
 
 @dataclass(frozen=True)
 class ForceLoopParams:
     """Gains and limits of the normal-force loop (units in the names)."""
 
-    kp_mm_s_per_n: float = 1.5  # press-in speed per newton of error
-    segment_s: float = 0.01  # a command's span: the loop reads and commands this often
-    ki_mm_s_per_n_s: float = 1.0  # press-in speed per newton-second of accumulated error
-    integral_band_n: float = 0.5  # the error accumulates only while within this of the target
+    stiffness_n_per_mm: float = 8.0  # the least contact stiffness assumed: each reading moves the goal e / k
     max_speed_mm_s: float = 2.0  # either way along the normal
+    segment_s: float = 0.01  # a command's span: the loop reads and commands this often
     stale_after_s: float = 0.02  # a reading older than this stops the loop
-    saturation_s: float = 3.0  # clipped this long: the target is out of reach
+    saturation_s: float = 3.0  # the goal out of reach this long: the target is out of reach
     oscillation_band_n: float = 0.5  # error swings under this are not counted as oscillation
     oscillation_crossings: int = 4  # sign changes of the error (each over the band) ...
     oscillation_window_s: float = 1.0  # ... within this long trip the loop
 
     def __post_init__(self) -> None:
-        for name in ("kp_mm_s_per_n", "segment_s", "max_speed_mm_s", "stale_after_s", "saturation_s",
+        for name in ("stiffness_n_per_mm", "segment_s", "max_speed_mm_s", "stale_after_s", "saturation_s",
                      "oscillation_window_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, not {value}")
-        if not (math.isfinite(self.ki_mm_s_per_n_s) and self.ki_mm_s_per_n_s >= 0):
-            raise ValueError(f"ki_mm_s_per_n_s must be zero or positive, not {self.ki_mm_s_per_n_s}")
-        if not (math.isfinite(self.integral_band_n) and self.integral_band_n >= 0):
-            raise ValueError(f"integral_band_n must be zero or positive, not {self.integral_band_n}")
         if self.oscillation_crossings < 2 or self.oscillation_band_n < 0:
             raise ValueError("oscillation_crossings must be at least 2 and oscillation_band_n not negative")
 
 
 @dataclass(frozen=True)
 class LoopCommand:
-    """What to do until the next reading: press in at ``speed_mm_s`` (mm/s along the gel's inward normal,
-    negative backs off), or stop (``stop`` the reason, ``speed_mm_s`` 0). ``error_n``: target minus reading;
-    ``clipped``: the speed is at its limit."""
+    """What to do until the next reading: go to ``goal_mm`` along the gel's inward normal (the reading's frame, mm),
+    or stop (``stop`` the reason). ``error_n``: target minus reading; ``stiffness_n_per_mm``: the stiffness the goal
+    assumed; ``clipped``: the goal was cut to what the tool may reach."""
 
-    speed_mm_s: float
+    goal_mm: float
     error_n: float
+    stiffness_n_per_mm: float
     clipped: bool = False
     stop: str | None = None
 
@@ -84,52 +88,60 @@ class ForceLoop:
             raise ValueError(f"the force target must be zero or positive (N), not {target_n}")
         self.params = params or ForceLoopParams()
         self.target_n = float(target_n)
-        self.integral_n_s = 0.0
         self.stopped: str | None = None
-        self._last_t_s: float | None = None
+        self.stiffness_n_per_mm = self.params.stiffness_n_per_mm
+        self._anchor: tuple[float, float] | None = None  # (place mm, force N) the secant is measured from
         self._clipped_since_s: float | None = None
         self._last_sign = 0
         self._crossings: deque[float] = deque()
 
     def retarget(self, target_n: float) -> None:
-        """A new target (a step); the integral is kept (it holds the load's drift)."""
+        """A new target (a step)."""
         if not (math.isfinite(target_n) and target_n >= 0):
             raise ValueError(f"the force target must be zero or positive (N), not {target_n}")
         self.target_n = float(target_n)
 
-    def update(self, t_s: float, force_n: float, reading_t_s: float | None = None) -> LoopCommand:
+    def update(self, t_s: float, force_n: float, place_mm: float, reading_t_s: float | None = None,
+               reach_mm: tuple[float, float] = (-math.inf, math.inf)) -> LoopCommand:
         """The command at time ``t_s`` (s, any fixed origin) from the newest reading ``force_n`` (N, pressing
-        positive) taken at ``reading_t_s`` (default ``t_s``). Once stopped, every later call stops too."""
+        positive), taken at ``reading_t_s`` (default ``t_s``) with the tool at ``place_mm`` along the inward normal
+        (mm, any fixed origin); the goal is cut to ``reach_mm`` (lowest, highest place allowed). Once stopped, every
+        later call stops too."""
         p = self.params
         error = self.target_n - float(force_n)
         if self.stopped is not None:
-            return LoopCommand(0.0, error, stop=self.stopped)
+            return LoopCommand(place_mm, error, self.stiffness_n_per_mm, stop=self.stopped)
         age_s = t_s - (t_s if reading_t_s is None else reading_t_s)
-        if age_s > p.stale_after_s or not math.isfinite(force_n):
-            return self._stop(error, f"the force feedback stalled: the newest reading is {age_s * 1e3:.0f} ms old "
-                                     f"(more than {p.stale_after_s * 1e3:.0f} ms)")
-        dt = 0.0 if self._last_t_s is None else max(t_s - self._last_t_s, 0.0)
-        self._last_t_s = t_s
-        raw = p.kp_mm_s_per_n * error + p.ki_mm_s_per_n_s * (self.integral_n_s + error * dt)
-        clipped = abs(raw) > p.max_speed_mm_s
-        if not clipped and abs(error) <= p.integral_band_n:
-            self.integral_n_s += error * dt
-        else:
-            raw = p.kp_mm_s_per_n * error + p.ki_mm_s_per_n_s * self.integral_n_s
-            clipped = abs(raw) > p.max_speed_mm_s
-        speed = float(np.clip(raw, -p.max_speed_mm_s, p.max_speed_mm_s))
+        if age_s > p.stale_after_s or not (math.isfinite(force_n) and math.isfinite(place_mm)):
+            return self._stop(place_mm, error, f"the force feedback stalled: the newest reading is "
+                                               f"{age_s * 1e3:.0f} ms old (more than {p.stale_after_s * 1e3:.0f} ms)")
+        k = self._stiffness(place_mm, float(force_n))
+        wanted = place_mm + error / k
+        goal = min(max(wanted, reach_mm[0]), reach_mm[1])
+        clipped = goal != wanted
         if clipped:
             self._clipped_since_s = t_s if self._clipped_since_s is None else self._clipped_since_s
             if t_s - self._clipped_since_s >= p.saturation_s:
-                return self._stop(error, f"saturated: the speed stayed at its {p.max_speed_mm_s:g} mm/s limit for "
-                                         f"{p.saturation_s:g} s with the force {error:+.2f} N off its target")
+                return self._stop(goal, error, f"saturated: the force stayed {error:+.2f} N off its target with the "
+                                               f"tool at the limit of its reach for {p.saturation_s:g} s")
         else:
             self._clipped_since_s = None
         if self._oscillating(t_s, error):
-            return self._stop(error, f"oscillating: the force crossed its target {p.oscillation_crossings} times "
-                                     f"within {p.oscillation_window_s:g} s by more than {p.oscillation_band_n:g} N; "
-                                     "lower kp_mm_s_per_n")
-        return LoopCommand(speed, error, clipped)
+            return self._stop(goal, error, f"oscillating: the force crossed its target {p.oscillation_crossings} "
+                                           f"times within {p.oscillation_window_s:g} s by more than "
+                                           f"{p.oscillation_band_n:g} N; raise stiffness_n_per_mm")
+        return LoopCommand(goal, error, k, clipped)
+
+    def _stiffness(self, place_mm: float, force_n: float) -> float:
+        """The stiffness to assume (N/mm): the setting, or more if the secant since the anchor reading says so."""
+        anchor = self._anchor
+        if anchor is None:
+            self._anchor = (place_mm, force_n)
+        elif abs(place_mm - anchor[0]) >= STIFFNESS_BASELINE_MM:
+            secant = (force_n - anchor[1]) / (place_mm - anchor[0])
+            self.stiffness_n_per_mm = max(self.params.stiffness_n_per_mm, STIFFNESS_MARGIN * secant)
+            self._anchor = (place_mm, force_n)
+        return self.stiffness_n_per_mm
 
     def _oscillating(self, t_s: float, error: float) -> bool:
         p = self.params
@@ -143,9 +155,9 @@ class ForceLoop:
             self._crossings.popleft()
         return len(self._crossings) >= p.oscillation_crossings
 
-    def _stop(self, error: float, reason: str) -> LoopCommand:
+    def _stop(self, place_mm: float, error: float, reason: str) -> LoopCommand:
         self.stopped = reason
-        return LoopCommand(0.0, error, stop=reason)
+        return LoopCommand(place_mm, error, self.stiffness_n_per_mm, stop=reason)
 
 
 # -- how well a loop did -------------------------------------------------------------------------------
@@ -209,43 +221,74 @@ class HeldMove:
 
     From ``start_mm`` (machine mm) toward ``target_mm``'s place in the gel plane (its component along ``normal``,
     the gel's inward unit normal in machine axes, is ignored) at ``speed_mm_s``, in segments of the loop's
-    ``segment_s``; the loop moves the tool along ``normal`` by its command times the segment, never further in
-    than ``deepest_mm`` (a point the tool's component along ``normal`` stays at or short of: the deepest press
-    allowed). An executor calls :meth:`next_segment` once per segment with the newest reading and sends the
-    segment it returns."""
+    ``segment_s`` (or, with no lateral move, for ``duration_s``: a force held in place). Along ``normal`` each
+    segment ends at the loop's goal, kept within what the machine (acceleration ``accel_mm_s2`` along the normal)
+    can reach in two segments and stop from, and never further in than ``deepest_mm`` (a point the tool's
+    component along ``normal`` stays at or short of: the deepest press allowed). An executor calls
+    :meth:`next_segment` once per segment with the newest reading and where the tool is, and sends the segment it
+    returns."""
 
     def __init__(self, start_mm: npt.ArrayLike, target_mm: npt.ArrayLike, normal: npt.ArrayLike,
-                 speed_mm_s: float, loop: ForceLoop, deepest_mm: npt.ArrayLike | None = None) -> None:
+                 speed_mm_s: float, loop: ForceLoop, deepest_mm: npt.ArrayLike | None = None, *,
+                 accel_mm_s2: float = 10.0, duration_s: float = 0.0) -> None:
+        if not (math.isfinite(accel_mm_s2) and accel_mm_s2 > 0):
+            raise ValueError(f"the acceleration must be a positive number (mm/s**2), not {accel_mm_s2}")
         self.start = np.asarray(start_mm, np.float64)
         self.normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)
         delta = np.asarray(target_mm, np.float64) - self.start
         self.lateral = delta - (delta @ self.normal) * self.normal
         self.loop = loop
-        segment_mm = speed_mm_s * loop.params.segment_s
-        self.segments = max(1, math.ceil(float(np.linalg.norm(self.lateral)) / segment_mm - 1e-9))
+        self.accel_mm_s2 = float(accel_mm_s2)
+        segment_s = loop.params.segment_s
+        lateral_mm = float(np.linalg.norm(self.lateral))
+        by_path = math.ceil(lateral_mm / (speed_mm_s * segment_s) - 1e-9) if lateral_mm > 0 else 0
+        self.segments = max(1, by_path, math.ceil(duration_s / segment_s - 1e-9))
+        self._lateral_speed_mm_s = lateral_mm / (self.segments * segment_s)
         self.done = 0
-        self.normal_mm = 0.0  # along the inward normal since the start
-        self.last = LoopCommand(0.0, 0.0)
+        self.last = LoopCommand(0.0, 0.0, loop.params.stiffness_n_per_mm)
+        self.speed_mm_s = 0.0  # the last segment's commanded speed along the normal
         self._end = self.start.copy()
-        self.max_normal_mm = math.inf if deepest_mm is None else float(
+        self._end_place = 0.0
+        self.max_place_mm = math.inf if deepest_mm is None else float(
             (np.asarray(deepest_mm, np.float64) - self.start) @ self.normal)
 
-    def next_segment(self, t_s: float, force_n: float, reading_t_s: float | None = None
-                     ) -> tuple[npt.NDArray[np.float64], float] | str | None:
-        """The next segment's end (machine mm) and feed (mm/min); the loop's stop (its reason) instead; None once
-        the move's last segment has been handed out."""
+    def place_mm(self, position_mm: npt.ArrayLike) -> float:
+        """A machine position's place along the inward normal from the start (mm)."""
+        return float((np.asarray(position_mm, np.float64) - self.start) @ self.normal)
+
+    def next_segment(self, t_s: float, force_n: float, here_mm: npt.ArrayLike, reading_t_s: float | None = None,
+                     reading_mm: npt.ArrayLike | None = None) -> tuple[npt.NDArray[np.float64], float] | str | None:
+        """The next segment's end (machine mm) and feed (mm/min), from the reading ``force_n`` taken at
+        ``reading_t_s`` with the tool at ``reading_mm`` (default: now, ``here_mm``); the loop's stop (its reason)
+        instead; None once the move's last segment has been handed out."""
         if self.done >= self.segments:
             return None
-        command = self.loop.update(t_s, force_n, reading_t_s)
+        p = self.loop.params
+        at_reading = self.place_mm(here_mm if reading_mm is None else reading_mm)
+        command = self.loop.update(t_s, force_n, at_reading, reading_t_s, (-math.inf, self.max_place_mm))
         self.last = command
         if command.stop is not None:
             return command.stop
         self.done += 1
-        self.normal_mm = min(self.normal_mm + command.speed_mm_s * self.loop.params.segment_s, self.max_normal_mm)
-        end = self.start + self.lateral * (self.done / self.segments) + self.normal * self.normal_mm
-        feed_mm_min = max(float(np.linalg.norm(end - self._end)) / self.loop.params.segment_s * 60, 1.0)
-        self._end = end
+        self.speed_mm_s = self._normal_speed(command.goal_mm - self._end_place)
+        place = self._end_place + self.speed_mm_s * p.segment_s
+        end = self.start + self.lateral * (self.done / self.segments) + self.normal * place
+        # the path's pace comes from the segments' schedule: the feed only caps it
+        feed_mm_min = max(math.hypot(self._lateral_speed_mm_s, p.max_speed_mm_s) * 60, 1.0)
+        self._end, self._end_place = end, place
         return end, feed_mm_min
+
+    def _normal_speed(self, to_goal_mm: float) -> float:
+        """The next segment's speed along the normal (mm/s): toward the goal ``to_goal_mm`` past the last end, no
+        faster than a stop at half the machine's acceleration allows and than the goal is one segment away, and no
+        more than the acceleration's change from the last segment's speed (a path the machine follows as
+        commanded, its segments in line)."""
+        p = self.loop.params
+        dt = p.segment_s
+        braking = math.sqrt(self.accel_mm_s2 * abs(to_goal_mm))  # v**2 = 2 (a / 2) d
+        wanted = math.copysign(min(p.max_speed_mm_s, braking, abs(to_goal_mm) / dt), to_goal_mm)
+        step = self.accel_mm_s2 * dt
+        return min(max(wanted, self.speed_mm_s - step), self.speed_mm_s + step)
 
 
 #: What the loop did, segment by segment (a recording of a run that holds a force has it).
@@ -257,7 +300,8 @@ CONTROL_STREAM = StreamSpec(
         Column("feedback_n", "<f4", "N", "the reading the command came from"),
         Column("reading_age_us", "<i8", "us", "how old the reading was"),
         Column("speed_mm_s", "<f4", "mm/s", "commanded press-in speed along the gel normal"),
-        Column("clipped", "u1", "", "1: the speed was at its limit"),
+        Column("stiffness_n_per_mm", "<f4", "N/mm", "the contact stiffness the goal assumed"),
+        Column("clipped", "u1", "", "1: the goal was cut to the tool's reach (depth cap, speed)"),
         Column("position_mm", "<f8", "mm", "the segment's end, machine X, Y, Z", (3,)),
     ),
     chunk_rows=1024,

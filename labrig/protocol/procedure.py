@@ -113,14 +113,16 @@ class HoldForce:
 @dataclass(frozen=True)
 class MoveHolding:
     """Along the gel plane toward ``target_mm``'s place at ``speed_mm_s`` (its component along ``normal`` ignored),
-    while ``hold`` moves the tool along ``normal`` (the gel's inward unit normal, machine axes), never deeper than
-    ``deepest_mm``; replies None at the end, or the loop's stop (its reason), the motion then stopped."""
+    and for at least ``duration_s``, while ``hold`` moves the tool along ``normal`` (the gel's inward unit normal,
+    machine axes), never deeper than ``deepest_mm``; replies None at the end, or the loop's stop (its reason), the
+    motion then stopped. A target at the tool's own place is a force held in place."""
 
     target_mm: Point
     speed_mm_s: float
     hold: HoldForce
     normal: Point
     deepest_mm: Point  # the loop never presses further along ``normal`` than this point (the depth cap)
+    duration_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -191,16 +193,16 @@ def probe(plan: ProbePlan, indenter_max_depth_mm: float) -> Generator[Step, Any,
     yield Phase("normal_down", stoppable=True)
     bottom = yield from _press(plan, contact, indenter_max_depth_mm)
     yield Phase("wait", stoppable=True)
-    yield Dwell(spec.wait_s)
+    yield from _wait(plan, contact, indenter_max_depth_mm)
     if spec.has_shear:
         yield Phase("shear", stoppable=True)
         yield from _shear(plan, plan.sheared_mm(bottom), contact, indenter_max_depth_mm)
         yield Phase("wait", stoppable=True)
-        yield Dwell(spec.wait_s)
+        yield from _wait(plan, contact, indenter_max_depth_mm)
         yield Phase("shear_opposite", stoppable=True)
         yield from _shear(plan, bottom, contact, indenter_max_depth_mm)
         yield Phase("wait", stoppable=True)
-        yield Dwell(spec.wait_s)
+        yield from _wait(plan, contact, indenter_max_depth_mm)
     yield Phase("normal_up")
     yield Move(_point(contact), spec.normal_speed_mm_s)
     yield Phase("retract")
@@ -218,6 +220,10 @@ def _press(plan: ProbePlan, contact: F64, indenter_max_depth_mm: float) -> Gener
         yield Move(_point(bottom), spec.normal_speed_mm_s)
         return bottom
     assert spec.force_n is not None
+    if spec.press_hold_s is not None:
+        hold = HoldForce(spec.force_n, spec.feedback, spec.control)
+        yield from _held(plan, contact, contact, hold, spec.normal_speed_mm_s, indenter_max_depth_mm, spec.press_hold_s)
+        return np.asarray((yield Position()), dtype=np.float64)
     cap = deepest_press_mm(indenter_max_depth_mm)
     max_depth = min(spec.max_depth_mm or cap, cap)
     deepest = plan.max_bottom_mm(contact, max_depth)
@@ -231,16 +237,36 @@ def _press(plan: ProbePlan, contact: F64, indenter_max_depth_mm: float) -> Gener
 
 def _shear(plan: ProbePlan, target: F64, contact: F64, indenter_max_depth_mm: float) -> Generator[Step, Any, None]:
     """A shear to ``target``: a straight move, or, with a held force, a move along the gel plane with the loop on
-    the normal, no deeper below ``contact`` than a force target's search may go (aborting with the loop's reason
-    if it stops)."""
+    the normal."""
     spec = plan.spec
-    if spec.shear_hold_force_n is None:
+    held_n = spec.shear_hold_force_n if spec.shear_hold_force_n is not None else (
+        spec.force_n if spec.press_hold_s is not None else None)
+    if held_n is None:
         yield Move(_point(target), spec.shear_speed_mm_s)
         return
-    hold = HoldForce(spec.shear_hold_force_n, spec.feedback, spec.control)
+    hold = HoldForce(held_n, spec.feedback, spec.control)
+    yield from _held(plan, target, contact, hold, spec.shear_speed_mm_s, indenter_max_depth_mm)
+
+
+def _wait(plan: ProbePlan, contact: F64, indenter_max_depth_mm: float) -> Generator[Step, Any, None]:
+    """A wait: still, or with a held press, the force held in place."""
+    spec = plan.spec
+    if spec.press_hold_s is None or spec.force_n is None:
+        yield Dwell(spec.wait_s)
+        return
+    here = np.asarray((yield Position()), dtype=np.float64)
+    hold = HoldForce(spec.force_n, spec.feedback, spec.control)
+    yield from _held(plan, here, contact, hold, spec.normal_speed_mm_s, indenter_max_depth_mm, spec.wait_s)
+
+
+def _held(plan: ProbePlan, target: F64, contact: F64, hold: HoldForce, speed_mm_s: float,
+          indenter_max_depth_mm: float, duration_s: float = 0.0) -> Generator[Step, Any, None]:
+    """A move toward ``target``'s place in the gel plane (for at least ``duration_s``) with the loop on the normal,
+    no deeper below ``contact`` than a force target's search may go; aborts with the loop's reason if it stops."""
+    spec = plan.spec
     cap = deepest_press_mm(indenter_max_depth_mm)
     deepest = plan.max_bottom_mm(contact, min(spec.max_depth_mm or cap, cap))
-    stopped = yield MoveHolding(_point(target), spec.shear_speed_mm_s, hold, _point(plan.down), _point(deepest))
+    stopped = yield MoveHolding(_point(target), speed_mm_s, hold, _point(plan.down), _point(deepest), duration_s)
     if stopped is not None:
         raise ProcedureAbort(f"the force loop holding {hold.target_n:g} N stopped: {stopped}")
 

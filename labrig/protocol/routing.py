@@ -32,8 +32,8 @@ def put_control(writer: RecordingWriter, t_host_ns: int, held: HeldMove, reading
     """One segment of a held move into the ``control`` stream (:data:`~labrig.protocol.force_loop.CONTROL_STREAM`):
     commanded at ``t_host_ns`` from ``reading_n`` (N), ``reading_age_ns`` old, ending at ``end_mm`` (machine mm)."""
     writer.put("control", t_host_us=(t_host_ns - writer.t0_host_ns) // NS_PER_US, target_n=held.loop.target_n,
-               feedback_n=reading_n, reading_age_us=reading_age_ns // 1000, speed_mm_s=held.last.speed_mm_s,
-               clipped=int(held.last.clipped), position_mm=end_mm)
+               feedback_n=reading_n, reading_age_us=reading_age_ns // 1000, speed_mm_s=held.speed_mm_s,
+               stiffness_n_per_mm=held.last.stiffness_n_per_mm, clipped=int(held.last.clipped), position_mm=end_mm)
 
 
 def put_ft(writer: RecordingWriter, sample: FtSample) -> bool:

@@ -288,7 +288,8 @@ class ProbeRunner:
         F/T's newest tared |Fz|. A host late by a segment lets the queue run dry: the machine stops and waits."""
         here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
         held = HeldMove(here, step.target_mm, step.normal, step.speed_mm_s, ForceLoop(step.hold.target_n, step.hold.params),
-                        step.deepest_mm)
+                        step.deepest_mm, accel_mm_s2=self.grbl.limits.accel_along_mm_s2(step.normal),
+                        duration_s=step.duration_s)
         period_s = step.hold.params.segment_s
         clock = self.session.clock
         queued = 0
@@ -298,7 +299,9 @@ class ProbeRunner:
             force_n, t_ns = self.session.monitor.normal_reading()
             now_ns = clock.now_ns()
             reading_ns = now_ns if t_ns is None else t_ns
-            out = held.next_segment(now_ns / 1e9, force_n, reading_ns / 1e9)
+            now_us = self.grbl.now_us()
+            here_mm, reading_mm = self.grbl.pose_at(np.array([now_us, now_us - (now_ns - reading_ns) / 1000]))
+            out = held.next_segment(now_ns / 1e9, force_n, here_mm, reading_ns / 1e9, reading_mm)
             if isinstance(out, str):
                 self.grbl.jog_cancel()
                 self._wait_motion(MOVE_MARGIN_S)
@@ -488,7 +491,7 @@ class ProbeRunner:
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      indenter_toml=indenter_toml(self.indenter), extra=info)
         streams = truth_streams(len(self.rig.markers.rest_positions_mm())) if self.session.virtual else ()
-        if spec.shear_hold_force_n is not None:
+        if spec.holds_force:
             streams = (*streams, CONTROL_STREAM)
         if out.exists():
             out.unlink()

@@ -70,6 +70,10 @@ class ProbeSpec:
     ``shear_hold_force_n``: during Shear and Shear Opposite the normal force is held at this (N on the gel) by the
     force loop (:mod:`labrig.protocol.force_loop`, gains and limits ``control``), read from ``feedback``; the tool
     then moves along the gel normal as the loop commands (None: the shears keep the pressed depth).
+    ``press_hold_s``: with a force target, the loop presses to it from the contact point (a step of the loop) and
+    holds it for this long (Normal Down), then holds it through the waits, and through the shears unless
+    ``shear_hold_force_n`` says another force (None: a force target is searched for at the normal speed and the
+    depth it is found at is kept).
     """
 
     indenter: str
@@ -86,6 +90,7 @@ class ProbeSpec:
     retract_speed_mm_s: float = 5.0
     max_depth_mm: float | None = None
     shear_hold_force_n: float | None = None
+    press_hold_s: float | None = None
     feedback: str = "ft"
     control: ForceLoopParams = field(default_factory=ForceLoopParams)
 
@@ -95,6 +100,11 @@ class ProbeSpec:
                 f"probe with indenter {self.indenter!r}: give exactly one normal target, depth_mm or force_n"
                 f" (got depth_mm={self.depth_mm}, force_n={self.force_n})"
             )
+
+    @property
+    def holds_force(self) -> bool:
+        """The force loop runs in this probe (a held press or a held shear)."""
+        return self.press_hold_s is not None or (self.shear_hold_force_n is not None and self.has_shear)
 
     @property
     def has_shear(self) -> bool:
@@ -119,7 +129,7 @@ class ProbeSpec:
         depth = self.nominal_depth_mm()
         move = {
             "approach": 0.0,
-            "normal_down": depth / self.normal_speed_mm_s,
+            "normal_down": depth / self.normal_speed_mm_s if self.press_hold_s is None else self.press_hold_s,
             "wait": self.wait_s,
             "shear": self.shear_mm / self.shear_speed_mm_s if self.has_shear else 0.0,
             "normal_up": depth / self.normal_speed_mm_s,

@@ -160,7 +160,7 @@ class _VirtualRun:
                                      indenter_toml=indenter_toml(self.indenter), extra=info)
         writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S, wake_on_put=False,
                                  extra_streams=truth_streams(len(self.rig.markers.rest_positions_mm()))
-                                 + ((CONTROL_STREAM,) if self.plan.spec.shear_hold_force_n is not None else ())).open()
+                                 + ((CONTROL_STREAM,) if self.plan.spec.holds_force else ())).open()
         self.writer = writer
         result = RunResult(out, EXIT_COMPLETE)
         try:
@@ -223,15 +223,18 @@ class _VirtualRun:
         """The held move in jog segments, one commanded per segment's span with the next already queued (GRBL's
         planner runs them without stopping); the loop reads the F/T's newest tared |Fz|."""
         d = self.devices
-        held = HeldMove(d.timeline.tail_mm, step.target_mm, step.normal, step.speed_mm_s,
-                        ForceLoop(step.hold.target_n, step.hold.params), step.deepest_mm)
+        timeline = d.timeline
+        held = HeldMove(timeline.tail_mm, step.target_mm, step.normal, step.speed_mm_s,
+                        ForceLoop(step.hold.target_n, step.hold.params), step.deepest_mm,
+                        accel_mm_s2=timeline.limits.accel_along_mm_s2(step.normal), duration_s=step.duration_s)
         segment_us = round(step.hold.params.segment_s * US)
         queued = 0
         while True:
             force_n, t_ns = self.monitor.normal_reading()
             now_us = d.now_us
             reading_us = now_us if t_ns is None else t_ns / 1000
-            out = held.next_segment(now_us / US, force_n, reading_us / US)
+            out = held.next_segment(now_us / US, force_n, timeline.position_at(now_us), reading_us / US,
+                                    timeline.position_at(min(reading_us, now_us)))
             if isinstance(out, str):
                 d.jog_cancel()
                 d.dwell(segment_us)
