@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from labrig.devices.motion_profile import MachineLimits, MotionTimeline, make_block
-from labrig.protocol.force_loop import ForceLoop, ForceLoopParams, HeldMove, hold_rms_n, step_response
+from labrig.evaluation.control import hold_rms_n, step_response
+from labrig.protocol.force_loop import ForceLoop, ForceLoopParams, HeldMove
 
 HERTZ_N_PER_MM_1_5 = 6.0  # F = c d^1.5: about 8.5 N/mm at 5 N, as the shipped sphere on the default gel
 NORMAL = (0.0, 0.0, -1.0)  # pressing in is -z

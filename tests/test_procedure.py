@@ -3,6 +3,7 @@ virtual rig (through the drivers over ptys, and in virtual time) with the same s
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -240,6 +241,7 @@ def test_a_held_shear_in_virtual_time_reaches_and_holds_its_force(rig: RigConfig
                                                                   tmp_path: Path) -> None:
     """Pressed 0.6 mm (about 3 N), sheared holding 1.5 N: the loop backs off to it during the shear and holds it
     through the shear back, within 0.1 N RMS on the F/T; its commands are in the recording's control stream."""
+    from labrig.evaluation.control import control_run
     from labrig.protocol.virtual_run import record_virtual
     from labrig.recording import Recording
 
@@ -258,6 +260,9 @@ def test_a_held_shear_in_virtual_time_reaches_and_holds_its_force(rig: RigConfig
         control = rec.stream("control")
         assert len(control["t_host_us"]) >= 2 * 0.8 / (1.0 * spec.control.segment_s)
         assert np.all(control["target_n"] == 1.5) and np.median(np.diff(control["t_host_us"])) == 10_000
+    run = control_run(result.path)
+    assert run is not None and math.isnan(run.step_rise_s)  # no held press: no step
+    assert 0.1 < run.hold_rms_n_ft < 1.0  # both shears, the first starting with the back-off from 3 N
 
 
 def test_a_loop_that_stops_aborts_the_run_and_retracts(rig: RigConfig, sphere: Indenter, tmp_path: Path) -> None:
@@ -278,7 +283,8 @@ def test_a_held_press_steps_to_its_force_and_holds_it_through_waits_and_shears(r
                                                                                tmp_path: Path) -> None:
     """From contact the loop presses to 3 N without overshooting it by more than 10 %, holds it through the waits
     and the shears (0.1 N RMS on the F/T), and every held step is in the control stream."""
-    from labrig.protocol.force_loop import step_response
+    from labrig.evaluation.charts import held_force
+    from labrig.evaluation.control import control_run, step_response
     from labrig.protocol.procedure import MoveHolding
     from labrig.protocol.virtual_run import record_virtual
     from labrig.recording import Recording
@@ -305,3 +311,10 @@ def test_a_held_press_steps_to_its_force_and_holds_it_through_waits_and_shears(r
         assert np.sqrt(np.mean((fz[later] - 3.0) ** 2)) < 0.1
         control = rec.stream("control")
         assert np.all(control["target_n"] == 3.0) and control["stiffness_n_per_mm"].min() >= 8.0
+    run = control_run(result.path)  # what labrig evaluate's control section shows
+    assert run is not None and run.feedback == "ft" and run.target_n == 3.0 and run.loop_hz == pytest.approx(100, 0.01)
+    assert run.step_overshoot_pct <= 10 and run.hold_rms_n_ft < 0.1 and math.isnan(run.hold_rms_n_estimate)
+    assert [name for name, _, _ in run.phases_s if name != "approach"][:2] == ["normal_down", "wait"]
+    assert np.nanmax(run.target_series_n) == 3.0 and np.isnan(run.target_series_n[0])
+    figure = held_force(run.t_s, run.ft_fz_n, run.target_series_n, phases=run.phases_s)
+    assert len(figure.axes[0].lines) == 2

@@ -491,6 +491,38 @@ def time_series(
     return _finish(fig, title, out)
 
 
+def held_force(
+    t_s: ArrayLike,
+    ft_n: ArrayLike,
+    target_n: ArrayLike,
+    *,
+    t_estimate_s: ArrayLike | None = None,
+    estimate_n: ArrayLike | None = None,
+    phases: Sequence[tuple[str, float, float]] = (),
+    title: str = "",
+    out: PathLike | None = None,
+) -> Figure:
+    """A force loop's run: the F/T's normal force (N, the reference) and the target it held at ``t_s`` (s; the
+    target nan where nothing was held), with the pipeline's estimate at ``t_estimate_s`` if given; ``phases`` as
+    ``(name, start_s, end_s)`` spans shaded behind the curves."""
+    fig = new_figure(9.0, 3.2)
+    ax = fig.subplots()
+    for p, (phase, start, end) in enumerate(phases):
+        ax.axvspan(start, end, color="#eef1f5" if p % 2 else "#e2e8f0", lw=0, zorder=0)
+        ax.annotate(phase, ((start + end) / 2, 1.0), xycoords=("data", "axes fraction"), ha="center", va="bottom",
+                    fontsize=7)
+    ax.plot(np.asarray(t_s, float), np.asarray(ft_n, float), color="#1d2430", lw=1.0, label="F/T (reference)")
+    ax.plot(np.asarray(t_s, float), np.asarray(target_n, float), color="#c2410c", lw=1.4, ls="--", label="target")
+    if t_estimate_s is not None and estimate_n is not None:
+        ax.plot(np.asarray(t_estimate_s, float), np.asarray(estimate_n, float), color=_color("z", 2), lw=1.1,
+                label="event estimate")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(axis_label("|Fz|", "N"))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right", ncol=3)
+    return _finish(fig, title, out)
+
+
 # -- runtime --------------------------------------------------------------------------------------
 
 

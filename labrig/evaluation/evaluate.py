@@ -29,6 +29,7 @@ from labrig.dataset import (
 from labrig.errors import LabrigError
 from labrig.evaluation import stress as stress_suite
 from labrig.evaluation import tables
+from labrig.evaluation.control import ControlRun, control_runs
 from labrig.evaluation.depth import DepthResult, DepthTask, evaluate_depth
 from labrig.evaluation.forces import ForceResult, ForceTask, evaluate_forces
 from labrig.evaluation.groundtruth_error import (
@@ -139,6 +140,7 @@ class Evaluation:
     depth: dict[str, list[DepthResult]] = field(default_factory=dict)  # model path -> per recording
     forces: list[ForceResult] = field(default_factory=list)
     forces_truth: list[ForceResult] = field(default_factory=list)  # the sim's depth maps instead of the network's
+    control: list[ControlRun] = field(default_factory=list)  # the recordings a force loop ran in
     labels: list[GroundTruthErrorResult] = field(default_factory=list)
     table2_models: dict[tuple[str, float], str | None] = field(default_factory=dict)
     cache: dict[str, str] = field(default_factory=dict)  # kind -> "hits/misses" summary
@@ -194,6 +196,7 @@ def evaluate_campaign(settings: EvaluationSettings, progress: Progress | None = 
 
     ev.forces = run("forces", evaluate_forces, [ForceTask(p, str(model), calibration_dir=calibration,
                                                           sidecar=str(sidecar_path(p)), **windows) for p in paths])
+    ev.control = control_runs(paths, ev.forces)
     depth_models = [str(model), *sorted({m for m in ev.table2_models.values() if m and m != str(model)})]
     depth_tasks = [DepthTask(p, m, sidecar=str(sidecar_path(p)), calibration_dir=calibration, **windows)
                    for m in depth_models for p in paths]
@@ -279,6 +282,12 @@ def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
+def _median(values: Sequence[float]) -> float | None:
+    """The median of the finite values (None: none)."""
+    finite = [v for v in values if np.isfinite(v)]
+    return _finite(float(np.median(finite))) if finite else None
+
+
 def headline(ev: Evaluation) -> dict[str, Any]:
     """The summary ``labrig evaluate --json`` prints: stable keys, units in the names."""
     t3 = {row["axis"]: row for row in tables.table3(ev.forces)}
@@ -304,6 +313,13 @@ def headline(ev: Evaluation) -> dict[str, Any]:
                 "hold_fz_error_last_5s_n": _finite(held.fz_error_last_n),
                 "hold_error_ratio_last_to_first": _finite(held.error_ratio_last_to_first),
                 "hold_fz_after_release_n": _finite(held.after_release_fz_n)})
+    if ev.control:
+        runs = ev.control
+        out.update({"control_recordings": len(runs),
+                    "control_step_overshoot_pct": _median([r.step_overshoot_pct for r in runs]),
+                    "control_step_settling_s": _median([r.step_settling_s for r in runs]),
+                    "control_hold_rms_n_ft": _median([r.hold_rms_n_ft for r in runs]),
+                    "control_hold_rms_n_estimate": _median([r.hold_rms_n_estimate for r in runs])})
     if ev.forces_truth:
         truth = {row["axis"]: row for row in tables.table3(ev.forces_truth)}
         out.update({f"force_{a}_mae_true_depth_n": truth[a]["force_mae_n"] for a in ("x", "y", "z", "total")})

@@ -148,6 +148,8 @@ def _forces_section(report: Report, ev: Evaluation) -> None:
                                              phases=[(n, a / 1e6, b / 1e6) for n, a, b in holder.phases]),
                           caption=f"{longest.recording}: measured (F/T sensor) and predicted force on the gel; "
                                   f"its wait {longest.wait_index + 1} lasts {longest.duration_s:.0f} s.")
+    if ev.control:
+        _control_section(report, ev)
     example = max(ev.forces, key=lambda r: float(np.max(np.abs(r.measured_n[:, 2]))) if len(r.measured_n) else 0)
     t_s = example.t1_us / 1e6
     report.add_figure("force_series", "Net force over a recording (largest normal force)",
@@ -259,3 +261,29 @@ def _labels_section(report: Report, ev: Evaluation) -> None:
                              "the sim's true normal displacement, frames in contact, mean ± std over recordings. "
                              "Gel pose: the registration's, or the sim's own (a perfect registration: "
                              "`--label-poses lab,true`).")
+
+
+def _control_section(report: Report, ev: Evaluation) -> None:
+    """The recordings whose normal force a force loop held: the step and the hold, the F/T as the reference."""
+    report.add_table("control", "Forces held by the loop",
+                     ["recording", "feedback", "target", "rise", "overshoot", "settling", "hold RMS (F/T)",
+                      "hold RMS (estimate)", "loop rate"],
+                     [[r.recording, r.feedback, r.target_n, r.step_rise_s, r.step_overshoot_pct, r.step_settling_s,
+                       r.hold_rms_n_ft, r.hold_rms_n_estimate, r.loop_hz] for r in ev.control],
+                     caption="Runs with a held press or shear: the held Normal Down as a step from contact to the "
+                             "target (10-90 % rise, overshoot, settling into 5 %, of the F/T's |Fz|), and the RMS "
+                             "from the target over the held waits and shears of the F/T's |Fz| and of the "
+                             "pipeline's estimate (what the event sensor would have fed the loop).",
+                     units={"target": "N", "rise": "s", "overshoot": "%", "settling": "s", "hold RMS (F/T)": "N",
+                            "hold RMS (estimate)": "N", "loop rate": "Hz"})
+    run = ev.control[0]
+    forces = next((r for r in ev.forces if r.recording == run.recording), None)
+    has_estimate = forces is not None and len(forces.t1_us) > 0
+    t_estimate_s = (forces.t1_us - run.origin_us) / 1e6 if forces is not None and has_estimate else None
+    estimate_n = np.abs(forces.predicted_n[:, 2]) if forces is not None and has_estimate else None
+    report.add_figure("control_series", "A force held by the loop",
+                      charts.held_force(run.t_s, run.ft_fz_n, run.target_series_n, t_estimate_s=t_estimate_s,
+                                        estimate_n=estimate_n, phases=run.phases_s),
+                      caption=f"{run.recording}: the F/T's |Fz| (the reference), the target the loop held "
+                              f"({run.feedback} feedback) and the pipeline's estimate; time from the first held "
+                              "phase's start.")

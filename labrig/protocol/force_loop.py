@@ -160,62 +160,6 @@ class ForceLoop:
         return LoopCommand(place_mm, error, self.stiffness_n_per_mm, stop=reason)
 
 
-# -- how well a loop did -------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class StepResponse:
-    """A step to ``target_n`` (N) from ``start_n``: 10-90 % rise time (s), overshoot (% of the step),
-    settling time into +/- ``band`` of the step for good (s; nan if it never settles); times from the step."""
-
-    target_n: float
-    start_n: float
-    rise_s: float
-    overshoot_pct: float
-    settling_s: float
-
-
-def step_response(t_s: npt.ArrayLike, force_n: npt.ArrayLike, target_n: float, t_step_s: float = 0.0,
-                  start_n: float | None = None, band: float = 0.05) -> StepResponse:
-    """The :class:`StepResponse` of readings ``force_n`` (N) at times ``t_s`` (s, increasing) to a step to
-    ``target_n`` at ``t_step_s``; ``start_n``: the force before the step (default the last reading before it,
-    else the first)."""
-    t = np.asarray(t_s, np.float64)
-    f = np.asarray(force_n, np.float64)
-    after = t >= t_step_s
-    if not after.any():
-        raise ValueError("no reading after the step")
-    if start_n is None:
-        start_n = float(f[~after][-1]) if (~after).any() else float(f[0])
-    t, f = t[after] - t_step_s, f[after]
-    size = target_n - start_n
-    if size == 0:
-        raise ValueError("a step needs a target other than its start")
-    progress = (f - start_n) / size  # 0 at the start, 1 at the target
-    ten, ninety = np.flatnonzero(progress >= 0.1), np.flatnonzero(progress >= 0.9)
-    rise = float(t[ninety[0]] - t[ten[0]]) if ten.size and ninety.size else math.nan
-    overshoot = max(float(progress.max()) - 1.0, 0.0) * 100.0
-    outside = np.flatnonzero(np.abs(progress - 1.0) > band)
-    if outside.size == 0:
-        settling = 0.0
-    elif outside[-1] + 1 < t.size:
-        settling = float(t[outside[-1] + 1])
-    else:
-        settling = math.nan
-    return StepResponse(float(target_n), float(start_n), rise, overshoot, settling)
-
-
-def hold_rms_n(force_n: npt.ArrayLike, target_n: float) -> float:
-    """RMS (N) of the readings' distance from the target while it was held."""
-    f = np.asarray(force_n, np.float64)
-    if f.size == 0:
-        raise ValueError("no readings")
-    return float(np.sqrt(np.mean((f - target_n) ** 2)))
-
-
-# -- a move with the loop on the normal -------------------------------------------------------------------
-
-
 class HeldMove:
     """The jog segments of a move along the gel plane with the force loop on the normal.
 

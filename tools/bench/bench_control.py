@@ -28,8 +28,8 @@ import numpy as np
 from _common import bench_main, emit
 
 from labrig.config import DEFAULT_RIG, RigConfig, load_rig, parse_rig
+from labrig.evaluation.control import hold_rms_n, step_response
 from labrig.indenters import load_indenter
-from labrig.protocol.force_loop import hold_rms_n, step_response
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.protocol.virtual_run import record_virtual
 from labrig.recording import Recording
