@@ -329,3 +329,27 @@ def test_chart_axes_have_units() -> None:
     assert "MAE 0.25 N" in [t.get_text() for t in fig.axes[0].texts]
     fig = charts.pareto([("a", 1.0, 1.0)], error_name="depth MAE", error_unit="mm", budget_ms=None)
     assert (fig.axes[0].get_xlabel(), fig.axes[0].get_ylabel()) == ("latency per window (ms)", "depth MAE (mm)")
+
+
+def test_the_control_section_shows_each_held_run_and_charts_the_first(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from labrig.evaluation.control import ControlRun
+    from labrig.evaluation.report_sections import _control_section
+
+    t = np.linspace(-0.5, 3.0, 3501)
+    fz = np.clip(t, 0.0, 0.6) / 0.6 * 5.0
+    target = np.where(t >= 0.0, 5.0, np.nan)
+    run = ControlRun("held.h5", 5.0, "ft", 0.48, 1.2, 0.7, 0.03, float("nan"), 100.0, 1_000_000,
+                     (("approach", -0.5, 0.0), ("normal_down", 0.0, 1.0), ("wait", 1.0, 3.0)), t, fz, target)
+    report = Report("control")
+    report.section("Forces")
+    _control_section(report, SimpleNamespace(control=[run], forces=[]))  # type: ignore[arg-type]
+    out = tmp_path / "report"
+    report.write(out)
+    assert check_report(out) == []
+    results = json.loads((out / "results.json").read_text(encoding="utf-8"))
+    row = results["tables"]["control"]["rows"][0]
+    assert row["recording"] == "held.h5" and row["overshoot_pct"] == 1.2 and row["hold_rms_estimate_n"] is None
+    assert row["hold_rms_f_t_n"] == 0.03 and row["loop_rate_hz"] == 100.0
+    assert (out / "figures" / "control_series.png").stat().st_size > 0
