@@ -95,12 +95,6 @@ class ForceLoop:
         self._last_sign = 0
         self._crossings: deque[float] = deque()
 
-    def retarget(self, target_n: float) -> None:
-        """A new target (a step)."""
-        if not (math.isfinite(target_n) and target_n >= 0):
-            raise ValueError(f"the force target must be zero or positive (N), not {target_n}")
-        self.target_n = float(target_n)
-
     def update(self, t_s: float, force_n: float, place_mm: float, reading_t_s: float | None = None,
                reach_mm: tuple[float, float] = (-math.inf, math.inf)) -> LoopCommand:
         """The command at time ``t_s`` (s, any fixed origin) from the newest reading ``force_n`` (N, pressing
@@ -165,10 +159,11 @@ class HeldMove:
 
     From ``start_mm`` (machine mm) toward ``target_mm``'s place in the gel plane (its component along ``normal``,
     the gel's inward unit normal in machine axes, is ignored) at ``speed_mm_s``, in segments of the loop's
-    ``segment_s`` (or, with no lateral move, for ``duration_s``: a force held in place). Along ``normal`` each
-    segment ends at the loop's goal, kept within what the machine (acceleration ``accel_mm_s2`` along the normal)
-    can reach in two segments and stop from, and never further in than ``deepest_mm`` (a point the tool's
-    component along ``normal`` stays at or short of: the deepest press allowed). An executor calls
+    ``segment_s`` (or, with no lateral move, for ``duration_s``: a force held in place). Along ``normal`` the
+    segments head for the loop's goal at a speed that a stop at half the machine's acceleration (``accel_mm_s2``
+    along the normal) allows and that changes by at most that acceleration per segment, never further in than
+    ``deepest_mm`` (a point the tool's component along ``normal`` stays at or short of: the deepest press
+    allowed). An executor calls
     :meth:`next_segment` once per segment with the newest reading and where the tool is, and sends the segment it
     returns."""
 
@@ -191,7 +186,6 @@ class HeldMove:
         self.done = 0
         self.last = LoopCommand(0.0, 0.0, loop.params.stiffness_n_per_mm)
         self.speed_mm_s = 0.0  # the last segment's commanded speed along the normal
-        self._end = self.start.copy()
         self._end_place = 0.0
         self.max_place_mm = math.inf if deepest_mm is None else float(
             (np.asarray(deepest_mm, np.float64) - self.start) @ self.normal)
@@ -219,7 +213,7 @@ class HeldMove:
         end = self.start + self.lateral * (self.done / self.segments) + self.normal * place
         # the path's pace comes from the segments' schedule: the feed only caps it
         feed_mm_min = max(math.hypot(self._lateral_speed_mm_s, p.max_speed_mm_s) * 60, 1.0)
-        self._end, self._end_place = end, place
+        self._end_place = place
         return end, feed_mm_min
 
     def _normal_speed(self, to_goal_mm: float) -> float:
