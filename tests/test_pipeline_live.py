@@ -509,3 +509,26 @@ def test_the_live_network_runs_in_a_thread_with_a_second_core_and_in_steps_on_on
     assert depth_lane_for(10_000, 2) == "thread"
     assert depth_lane_for(10_000, 1) == "steps"
     assert usable_cores() >= 1
+
+
+def test_a_live_probing_run_holds_its_force_on_the_live_estimate(tmp_path: Path) -> None:
+    """Through the real drivers with ``feedback = "events"``: the live pipeline's estimate (the bundled network)
+    is the loop's feedback; the run completes and the F/T sensor, the reference, sees the target held."""
+    from labrig.evaluation.control import control_run
+    from labrig.recording import Recording
+
+    protocol = tmp_path / "held.toml"
+    protocol.write_text(QUICK_PROTOCOL.replace("depth_mm = 0.8", "force_n = 3.0\nhold_s = 0.6")
+                        .replace("distance_mm = 0.5", "distance_mm = 0.0")
+                        + '[control]\nfeedback = "events"\nstale_after_s = 0.5\n')
+    rec_path = tmp_path / "held.h5"
+    result = _labrig("run", "--live", "--protocol", protocol, "--save-recording", rec_path, "--json")
+    assert result.returncode == 0, result.stderr
+    s = json.loads(result.stdout)
+    assert s["probe"]["exit_status"] == "complete", s["probe"]["reason"]
+    with Recording(rec_path) as rec:
+        assert rec.attrs["extra_control_feedback"] == "events"
+        ages_ms = rec.column("control", "reading_age_us") / 1e3
+    assert 0 < np.median(ages_ms) < 500
+    run = control_run(rec_path)
+    assert run is not None and run.feedback == "events" and run.hold_rms_n_ft < 1.0

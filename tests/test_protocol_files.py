@@ -392,7 +392,11 @@ depth_mm = [2.45]
 
 def test_a_held_force_and_its_loop_are_read_and_checked(tmp_path: Path, rig: RigConfig,
                                                         indenters: dict[str, Indenter]) -> None:
+    from labrig.protocol.feedback import EVENTS_STALE_AFTER_S
     from labrig.protocol.force_loop import ForceLoopParams
+
+    def on_events_text(path: Path) -> str:
+        return path.read_text().replace('"ft"', '"events"')
 
     good = _write(tmp_path, "held.toml", """
 [probe]
@@ -410,6 +414,11 @@ max_speed_mm_s = 1.5
     spec = load_protocol(good, rig, indenters)
     assert spec.shear_hold_force_n == 4.0 and spec.feedback == "ft" and spec.press_hold_s is None
     assert spec.control == ForceLoopParams(stiffness_n_per_mm=12.0, max_speed_mm_s=1.5)
+    on_events = load_protocol(_write(tmp_path, "events.toml", good.read_text().replace('"ft"', '"events"')), rig,
+                              indenters)
+    assert on_events.feedback == "events" and on_events.control.stale_after_s == EVENTS_STALE_AFTER_S
+    told = load_protocol(_write(tmp_path, "told.toml", on_events_text(good) + "stale_after_s = 0.05\n"), rig, indenters)
+    assert told.control.stale_after_s == 0.05
     bad = _write(tmp_path, "bad.toml", """
 [probe]
 indenter = "sphere"
@@ -420,14 +429,14 @@ hold_s = 1.0
 distance_mm = 0.0
 hold_force_n = 400.0
 [control]
-feedback = "events"
+feedback = "camera"
 stiffness_n_per_mm = -1.0
 gain = 2
 """)
     with pytest.raises(ProtocolError) as exc:
         load_protocol(bad, rig, indenters)
     problems = _problems(exc)
-    assert "must be one of 'ft'" in problems[(10, "control.feedback")]
+    assert 'must be "ft" (the F/T sensor) or "events"' in problems[(10, "control.feedback")]
     assert "must be positive" in problems[(11, "control.stiffness_n_per_mm")]
     assert "unknown key" in problems[(12, "control.gain")]
     text = str(exc.value)

@@ -8,7 +8,8 @@
   pipeline reads the same camera chunks through a :class:`~labrig.live.sources.ChunkTap`
   registered as the session's chunk listener. The run records as ``labrig record`` does (the
   recording path is untouched); that recording's F/T samples are then the reference for
-  :func:`compare_with_ft`.
+  :func:`compare_with_ft`. A run whose force loop reads the event sensor (``feedback = "events"``) gets each
+  window's forces as they come (:class:`~labrig.protocol.feedback.EstimateFeedback`).
 
 Forces: the pipeline's are on the gel (pressing: Fz < 0), gel frame; the F/T sensor reads
 the force on the indenter in its own axes, so it is rotated into the gel frame (rig
@@ -33,6 +34,7 @@ from labrig.live.runner import MAX_LAG_MS, LiveRunner
 from labrig.live.sources import ChunkTap
 from labrig.pipeline.runtime import Pipeline, WindowResult
 from labrig.pipeline.windows import DEFAULT_WINDOW_US
+from labrig.protocol.feedback import Estimate, EstimateFeedback
 from labrig.protocol.rigfile import DeviceConfig
 from labrig.protocol.runner import ProbeRunner, RunResult
 from labrig.protocol.session import RigSession
@@ -121,6 +123,8 @@ class ProbeStream:
         self.tap = ChunkTap()
         self.live = LiveRunner(pipeline, self.tap, window_us=window_us, window_events=window_events,
                                max_lag_ms=max_lag_ms)
+        if spec.holds_force and spec.feedback == "events":
+            runner.estimate = EstimateFeedback()
         self._result: RunResult | None = None
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="labrig-live-probe", daemon=True)
@@ -139,13 +143,31 @@ class ProbeStream:
         self._thread.start()
         finished = False
         try:
-            yield from self.live.run()
+            for result in self.live.run():
+                self._publish(result)
+                yield result
             finished = True
         finally:
             if not finished and self.runner.stop.level == 0:
                 self.runner.stop.request()
             self._thread.join()
             self.session.remove_chunk_listener(self.tap)
+
+    def _publish(self, result: WindowResult) -> None:
+        """A window's forces to the run's force loop (``feedback = "events"``), stamped with the window's end on
+        the host clock: the recording's camera clock model once it has one, else the lower envelope of the
+        chunks' arrivals."""
+        estimate = self.runner.estimate
+        if estimate is None:
+            return
+        t_ns = self.session.camera_host_ns(result.t1_us)
+        if t_ns is None:
+            offset_us = self.live.stats.camera_offset_us
+            if offset_us is None:
+                return
+            t_ns = round((result.t1_us + offset_us) * 1000)
+        estimate.publish(Estimate(t_ns, np.asarray(result.net_force_n, np.float64),
+                                  np.asarray(result.forces_n, np.float64)))
 
     def outcome(self) -> RunResult:
         if self._error is not None:

@@ -26,10 +26,11 @@ from typing import Any
 from labrig.config import RigConfig
 from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
+from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, FEEDBACKS
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.rigfile import device_config
 from labrig.protocol.safety import SpeedLimits, depth_problem
-from labrig.protocol.spec import FEEDBACKS, ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
+from labrig.protocol.spec import ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
 from labrig.protocol.split import PAPER_SPLIT, assign_splits, split_counts
 from labrig.protocol.variation import parse_variation, slowest_machine
 
@@ -320,8 +321,8 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
                     continue
             elif field == "feedback":
                 if value not in FEEDBACKS:
-                    problems.add(where, name, f"must be one of {', '.join(repr(f) for f in FEEDBACKS)} (the F/T sensor), "
-                                              f"not {value!r}")
+                    problems.add(where, name, f"must be \"ft\" (the F/T sensor) or \"events\" (the event sensor's "
+                                              f"estimate), not {value!r}")
                     continue
             elif field == "location_mm":
                 bad = _check_xy(value)
@@ -351,6 +352,8 @@ def _build_spec(values: Mapping[str, Any]) -> ProbeSpec:
     approach = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("approach.")}
     control = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("control.")}
     top = {k: v for k, v in values.items() if not k.startswith(("approach.", "control."))}
+    if top.get("feedback") == "events":
+        control.setdefault("stale_after_s", EVENTS_STALE_AFTER_S)
     if control:
         top["control"] = ForceLoopParams(**control)
     if top.get("depth_mm") is None and top.get("force_n") is None:

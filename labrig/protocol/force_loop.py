@@ -98,14 +98,16 @@ class ForceLoop:
     def update(self, t_s: float, force_n: float, place_mm: float, reading_t_s: float | None = None,
                reach_mm: tuple[float, float] = (-math.inf, math.inf)) -> LoopCommand:
         """The command at time ``t_s`` (s, any fixed origin) from the newest reading ``force_n`` (N, pressing
-        positive), taken at ``reading_t_s`` (default ``t_s``) with the tool at ``place_mm`` along the inward normal
-        (mm, any fixed origin); the goal is cut to ``reach_mm`` (lowest, highest place allowed). Once stopped, every
-        later call stops too."""
+        positive), taken at ``reading_t_s`` (default ``t_s``; -inf: no reading yet) with the tool at ``place_mm``
+        along the inward normal (mm, any fixed origin); the goal is cut to ``reach_mm`` (lowest, highest place
+        allowed). Once stopped, every later call stops too."""
         p = self.params
         error = self.target_n - float(force_n)
         if self.stopped is not None:
             return LoopCommand(place_mm, error, self.stiffness_n_per_mm, stop=self.stopped)
         age_s = t_s - (t_s if reading_t_s is None else reading_t_s)
+        if not math.isfinite(age_s):
+            return self._stop(place_mm, error, "the force feedback gave no reading")
         if age_s > p.stale_after_s or not (math.isfinite(force_n) and math.isfinite(place_mm)):
             return self._stop(place_mm, error, f"the force feedback stalled: the newest reading is "
                                                f"{age_s * 1e3:.0f} ms old (more than {p.stale_after_s * 1e3:.0f} ms)")

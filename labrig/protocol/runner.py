@@ -38,6 +38,7 @@ from labrig.devices.grbl import Grbl, GrblAlarm, GrblError, GrblTimeout
 from labrig.errors import LabrigError
 from labrig.frames import Pose
 from labrig.indenters import Indenter, indenter_toml
+from labrig.protocol.feedback import EstimateFeedback, ForceReading
 from labrig.protocol.force_loop import CONTROL_STREAM, ForceLoop, HeldMove
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.preflight import checked_plan
@@ -143,6 +144,8 @@ class ProbeRunner:
         self.progress = progress
         self.on_step = on_step
         self.limits = session.limits.for_indenter(indenter.max_normal_force_n, indenter.max_shear_force_n)
+        #: The event sensor's estimate, filled by the live pipeline beside the run (``feedback = "events"``).
+        self.estimate: EstimateFeedback | None = None
         self._writer: RecordingWriter | None = None
         self._phases: list[str] = []
         self._output_level = 0
@@ -186,6 +189,10 @@ class ProbeRunner:
             overwrite: bool = False) -> RunResult:
         """Travel above the location, tare, record the sequence, retract. Raises before moving
         if the plan is unsafe; otherwise always returns a finalized recording."""
+        if spec.holds_force and spec.feedback == "events" and self.estimate is None:
+            raise LabrigError('[control] feedback = "events" holds the force on the event sensor\'s estimate, which '
+                              "needs the live pipeline beside the run: run it with `labrig run --live --protocol FILE`, "
+                              "or in virtual time (`labrig campaign --virtual-time`)")
         plan = self.check(spec)
         self._check_speeds(spec)
         out = Path(out)
@@ -285,23 +292,29 @@ class ProbeRunner:
     def _move_holding(self, step: MoveHolding) -> str | None:
         """The held move in absolute jog segments, one sent per segment's span on the host clock with the next
         already queued (GRBL's planner runs them without stopping, and a jog cancel drops them); the loop reads the
-        F/T's newest tared |Fz|. A host late by a segment lets the queue run dry: the machine stops and waits."""
+        feedback's newest normal force (the F/T's tared |Fz|, or the live pipeline's estimate). A host late by a
+        segment lets the queue run dry: the machine stops and waits."""
         here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
         held = HeldMove(here, step.target_mm, step.normal, step.speed_mm_s, ForceLoop(step.hold.target_n, step.hold.params),
                         step.deepest_mm, accel_mm_s2=self.grbl.limits.accel_along_mm_s2(step.normal),
                         duration_s=step.duration_s)
         period_s = step.hold.params.segment_s
         clock = self.session.clock
+        feedback: ForceReading = self.session.monitor
+        if step.hold.feedback == "events":
+            assert self.estimate is not None  # check() refused the run otherwise
+            feedback = self.estimate
         queued = 0
         next_s = time.monotonic()
         while True:
             self._check_faults()
-            force_n, t_ns = self.session.monitor.normal_reading()
+            force_n, t_ns = feedback.normal_reading()
             now_ns = clock.now_ns()
             reading_ns = now_ns if t_ns is None else t_ns
             now_us = self.grbl.now_us()
             here_mm, reading_mm = self.grbl.pose_at(np.array([now_us, now_us - (now_ns - reading_ns) / 1000]))
-            out = held.next_segment(now_ns / 1e9, force_n, here_mm, reading_ns / 1e9, reading_mm)
+            reading_s = -math.inf if t_ns is None else reading_ns / 1e9  # no reading yet: the loop stops
+            out = held.next_segment(now_ns / 1e9, force_n, here_mm, reading_s, reading_mm)
             if isinstance(out, str):
                 self.grbl.jog_cancel()
                 self._wait_motion(MOVE_MARGIN_S)

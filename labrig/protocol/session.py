@@ -242,6 +242,15 @@ class RigSession:
             return self.last_camera_ns
         return writer.t0_host_ns + int(model.to_host_us(self.last_camera_device_us)) * NS_PER_US
 
+    def camera_host_ns(self, t_device_us: int) -> int | None:
+        """The host time (ns) of a camera timestamp (device us), through the recording's live camera clock model
+        (trigger edges on both clocks); None before a recording has one."""
+        writer = self._writer
+        model = writer.clock_model("camera") if writer is not None else None
+        if writer is None or model is None:
+            return None
+        return writer.t0_host_ns + int(model.to_host_us(t_device_us)) * NS_PER_US
+
     def _world_progress(self) -> int:
         return self._world_t_us() if self.world is not None else 0
 

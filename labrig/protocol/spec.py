@@ -20,8 +20,6 @@ from labrig.errors import LabrigError
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.variation import SensorVariation
 
-#: Where a held force is read from: the F/T sensor.
-FEEDBACKS = ("ft",)
 #: Depth assumed when timing a force-target run that has no depth cap (see ``nominal_duration_s``).
 FORCE_TARGET_DEPTH_GUESS_MM = 1.5
 

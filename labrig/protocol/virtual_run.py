@@ -14,6 +14,7 @@ through-driver campaign writes ``drivers``).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,6 +28,9 @@ from labrig.config import RigConfig
 from labrig.devices.bota_stream import FtSample
 from labrig.indenters import Indenter, indenter_toml
 from labrig.physics.grid import network_grid_gel_mm
+from labrig.pipeline.runtime import Pipeline
+from labrig.protocol.event_estimate import EventEstimator, estimate_pipeline
+from labrig.protocol.feedback import EstimateFeedback, ForceReading
 from labrig.protocol.force_loop import CONTROL_STREAM, ForceLoop, HeldMove
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.preflight import checked_plan
@@ -78,16 +82,21 @@ class _Abort(Exception):
 
 def record_virtual(spec: ProbeSpec, out: str | Path, rig: RigConfig, indenter: Indenter, *, seed: int = 0,
                    protocol_toml: str = "", extra: dict[str, Any] | None = None,
-                   on_step: Callable[[Step], None] | None = None) -> RunResult:
+                   on_step: Callable[[Step], None] | None = None, calibration_dir: str | Path | None = None,
+                   model: str | Path | None = None) -> RunResult:
     """Simulate the probing run ``spec`` in virtual time into ``out``; raises SafetyError before any
     move if the plan is unsafe (the runner's checks), else returns the finalized recording.
 
-    ``on_step`` sees every step of the procedure before it is played (a log, a test)."""
+    ``on_step`` sees every step of the procedure before it is played (a log, a test). A run whose force loop reads
+    the event sensor (``feedback = "events"``) runs the pipeline beside it on the camera's chunks, with the rig's
+    calibration (``calibration_dir``, default the rig file's folder) and the depth network ``model`` (default: as
+    ``labrig run``)."""
     wall0 = time.perf_counter()
     limits = safety_limits(rig).for_indenter(indenter.max_normal_force_n, indenter.max_shear_force_n)
     plan = checked_plan(spec, rig, indenter, gel_pose(rig), limits)
     SpeedLimits.of_rig(rig).check(spec)
-    run = _VirtualRun(plan, rig, indenter, limits, seed, on_step)
+    pipeline = estimate_pipeline(rig, calibration_dir, model) if spec.holds_force and spec.feedback == "events" else None
+    run = _VirtualRun(plan, rig, indenter, limits, seed, on_step, pipeline)
     out = Path(out)
     if out.exists():
         out.unlink()
@@ -100,7 +109,7 @@ class _VirtualRun:
     """The executor in virtual time: plays the procedure's steps on an :class:`OfflineRig`."""
 
     def __init__(self, plan: ProbePlan, rig: RigConfig, indenter: Indenter, limits: SafetyLimits, seed: int,
-                 on_step: Callable[[Step], None] | None = None) -> None:
+                 on_step: Callable[[Step], None] | None = None, pipeline: Pipeline | None = None) -> None:
         self.plan, self.rig, self.indenter, self.limits, self.seed = plan, rig, indenter, limits, seed
         self.on_step = on_step
         self.contact: F64 | None = None
@@ -109,6 +118,10 @@ class _VirtualRun:
         self.devices = OfflineRig(rig, indenter, seed=seed, start_tool_mm=plan.approach_start_mm, sinks=OfflineSinks(
             ft=self._on_ft, cnc=self._on_cnc, gcode=self._on_gcode, camera=self._on_chunk, rig_chunk=self._on_rig_chunk))
         self.monitor = ForceMonitor(limits, on_trip=self.devices.feed_hold)
+        self.estimate = EstimateFeedback()
+        self.estimator = None if pipeline is None else EventEstimator(pipeline, self.estimate,
+                                                                      self.devices.host_ns_of_camera)
+        self.feedback: ForceReading = self.monitor if pipeline is None else self.estimate
         self.level = 0
         self.phases: list[str] = []
         self._ft_rows: list[FtSample] = []
@@ -141,6 +154,8 @@ class _VirtualRun:
     def _on_chunk(self, chunk: Any) -> None:
         if self.writer is not None:
             put_chunk(self.writer, chunk)
+        if self.estimator is not None:
+            self.estimator.on_chunk(chunk)
 
     def _on_rig_chunk(self, out: Any) -> None:
         if self.writer is not None:
@@ -223,7 +238,8 @@ class _VirtualRun:
 
     def _move_holding(self, step: MoveHolding) -> str | None:
         """The held move in jog segments, one commanded per segment's span with the next already queued (GRBL's
-        planner runs them without stopping); the loop reads the F/T's newest tared |Fz|."""
+        planner runs them without stopping); the loop reads its feedback's newest normal force (the F/T's tared |Fz|,
+        or the event pipeline's estimate)."""
         d = self.devices
         timeline = d.timeline
         held = HeldMove(timeline.tail_mm, step.target_mm, step.normal, step.speed_mm_s,
@@ -232,11 +248,11 @@ class _VirtualRun:
         segment_us = round(step.hold.params.segment_s * US)
         queued = 0
         while True:
-            force_n, t_ns = self.monitor.normal_reading()
+            force_n, t_ns = self.feedback.normal_reading()
             now_us = d.now_us
-            reading_us = now_us if t_ns is None else t_ns / 1000
+            reading_us = -math.inf if t_ns is None else t_ns / 1000
             out = held.next_segment(now_us / US, force_n, timeline.position_at(now_us), reading_us / US,
-                                    timeline.position_at(min(reading_us, now_us)))
+                                    timeline.position_at(min(max(reading_us, 0), now_us)))
             if isinstance(out, str):
                 d.jog_cancel()
                 d.dwell(segment_us)

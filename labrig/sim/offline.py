@@ -287,6 +287,12 @@ class OfflineRig:
         if self.sinks.rig_chunk is not None:
             self.sinks.rig_chunk(out)
 
+    def host_ns_of_camera(self, t_camera_us: int) -> int:
+        """The host time (ns) of a camera timestamp (us): the inverse of the camera clock's offset and drift."""
+        clock = self.rig.truth.camera_clock
+        t_world_us = (t_camera_us - clock.origin_us) / (1 + clock.drift_ppm * 1e-6)
+        return round((t_world_us + self.origin_us) * 1000)
+
     def finish(self) -> None:
         """Let the renderer catch up with the host clock (the last events arrive)."""
         if self.rendering:

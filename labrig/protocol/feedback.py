@@ -1,0 +1,74 @@
+"""Where the force loop reads its force: the F/T sensor, or the event sensor's estimate, behind one seam.
+
+The loop (:mod:`labrig.protocol.force_loop`) asks a :class:`ForceReading` for the newest normal force (N on the
+gel, pressing positive) and the host time it was *measured*: for the F/T sensor
+(:class:`~labrig.protocol.safety.ForceMonitor`) the sample's arrival; for the event sensor
+(:class:`EstimateFeedback`) the end of the pipeline window the estimate came from, on the host clock. The pipeline
+that fills an :class:`EstimateFeedback` runs beside the probing run: in virtual time on the rendered chunks
+(:class:`~labrig.protocol.event_estimate.EventEstimator`), through the drivers in the live pipeline
+(:class:`~labrig.live.rig.ProbeStream`).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+
+#: The feedbacks a protocol may name: the F/T sensor (800 Hz, the baseline) or the event sensor's estimate.
+FEEDBACKS = ("ft", "events")
+#: An event estimate older than this stops the loop unless the protocol says otherwise, s. A window's estimate is
+#: one window span old when the window closes, and the virtual rig's live camera hands its events over 30-40 ms
+#: after they happen, in bursts on a loaded host (measured: reading ages of 18-78 ms through the drivers on two
+#: cores); a camera lost or a pipeline far behind stalls beyond that. A real EVK4 delivers within milliseconds:
+#: a lab may set ``[control] stale_after_s`` lower.
+EVENTS_STALE_AFTER_S = 0.15
+
+
+class ForceReading(Protocol):
+    """A source of the loop's feedback."""
+
+    def normal_reading(self) -> tuple[float, int | None]:
+        """The newest normal force on the gel (N, pressing positive) and the host time it was measured (ns; None
+        before any)."""
+        ...
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One pipeline window's forces on the gel (gel frame, N; a press: Fz < 0), measured at ``t_host_ns`` (the
+    window's end, host ns)."""
+
+    t_host_ns: int
+    net_force_n: F64  # (3,)
+    marker_forces_n: F64  # (M, 3)
+
+
+class EstimateFeedback:
+    """The event sensor's newest estimate, published by the pipeline's thread and read by the loop's."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._newest: Estimate | None = None
+        self.windows = 0
+
+    def publish(self, estimate: Estimate) -> None:
+        with self._lock:
+            self._newest = estimate
+            self.windows += 1
+
+    @property
+    def newest(self) -> Estimate | None:
+        with self._lock:
+            return self._newest
+
+    def normal_reading(self) -> tuple[float, int | None]:
+        newest = self.newest
+        if newest is None:
+            return 0.0, None
+        return float(-newest.net_force_n[2]), newest.t_host_ns
