@@ -85,3 +85,15 @@ def test_a_camera_that_stops_stalls_the_loop_which_stops_and_retracts(rig: RigCo
     # the last segment was commanded on a reading still fresh; the next update found it stale and stopped
     segment_us = spec.control.segment_s * 1e6
     assert 50_000 - 2 * segment_us < age_us[-1] <= 50_000
+
+
+def test_recording_a_loop_on_the_event_sensor_without_the_live_pipeline_says_how(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-m", "labrig.cli", "record", "--protocol",
+                           str(root / "protocols" / "held-press-events.toml"), "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=60, cwd=root)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "labrig run --live --protocol FILE" in done.stderr and not any(tmp_path.iterdir())

@@ -52,7 +52,7 @@ def record(
     from labrig.protocol import apply_overrides, load_protocol
     from labrig.protocol.files import DEFAULT_PROTOCOL
     from labrig.protocol.rigfile import device_config
-    from labrig.protocol.runner import ProbeRunner, RunProgress
+    from labrig.protocol.runner import EVENTS_NEED_THE_PIPELINE, ProbeRunner, RunProgress
     from labrig.protocol.safety import StopRequest
     from labrig.protocol.session import RigSession
 
@@ -60,6 +60,8 @@ def record(
     protocol_path = protocol or DEFAULT_PROTOCOL
     spec = load_protocol(protocol_path, rig, indenters)
     spec = apply_overrides(spec, at=at, depth=depth, force=force, indenter=indenter, rig=rig, indenters=indenters)
+    if spec.reads_events:
+        raise LabrigError(EVENTS_NEED_THE_PIPELINE)
     if device_config(rig).virtual:
         err_console.print("no hardware configured: recording on the virtual rig (embedded)")
     session = RigSession.for_rig(rig, indenters[spec.indenter], seed=seed, indenters_path=ind_path,
@@ -134,6 +136,7 @@ def campaign(
     from labrig.protocol import load_campaign
     from labrig.protocol.campaign import Manifest, Outcome, pending_jobs, run_job, run_parallel
     from labrig.protocol.rigfile import device_config
+    from labrig.protocol.runner import EVENTS_NEED_THE_PIPELINE
     from labrig.protocol.safety import StopRequest
 
     if workers < 1:
@@ -148,6 +151,8 @@ def campaign(
     if plan.variation is not None and not virtual_time:
         raise LabrigError(f"{file}: [vary] gives each recording a sensor of its own, which only a virtual-time "
                           "campaign makes: add --virtual-time")
+    if not virtual_time and any(p.spec.reads_events for p in plan.plans):
+        raise LabrigError(EVENTS_NEED_THE_PIPELINE)
     if workers > 1 and not devices.virtual and not virtual_time:
         raise LabrigError("--workers > 1 needs the virtual rig: a hardware campaign runs one recording at a time")
     output_folder(out, "--out")

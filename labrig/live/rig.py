@@ -123,7 +123,7 @@ class ProbeStream:
         self.tap = ChunkTap()
         self.live = LiveRunner(pipeline, self.tap, window_us=window_us, window_events=window_events,
                                max_lag_ms=max_lag_ms)
-        if spec.holds_force and spec.feedback == "events":
+        if spec.reads_events:
             runner.estimate = EstimateFeedback()
         self._result: RunResult | None = None
         self._error: BaseException | None = None

@@ -121,6 +121,12 @@ class _Abort(Exception):
         self.late = late
 
 
+#: Why a run whose loop reads the event sensor cannot be recorded without the live pipeline.
+EVENTS_NEED_THE_PIPELINE = ('[control] feedback = "events" holds the force on the event sensor\'s estimate, which needs '
+                            "the live pipeline beside the run: run it with `labrig run --live --protocol FILE`, or in "
+                            "virtual time (`labrig campaign --virtual-time`)")
+
+
 class ProbeRunner:
     """Runs :class:`ProbeSpec` s on an open :class:`RigSession` for one mounted indenter."""
 
@@ -189,10 +195,8 @@ class ProbeRunner:
             overwrite: bool = False) -> RunResult:
         """Travel above the location, tare, record the sequence, retract. Raises before moving
         if the plan is unsafe; otherwise always returns a finalized recording."""
-        if spec.holds_force and spec.feedback == "events" and self.estimate is None:
-            raise LabrigError('[control] feedback = "events" holds the force on the event sensor\'s estimate, which '
-                              "needs the live pipeline beside the run: run it with `labrig run --live --protocol FILE`, "
-                              "or in virtual time (`labrig campaign --virtual-time`)")
+        if spec.reads_events and self.estimate is None:
+            raise LabrigError(EVENTS_NEED_THE_PIPELINE)
         plan = self.check(spec)
         self._check_speeds(spec)
         out = Path(out)

@@ -105,6 +105,11 @@ class ProbeSpec:
         return self.press_hold_s is not None or (self.shear_hold_force_n is not None and self.has_shear)
 
     @property
+    def reads_events(self) -> bool:
+        """The force loop reads the event sensor's estimate (the pipeline must run beside the run)."""
+        return self.holds_force and self.feedback == "events"
+
+    @property
     def has_shear(self) -> bool:
         return self.shear_mm > 0
 

@@ -95,7 +95,7 @@ def record_virtual(spec: ProbeSpec, out: str | Path, rig: RigConfig, indenter: I
     limits = safety_limits(rig).for_indenter(indenter.max_normal_force_n, indenter.max_shear_force_n)
     plan = checked_plan(spec, rig, indenter, gel_pose(rig), limits)
     SpeedLimits.of_rig(rig).check(spec)
-    pipeline = estimate_pipeline(rig, calibration_dir, model) if spec.holds_force and spec.feedback == "events" else None
+    pipeline = estimate_pipeline(rig, calibration_dir, model) if spec.reads_events else None
     run = _VirtualRun(plan, rig, indenter, limits, seed, on_step, pipeline)
     out = Path(out)
     if out.exists():
