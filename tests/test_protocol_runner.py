@@ -70,7 +70,9 @@ def test_waits_add_trigger_edge_pairs_for_the_clock_fit(rig: RigConfig, sphere: 
         assert at_phase.sum() == len(spec.phases())
         assert polarity[at_phase].tolist() == [(k + 1) % 2 for k in range(len(spec.phases()))]
         camera = rec.clock_model("camera")
-        assert camera.method.startswith("triggers") and camera.n_trigger_pairs == n_edges
+        # the line through the pairs ("triggers"), or on a host so loaded that the pairs agree on no line, the
+        # envelope's drift with the offset from the pairs ("envelope+trigger"): both rest on every edge
+        assert camera.method in ("triggers", "envelope+trigger") and camera.n_trigger_pairs == n_edges
         assert (rec.column("trigger_out", "t_latest_host_us") > sent).all() and np.isfinite(camera.offset_bound_us)
 
 
