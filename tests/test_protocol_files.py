@@ -414,8 +414,7 @@ max_speed_mm_s = 1.5
     spec = load_protocol(good, rig, indenters)
     assert spec.shear_hold_force_n == 4.0 and spec.feedback == "ft" and spec.press_hold_s is None
     assert spec.control == ForceLoopParams(stiffness_n_per_mm=12.0, max_speed_mm_s=1.5)
-    on_events = load_protocol(_write(tmp_path, "events.toml", good.read_text().replace('"ft"', '"events"')), rig,
-                              indenters)
+    on_events = load_protocol(_write(tmp_path, "events.toml", on_events_text(good)), rig, indenters)
     assert on_events.feedback == "events" and on_events.control.stale_after_s == EVENTS_STALE_AFTER_S
     told = load_protocol(_write(tmp_path, "told.toml", on_events_text(good) + "stale_after_s = 0.05\n"), rig, indenters)
     assert told.control.stale_after_s == 0.05

@@ -96,11 +96,14 @@ def record_virtual(spec: ProbeSpec, out: str | Path, rig: RigConfig, indenter: I
     plan = checked_plan(spec, rig, indenter, gel_pose(rig), limits)
     SpeedLimits.of_rig(rig).check(spec)
     pipeline = estimate_pipeline(rig, calibration_dir, model) if spec.reads_events else None
-    run = _VirtualRun(plan, rig, indenter, limits, seed, on_step, pipeline)
     out = Path(out)
     if out.exists():
         out.unlink()
-    result = run.record(out, protocol_toml, extra or {})
+    try:
+        result = _VirtualRun(plan, rig, indenter, limits, seed, on_step, pipeline).record(out, protocol_toml, extra or {})
+    finally:
+        if pipeline is not None:
+            pipeline.close()
     result.wall_s = time.perf_counter() - wall0
     return result
 
@@ -118,10 +121,9 @@ class _VirtualRun:
         self.devices = OfflineRig(rig, indenter, seed=seed, start_tool_mm=plan.approach_start_mm, sinks=OfflineSinks(
             ft=self._on_ft, cnc=self._on_cnc, gcode=self._on_gcode, camera=self._on_chunk, rig_chunk=self._on_rig_chunk))
         self.monitor = ForceMonitor(limits, on_trip=self.devices.feed_hold)
-        self.estimate = EstimateFeedback()
-        self.estimator = None if pipeline is None else EventEstimator(pipeline, self.estimate,
+        self.estimator = None if pipeline is None else EventEstimator(pipeline, EstimateFeedback(),
                                                                       self.devices.host_ns_of_camera)
-        self.feedback: ForceReading = self.monitor if pipeline is None else self.estimate
+        self.feedback: ForceReading = self.monitor if self.estimator is None else self.estimator.feedback
         self.level = 0
         self.phases: list[str] = []
         self._ft_rows: list[FtSample] = []
