@@ -9,7 +9,10 @@ phase is *held* when the loop commanded through at least half of it; its target 
 * the **hold**: the RMS of the F/T's |Fz| from the target over the held waits and shears (N);
 * the **estimate's hold**: the same for the pipeline's predicted |Fz| over the evaluation windows ending in those
   phases: what the event sensor would have fed the loop;
-* the loop's rate: its commands' median rate (Hz).
+* the loop's rate: its commands' median rate (Hz);
+* the **slip reflex** (a held Shear with ``[slip] action``): when it told slip, and, on the virtual rig, when the
+  whole contact truly began to slide (``truth/contact`` ``sliding``, gross slip), and the difference (ms; negative:
+  told before it slid).
 
 Forces are |Fz| on the gel, N (the F/T's tared by its first samples, before contact).
 """
@@ -17,15 +20,17 @@ Forces are |Fz| on the gel, N (the F/T's tared by its first samples, before cont
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from labrig.evaluation.forces import ForceResult
 from labrig.recording import Recording
+from labrig.recording.reader import Phase
 
 #: F/T samples averaged for the tare (the approach starts clear of the gel).
 TARE_SAMPLES = 100
@@ -103,6 +108,13 @@ class ControlRun:
     t_s: npt.NDArray[np.float64]  # F/T sample times, s from the first held phase's start
     ft_fz_n: npt.NDArray[np.float64]  # F/T |Fz| at those times
     target_series_n: npt.NDArray[np.float64]  # the target in force at those times (nan outside held phases)
+    slip_told_s: float = math.nan  # Shear's slip reflex first told slip, s from the origin (nan: never, no reflex)
+    slip_onset_s: float = math.nan  # the sim's true onset of gross slip in Shear, s from the origin (nan: none)
+
+    @property
+    def slip_onset_error_ms(self) -> float:
+        """When the reflex told slip less when the contact truly began to slide, ms (nan unless both happened)."""
+        return (self.slip_told_s - self.slip_onset_s) * 1e3
 
 
 def control_run(path: str | Path, forces: ForceResult | None = None) -> ControlRun | None:
@@ -115,6 +127,8 @@ def control_run(path: str | Path, forces: ForceResult | None = None) -> ControlR
         ft = rec.stream("ft")
         phases = rec.phases()
         feedback = str(rec.attrs.get("extra_control_feedback", "ft"))
+        truth = rec.stream("truth/contact") if "truth/contact" in rec.streams else None
+    slip_told_us, slip_onset_us = _slip_times(control, truth, phases)
     c_t, c_target = control["t_host_us"].astype(np.int64), control["target_n"].astype(np.float64)
     t_us = ft["t_host_us"].astype(np.int64)
     fz = np.abs(ft["force_n"][:, 2] - ft["force_n"][:TARE_SAMPLES, 2].mean()).astype(np.float64)
@@ -151,7 +165,27 @@ def control_run(path: str | Path, forces: ForceResult | None = None) -> ControlR
         hold_rms_n_estimate=hold_estimate, loop_hz=1e6 / period_us,
         origin_us=origin_us,
         phases_s=tuple((p.name, (p.t_start_us - origin_us) / 1e6, (p.t_end_us - origin_us) / 1e6) for p in phases),
-        t_s=(t_us - origin_us) / 1e6, ft_fz_n=fz, target_series_n=target_series)
+        t_s=(t_us - origin_us) / 1e6, ft_fz_n=fz, target_series_n=target_series,
+        slip_told_s=(slip_told_us - origin_us) / 1e6, slip_onset_s=(slip_onset_us - origin_us) / 1e6)
+
+
+def _slip_times(control: Mapping[str, npt.NDArray[Any]], truth: Mapping[str, npt.NDArray[Any]] | None,
+                phases: Sequence[Phase]) -> tuple[float, float]:
+    """In the first Shear: when the reflex first told slip and when the contact truly began to slide (host us;
+    nan where not)."""
+    shear = next((p for p in phases if p.name == "shear"), None)
+    if shear is None:
+        return math.nan, math.nan
+    told = onset = math.nan
+    if "slipping" in control:
+        t = control["t_host_us"].astype(np.int64)
+        hits = t[(t >= shear.t_start_us) & (t <= shear.t_end_us) & (control["slipping"] > 0)]
+        told = float(hits[0]) if hits.size else math.nan
+    if truth is not None and "sliding" in truth:
+        t = truth["t_host_us"].astype(np.int64)
+        hits = t[(t >= shear.t_start_us) & (t <= shear.t_end_us) & (truth["sliding"] > 0)]
+        onset = float(hits[0]) if hits.size else math.nan
+    return told, onset
 
 
 def _rms(errors: Sequence[npt.NDArray[np.float64]]) -> float:

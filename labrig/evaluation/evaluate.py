@@ -319,7 +319,8 @@ def headline(ev: Evaluation) -> dict[str, Any]:
                     "control_step_overshoot_pct": _median([r.step_overshoot_pct for r in runs]),
                     "control_step_settling_s": _median([r.step_settling_s for r in runs]),
                     "control_hold_rms_n_ft": _median([r.hold_rms_n_ft for r in runs]),
-                    "control_hold_rms_n_estimate": _median([r.hold_rms_n_estimate for r in runs])})
+                    "control_hold_rms_n_estimate": _median([r.hold_rms_n_estimate for r in runs]),
+                    "control_slip_onset_error_ms": _median([r.slip_onset_error_ms for r in runs])})
     if ev.forces_truth:
         truth = {row["axis"]: row for row in tables.table3(ev.forces_truth)}
         out.update({f"force_{a}_mae_true_depth_n": truth[a]["force_mae_n"] for a in ("x", "y", "z", "total")})

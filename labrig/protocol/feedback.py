@@ -18,6 +18,8 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from labrig.protocol.slip import ContactReading
+
 F64 = npt.NDArray[np.float64]
 
 #: The feedbacks a protocol may name: the F/T sensor (800 Hz, the baseline) or the event sensor's estimate.
@@ -36,6 +38,11 @@ class ForceReading(Protocol):
     def normal_reading(self) -> tuple[float, int | None]:
         """The newest normal force on the gel (N, pressing positive) and the host time it was measured (ns; None
         before any)."""
+        ...
+
+    def contact_reading(self) -> ContactReading | None:
+        """The newest reading with its tangential part (and the dense field where the source has it); None before
+        any."""
         ...
 
 
@@ -72,3 +79,9 @@ class EstimateFeedback:
         if newest is None:
             return 0.0, None
         return float(-newest.net_force_n[2]), newest.t_host_ns
+
+    def contact_reading(self) -> ContactReading | None:
+        newest = self.newest
+        if newest is None:
+            return None
+        return ContactReading(newest.t_host_ns, newest.net_force_n, newest.marker_forces_n)

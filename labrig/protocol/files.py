@@ -30,6 +30,7 @@ from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, FEEDBACKS
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.rigfile import device_config
 from labrig.protocol.safety import SpeedLimits, depth_problem
+from labrig.protocol.slip import SLIP_ACTIONS, SlipParams
 from labrig.protocol.spec import ApproachSpec, Campaign, ProbeSpec, Problem, ProtocolError, RecordingPlan
 from labrig.protocol.split import PAPER_SPLIT, assign_splits, split_counts
 from labrig.protocol.variation import parse_variation, slowest_machine
@@ -207,7 +208,11 @@ PROTOCOL_KEYS: dict[str, dict[str, str]] = {
                "hold_s": "press_hold_s"},
     "wait": {"duration_s": "wait_s"},
     "shear": {"direction_deg": "shear_direction_deg", "distance_mm": "shear_mm", "speed_mm_s": "shear_speed_mm_s",
-              "hold_force_n": "shear_hold_force_n"},
+              "hold_force_n": "shear_hold_force_n", "force_n": "shear_force_n"},
+    "slip": {"action": "slip_action", "share": "slip.share", "at_friction": "slip.at_friction",
+             "net_ratio": "slip.net_ratio", "persist": "slip.persist", "press_ratio": "slip.press_ratio",
+             "friction": "slip.friction"},
+    "release": {"force_n": "release_force_n", "hold_s": "release_hold_s"},
     "retract": {"height_mm": "retract_height_mm", "speed_mm_s": "retract_speed_mm_s"},
     "control": {
         "feedback": "feedback",
@@ -231,6 +236,15 @@ _FIELD_SIGN: dict[str, str] = {
     "retract_height_mm": "positive",
     "retract_speed_mm_s": "positive",
     "shear_hold_force_n": "positive",
+    "shear_force_n": "positive",
+    "release_force_n": "positive",
+    "release_hold_s": "positive",
+    "slip.share": "fraction",
+    "slip.at_friction": "fraction",
+    "slip.net_ratio": "fraction",
+    "slip.press_ratio": "fraction",
+    "slip.persist": "count",
+    "slip.friction": "positive",
     "press_hold_s": "positive",
     "control.stiffness_n_per_mm": "positive",
     "control.max_speed_mm_s": "positive",
@@ -259,6 +273,10 @@ def _check_number(value: object, key: str, sign: str) -> str | None:
         return f"must be positive, not {value}; give a value > 0 {unit}"
     if sign == "nonneg" and value < 0:
         return f"must not be negative, not {value}; give a value >= 0 {unit}"
+    if sign == "fraction" and not 0 < value <= 1:
+        return f"must be a share in (0, 1], not {value}; e.g. {key} = 0.9"
+    if sign == "count" and (value != int(value) or value < 1):
+        return f"must be a whole number of readings, at least 1, not {value}; e.g. {key} = 2"
     return None
 
 
@@ -324,6 +342,11 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
                     problems.add(where, name, f"must be \"ft\" (the F/T sensor) or \"events\" (the event sensor's "
                                               f"estimate), not {value!r}")
                     continue
+            elif field == "slip_action":
+                if value not in SLIP_ACTIONS:
+                    problems.add(where, name, f"must be \"report\" (record when the contact slips), \"stop\" (end the "
+                                              f"shear there) or \"press\" (raise the held force), not {value!r}")
+                    continue
             elif field == "location_mm":
                 bad = _check_xy(value)
                 if bad:
@@ -335,7 +358,7 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
                 if bad:
                     problems.add(where, name, bad)
                     continue
-                value = float(value)
+                value = int(value) if _FIELD_SIGN[field] == "count" else float(value)
             pf.values[field] = value
     normal_table = data.get("normal")
     normal = normal_table if isinstance(normal_table, dict) else {}
@@ -351,7 +374,10 @@ def _build_spec(values: Mapping[str, Any]) -> ProbeSpec:
     """A ProbeSpec from field values (missing ones take the dataclass defaults)."""
     approach = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("approach.")}
     control = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("control.")}
-    top = {k: v for k, v in values.items() if not k.startswith(("approach.", "control."))}
+    slip = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("slip.")}
+    top = {k: v for k, v in values.items() if not k.startswith(("approach.", "control.", "slip."))}
+    if slip:
+        top["slip"] = SlipParams(**slip)
     if top.get("feedback") == "events":
         control.setdefault("stale_after_s", EVENTS_STALE_AFTER_S)
     if control:
@@ -385,6 +411,14 @@ def check_spec(
     if spec.shear_hold_force_n is not None and not spec.has_shear:
         out.append(("shear_hold_force_n", "holds the normal force during the shears, and distance_mm = 0 has none; "
                                           "give a shear distance or drop hold_force_n"))
+    held_shear = "needs the normal force held during the shears: give [shear] hold_force_n, or [normal] force_n with hold_s"
+    if spec.shear_force_n is not None and spec.shear_held_n is None:
+        out.append(("shear_force_n", f"shears until a tangential force and {held_shear}"))
+    if spec.slip_action is not None and spec.shear_held_n is None:
+        out.append(("slip_action", f"is the held shear's reflex and {held_shear}"))
+    if spec.release_force_n is not None and spec.force_n is not None and spec.release_force_n >= spec.force_n:
+        out.append(("release_force_n", f"{spec.release_force_n} N is not below the pressed force {spec.force_n} N; "
+                                       "a release holds less than the press"))
     target = spec.force_n if spec.force_n is not None else None
     if target is not None and a.contact_force_n >= target:
         out.append(("approach.contact_force_n", f"{a.contact_force_n} N is not below the force target {target} N; lower it"))

@@ -36,12 +36,17 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from labrig.protocol.slip import ContactReading, SlipCheck, SlipDetector, SlipReflex
 from labrig.recording.schema import Column, StreamSpec
 
 #: The secant stiffness is measured between readings at least this far apart along the normal (mm) ...
 STIFFNESS_BASELINE_MM = 0.02
 #: ... and the loop assumes this much more than it measured (a sphere stiffens as it goes in).
 STIFFNESS_MARGIN = 1.25
+#: A shear to a tangential force slows to TANGENTIAL_FINE_SPEED_MM_S (mm/s) from this fraction of its target on: the
+#: CNC's deceleration from the shear speed (2 mm/s at 10 mm/s**2: 0.2 mm) would carry the force well past it.
+TANGENTIAL_APPROACH_FRACTION = 0.5
+TANGENTIAL_FINE_SPEED_MM_S = 0.3
 
 
 @dataclass(frozen=True)
@@ -167,11 +172,18 @@ class HeldMove:
     ``deepest_mm`` (a point the tool's component along ``normal`` stays at or short of: the deepest press
     allowed). An executor calls
     :meth:`next_segment` once per segment with the newest reading and where the tool is, and sends the segment it
-    returns."""
+    returns.
+
+    With the reading's tangential part (a :class:`~labrig.protocol.slip.ContactReading`) the move may also end
+    early: once the tangential force reaches ``until_tangential_n`` (N; :attr:`ended_by` "tangential force"), or
+    when ``slip``'s detector tells the contact slips (:attr:`slipped_at_s`) and its action is "stop" (ended_by
+    "slip"); the action "press" raises the loop's target instead (:meth:`SlipDetector.press_target_n`, at most the
+    reflex's ``press_limit_n``), and "report" only records it."""
 
     def __init__(self, start_mm: npt.ArrayLike, target_mm: npt.ArrayLike, normal: npt.ArrayLike,
                  speed_mm_s: float, loop: ForceLoop, deepest_mm: npt.ArrayLike | None = None, *,
-                 accel_mm_s2: float = 10.0, duration_s: float = 0.0) -> None:
+                 accel_mm_s2: float = 10.0, duration_s: float = 0.0, until_tangential_n: float | None = None,
+                 slip: SlipReflex | None = None) -> None:
         if not (math.isfinite(accel_mm_s2) and accel_mm_s2 > 0):
             raise ValueError(f"the acceleration must be a positive number (mm/s**2), not {accel_mm_s2}")
         self.start = np.asarray(start_mm, np.float64)
@@ -184,24 +196,37 @@ class HeldMove:
         lateral_mm = float(np.linalg.norm(self.lateral))
         by_path = math.ceil(lateral_mm / (speed_mm_s * segment_s) - 1e-9) if lateral_mm > 0 else 0
         self.segments = max(1, by_path, math.ceil(duration_s / segment_s - 1e-9))
+        self._lateral_mm = lateral_mm
         self._lateral_speed_mm_s = lateral_mm / (self.segments * segment_s)
+        self._progress_mm = 0.0  # how far along the lateral path the segments handed out reach
         self.done = 0
         self.last = LoopCommand(0.0, 0.0, loop.params.stiffness_n_per_mm)
         self.speed_mm_s = 0.0  # the last segment's commanded speed along the normal
         self._end_place = 0.0
         self.max_place_mm = math.inf if deepest_mm is None else float(
             (np.asarray(deepest_mm, np.float64) - self.start) @ self.normal)
+        self.until_tangential_n = until_tangential_n
+        self.slip = slip
+        self.slip_detector = None if slip is None else SlipDetector(slip.friction, slip.params)
+        self.contact: ContactReading | None = None  # the newest reading with its tangential part
+        self.slip_check: SlipCheck | None = None  # the detector's verdict on it
+        self.slipped_at_s: float | None = None  # when the detector first told slip (the executor's clock, s)
+        self.ended_by: str | None = None  # "tangential force" or "slip": the move ended before its path did
 
     def place_mm(self, position_mm: npt.ArrayLike) -> float:
         """A machine position's place along the inward normal from the start (mm)."""
         return float((np.asarray(position_mm, np.float64) - self.start) @ self.normal)
 
     def next_segment(self, t_s: float, force_n: float, here_mm: npt.ArrayLike, reading_t_s: float | None = None,
-                     reading_mm: npt.ArrayLike | None = None) -> tuple[npt.NDArray[np.float64], float] | str | None:
+                     reading_mm: npt.ArrayLike | None = None, contact: ContactReading | None = None
+                     ) -> tuple[npt.NDArray[np.float64], float] | str | None:
         """The next segment's end (machine mm) and feed (mm/min), from the reading ``force_n`` taken at
-        ``reading_t_s`` with the tool at ``reading_mm`` (default: now, ``here_mm``); the loop's stop (its reason)
-        instead; None once the move's last segment has been handed out."""
-        if self.done >= self.segments:
+        ``reading_t_s`` with the tool at ``reading_mm`` (default: now, ``here_mm``) and, where given, the same
+        reading's tangential part ``contact``; the loop's stop (its reason) instead; None once the move's last
+        segment has been handed out, or once it ended early (:attr:`ended_by`)."""
+        if (self.done >= self.segments and self._progress_mm >= self._lateral_mm) or self.ended_by is not None:
+            return None
+        if contact is not None and self._ends_on(t_s, contact):
             return None
         p = self.loop.params
         at_reading = self.place_mm(here_mm if reading_mm is None else reading_mm)
@@ -212,11 +237,43 @@ class HeldMove:
         self.done += 1
         self.speed_mm_s = self._normal_speed(command.goal_mm - self._end_place)
         place = self._end_place + self.speed_mm_s * p.segment_s
-        end = self.start + self.lateral * (self.done / self.segments) + self.normal * place
+        self._progress_mm = min(self._lateral_mm, self._progress_mm + self._lateral_pace_mm_s() * p.segment_s)
+        along = self._progress_mm / self._lateral_mm if self._lateral_mm > 0 else 0.0
+        end = self.start + self.lateral * along + self.normal * place
         # the path's pace comes from the segments' schedule: the feed only caps it
         feed_mm_min = max(math.hypot(self._lateral_speed_mm_s, p.max_speed_mm_s) * 60, 1.0)
         self._end_place = place
         return end, feed_mm_min
+
+    def _lateral_pace_mm_s(self) -> float:
+        """The lateral path's speed (mm/s): the move's, or, past TANGENTIAL_APPROACH_FRACTION of a tangential
+        target, no more than TANGENTIAL_FINE_SPEED_MM_S (the stop at the target then overshoots it by little)."""
+        until, contact = self.until_tangential_n, self.contact
+        if until is not None and contact is not None and contact.tangential_n >= TANGENTIAL_APPROACH_FRACTION * until:
+            return min(self._lateral_speed_mm_s, TANGENTIAL_FINE_SPEED_MM_S)
+        return self._lateral_speed_mm_s
+
+    def _ends_on(self, t_s: float, contact: ContactReading) -> bool:
+        """Whether ``contact`` ends the move (a tangential target reached, a slip to stop at); a slip to press
+        against raises the loop's target."""
+        self.contact = contact
+        if self.until_tangential_n is not None and contact.tangential_n >= self.until_tangential_n:
+            self.ended_by = "tangential force"
+            return True
+        if self.slip is None or self.slip_detector is None:
+            return False
+        self.slip_check = self.slip_detector.update(contact)
+        if not self.slip_check.slipping:
+            return False
+        if self.slipped_at_s is None:
+            self.slipped_at_s = t_s
+        if self.slip.action == "stop":
+            self.ended_by = "slip"
+            return True
+        if self.slip.action == "press":
+            wanted = self.slip_detector.press_target_n(contact)
+            self.loop.target_n = min(max(self.loop.target_n, wanted), self.slip.press_limit_n)
+        return False
 
     def _normal_speed(self, to_goal_mm: float) -> float:
         """The next segment's speed along the normal (mm/s): toward the goal ``to_goal_mm`` past the last end, no
@@ -243,6 +300,10 @@ CONTROL_STREAM = StreamSpec(
         Column("stiffness_n_per_mm", "<f4", "N/mm", "the contact stiffness the goal assumed"),
         Column("clipped", "u1", "", "1: the goal was cut to the tool's reach (depth cap, speed)"),
         Column("position_mm", "<f8", "mm", "the segment's end, machine X, Y, Z", (3,)),
+        Column("tangential_n", "<f4", "N", "the reading's tangential force |Ft| on the gel (nan: not read)"),
+        Column("slip_share", "<f4", "", "share of the contact's markers at friction (nan: no dense field, no reflex)"),
+        Column("friction_ratio", "<f4", "", "|Ft| / (friction |Fn|) of the reading (nan: no slip reflex)"),
+        Column("slipping", "u1", "", "1: the slip reflex tells the contact slips"),
     ),
     chunk_rows=1024,
     description="the force loop's commands (feedback, command, segment)",

@@ -40,9 +40,14 @@ class ProbePlan:
     #: The gel's inward normal and the shear direction, machine axes (unit vectors).
     down: F64
     shear_dir: F64
+    #: The rig's indenter-gel Coulomb coefficient (the slip reflex's, unless the protocol gives its own).
+    friction: float = 1.0
+    #: The most a slip reflex may press (N): under the normal force limit.
+    press_limit_n: float = float("inf")
 
     @classmethod
-    def build(cls, spec: ProbeSpec, gel_in_machine: Pose, indenter: Indenter, clearance_mm: float) -> ProbePlan:
+    def build(cls, spec: ProbeSpec, gel_in_machine: Pose, indenter: Indenter, clearance_mm: float, *,
+              friction: float = 1.0, press_limit_n: float = float("inf")) -> ProbePlan:
         offset = np.asarray(indenter.tool_offset_mm, dtype=np.float64)
         x, y = spec.location_mm
 
@@ -62,6 +67,8 @@ class ProbePlan:
             retract_mm=tool_at(spec.retract_height_mm),
             down=rotation @ np.array([0.0, 0.0, -1.0]),
             shear_dir=rotation @ np.array([np.cos(a), np.sin(a), 0.0]),
+            friction=friction,
+            press_limit_n=press_limit_n,
         )
 
     def bottom_mm(self, contact_mm: npt.ArrayLike) -> F64:

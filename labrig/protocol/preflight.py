@@ -13,6 +13,9 @@ from labrig.protocol.plan import ProbePlan
 from labrig.protocol.safety import SafetyError, SafetyLimits, check_location, check_targets, depth_problem
 from labrig.protocol.spec import ProbeSpec
 
+#: A slip reflex presses to at most this share of the normal force limit (the monitor trips at the limit itself).
+PRESS_LIMIT_SHARE = 0.8
+
 
 def checked_plan(spec: ProbeSpec, rig: RigConfig, indenter: Indenter, gel_in_machine: Pose,
                  limits: SafetyLimits) -> ProbePlan:
@@ -29,6 +32,7 @@ def checked_plan(spec: ProbeSpec, rig: RigConfig, indenter: Indenter, gel_in_mac
             raise SafetyError(f"depth {problem}")
     if spec.force_n is not None and spec.force_n > limits.max_normal_force_n:
         raise SafetyError(f"force target {spec.force_n} N is over the normal force limit {limits.max_normal_force_n} N")
-    plan = ProbePlan.build(spec, gel_in_machine, indenter, limits.clearance_mm)
+    plan = ProbePlan.build(spec, gel_in_machine, indenter, limits.clearance_mm, friction=rig.gel.friction,
+                           press_limit_n=PRESS_LIMIT_SHARE * limits.max_normal_force_n)
     check_targets(plan.nominal_targets(indenter.max_depth_mm), limits)
     return plan

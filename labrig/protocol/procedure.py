@@ -16,8 +16,8 @@ Steps and their replies (positions: the CNC's tool reference point, machine mm):
 * :class:`MoveUntil`: an absolute jog cut short when its :class:`ForceAbove` condition holds
   (whether it held).
 * :class:`MoveHolding`: a move along the gel plane in short jog segments while the force loop
-  (:mod:`labrig.protocol.force_loop`) holds the normal force (None, or the loop's stop: the
-  procedure then aborts with it).
+  (:mod:`labrig.protocol.force_loop`) holds the normal force, optionally until a tangential force or with a slip
+  reflex (:mod:`labrig.protocol.slip`) (None, or the loop's stop: the procedure then aborts with it).
 * :class:`Dwell`: hold still (None). Through the drivers the trigger output also toggles in pairs
   meanwhile (edges for the camera clock fit on a loaded host, each phase keeping its level); in
   virtual time every edge is exact and a dwell adds none.
@@ -43,6 +43,7 @@ import numpy.typing as npt
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.plan import ProbePlan
 from labrig.protocol.safety import deepest_press_mm
+from labrig.protocol.slip import SlipReflex
 
 F64 = npt.NDArray[np.float64]
 #: A machine position, mm (x, y, z).
@@ -123,6 +124,8 @@ class MoveHolding:
     normal: Point
     deepest_mm: Point  # the loop never presses further along ``normal`` than this point (the depth cap)
     duration_s: float = 0.0
+    until_tangential_n: float | None = None  # the move ends once the tangential force reaches this (N)
+    slip: SlipReflex | None = None  # what the move does when its contact slips
 
 
 @dataclass(frozen=True)
@@ -196,7 +199,7 @@ def probe(plan: ProbePlan, indenter_max_depth_mm: float) -> Generator[Step, Any,
     yield from _wait(plan, contact, indenter_max_depth_mm)
     if spec.has_shear:
         yield Phase("shear", stoppable=True)
-        yield from _shear(plan, plan.sheared_mm(bottom), contact, indenter_max_depth_mm)
+        yield from _shear(plan, plan.sheared_mm(bottom), contact, indenter_max_depth_mm, forward=True)
         yield Phase("wait", stoppable=True)
         yield from _wait(plan, contact, indenter_max_depth_mm)
         yield Phase("shear_opposite", stoppable=True)
@@ -204,6 +207,11 @@ def probe(plan: ProbePlan, indenter_max_depth_mm: float) -> Generator[Step, Any,
         yield Phase("wait", stoppable=True)
         yield from _wait(plan, contact, indenter_max_depth_mm)
     yield Phase("normal_up")
+    if spec.release_force_n is not None:
+        here = np.asarray((yield Position()), dtype=np.float64)
+        release = HoldForce(spec.release_force_n, spec.feedback, spec.control)
+        yield from _held(plan, here, contact, release, spec.normal_speed_mm_s, indenter_max_depth_mm,
+                         spec.release_hold_s)
     yield Move(_point(contact), spec.normal_speed_mm_s)
     yield Phase("retract")
     yield Move(_point(contact - spec.retract_height_mm * plan.down), spec.retract_speed_mm_s)
@@ -235,17 +243,24 @@ def _press(plan: ProbePlan, contact: F64, indenter_max_depth_mm: float) -> Gener
     return np.asarray((yield Position()), dtype=np.float64)
 
 
-def _shear(plan: ProbePlan, target: F64, contact: F64, indenter_max_depth_mm: float) -> Generator[Step, Any, None]:
+def _shear(plan: ProbePlan, target: F64, contact: F64, indenter_max_depth_mm: float, *,
+           forward: bool = False) -> Generator[Step, Any, None]:
     """A shear to ``target``: a straight move, or, with a held force, a move along the gel plane with the loop on
-    the normal."""
+    the normal; the ``forward`` one (Shear) ends at a tangential force target and has the slip reflex."""
     spec = plan.spec
-    held_n = spec.shear_hold_force_n if spec.shear_hold_force_n is not None else (
-        spec.force_n if spec.press_hold_s is not None else None)
+    held_n = spec.shear_held_n
     if held_n is None:
         yield Move(_point(target), spec.shear_speed_mm_s)
         return
     hold = HoldForce(held_n, spec.feedback, spec.control)
-    yield from _held(plan, target, contact, hold, spec.shear_speed_mm_s, indenter_max_depth_mm)
+    until_n, slip = None, None
+    if forward:
+        until_n = spec.shear_force_n
+        if spec.slip_action is not None:
+            friction = spec.slip.friction if spec.slip.friction is not None else plan.friction
+            slip = SlipReflex(spec.slip_action, spec.slip, friction, plan.press_limit_n)
+    yield from _held(plan, target, contact, hold, spec.shear_speed_mm_s, indenter_max_depth_mm,
+                     until_tangential_n=until_n, slip=slip)
 
 
 def _wait(plan: ProbePlan, contact: F64, indenter_max_depth_mm: float) -> Generator[Step, Any, None]:
@@ -260,13 +275,15 @@ def _wait(plan: ProbePlan, contact: F64, indenter_max_depth_mm: float) -> Genera
 
 
 def _held(plan: ProbePlan, target: F64, contact: F64, hold: HoldForce, speed_mm_s: float,
-          indenter_max_depth_mm: float, duration_s: float = 0.0) -> Generator[Step, Any, None]:
+          indenter_max_depth_mm: float, duration_s: float = 0.0, *, until_tangential_n: float | None = None,
+          slip: SlipReflex | None = None) -> Generator[Step, Any, None]:
     """A move toward ``target``'s place in the gel plane (for at least ``duration_s``) with the loop on the normal,
     no deeper below ``contact`` than a force target's search may go; aborts with the loop's reason if it stops."""
     spec = plan.spec
     cap = deepest_press_mm(indenter_max_depth_mm)
     deepest = plan.max_bottom_mm(contact, min(spec.max_depth_mm or cap, cap))
-    stopped = yield MoveHolding(_point(target), speed_mm_s, hold, _point(plan.down), _point(deepest), duration_s)
+    stopped = yield MoveHolding(_point(target), speed_mm_s, hold, _point(plan.down), _point(deepest), duration_s,
+                                until_tangential_n, slip)
     if stopped is not None:
         raise ProcedureAbort(f"the force loop holding {hold.target_n:g} N stopped: {stopped}")
 

@@ -13,6 +13,7 @@ Each ``put_*`` returns False when the writer had to drop rows (counted by the wr
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,9 +32,14 @@ def put_control(writer: RecordingWriter, t_host_ns: int, held: HeldMove, reading
                 end_mm: npt.ArrayLike) -> None:
     """One segment of a held move into the ``control`` stream (:data:`~labrig.protocol.force_loop.CONTROL_STREAM`):
     commanded at ``t_host_ns`` from ``reading_n`` (N), ``reading_age_ns`` old, ending at ``end_mm`` (machine mm)."""
+    check = held.slip_check
     writer.put("control", t_host_us=(t_host_ns - writer.t0_host_ns) // NS_PER_US, target_n=held.loop.target_n,
                feedback_n=reading_n, reading_age_us=reading_age_ns // 1000, speed_mm_s=held.speed_mm_s,
-               stiffness_n_per_mm=held.last.stiffness_n_per_mm, clipped=int(held.last.clipped), position_mm=end_mm)
+               stiffness_n_per_mm=held.last.stiffness_n_per_mm, clipped=int(held.last.clipped), position_mm=end_mm,
+               tangential_n=math.nan if held.contact is None else held.contact.tangential_n,
+               slip_share=math.nan if check is None else check.share,
+               friction_ratio=math.nan if check is None else check.friction_ratio,
+               slipping=int(check is not None and check.slipping))
 
 
 def put_ft(writer: RecordingWriter, sample: FtSample) -> bool:

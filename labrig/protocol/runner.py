@@ -301,7 +301,7 @@ class ProbeRunner:
         here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
         held = HeldMove(here, step.target_mm, step.normal, step.speed_mm_s, ForceLoop(step.hold.target_n, step.hold.params),
                         step.deepest_mm, accel_mm_s2=self.grbl.limits.accel_along_mm_s2(step.normal),
-                        duration_s=step.duration_s)
+                        duration_s=step.duration_s, until_tangential_n=step.until_tangential_n, slip=step.slip)
         period_s = step.hold.params.segment_s
         clock = self.session.clock
         feedback: ForceReading = self.session.monitor
@@ -318,12 +318,16 @@ class ProbeRunner:
             now_us = self.grbl.now_us()
             here_mm, reading_mm = self.grbl.pose_at(np.array([now_us, now_us - (now_ns - reading_ns) / 1000]))
             reading_s = -math.inf if t_ns is None else reading_ns / 1e9  # no reading yet: the loop stops
-            out = held.next_segment(now_ns / 1e9, force_n, here_mm, reading_s, reading_mm)
+            out = held.next_segment(now_ns / 1e9, force_n, here_mm, reading_s, reading_mm, feedback.contact_reading())
             if isinstance(out, str):
                 self.grbl.jog_cancel()
                 self._wait_motion(MOVE_MARGIN_S)
                 return out
             if out is None:
+                if held.ended_by is not None:  # a tangential target or a slip: stop here, and say so
+                    self.grbl.jog_cancel()
+                    if self._writer is not None:
+                        put_control(self._writer, now_ns, held, force_n, now_ns - reading_ns, here_mm)
                 break
             end, feed_mm_min = out
             self._checked(partial(self.grbl.jog, *end, feed_mm_min=feed_mm_min, relative=False, machine=True))

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from labrig.config import RigConfig
 from labrig.errors import LabrigError
+from labrig.protocol.slip import ContactReading
 from labrig.protocol.spec import ProbeSpec
 from labrig.sim.truth_config import sim_config
 
@@ -224,6 +225,15 @@ class ForceMonitor:
         """The last sample's tared |Fz| (N) and when it arrived (host ns; None before any)."""
         with self._lock:
             return abs(self._last[2]), self.last_t_host_ns
+
+    def contact_reading(self) -> ContactReading | None:
+        """The last sample, tared, as the force on the gel (the sensor's x, y as the gel's; Fz pressing negative);
+        None before any."""
+        with self._lock:
+            if self.last_t_host_ns is None:
+                return None
+            x, y, z = self._last
+            return ContactReading(self.last_t_host_ns, np.array([x, y, -abs(z)]))
 
     def set_baseline(self, force_n: npt.ArrayLike) -> None:
         with self._lock:

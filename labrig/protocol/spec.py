@@ -18,6 +18,7 @@ from pathlib import Path
 from labrig.dataset import SPLITS
 from labrig.errors import LabrigError
 from labrig.protocol.force_loop import ForceLoopParams
+from labrig.protocol.slip import SlipParams
 from labrig.protocol.variation import SensorVariation
 
 #: Depth assumed when timing a force-target run that has no depth cap (see ``nominal_duration_s``).
@@ -72,6 +73,11 @@ class ProbeSpec:
     holds it for this long (Normal Down), then holds it through the waits, and through the shears unless
     ``shear_hold_force_n`` says another force (None: a force target is searched for at the normal speed and the
     depth it is found at is kept).
+    With the normal force held during the shears, ``shear_force_n`` ends Shear once the tangential force (read from
+    ``feedback``) reaches it (N, at most ``shear_mm`` along), and ``slip_action`` (one of
+    :data:`~labrig.protocol.slip.SLIP_ACTIONS`) is Shear's reflex when the contact slips, told with ``slip``.
+    ``release_force_n``: Normal Up first releases to this normal force under the loop and holds it
+    ``release_hold_s``, then rises to the contact point.
     """
 
     indenter: str
@@ -91,6 +97,11 @@ class ProbeSpec:
     press_hold_s: float | None = None
     feedback: str = "ft"
     control: ForceLoopParams = field(default_factory=ForceLoopParams)
+    shear_force_n: float | None = None
+    slip_action: str | None = None
+    slip: SlipParams = field(default_factory=SlipParams)
+    release_force_n: float | None = None
+    release_hold_s: float = 0.5
 
     def __post_init__(self) -> None:
         if (self.depth_mm is None) == (self.force_n is None):
@@ -102,7 +113,17 @@ class ProbeSpec:
     @property
     def holds_force(self) -> bool:
         """The force loop runs in this probe (a held press or a held shear)."""
-        return self.press_hold_s is not None or (self.shear_hold_force_n is not None and self.has_shear)
+        return (self.press_hold_s is not None or (self.shear_hold_force_n is not None and self.has_shear)
+                or self.release_force_n is not None)
+
+    @property
+    def shear_held_n(self) -> float | None:
+        """The normal force the shears hold (N on the gel), None if they keep the pressed depth."""
+        if not self.has_shear:
+            return None
+        if self.shear_hold_force_n is not None:
+            return self.shear_hold_force_n
+        return self.force_n if self.press_hold_s is not None else None
 
     @property
     def reads_events(self) -> bool:
@@ -135,7 +156,8 @@ class ProbeSpec:
             "normal_down": depth / self.normal_speed_mm_s if self.press_hold_s is None else self.press_hold_s,
             "wait": self.wait_s,
             "shear": self.shear_mm / self.shear_speed_mm_s if self.has_shear else 0.0,
-            "normal_up": depth / self.normal_speed_mm_s,
+            "normal_up": depth / self.normal_speed_mm_s + (self.release_hold_s if self.release_force_n is not None
+                                                            else 0.0),
             "retract": self.retract_height_mm / self.retract_speed_mm_s,
         }
         move["shear_opposite"] = move["shear"]

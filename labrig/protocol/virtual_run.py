@@ -246,7 +246,8 @@ class _VirtualRun:
         timeline = d.timeline
         held = HeldMove(timeline.tail_mm, step.target_mm, step.normal, step.speed_mm_s,
                         ForceLoop(step.hold.target_n, step.hold.params), step.deepest_mm,
-                        accel_mm_s2=timeline.limits.accel_along_mm_s2(step.normal), duration_s=step.duration_s)
+                        accel_mm_s2=timeline.limits.accel_along_mm_s2(step.normal), duration_s=step.duration_s,
+                        until_tangential_n=step.until_tangential_n, slip=step.slip)
         segment_us = round(step.hold.params.segment_s * US)
         queued = 0
         while True:
@@ -254,12 +255,17 @@ class _VirtualRun:
             now_us = d.now_us
             reading_us = -math.inf if t_ns is None else t_ns / 1000
             out = held.next_segment(now_us / US, force_n, timeline.position_at(now_us), reading_us / US,
-                                    timeline.position_at(min(max(reading_us, 0), now_us)))
+                                    timeline.position_at(min(max(reading_us, 0), now_us)), self.feedback.contact_reading())
             if isinstance(out, str):
                 d.jog_cancel()
                 d.dwell(segment_us)
                 return out
             if out is None:
+                if held.ended_by is not None:  # a tangential target or a slip: stop here, and say so
+                    d.jog_cancel()
+                    if self.writer is not None:
+                        put_control(self.writer, now_us * 1000, held, force_n, round((now_us - reading_us) * 1000),
+                                    timeline.position_at(now_us))
                 break
             end, feed_mm_min = out
             d.move(end, feed_mm_min, jog=True)

@@ -77,6 +77,8 @@ class ContactState:
     #: Counts the kinematics' fresh starts (contact made, lifted off, shear memory dropped for a new axis or
     #: table): the contact fields may jump between two states of different epochs, never within one.
     epoch: int = 0
+    #: The whole contact slides (gross slip): the shift is at the table's slip shift and the anchor is dragged.
+    sliding: bool = False
 
     @property
     def in_contact(self) -> bool:
@@ -146,7 +148,8 @@ class ContactKinematics:
             sx, sy = self._along_table(sx, sy)
         limit = self._active.slip_shift_at(depth)
         size = math.hypot(sx, sy)
-        if limit > 0 and size > limit:  # gross slip: the contact is dragged along
+        sliding = limit > 0 and size > limit
+        if sliding:  # gross slip: the contact is dragged along
             ax, ay = tx - sx * (limit / size), ty - sy * (limit / size)
             self._anchor = (ax, ay)
             sx, sy = tx - ax, ty - ay
@@ -155,7 +158,7 @@ class ContactKinematics:
         fx, fy, fz = table.force_xyz_for_terms(depth, terms, angle)
         cx, cy = table.pressure_centre_xy(depth)
         return ContactState(int(t_us), tip, depth, np.array([ax, ay]), terms, angle,
-                            np.array([fx, fy, -fz]), np.array([ax + cx, ay + cy, 0.0]), table, self._epoch)
+                            np.array([fx, fy, -fz]), np.array([ax + cx, ay + cy, 0.0]), table, self._epoch, sliding)
 
     def _along_table(self, sx: float, sy: float) -> tuple[float, float]:
         """A non-axisymmetric indenter's shift, along the direction of the table that serves it.

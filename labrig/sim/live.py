@@ -232,6 +232,7 @@ def truth_rows(out: RigOutput, grid_gel: npt.NDArray[np.float64]) -> TruthRows:
             "tip_mm": np.array([s.tip_gel_mm for s in out.solves]),
             "force_n": np.array([s.force_on_gel_n for s in out.solves]),
             "centre_of_pressure_mm": np.array([s.centre_of_pressure_mm for s in out.solves]),
+            "sliding": np.array([s.sliding for s in out.solves], dtype=np.uint8),
         }
         rows["truth/marker_forces"] = {"t_host_us": t, "force_n": np.array([s.marker_forces_n for s in out.solves])}
         rows["truth/depth"] = {"t_host_us": t, "depth_mm": np.array(depth), "contact_mask": np.array(mask)}

@@ -89,6 +89,7 @@ class Solve:
     marker_forces_n: npt.NDArray[np.float64]
     fields: ContactFields | None
     anchor_mm: npt.NDArray[np.float64] | None
+    sliding: bool = False  # the whole contact slides (gross slip)
 
 
 @dataclass
@@ -237,7 +238,7 @@ class VirtualRig:
             forces = self._marker_forces(fields, state.anchor_mm)
             self._solved = (table, key, (fields, markers, forces))
         return Solve(state.t_us, state.tip_gel_mm, state.depth_mm, markers, state.force_on_gel_n,
-                     state.centre_of_pressure_mm, forces, fields, state.anchor_mm.copy())
+                     state.centre_of_pressure_mm, forces, fields, state.anchor_mm.copy(), state.sliding)
 
     def _displaced_markers(self, fields: ContactFields, anchor: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         key = (float(anchor[0]), float(anchor[1]), float(fields.x_mm[0]), float(fields.y_mm[0]),

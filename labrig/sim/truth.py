@@ -2,7 +2,8 @@
 
 * ``truth/markers``: true marker centres, gel frame (mm) and image (px), 1 kHz.
 * ``truth/contact``: indentation depth, tip position, net force on the gel and
-  centre of pressure (gel frame), at every quasi-static solve.
+  centre of pressure (gel frame), and whether the contact slides as a whole (gross
+  slip), at every quasi-static solve.
 * ``truth/marker_forces``: traction integrated over each marker's cell (N, gel
   frame, force on the gel), at every solve: the dense force field.
 * ``truth/depth``: the true normal displacement (mm, into the gel) and the
@@ -42,6 +43,7 @@ def truth_streams(n_markers: int, grid_shape: tuple[int, int] = GRID_SHAPE) -> t
                 Column("tip_mm", "<f4", "mm", "indenter tip, gel frame", (3,)),
                 Column("force_n", "<f4", "N", "net force on the gel, gel frame", (3,)),
                 Column("centre_of_pressure_mm", "<f4", "mm", "centre of pressure, gel frame", (3,)),
+                Column("sliding", "u1", "", "1 while the whole contact slides (gross slip: the indenter drags it)"),
             ),
             chunk_rows=1024,
             description="true contact state at each quasi-static solve",

@@ -1,0 +1,145 @@
+"""Slip of the indenter on the gel, told from a force reading: the reflex a held shear may have.
+
+Sans-I/O: :meth:`SlipDetector.update` takes a :class:`ContactReading` (the net force on the gel and, from the event
+sensor's estimate, the force on each marker's cell) and says whether the contact slips. Under Coulomb friction
+``mu`` a patch of the contact slides where its tangential traction reaches ``mu`` times its normal traction; the
+slip spreads in from the contact's edge as a shear goes on, and the whole contact slides (gross slip) once every
+patch is at the limit, when the net tangential force reaches ``mu`` times the normal force.
+
+* **From the dense field** (the event sensor's estimate): the share of the contact's markers (those carrying at
+  least ``contact_fraction`` of the most loaded marker's normal force) whose tangential force reaches
+  ``at_friction * mu`` times their normal force. The contact slips when the share reaches ``share``.
+* **From the net force** (the F/T sensor, which has no field): the contact slips when ``|Ft| / (mu |Fn|)`` reaches
+  ``net_ratio``.
+
+Either must hold in ``persist`` fresh readings in a row. What a held shear does then is the protocol's
+``[slip] action`` (:data:`SLIP_ACTIONS`): record it, stop the shear where it is, or press harder until the
+tangential force is ``press_ratio`` of friction again.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+
+#: What a held shear does when its contact slips: record it only, stop the shear there, or raise the held force.
+SLIP_ACTIONS = ("report", "stop", "press")
+
+
+@dataclass(frozen=True)
+class SlipParams:
+    """How slip is told and what pressing against it does (units in the names; ratios are dimensionless)."""
+
+    share: float = 0.9  # the share of the contact's markers at friction that means the contact slips
+    at_friction: float = 0.9  # a marker is at friction when |Ft| >= at_friction * mu * Fn
+    net_ratio: float = 0.98  # with the net force only: |Ft| >= net_ratio * mu * |Fn|
+    persist: int = 2  # fresh readings in a row that must say so
+    press_ratio: float = 0.7  # "press": the held normal force rises to |Ft| / (press_ratio * mu)
+    contact_fraction: float = 0.1  # a marker is in contact with at least this share of the largest normal force
+    min_marker_n: float = 0.02  # ... and at least this much (N)
+    friction: float | None = None  # Coulomb coefficient indenter-gel; None: the rig file's [gel] friction
+
+    def __post_init__(self) -> None:
+        for name in ("share", "at_friction", "net_ratio", "press_ratio", "contact_fraction"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 < value <= 1):
+                raise ValueError(f"{name} must be in (0, 1], not {value}")
+        if self.persist < 1:
+            raise ValueError(f"persist must be at least 1, not {self.persist}")
+        if self.friction is not None and not (math.isfinite(self.friction) and self.friction > 0):
+            raise ValueError(f"friction must be a positive number, not {self.friction}")
+
+
+@dataclass(frozen=True)
+class ContactReading:
+    """A force reading with its tangential part: the net force on the gel (gel frame, N; a press: Fz < 0) and, where
+    the source has the dense field, each marker's (M, 3); measured at ``t_host_ns``."""
+
+    t_host_ns: int
+    net_force_n: F64
+    marker_forces_n: F64 | None = None
+
+    @property
+    def tangential_n(self) -> float:
+        """|Ft| on the gel, N."""
+        return float(math.hypot(self.net_force_n[0], self.net_force_n[1]))
+
+    @property
+    def normal_n(self) -> float:
+        """The normal force on the gel, pressing positive, N."""
+        return float(-self.net_force_n[2])
+
+
+@dataclass(frozen=True)
+class SlipCheck:
+    """One reading's verdict: ``share`` of the contact's markers at friction (nan without the field),
+    ``friction_ratio`` = |Ft| / (mu |Fn|) of the net force, and whether the contact ``slipping`` (persisting)."""
+
+    share: float
+    friction_ratio: float
+    slipping: bool
+
+
+class SlipDetector:
+    """Slip from each new reading of one held move; :meth:`update` per reading (a reading seen before counts once)."""
+
+    def __init__(self, friction: float, params: SlipParams | None = None) -> None:
+        if not (math.isfinite(friction) and friction > 0):
+            raise ValueError(f"friction must be a positive number, not {friction}")
+        self.friction = float(friction)
+        self.params = params or SlipParams()
+        self.last = SlipCheck(math.nan, math.nan, False)
+        self._run = 0
+        self._seen_ns: int | None = None
+
+    def update(self, reading: ContactReading) -> SlipCheck:
+        if reading.t_host_ns == self._seen_ns:
+            return self.last
+        self._seen_ns = reading.t_host_ns
+        p = self.params
+        normal = reading.normal_n
+        ratio = reading.tangential_n / (self.friction * normal) if normal > 0 else math.nan
+        share = self.share_at_friction(reading.marker_forces_n) if reading.marker_forces_n is not None else math.nan
+        says = share >= p.share if not math.isnan(share) else ratio >= p.net_ratio
+        self._run = self._run + 1 if says else 0
+        self.last = SlipCheck(share, ratio, self._run >= p.persist)
+        return self.last
+
+    def share_at_friction(self, marker_forces_n: npt.ArrayLike) -> float:
+        """The share of the contact's markers whose |Ft| reaches ``at_friction * mu * Fn`` (nan: no contact)."""
+        p = self.params
+        forces = np.asarray(marker_forces_n, np.float64).reshape(-1, 3)
+        normal = -forces[:, 2]
+        finite = np.isfinite(forces).all(axis=1)
+        if not finite.any():
+            return math.nan
+        largest = float(normal[finite].max())
+        contact = finite & (normal >= max(p.contact_fraction * largest, p.min_marker_n))
+        if not contact.any():
+            return math.nan
+        tangential = np.hypot(forces[contact, 0], forces[contact, 1])
+        return float(np.mean(tangential >= p.at_friction * self.friction * normal[contact]))
+
+    def press_target_n(self, reading: ContactReading) -> float:
+        """The normal force that takes the tangential force back to ``press_ratio`` of friction, N."""
+        return reading.tangential_n / (self.params.press_ratio * self.friction)
+
+
+@dataclass(frozen=True)
+class SlipReflex:
+    """A held shear's reflex: ``action`` (one of :data:`SLIP_ACTIONS`) when slip is told with ``params`` at the
+    Coulomb coefficient ``friction``; "press" never holds more than ``press_limit_n`` (N)."""
+
+    action: str
+    params: SlipParams
+    friction: float
+    press_limit_n: float
+
+    def __post_init__(self) -> None:
+        if self.action not in SLIP_ACTIONS:
+            raise ValueError(f"the slip action must be one of {', '.join(SLIP_ACTIONS)}, not {self.action!r}")

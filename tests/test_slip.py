@@ -1,0 +1,190 @@
+"""The slip reflex, shearing to a tangential force and releasing to a force: the detector on the dense field and on
+the net force, the held move's early ends, the protocol keys, and held shears on the virtual rig in virtual time
+against the simulator's true onset of gross slip."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labrig.config import RigConfig
+from labrig.evaluation.control import control_run
+from labrig.indenters import Indenter
+from labrig.protocol.feedback import EVENTS_STALE_AFTER_S
+from labrig.protocol.files import load_protocol
+from labrig.protocol.force_loop import ForceLoop, ForceLoopParams, HeldMove
+from labrig.protocol.slip import ContactReading, SlipDetector, SlipParams, SlipReflex
+from labrig.protocol.spec import ApproachSpec, ProbeSpec, ProtocolError
+from labrig.protocol.virtual_run import record_virtual
+from labrig.recording import Recording
+
+#: The sphere held at 1.5 N while shearing 2 mm at 2 mm/s: its contact slides as a whole after about 0.7 s.
+SLIDING = ProbeSpec(
+    "sphere", force_n=1.5, press_hold_s=0.5, wait_s=0.2, shear_mm=2.0, shear_speed_mm_s=2.0, slip_action="report",
+    approach=ApproachSpec(start_height_mm=0.5, speed_mm_s=0.5, contact_force_n=0.1, max_travel_mm=2.0),
+)
+
+
+def _field(n_contact: int, n_at_friction: int, normal_n: float = 0.5, mu: float = 1.0) -> np.ndarray:
+    """Marker forces on the gel (M, 3): ``n_contact`` pressed markers, ``n_at_friction`` of them at ``mu``."""
+    forces = np.zeros((156, 3))
+    forces[:n_contact, 2] = -normal_n
+    forces[:n_contact, 0] = 0.3 * mu * normal_n
+    forces[:n_at_friction, 0] = mu * normal_n
+    forces[n_contact:, 2] = -0.001  # far from the contact: under min_marker_n
+    return forces
+
+
+def _reading(t_ns: int, forces: np.ndarray | None, net: tuple[float, float, float] = (0.0, 0.0, -3.0)) -> ContactReading:
+    return ContactReading(t_ns, np.asarray(net, np.float64), forces)
+
+
+def test_the_dense_field_tells_slip_when_the_share_at_friction_persists() -> None:
+    detector = SlipDetector(1.0, SlipParams(share=0.9, persist=2))
+    assert detector.share_at_friction(_field(10, 8)) == pytest.approx(0.8)
+    assert not detector.update(_reading(1, _field(10, 8))).slipping
+    assert not detector.update(_reading(2, _field(10, 9))).slipping  # once is not yet
+    assert not detector.update(_reading(2, _field(10, 9))).slipping  # the same reading again counts once
+    check = detector.update(_reading(3, _field(10, 10)))
+    assert check.slipping and check.share == 1.0
+    assert not detector.update(_reading(4, _field(10, 5))).slipping  # a stick breaks the run
+    assert math.isnan(detector.share_at_friction(np.zeros((156, 3))))  # no contact: no share
+
+
+def test_the_net_force_tells_slip_by_its_friction_ratio_and_press_asks_for_enough_normal_force() -> None:
+    detector = SlipDetector(0.8, SlipParams(net_ratio=0.95, persist=1, press_ratio=0.5))
+    check = detector.update(_reading(1, None, (1.0, 0.0, -2.0)))
+    assert not check.slipping and check.friction_ratio == pytest.approx(1.0 / 1.6) and math.isnan(check.share)
+    assert detector.update(_reading(2, None, (0.0, 1.55, -2.0))).slipping
+    assert detector.press_target_n(_reading(3, None, (1.2, 0.0, -2.0))) == pytest.approx(1.2 / (0.5 * 0.8))
+
+
+def _held(action: str | None = None, until_n: float | None = None) -> HeldMove:
+    reflex = None if action is None else SlipReflex(action, SlipParams(persist=1), 1.0, press_limit_n=4.0)
+    return HeldMove((0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 0.0, -1.0), 2.0, ForceLoop(2.0, ForceLoopParams()),
+                    until_tangential_n=until_n, slip=reflex)
+
+
+@pytest.mark.parametrize("action", ["report", "stop", "press"])
+def test_a_held_shear_acts_on_slip_as_its_reflex_says(action: str) -> None:
+    held = _held(action)
+    here = (0.0, 0.0, 0.0)
+    assert held.next_segment(0.0, 2.0, here, 0.0, contact=_reading(1, _field(10, 2), (0.5, 0.0, -2.0))) is not None
+    slipping = _reading(2, _field(10, 10), (3.0, 0.0, -2.0))
+    out = held.next_segment(0.01, 2.0, here, 0.01, contact=slipping)
+    assert held.slipped_at_s == 0.01 and held.slip_check is not None and held.slip_check.slipping
+    if action == "stop":
+        assert out is None and held.ended_by == "slip"
+        assert held.next_segment(0.02, 2.0, here, 0.02) is None  # it stays ended
+    else:
+        assert out is not None and held.ended_by is None
+        # press: |Ft| / (0.7 mu) = 4.3 N, held at the reflex's limit 4 N; report: the target stays
+        assert held.loop.target_n == (4.0 if action == "press" else 2.0)
+
+
+def test_a_shear_to_a_tangential_force_ends_when_the_reading_reaches_it() -> None:
+    held = _held(until_n=1.0)
+    assert held.next_segment(0.0, 2.0, (0, 0, 0), 0.0, contact=_reading(1, None, (0.6, 0.7, -2.0))) is not None
+    assert held.next_segment(0.01, 2.0, (0, 0, 0), 0.01, contact=_reading(2, None, (0.8, 0.7, -2.0))) is None
+    assert held.ended_by == "tangential force"
+
+
+def _protocol(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "p.toml"
+    path.write_text('[probe]\nindenter = "sphere"\n[normal]\nforce_n = 3.0\nhold_s = 0.5\n' + text)
+    return path
+
+
+def test_the_protocol_keys_of_slip_tangential_targets_and_release(tmp_path: Path) -> None:
+    spec = load_protocol(_protocol(tmp_path, '[shear]\ndistance_mm = 2.0\nforce_n = 1.2\n[slip]\naction = "press"\n'
+                                             'share = 0.8\npersist = 3\nfriction = 0.7\n'
+                                             '[release]\nforce_n = 1.0\nhold_s = 0.4\n'))
+    assert spec.shear_force_n == 1.2 and spec.slip_action == "press"
+    assert spec.slip == SlipParams(share=0.8, persist=3, friction=0.7)
+    assert spec.release_force_n == 1.0 and spec.release_hold_s == 0.4 and spec.holds_force
+
+
+@pytest.mark.parametrize(("text", "said"), [
+    ('[slip]\naction = "brake"\n', 'slip.action: must be "report" (record when the contact slips), "stop"'),
+    ('[slip]\naction = "stop"\nshare = 1.5\n', "slip.share: must be a share in (0, 1], not 1.5"),
+    ('[slip]\naction = "stop"\npersist = 0.5\n', "slip.persist: must be a whole number of readings"),
+    ('[release]\nforce_n = 3.5\n', "3.5 N is not below the pressed force 3.0 N"),
+])
+def test_bad_slip_and_release_keys_get_one_line_each(tmp_path: Path, text: str, said: str) -> None:
+    with pytest.raises(ProtocolError) as caught:
+        load_protocol(_protocol(tmp_path, "[shear]\ndistance_mm = 1.0\n" + text))
+    assert said in str(caught.value)
+
+
+def test_a_slip_reflex_or_tangential_target_needs_a_held_shear(tmp_path: Path) -> None:
+    path = tmp_path / "depth.toml"
+    path.write_text('[probe]\nindenter = "sphere"\n[normal]\ndepth_mm = 1.0\n[shear]\nforce_n = 1.0\n'
+                    '[slip]\naction = "stop"\n')
+    with pytest.raises(ProtocolError) as caught:
+        load_protocol(path)
+    text = str(caught.value)
+    assert "shears until a tangential force and needs the normal force held during the shears" in text
+    assert "is the held shear's reflex and needs the normal force held during the shears" in text
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("feedback", ["ft", "events"])
+def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: RigConfig, sphere: Indenter,
+                                                                          tmp_path: Path, feedback: str) -> None:
+    """Held at 1.5 N, the sphere's contact slides as a whole during the 2 mm shear (the sim's truth); the reflex
+    reads the F/T's net force or the estimate's dense field and tells it within 50 ms."""
+    control = ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S) if feedback == "events" else ForceLoopParams()
+    result = record_virtual(replace(SLIDING, feedback=feedback, control=control), tmp_path / f"{feedback}.h5",
+                            rig, sphere, seed=1)
+    assert result.exit_status == "complete", result.reason
+    run = control_run(result.path)
+    assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
+    assert abs(run.slip_onset_error_ms) <= 50.0, run.slip_onset_error_ms
+
+
+@pytest.mark.slow
+def test_a_sticking_shear_tells_no_slip_and_a_stop_ends_a_sliding_shear(rig: RigConfig, sphere: Indenter,
+                                                                        tmp_path: Path) -> None:
+    sticking = replace(SLIDING, force_n=5.0, shear_mm=1.0)
+    result = record_virtual(sticking, tmp_path / "stick.h5", rig, sphere, seed=1)
+    run = control_run(result.path)
+    assert result.exit_status == "complete" and run is not None
+    assert math.isnan(run.slip_told_s) and math.isnan(run.slip_onset_s)
+    stopped = record_virtual(replace(SLIDING, slip_action="stop"), tmp_path / "stop.h5", rig, sphere, seed=1)
+    assert stopped.exit_status == "complete", stopped.reason
+    with Recording(stopped.path) as rec:
+        shear = next(p for p in rec.phases() if p.name == "shear")
+        t = rec.column("truth/contact", "t_host_us")
+        sliding = rec.column("truth/contact", "sliding")
+    told = control_run(stopped.path)
+    assert told is not None and math.isfinite(told.slip_told_s)
+    told_us = told.origin_us + told.slip_told_s * 1e6
+    # the shear ends once the CNC has stopped: 2 mm/s at 10 mm/s**2 takes 0.2 s, and it slid no longer
+    assert shear.t_end_us - told_us < 0.3e6
+    in_shear = (t >= shear.t_start_us) & (t <= shear.t_end_us) & (sliding > 0)
+    assert in_shear.any() and np.ptp(t[in_shear]) < 0.3e6
+
+
+@pytest.mark.slow
+def test_a_shear_to_a_tangential_force_and_a_release_to_a_force(rig: RigConfig, sphere: Indenter,
+                                                                tmp_path: Path) -> None:
+    """Held at 4 N, Shear ends once the F/T's |Ft| reaches 1.5 N; Normal Up first releases to 1.5 N and holds it."""
+    spec = replace(SLIDING, force_n=4.0, shear_mm=1.5, slip_action=None, shear_force_n=1.5, release_force_n=1.5,
+                   release_hold_s=1.0)
+    result = record_virtual(spec, tmp_path / "to-force.h5", rig, sphere, seed=1)
+    assert result.exit_status == "complete", result.reason
+    with Recording(result.path) as rec:
+        phases = {p.name: p for p in rec.phases()}
+        t = rec.column("ft", "t_host_us")
+        force = rec.column("ft", "force_n").astype(np.float64)
+    force -= force[:100].mean(axis=0)
+    shear, up = phases["shear"], phases["normal_up"]
+    at_end = (t >= shear.t_end_us - 20_000) & (t < shear.t_end_us)
+    assert abs(np.hypot(force[at_end, 0], force[at_end, 1]).mean() - 1.5) < 0.3
+    assert (shear.t_end_us - shear.t_start_us) / 1e6 < 0.9 * spec.shear_mm / spec.shear_speed_mm_s
+    released = (t >= up.t_start_us + 750_000) & (t < up.t_start_us + 950_000)
+    assert abs(np.abs(force[released, 2]).mean() - 1.5) < 0.3
