@@ -13,7 +13,7 @@ import pytest
 
 from labrig.config import RigConfig
 from labrig.evaluation.control import control_run
-from labrig.indenters import Indenter
+from labrig.indenters import Indenter, load_indenters
 from labrig.protocol.feedback import EVENTS_STALE_AFTER_S
 from labrig.protocol.files import load_protocol
 from labrig.protocol.force_loop import ForceLoop, ForceLoopParams, HeldMove
@@ -188,3 +188,9 @@ def test_a_shear_to_a_tangential_force_and_a_release_to_a_force(rig: RigConfig, 
     assert (shear.t_end_us - shear.t_start_us) / 1e6 < 0.9 * spec.shear_mm / spec.shear_speed_mm_s
     released = (t >= up.t_start_us + 750_000) & (t < up.t_start_us + 950_000)
     assert abs(np.abs(force[released, 2]).mean() - 1.5) < 0.3
+
+
+def test_the_shipped_slip_reflex_protocol_loads_against_the_rig(rig: RigConfig) -> None:
+    spec = load_protocol(Path(__file__).resolve().parent.parent / "protocols" / "slip-reflex.toml", rig, load_indenters())
+    assert spec.slip_action == "stop" and spec.feedback == "events" and spec.reads_events
+    assert spec.shear_held_n == 1.5 and spec.release_force_n == 0.5

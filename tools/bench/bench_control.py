@@ -14,7 +14,14 @@ and the bundled network runs beside the run on the rendered camera chunks, its e
 end); the step and the hold are always measured on the F/T sensor, the reference. Per row the events / ft ratio of
 the hold RMS is printed.
 
-Stable keys: ``loop_hz_median``; for the sphere at 5 N on the shipped rig ``hold_rms_n_ft``, ``hold_rms_n_events``,
+The slip reflex (``[slip] action = "report"``): the sphere, the flat punch and the ridge held at 1.5 N while
+shearing 2 mm at 2 mm/s (their contacts slide as a whole: the sim's ``truth/contact`` ``sliding``), and at 5 N while
+shearing 1 mm (they stick), on both feedbacks: when the reflex told slip less the true onset of gross slip (ms), and
+whether it told slip in a shear that stuck (a false trip).
+
+Stable keys: ``loop_hz_median``; ``slip_onset_error_ms`` and ``slip_onset_error_ms_ft`` (the sphere sliding; target
+within 50 ms), ``slip_false_trips_events`` and ``slip_false_trips_ft`` (stick-only shears that told slip; target 0),
+``slip_rows``; for the sphere at 5 N on the shipped rig ``hold_rms_n_ft``, ``hold_rms_n_events``,
 ``hold_rms_ratio_events_ft``, ``step_rise_s_ft``, ``step_overshoot_pct_ft``, ``step_settling_s_ft`` and the same
 ``_events`` (targets: overshoot <= 10 %, settling <= 0.5 s, hold RMS <= 0.3 N with events, aim within 1.2x of ft);
 ``step_settling_s_ft_accel_50``, ``step_overshoot_pct_ft_accel_50`` (the same on the faster CNC, F/T feedback);
@@ -33,7 +40,7 @@ import numpy as np
 from _common import bench_main, emit
 
 from labrig.config import DEFAULT_RIG, RigConfig, load_rig, parse_rig
-from labrig.evaluation.control import hold_rms_n, step_response
+from labrig.evaluation.control import control_run, hold_rms_n, step_response
 from labrig.indenters import load_indenter
 from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, FEEDBACKS
 from labrig.protocol.force_loop import ForceLoopParams
@@ -48,6 +55,9 @@ SHEAR_MM = 1.0
 SHEAR_SPEED_MM_S = 2.0
 PRESS_HOLD_S = 1.0
 FAST_ACCEL_MM_S2 = 50.0
+#: (indenter, held force N, shear mm): sliding at 1.5 N over 2 mm, sticking at 5 N over 1 mm.
+SLIP_CASES = tuple((i, 1.5, 2.0) for i in INDENTERS) + tuple((i, 5.0, 1.0) for i in INDENTERS)
+SLIP_PRESS_HOLD_S = 0.5
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -100,6 +110,26 @@ def _run(folder: Path, indenter: str, force_n: float, feedback: str, accel_mm_s2
             "loop_hz": 1e6 / float(np.median(np.diff(control_t)))}
 
 
+def _slip_run(folder: Path, indenter: str, force_n: float, shear_mm: float, feedback: str) -> dict[str, Any]:
+    """One held shear with the reflex reporting: when it told slip against the true onset of gross slip."""
+    spec = replace(_spec(indenter, force_n, feedback), press_hold_s=SLIP_PRESS_HOLD_S, wait_s=0.2, shear_mm=shear_mm,
+                   slip_action="report")
+    name = f"slip-{indenter}-{force_n:g}-{shear_mm:g}-{feedback}"
+    result = record_virtual(spec, folder / f"{name}.h5", load_rig(), load_indenter(indenter), seed=1)
+    if result.exit_status != "complete":
+        raise RuntimeError(f"{name}: the run was {result.exit_status}: {result.reason}")
+    run = control_run(result.path)
+    assert run is not None
+    slid, told = bool(np.isfinite(run.slip_onset_s)), bool(np.isfinite(run.slip_told_s))
+    shear = next(p for p in run.phases_s if p[0] == "shear")
+    return {"indenter": indenter, "held_n": force_n, "shear_mm": shear_mm, "feedback": feedback,
+            "slid": slid, "told": told,
+            "onset_s": run.slip_onset_s - shear[1] if slid else None,
+            "told_s": run.slip_told_s - shear[1] if told else None,
+            "onset_error_ms": run.slip_onset_error_ms if slid and told else None,
+            "false_trip": told and not slid}
+
+
 def run(progress: bool = True) -> dict[str, Any]:
     rows = []
     cases = [(i, f, None) for i in INDENTERS for f in FORCES_N] + [("sphere", 5.0, FAST_ACCEL_MM_S2)]
@@ -110,6 +140,13 @@ def run(progress: bool = True) -> dict[str, Any]:
                     print(f"pressing to {force:g} N with the {indenter} on {feedback}"
                           + (f" (CNC at {accel:g} mm/s**2)" if accel else "") + " ...", flush=True)
                 rows.append(_run(Path(tmp), indenter, force, feedback, accel))
+        slip_rows = []
+        for indenter, force, shear_mm in SLIP_CASES:
+            for feedback in FEEDBACKS:
+                if progress:
+                    print(f"shearing {shear_mm:g} mm with the {indenter} held at {force:g} N on {feedback}, the slip "
+                          "reflex reporting ...", flush=True)
+                slip_rows.append(_slip_run(Path(tmp), indenter, force, shear_mm, feedback))
     for row in rows:
         if row["feedback"] == "events":
             ft = next(r for r in rows if r["feedback"] == "ft" and r["indenter"] == row["indenter"]
@@ -129,7 +166,12 @@ def run(progress: bool = True) -> dict[str, Any]:
         "step_overshoot_pct_ft_accel_50": fast["step_overshoot_pct"],
         "shear_mm": SHEAR_MM,
         "shear_speed_mm_s": SHEAR_SPEED_MM_S,
+        "slip_rows": slip_rows,
     })
+    for feedback, suffix in (("events", ""), ("ft", "_ft")):
+        sphere = next(r for r in slip_rows if r["indenter"] == "sphere" and r["held_n"] == 1.5 and r["feedback"] == feedback)
+        out[f"slip_onset_error_ms{suffix}"] = sphere["onset_error_ms"]
+        out[f"slip_false_trips_{feedback}"] = sum(r["false_trip"] for r in slip_rows if r["feedback"] == feedback)
     return out
 
 
@@ -147,6 +189,18 @@ def render(f: dict[str, Any]) -> None:
           "events / ft", "loop Hz"], rows,
          ["targets (sphere, 5 N): overshoot <= 10 %, settling <= 0.5 s, hold RMS <= 0.3 N with events (aim: "
           "within 1.2x of ft). Step and hold measured on the F/T sensor whatever the feedback."])
+
+    def ms(value: float | None) -> str:
+        return "" if value is None else f"{value * 1e3:.0f}"
+
+    emit(f"The slip reflex: held shears at {SHEAR_SPEED_MM_S:g} mm/s, when it told slip against the true onset of gross "
+         "slip (virtual rig, virtual time)",
+         ["indenter", "held N", "shear mm", "feedback", "slid at ms", "told at ms", "told - onset ms", "false trip"],
+         [[r["indenter"], f"{r['held_n']:g}", f"{r['shear_mm']:g}", r["feedback"], ms(r["onset_s"]), ms(r["told_s"]),
+           "" if r["onset_error_ms"] is None else f"{r['onset_error_ms']:+.0f}", "yes" if r["false_trip"] else ""]
+          for r in f["slip_rows"]],
+         ["times from Shear's start; targets: within 50 ms of the onset, no false trip in a shear that sticks. events: "
+          "the share of the estimate's contact markers at friction; ft: the net force's friction ratio."])
 
 
 def main(argv: list[str] | None = None) -> None:
