@@ -298,3 +298,25 @@ def _rename_encoding(bag: Path, out: Path) -> None:
             writer.write("/event_camera/events", log_ns, msg)
             if n > 5:
                 break
+
+
+def test_a_labs_bag_runs_through_groundtruth_and_evaluate(sphere_press: Path, tmp_path: Path, monkeypatch: MP,
+                                                          capsys: Cap) -> None:
+    """The virtual rig's press as a lab's stack would record it (no labrig metadata, no phases, epoch stamps):
+    import with the indenter and the rig file, then ground truth and the evaluation run on it."""
+    from labrig.config import DEFAULT_RIG
+
+    write_lab_bag(sphere_press, tmp_path / "lab.mcap")
+    code, out, err = run(monkeypatch, capsys, "import", tmp_path / "lab.mcap", tmp_path / "lab.h5", "--indenter", "sphere",
+                         "--rig", DEFAULT_RIG, "--json")
+    assert code == 0, err
+    assert json.loads(out)["phases"] == 0
+    code, out, err = run(monkeypatch, capsys, "groundtruth", tmp_path / "lab.h5", "--json")
+    assert code == 0, err
+    assert (tmp_path / "lab.gt.h5").is_file()
+    code, out, err = run(monkeypatch, capsys, "evaluate", tmp_path / "lab.h5", "--split", "all", "--workers", "1",
+                         "--no-table1", "--out", tmp_path / "report", "--cache", tmp_path / "cache", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["recordings"] == 1 and summary["report_problems"] == []
+    assert summary["force_z_mae_n"] is not None and summary["force_z_mae_n"] >= 0

@@ -55,6 +55,9 @@ def run(
         help="Depth network: an .onnx with its card, or a bundled one (default, sae-only); "
              "default: newest in models/, else bundled.")] = None,
     out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
+    out_depth: Annotated[bool, typer.Option("--out-depth", help=(
+        "--out: keep each window's depth map too (40 kB a window; `labrig export --bag` writes it as an image)."))
+    ] = False,
     view: Annotated[Path | None, typer.Option(
         help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.", callback=output_file)] = None,
     view_every: Annotated[int | None, typer.Option(help=(
@@ -80,9 +83,13 @@ def run(
     from labrig.recording import Recording
 
     check_out(out)
+    if out_depth and out is None:
+        raise LabrigError("--out-depth keeps the depth maps in the result file: give --out too")
     if live:
         if recording is not None:
             raise LabrigError(f"give a recording ({recording}) or --live, not both")
+        if out_depth:
+            raise LabrigError("--out-depth applies to a recording's run; the live result file keeps no depth maps")
         if serial:
             raise LabrigError("--serial applies to a recording; the live pipeline always runs its two stages in two threads")
         from labrig.cli.run_live import LiveOptions, run_live  # the live pipeline's modules load only for --live
@@ -117,11 +124,13 @@ def run(
             depth = "truth" if model is None and has_truth else "model"
         source = depth_sources.depth_source(depth, setup, rec, model)
         pipe = runtime.Pipeline(setup, source, keep_sae=view is not None, depth_every_us=depth_every_us)
-        attrs = {"recording": str(recording), "depth_source": source.name, "window_us": window_us or 0,
+        attrs = {"recording": str(recording), "t0_host_ns": int(rec.attrs.get("t0_host_ns", 0)),
+                 "depth_source": source.name, "window_us": window_us or 0,
                  "depth_every_us": depth_every_us or 0,
                  "window_events": window_events or 0, "youngs_modulus_mpa": setup.youngs_modulus_mpa,
                  "poisson_ratio": setup.poisson_ratio, "sources": json.dumps(setup.sources)}
-        writer = results.ResultWriter(out, len(setup.rest_px), attrs) if out is not None else None
+        writer = (results.ResultWriter(out, len(setup.rest_px), attrs, depth=out_depth, rest_mm=setup.rest_mm())
+                  if out is not None else None)
         start = time.perf_counter()
         log = WindowLog()
         try:

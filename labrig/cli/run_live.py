@@ -120,7 +120,7 @@ def run_live(o: LiveOptions) -> None:
         "window_us": window_us or 0, "window_events": window_events or 0,
         "depth_every_us": depth_every_us or 0,
         "youngs_modulus_mpa": setup.youngs_modulus_mpa, "poisson_ratio": setup.poisson_ratio,
-        "sources": json.dumps(setup.sources)})
+        "sources": json.dumps(setup.sources)}, rest_mm=setup.rest_mm())
     try:
         if probing:
             extra = _with_probe(o, rig, devices, pipe, sink, window_us, window_events, calibration_dir)
@@ -262,9 +262,9 @@ class _Sink:
     """Where each live result goes: the result file (opened at the first window), the animation
     frames, the summary rows and the live view."""
 
-    def __init__(self, o: LiveOptions, n_markers: int, attrs: dict[str, Any]) -> None:
+    def __init__(self, o: LiveOptions, n_markers: int, attrs: dict[str, Any], rest_mm: Any = None) -> None:
         self.out, self.view_path, self.every = o.out, o.view, max(o.view_every, 1)
-        self.n_markers, self.attrs = n_markers, attrs
+        self.n_markers, self.attrs, self.rest_mm = n_markers, attrs, rest_mm
         self.writer: ResultWriter | None = None
         self.frames: deque[runtime.WindowResult] = deque(maxlen=MAX_VIEW_FRAMES)
         self.log = WindowLog()
@@ -273,7 +273,7 @@ class _Sink:
     def take(self, r: runtime.WindowResult) -> None:
         if self.out is not None:
             if self.writer is None:
-                self.writer = ResultWriter(self.out, self.n_markers, self.attrs)
+                self.writer = ResultWriter(self.out, self.n_markers, self.attrs, rest_mm=self.rest_mm)
             self.writer.write(r)
         if self.view_path is not None and r.index % self.every == 0:
             self.frames.append(r)
