@@ -71,6 +71,10 @@ def run(
     youngs_modulus_mpa: Annotated[float | None, typer.Option(
         help="Gel modulus, MPa (default: gel.toml, else the rig's).")] = None,
     serial: Annotated[bool, typer.Option(help="Run the stages in turn instead of in two threads.")] = False,
+    view_server: Annotated[bool, typer.Option("--view-server", help=(
+        "--live: serve the force field, depth map, tracks, net force and F/T to Foxglove (a WebSocket server; "
+        "docs/ros2.md)."))] = False,
+    view_port: Annotated[int, typer.Option(help="--view-server: its port (0: any free one, printed).")] = 8765,
     as_json: JsonOption = False,
 ) -> None:
     """Stream RECORDING (or the live camera) through SAE, tracker, depth, iFEM; per-window forces into
@@ -96,10 +100,13 @@ def run(
 
         run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every or 3, calibration, rig_path,
                              youngs_modulus_mpa, seconds, indenter, protocol, at, depth_mm, save_recording, max_lag_ms,
-                             as_json, depth_every_ms))
+                             as_json, depth_every_ms, view_port if view_server else None))
         return
     if recording is None:
         raise LabrigError("give a recording (labrig run REC) or --live (the rig's camera)")
+    if view_server:
+        raise LabrigError("--view-server streams a live run (labrig run --live); to look at a recording's run, "
+                          "`labrig export RESULT.h5 --bag OUT.mcap` and open the bag in Foxglove")
     live_only = {"--seconds": seconds, "--indenter": indenter, "--protocol": protocol, "--at": at, "--depth-mm": depth_mm,
                  "--save-recording": save_recording, "--max-lag-ms": max_lag_ms}
     if given := [flag for flag, value in live_only.items() if value is not None]:
