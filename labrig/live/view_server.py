@@ -8,8 +8,10 @@ their ``ros2msg`` schemas, so Foxglove's 3D, image and plot panels decode them a
 
 The pipeline never waits for the view: :meth:`ViewServer.publish` stamps the window and hands it to the
 server's own thread through a short queue; when the view falls behind, the oldest window waiting is dropped
-and counted (``windows_skipped``). Messages are stamped, and logged, at the host's system clock
-(``time.time_ns``) when the window reached the server, as a live ROS 2 node stamps what it publishes.
+and counted (``windows_skipped``). A depth map goes out when the pipeline made a new one (``--depth-every-ms``
+keeps one map for several windows), not again with every window that reuses it. Messages are stamped, and
+logged, at the host's system clock (``time.time_ns``) when the window reached the server, as a live ROS 2 node
+stamps what it publishes.
 """
 
 from __future__ import annotations
@@ -127,6 +129,7 @@ class ViewServer:
 
     def _run(self) -> None:
         store = M.typestore()
+        last_depth: Any = None
         while True:
             kind, t_ns, payload = self._queue.get()
             if kind == "stop":
@@ -139,9 +142,11 @@ class ViewServer:
                     self.wrenches_published += 1
                 continue
             r: WindowResult = payload
+            new_map = r.depth_mm is not last_depth  # the pipeline hands on the same map until depth runs again
+            last_depth = r.depth_mm
             fields = WindowFields(t_ns=t_ns, places_mm=self.rest_mm + r.displacement_mm, forces_n=r.forces_n,
                                   net_force_n=r.net_force_n, positions_px=r.positions_px, updated=r.updated,
-                                  depth_mm=r.depth_mm)
+                                  depth_mm=r.depth_mm if new_map else None)
             for topic, msg in window_messages(store, fields):
                 self._log(store, topic, msg, t_ns)
             with self._lock:
