@@ -320,3 +320,22 @@ def test_a_labs_bag_runs_through_groundtruth_and_evaluate(sphere_press: Path, tm
     summary = json.loads(out)
     assert summary["recordings"] == 1 and summary["report_problems"] == []
     assert summary["force_z_mae_n"] is not None and summary["force_z_mae_n"] >= 0
+
+
+def test_mono_and_trigger_words_decode_as_event_camera_codecs_lays_them_out() -> None:
+    """mono: polarity bit 63, y 48-62, x 32-47, dt 0-31; trigger: edge 63, id 48-62, dt 0-31; t = time_base + dt (ns)."""
+    from labrig.recording.ros2.event_packets import PacketDecoder, decode_mono, decode_trigger
+
+    word = (1 << 63) | (719 << 48) | (1279 << 32) | 2_500
+    events = decode_mono(np.array([word, 7 << 32], "<u8").tobytes(), time_base_ns=5_000_000)
+    assert events.tolist() == [(1279, 719, 1, 5_002), (7, 0, 0, 5_000)]
+    edges = decode_trigger(np.array([(1 << 63) | (3 << 48) | 1_000_999], "<u8").tobytes(), time_base_ns=0)
+    assert edges.tolist() == [(1, 1_000, 3)]
+    decoder = PacketDecoder("/cam")
+    decoder.decode("mono", False, 0, np.array([word], "<u8").tobytes(), 1280, 720)
+    from labrig.errors import LabrigError
+
+    with pytest.raises(LabrigError, match="a packet in 'evt3' among packets in 'mono'"):
+        decoder.decode("evt3", False, 0, b"", 1280, 720)
+    with pytest.raises(LabrigError, match="big-endian"):
+        PacketDecoder("/cam").decode("mono", True, 0, b"", 1280, 720)
