@@ -55,6 +55,9 @@ def run(
         help="Depth network: an .onnx with its card, or a bundled one (default, sae-only); "
              "default: newest in models/, else bundled.")] = None,
     out: Annotated[Path | None, typer.Option(help="Result file (.h5): per-window markers, displacements, forces.")] = None,
+    out_depth: Annotated[bool, typer.Option("--out-depth", help=(
+        "--out: keep each window's depth map too (40 kB a window; `labrig export --bag` writes it as an image)."))
+    ] = False,
     view: Annotated[Path | None, typer.Option(
         help="Animation (.gif): SAE, tracks, depth, x/y/normal force maps.", callback=output_file)] = None,
     view_every: Annotated[int | None, typer.Option(help=(
@@ -68,6 +71,10 @@ def run(
     youngs_modulus_mpa: Annotated[float | None, typer.Option(
         help="Gel modulus, MPa (default: gel.toml, else the rig's).")] = None,
     serial: Annotated[bool, typer.Option(help="Run the stages in turn instead of in two threads.")] = False,
+    view_server: Annotated[bool, typer.Option("--view-server", help=(
+        "--live: serve the force field, depth map, tracks, net force and F/T to Foxglove (a WebSocket server; "
+        "docs/ros2.md)."))] = False,
+    view_port: Annotated[int, typer.Option(help="--view-server: its port (0: any free one, printed).")] = 8765,
     as_json: JsonOption = False,
 ) -> None:
     """Stream RECORDING (or the live camera) through SAE, tracker, depth, iFEM; per-window forces into
@@ -80,19 +87,26 @@ def run(
     from labrig.recording import Recording
 
     check_out(out)
+    if out_depth and out is None:
+        raise LabrigError("--out-depth keeps the depth maps in the result file: give --out too")
     if live:
         if recording is not None:
             raise LabrigError(f"give a recording ({recording}) or --live, not both")
+        if out_depth:
+            raise LabrigError("--out-depth applies to a recording's run; the live result file keeps no depth maps")
         if serial:
             raise LabrigError("--serial applies to a recording; the live pipeline always runs its two stages in two threads")
         from labrig.cli.run_live import LiveOptions, run_live  # the live pipeline's modules load only for --live
 
         run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every or 3, calibration, rig_path,
                              youngs_modulus_mpa, seconds, indenter, protocol, at, depth_mm, save_recording, max_lag_ms,
-                             as_json, depth_every_ms))
+                             as_json, depth_every_ms, view_port if view_server else None))
         return
     if recording is None:
         raise LabrigError("give a recording (labrig run REC) or --live (the rig's camera)")
+    if view_server:
+        raise LabrigError("--view-server streams a live run (labrig run --live); to look at a recording's run, "
+                          "`labrig export RESULT.h5 --bag OUT.mcap` and open the bag in Foxglove")
     live_only = {"--seconds": seconds, "--indenter": indenter, "--protocol": protocol, "--at": at, "--depth-mm": depth_mm,
                  "--save-recording": save_recording, "--max-lag-ms": max_lag_ms}
     if given := [flag for flag, value in live_only.items() if value is not None]:
@@ -117,11 +131,13 @@ def run(
             depth = "truth" if model is None and has_truth else "model"
         source = depth_sources.depth_source(depth, setup, rec, model)
         pipe = runtime.Pipeline(setup, source, keep_sae=view is not None, depth_every_us=depth_every_us)
-        attrs = {"recording": str(recording), "depth_source": source.name, "window_us": window_us or 0,
+        attrs = {"recording": str(recording), "t0_host_ns": int(rec.attrs.get("t0_host_ns", 0)),
+                 "depth_source": source.name, "window_us": window_us or 0,
                  "depth_every_us": depth_every_us or 0,
                  "window_events": window_events or 0, "youngs_modulus_mpa": setup.youngs_modulus_mpa,
                  "poisson_ratio": setup.poisson_ratio, "sources": json.dumps(setup.sources)}
-        writer = results.ResultWriter(out, len(setup.rest_px), attrs) if out is not None else None
+        writer = (results.ResultWriter(out, len(setup.rest_px), attrs, depth=out_depth, rest_mm=setup.rest_mm())
+                  if out is not None else None)
         start = time.perf_counter()
         log = WindowLog()
         try:

@@ -16,9 +16,9 @@ import tempfile
 import threading
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
@@ -43,6 +43,9 @@ from labrig.protocol.runner import ProbeRunner, RunProgress
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ProtocolError
+
+if TYPE_CHECKING:
+    from labrig.live.view_server import ViewServer
 
 #: Windows kept for --view (the last ones; every --view-every-th).
 MAX_VIEW_FRAMES = 300
@@ -86,6 +89,7 @@ class LiveOptions:
     max_lag_ms: float | None
     as_json: bool
     depth_every_ms: float | None = None
+    view_server_port: int | None = None  # --view-server: serve the live view on this port (0: any free one)
 
     @property
     def probe_options_given(self) -> bool:
@@ -120,7 +124,13 @@ def run_live(o: LiveOptions) -> None:
         "window_us": window_us or 0, "window_events": window_events or 0,
         "depth_every_us": depth_every_us or 0,
         "youngs_modulus_mpa": setup.youngs_modulus_mpa, "poisson_ratio": setup.poisson_ratio,
-        "sources": json.dumps(setup.sources)})
+        "sources": json.dumps(setup.sources)}, rest_mm=setup.rest_mm())
+    if o.view_server_port is not None:
+        from labrig.live.view_server import ViewServer  # foxglove-sdk loads only for --view-server
+
+        sink.server = ViewServer(setup.rest_mm(), port=o.view_server_port).start()
+        err_console.print(f"live view on {sink.server.url} (Foxglove: Open connection, Foxglove WebSocket)",
+                          highlight=False)
     try:
         if probing:
             extra = _with_probe(o, rig, devices, pipe, sink, window_us, window_events, calibration_dir)
@@ -129,6 +139,8 @@ def run_live(o: LiveOptions) -> None:
     finally:
         sink.close()
         pipe.close()
+    if sink.server is not None:
+        extra["view_server"] = asdict(sink.server.stats())
     stats = extra.pop("stats")
     if not len(sink.log):
         raise LabrigError(f"no windows: no camera events reached the pipeline ({stats.end_reason or 'stopped'}); "
@@ -227,6 +239,13 @@ def _with_probe(o: LiveOptions, rig: RigConfig, devices: DeviceConfig, pipe: run
                     ft_axes_in_gel(None, calibration_dir)[0])
     sink.view = view
     progress: Callable[[RunProgress], None] = view.on_progress
+    if sink.server is not None:
+        server = sink.server
+
+        def progress(p: RunProgress) -> None:  # the table, and the F/T's tared reading on the live view
+            view.on_progress(p)
+            server.publish_wrench(p.force_n)
+
     runner = ProbeRunner.for_session(session, stop=stop, progress=progress)
     runner.check(spec)  # refuse an unsafe plan before the rig starts
     keep = o.save_recording
@@ -262,18 +281,19 @@ class _Sink:
     """Where each live result goes: the result file (opened at the first window), the animation
     frames, the summary rows and the live view."""
 
-    def __init__(self, o: LiveOptions, n_markers: int, attrs: dict[str, Any]) -> None:
+    def __init__(self, o: LiveOptions, n_markers: int, attrs: dict[str, Any], rest_mm: Any = None) -> None:
         self.out, self.view_path, self.every = o.out, o.view, max(o.view_every, 1)
-        self.n_markers, self.attrs = n_markers, attrs
+        self.n_markers, self.attrs, self.rest_mm = n_markers, attrs, rest_mm
         self.writer: ResultWriter | None = None
         self.frames: deque[runtime.WindowResult] = deque(maxlen=MAX_VIEW_FRAMES)
         self.log = WindowLog()
         self.view: LiveView | None = None
+        self.server: ViewServer | None = None
 
     def take(self, r: runtime.WindowResult) -> None:
         if self.out is not None:
             if self.writer is None:
-                self.writer = ResultWriter(self.out, self.n_markers, self.attrs)
+                self.writer = ResultWriter(self.out, self.n_markers, self.attrs, rest_mm=self.rest_mm)
             self.writer.write(r)
         if self.view_path is not None and r.index % self.every == 0:
             self.frames.append(r)
@@ -282,7 +302,11 @@ class _Sink:
         self.log.add(r)
         if self.view is not None:
             self.view.on_result(r)
+        if self.server is not None:
+            self.server.publish(r)
 
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
+        if self.server is not None:
+            self.server.close()

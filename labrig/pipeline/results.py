@@ -1,7 +1,10 @@
 """Result files of ``labrig run``: per-window markers, displacements and force fields in HDF5.
 
 Forces are on the gel (pressing: Fz < 0), gel frame, N; positions in sensor pixels; times in
-the stream's time base, us (a recording's host time, or a live camera's device time).
+the stream's time base, us (a recording's host time, or a live camera's device time). ``rest_mm``
+(M, 3), where given, holds the markers' rest points on the gel surface (gel frame, mm), so that a
+reader places the force field without the rig; the attribute ``t0_host_ns`` (a recording's) puts the
+times on its host clock.
 """
 
 from __future__ import annotations
@@ -36,7 +39,10 @@ class ResultWriter:
         ("processing_s", "<f8", (), "s"),
     )
 
-    def __init__(self, path: str | Path, n_markers: int, attrs: dict[str, Any], depth: bool = False) -> None:
+    def __init__(self, path: str | Path, n_markers: int, attrs: dict[str, Any], depth: bool = False,
+                 rest_mm: Any = None) -> None:
+        """``depth``: keep each window's depth map (``depth_mm``, (W, 90, 112) mm); ``rest_mm``: the markers'
+        rest points (M, 3), gel frame, mm."""
         import h5py
 
         self.path = Path(path)
@@ -52,6 +58,9 @@ class ResultWriter:
             ds = self.file.create_dataset(name, shape=(0, *dims), maxshape=(None, *dims), dtype=dtype,
                                           chunks=(64, *dims), compression="gzip" if dims else None)
             ds.attrs["unit"] = unit
+        if rest_mm is not None:
+            ds = self.file.create_dataset("rest_mm", data=np.asarray(rest_mm, np.float64).reshape(n_markers, 3))
+            ds.attrs["unit"] = "mm"
         if depth:
             ds = self.file.create_dataset("depth_mm", shape=(0, *GRID_SHAPE), maxshape=(None, *GRID_SHAPE),
                                           dtype="<f4", chunks=(8, *GRID_SHAPE), compression="gzip")
@@ -73,7 +82,7 @@ class ResultWriter:
         if not self._pending:
             return
         rows, self._pending = self._pending, []
-        for name in rows[0]:
+        for name in rows[0]:  # the per-window datasets (rest_mm is written once)
             ds = self.file[name]
             ds.resize(self.n + len(rows), axis=0)
             ds[self.n:] = np.stack([np.asarray(row[name]) for row in rows])
@@ -89,6 +98,17 @@ class ResultWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def is_result_file(path: str | Path) -> bool:
+    """Whether ``path`` is a result file of ``labrig run --out`` (an HDF5 file with ``format = labrig.forces``)."""
+    import h5py
+
+    p = Path(path)
+    if not p.is_file() or not h5py.is_hdf5(p):
+        return False
+    with h5py.File(p, "r") as f:
+        return bool(f.attrs.get("format") == RESULT_FORMAT)
 
 
 def load_result(path: str | Path) -> dict[str, Any]:

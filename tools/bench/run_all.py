@@ -26,7 +26,7 @@ BENCHES = (
     "bench_writer", "bench_reader", "bench_raw", "bench_ecf", "bench_grbl", "bench_bota", "bench_rig", "bench_live",
     "bench_campaign", "bench_groundtruth", "bench_training", "bench_tracker", "bench_depth_state", "bench_ifem",
     "bench_pipeline", "bench_live_latency", "bench_clock", "bench_view", "bench_sim_resolution", "bench_truth_codecs",
-    "bench_virtual_campaign", "bench_control",
+    "bench_virtual_campaign", "bench_control", "bench_view_server",
 )
 #: Benchmarks of this tree against a baseline tree (``--baseline``).
 AGAINST_BASELINE = ("bench_sensor_replay", "bench_virtual_stages")
@@ -40,6 +40,7 @@ QUICK: dict[str, dict[str, Any]] = {
     "bench_sim_resolution": {"settings": "0.1,0.01 0.2,0.02 0.4,0.04", "recordings": "0"},
     "bench_truth_codecs": {"codecs": "blosc2-lz4-shuffle,zstd,gzip", "repeat": 1},
     "bench_virtual_campaign": {"recordings": 2, "skip_drivers": True},
+    "bench_view_server": {"repeats": 1, "windows": "10ms"},
 }
 
 
