@@ -9,11 +9,13 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from labrig.errors import LabrigError
 from labrig.pipeline.ros2_messages import point_cloud_columns
 from labrig.pipeline.runtime import WindowResult
 from labrig.recording.ros2 import messages as M
@@ -140,3 +142,21 @@ def test_labrig_run_live_serves_the_view(small_recording: Path, tmp_path: Path) 
     assert len(fields.arrivals_s) >= 0.9 * view["windows_published"] and len(fields.arrivals_s) > 100
     pipeline_rate = s["windows_processed"] / s["stream_wall_s"]
     assert fields.rate_hz() == pytest.approx(pipeline_rate, rel=0.2)
+
+
+def test_a_1_khz_pipeline_is_thinned_to_the_views_rate_before_it_costs_anything() -> None:
+    """1 ms windows at the default 100 Hz: one window in ten goes to the server's queue, the rest are counted as
+    thinned; at max_rate_hz 0 every window goes."""
+    from labrig.live.view_server import ViewServer
+
+    rest = np.zeros((M_MARKERS, 3))
+    for rate_hz, sent in ((100.0, 10), (0.0, 100)):
+        server = ViewServer(rest, port=0, max_rate_hz=rate_hz)  # not started: publish only queues
+        offered = []
+        server._offer = offered.append  # type: ignore[method-assign]
+        for i in range(100):
+            window = _window(i)
+            server.publish(replace(window, t0_us=i * 1000, t1_us=(i + 1) * 1000))
+        assert len(offered) == sent and server.windows_thinned == 100 - sent
+    with pytest.raises(LabrigError, match="the view's rate must be zero"):
+        ViewServer(rest, max_rate_hz=-1.0)

@@ -75,6 +75,8 @@ def run(
         "--live: serve the force field, depth map, tracks, net force and F/T to Foxglove (a WebSocket server; "
         "docs/ros2.md)."))] = False,
     view_port: Annotated[int, typer.Option(help="--view-server: its port (0: any free one, printed).")] = 8765,
+    view_hz: Annotated[float, typer.Option(help=(
+        "--view-server: the most windows a second it sends (a display's rate; 0: every window)."))] = 100.0,
     as_json: JsonOption = False,
 ) -> None:
     """Stream RECORDING (or the live camera) through SAE, tracker, depth, iFEM; per-window forces into
@@ -100,7 +102,7 @@ def run(
 
         run_live(LiveOptions(window_ms, window_events, depth, model, out, view, view_every or 3, calibration, rig_path,
                              youngs_modulus_mpa, seconds, indenter, protocol, at, depth_mm, save_recording, max_lag_ms,
-                             as_json, depth_every_ms, view_port if view_server else None))
+                             as_json, depth_every_ms, view_port if view_server else None, view_hz))
         return
     if recording is None:
         raise LabrigError("give a recording (labrig run REC) or --live (the rig's camera)")

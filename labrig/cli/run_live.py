@@ -90,6 +90,7 @@ class LiveOptions:
     as_json: bool
     depth_every_ms: float | None = None
     view_server_port: int | None = None  # --view-server: serve the live view on this port (0: any free one)
+    view_hz: float = 100.0  # --view-hz: the most windows a second the view sends (0: every window)
 
     @property
     def probe_options_given(self) -> bool:
@@ -128,7 +129,7 @@ def run_live(o: LiveOptions) -> None:
     if o.view_server_port is not None:
         from labrig.live.view_server import ViewServer  # foxglove-sdk loads only for --view-server
 
-        sink.server = ViewServer(setup.rest_mm(), port=o.view_server_port).start()
+        sink.server = ViewServer(setup.rest_mm(), port=o.view_server_port, max_rate_hz=o.view_hz).start()
         err_console.print(f"live view on {sink.server.url} (Foxglove: Open connection, Foxglove WebSocket)",
                           highlight=False)
     try:
@@ -172,6 +173,8 @@ def _check(o: LiveOptions) -> None:
     WindowSpec.from_options(o.window_ms, o.window_events)  # refused before the network loads
     depth_every_option(o.depth_every_ms)
     check_view(o.view)
+    if not (o.view_hz >= 0):
+        raise LabrigError(f"--view-hz must be zero (every window) or a positive rate in Hz, not {o.view_hz:g}")
     if o.save_recording is not None and o.save_recording.exists():
         raise LabrigError(f"--save-recording {o.save_recording} exists; give a new path")
 

@@ -9,7 +9,10 @@ their ``ros2msg`` schemas, so Foxglove's 3D, image and plot panels decode them a
 The pipeline never waits for the view: :meth:`ViewServer.publish` stamps the window and hands it to the
 server's own thread through a short queue; when the view falls behind, the oldest window waiting is dropped
 and counted (``windows_skipped``). A depth map goes out when the pipeline made a new one (``--depth-every-ms``
-keeps one map for several windows), not again with every window that reuses it. Messages are stamped, and
+keeps one map for several windows), not again with every window that reuses it. A display needs no more than
+``max_rate_hz`` (default 100 Hz): windows closer than that in camera time to the last one sent are thinned out
+before they cost the pipeline anything (counted, ``windows_thinned``); at 10 ms windows every one goes out, at 1 ms
+one in ten. Messages are stamped, and
 logged, at the host's system clock (``time.time_ns``) when the window reached the server, as a live ROS 2 node
 stamps what it publishes.
 """
@@ -35,27 +38,39 @@ from labrig.recording.ros2 import messages as M
 DEFAULT_PORT = 8765
 #: Windows waiting for the server's thread at most; a newer one pushes the oldest out.
 QUEUE_WINDOWS = 8
+#: The most windows a second the view sends by default: a display's rate, every window of a 10 ms pipeline.
+DEFAULT_RATE_HZ = 100.0
 
 
 @dataclass(frozen=True)
 class ViewServerStats:
-    """What the server did: windows sent, windows dropped because it fell behind, F/T readings sent."""
+    """What the server did: windows sent, windows dropped because it fell behind, windows thinned to its rate, F/T
+    readings sent."""
 
     url: str
     windows_published: int
     windows_skipped: int
     wrenches_published: int
+    windows_thinned: int = 0
+    max_rate_hz: float = DEFAULT_RATE_HZ
 
 
 class ViewServer:
     """A Foxglove WebSocket server for one live run; use as a context manager.
 
     ``rest_mm``: the markers' rest points (M, 3), gel frame, mm (the force field's places are rest +
-    displacement). ``port`` 0 takes a free port (:attr:`port` tells which).
+    displacement). ``port`` 0 takes a free port (:attr:`port` tells which). ``max_rate_hz``: the most windows a
+    second sent (camera time; 0: every window).
     """
 
     def __init__(self, rest_mm: npt.ArrayLike, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
-                 name: str = "labrig") -> None:
+                 name: str = "labrig", max_rate_hz: float = DEFAULT_RATE_HZ) -> None:
+        if not (max_rate_hz >= 0):
+            raise LabrigError(f"the view's rate must be zero (every window) or positive (Hz), not {max_rate_hz}")
+        self.max_rate_hz = float(max_rate_hz)
+        self._min_spacing_us = 1e6 / max_rate_hz if max_rate_hz > 0 else 0.0
+        self._last_sent_t1_us: int | None = None
+        self.windows_thinned = 0
         self.rest_mm = np.asarray(rest_mm, np.float64)
         self.host, self.requested_port, self.name = host, int(port), name
         self._queue: queue.Queue[tuple[str, int, Any]] = queue.Queue(maxsize=QUEUE_WINDOWS)
@@ -104,7 +119,13 @@ class ViewServer:
     # -- the pipeline's side: never blocks ------------------------------------------------------------
 
     def publish(self, r: WindowResult) -> None:
-        """Hand one window to the server (its arrays are the pipeline's own and are not changed afterwards)."""
+        """Hand one window to the server (its arrays are the pipeline's own and are not changed afterwards), unless
+        it is closer to the last one sent than the view's rate allows."""
+        last = self._last_sent_t1_us
+        if last is not None and r.t1_us - last < self._min_spacing_us:
+            self.windows_thinned += 1
+            return
+        self._last_sent_t1_us = r.t1_us
         self._offer(("window", time.time_ns(), r))
 
     def publish_wrench(self, force_n: npt.ArrayLike, torque_nm: npt.ArrayLike = (0.0, 0.0, 0.0)) -> None:
@@ -157,7 +178,8 @@ class ViewServer:
 
     def stats(self) -> ViewServerStats:
         with self._lock:
-            return ViewServerStats(self.url, self.windows_published, self.windows_skipped, self.wrenches_published)
+            return ViewServerStats(self.url, self.windows_published, self.windows_skipped, self.wrenches_published,
+                                   self.windows_thinned, self.max_rate_hz)
 
     def close(self) -> None:
         """Send what is queued, then stop the server."""
