@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_runner import run_labrig as run
 
 from labrig.devices.ecf import write_metavision_hdf5
 from labrig.devices.raw import TRIGGER_DTYPE, read_header, read_raw, write_raw
@@ -44,17 +45,6 @@ def _time_limit() -> Iterator[None]:
     yield
     signal.alarm(0)
     signal.signal(signal.SIGALRM, old)
-
-
-def run(monkeypatch: MP, capsys: Cap, *args: str | Path) -> tuple[int, str, str]:
-    """Run ``labrig ARGS`` in this process through the console entry point; (exit code, stdout, stderr)."""
-    from labrig.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["labrig", *map(str, args)])
-    with pytest.raises(SystemExit) as exc:
-        main()
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 def synthetic(n: int = 30_000, seed: int = 4) -> tuple[np.ndarray, np.ndarray]:

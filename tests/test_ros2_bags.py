@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from cli_runner import run_labrig as run
 
 from labrig.recording import Recording
 from labrig.recording.ros2 import messages as M
@@ -19,17 +20,6 @@ pytest.importorskip("rosbags")
 
 MP = pytest.MonkeyPatch
 Cap = pytest.CaptureFixture[str]
-
-
-def run(monkeypatch: MP, capsys: Cap, *args: object) -> tuple[int, str, str]:
-    """``labrig ARGS`` through the console entry point: (exit code, stdout, stderr)."""
-    from labrig.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["labrig", *map(str, args)])
-    with pytest.raises(SystemExit) as exc:
-        main()
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 @pytest.fixture(scope="module")

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from cli_runner import run_labrig as run
 
 from labrig.pipeline import results
 from labrig.pipeline.ros2_messages import point_cloud_columns
@@ -19,16 +19,6 @@ pytest.importorskip("rosbags")
 
 MP = pytest.MonkeyPatch
 Cap = pytest.CaptureFixture[str]
-
-
-def run(monkeypatch: MP, capsys: Cap, *args: object) -> tuple[int, str, str]:
-    from labrig.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["labrig", *map(str, args)])
-    with pytest.raises(SystemExit) as exc:
-        main()
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 @pytest.fixture(scope="module")
