@@ -112,6 +112,31 @@ def test_the_training_track_gives_the_run_time_channel(tmp_path, small_recording
     assert np.allclose(track.channel_at(t_mid, window), expected, atol=2e-2)  # float16 steps
 
 
+def test_with_the_dead_band_training_windows_end_on_the_tracks_steps(tmp_path, small_recording) -> None:  # type: ignore[no-untyped-def]
+    """The pixels' polarity memory is not cached: a window ends on a step, where the track is the run-time state."""
+    from labrig.pipeline.windows import recording_windows
+    from labrig.recording import Recording
+    from labrig.training.state_data import brightness_recording
+
+    params = BrightnessParams(dead_band=True)
+    track = brightness_recording(small_recording, params, None, cache_root=tmp_path)
+    assert track.window_end(1_504_000.0) == 1_500_000.0 and track.window_end(1_506_000.0) == 1_510_000.0
+    assert brightness_recording(small_recording, BrightnessParams(), None, cache_root=tmp_path).window_end(
+        1_504_000.0) == 1_504_000.0
+    with Recording(small_recording) as rec:
+        integrator = BrightnessIntegrator(track.roi, params)
+        for k, (_t0, t1, events) in enumerate(recording_windows(rec, window_us=10_000)):
+            integrator.add_events(events, t1)
+            if k == 150:
+                break
+        end = track.window_end(t1 + 1_000)
+        window = rec.events_between(end - 10_000, end)
+    assert end == t1
+    expected = brightness_channel(integrator.counts, integrator.pixels_per_cell, params)
+    assert np.abs(expected).sum() > 0
+    assert np.allclose(track.channel_at(end, window), expected, atol=2e-2)  # float16 steps
+
+
 @pytest.fixture(scope="module")
 def setup(rig: RigConfig) -> run_setup.PipelineSetup:
     return run_setup.setup_for_rig(rig, calibration_dir=None)

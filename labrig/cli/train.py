@@ -63,7 +63,8 @@ def train_command(
         help="The network's inputs: sae (the paper's), sae+disp (+ the tracker's marker displacement field), "
              "sae+disp+prev (+ the previous depth map), sae+bright (+ the brightness change since rest, the events' "
              "polarities integrated), sae+bright+disp, sae+bright-hold (the brightness change with the gated leak: "
-             "a press held as long as it lasts); docs/depthnet.md. Default: sae.")] = None,
+             "a press held as long as it lasts), sae+bright-band (the same, the pixels' dead band undone); docs/depthnet.md. "
+             "Default: sae.")] = None,
     init: Annotated[str | None, typer.Option(
         help="Fine-tune this network instead of starting from fresh weights: a bundled one (default) or the .onnx of "
              "one you trained (its card and NAME.ckpt.pt beside it). Its width, pools, window and inputs are kept; "

@@ -59,6 +59,7 @@ from labrig.calibration.event_thresholds_file import NOMINAL_THRESHOLD_LN, Contr
 from labrig.config import Roi
 from labrig.errors import LabrigError
 from labrig.physics.grid import GRID_SHAPE
+from labrig.pipeline.dead_band import PolarityMemory
 
 F32 = npt.NDArray[np.float32]
 #: A gated leak (``rest_tau_s``) is applied at most this often (us of stream time).
@@ -110,7 +111,10 @@ class BrightnessParams:
     (shot noise, the leak's mismatch from pixel to pixel), and are left out.
 
     ``reference_slope_gain`` (dimensionless; None: the light as it is): the slope gain the channel is
-    expressed in (:func:`reference_light`)."""
+    expressed in (:func:`reference_light`).
+
+    ``dead_band``: count the events through :class:`~labrig.pipeline.dead_band.PolarityMemory`, which takes off
+    the half dead band a pixel whose last event was OFF reads high (an undone press's ghost)."""
 
     tau_s: float = 30.0
     scale_events_per_px: float = 2.0
@@ -121,6 +125,7 @@ class BrightnessParams:
     release_s: float = 0.2
     moving_ratio: float | None = None
     reference_slope_gain: float | None = None
+    dead_band: bool = False
 
     def __post_init__(self) -> None:
         if not (self.tau_s > 0 and self.scale_events_per_px > 0 and self.clip > 0 and self.floor_events_per_px > 0):
@@ -137,8 +142,8 @@ class BrightnessParams:
         if self.reference_slope_gain is not None and not self.reference_slope_gain > 0:
             raise LabrigError("the brightness channel's reference_slope_gain must be positive")
 
-    def to_card(self) -> dict[str, float]:
-        card = {"tau_s": self.tau_s, "scale_events_per_px": self.scale_events_per_px, "clip": self.clip}
+    def to_card(self) -> dict[str, float | bool]:
+        card: dict[str, float | bool] = {"tau_s": self.tau_s, "scale_events_per_px": self.scale_events_per_px, "clip": self.clip}
         if self.rest_tau_s is not None:
             card.update(rest_tau_s=self.rest_tau_s, floor_events_per_px=self.floor_events_per_px)
         if self.release_fraction is not None:
@@ -147,13 +152,16 @@ class BrightnessParams:
             card["moving_ratio"] = self.moving_ratio
         if self.reference_slope_gain is not None:
             card["reference_slope_gain"] = self.reference_slope_gain
+        if self.dead_band:
+            card["dead_band"] = True
         return card
 
     @classmethod
-    def from_card(cls, section: dict[str, float] | None) -> BrightnessParams:
+    def from_card(cls, section: dict[str, float | bool] | None) -> BrightnessParams:
         keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px", "release_fraction",
                 "release_s", "moving_ratio", "reference_slope_gain")
-        return cls(**{k: float(v) for k, v in (section or {}).items() if k in keys})
+        section = section or {}
+        return cls(**{k: float(v) for k, v in section.items() if k in keys}, dead_band=bool(section.get("dead_band")))
 
 
 class BrightnessIntegrator:
@@ -175,6 +183,14 @@ class BrightnessIntegrator:
         self._undone_s = 0.0  # how long it has stayed under release_fraction of that, without falling further
         self._undone_from = 0.0  # the held change when that began
         self.t_us: float | None = None
+        self.memory = PolarityMemory(roi, grid_shape, thresholds) if self.params.dead_band else None
+
+    def count(self, events: npt.NDArray) -> F32:
+        """One window's events as :meth:`add` takes them: :func:`signed_counts`, or through :attr:`memory`
+        (``dead_band``), which must then see every event once and in order."""
+        if self.memory is not None:
+            return self.memory.counts(events)
+        return signed_counts(events, self.roi, self.grid_shape, self.thresholds)
 
     def add(self, counts: F32, t1_us: float) -> F32:
         """Fold in one window's :func:`signed_counts` ending at ``t1_us``; returns the integrated counts.
@@ -247,7 +263,7 @@ class BrightnessIntegrator:
         return self._undone_s >= self.params.release_s
 
     def add_events(self, events: npt.NDArray, t1_us: float) -> F32:
-        return self.add(signed_counts(events, self.roi, self.grid_shape, self.thresholds), t1_us)
+        return self.add(self.count(events), t1_us)
 
     def reset(self, t_us: float | None = None) -> None:
         """Forget the count (the gel is at rest)."""
@@ -256,6 +272,8 @@ class BrightnessIntegrator:
         self.moving = True
         self.held_total = self._held_peak = self._undone_s = self._undone_from = 0.0
         self.t_us = t_us
+        if self.memory is not None:
+            self.memory.reset()
 
     def channel(self) -> F32:
         slope_gain = None if self.thresholds is None else self.thresholds.slope_gain

@@ -22,7 +22,7 @@ Training and inference build the channels with the same functions here.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -44,7 +44,7 @@ CHANNELS = {"sae": 2, "displacement": 2, "previous": 1, "brightness": 1}
 #: The named input sets (``labrig train --inputs``), the comparison's variants.
 INPUT_SETS = {"sae": ("sae",), "sae+disp": ("sae", "displacement"), "sae+disp+prev": ("sae", "displacement", "previous"),
               "sae+bright": ("sae", "brightness"), "sae+bright+disp": ("sae", "brightness", "displacement"),
-              "sae+bright-hold": ("sae", "brightness")}
+              "sae+bright-hold": ("sae", "brightness"), "sae+bright-band": ("sae", "brightness")}
 #: The brightness change integrated with the gated leak: a press held as long as it lasts
 #: (:class:`~labrig.pipeline.brightness.BrightnessParams` ``rest_tau_s``; the held cells' own leak, 10 h, is
 #: longer than any press), its cells counting events only while the press moves (``moving_ratio``: a still
@@ -52,7 +52,10 @@ INPUT_SETS = {"sae": ("sae",), "sae+disp": ("sae", "displacement"), "sae+disp+pr
 #: light (the camera's measured slope gain divided out); the other sets keep one 30 s leak and the light as it is.
 HOLD_BRIGHTNESS = BrightnessParams(tau_s=36_000.0, rest_tau_s=0.5, floor_events_per_px=0.3, release_fraction=0.5,
                                    release_s=0.2, moving_ratio=2.0, reference_slope_gain=REFERENCE_SLOPE_GAIN)
-INPUT_BRIGHTNESS = {"sae+bright-hold": HOLD_BRIGHTNESS}
+#: The same, counted with the pixels' dead band undone (:mod:`labrig.pipeline.dead_band`): a press undone leaves
+#: no ghost of its last band, which a dim light expressed under the reference light would magnify.
+BAND_BRIGHTNESS = replace(HOLD_BRIGHTNESS, dead_band=True)
+INPUT_BRIGHTNESS = {"sae+bright-hold": HOLD_BRIGHTNESS, "sae+bright-band": BAND_BRIGHTNESS}
 #: Gel-plane displacement (mm) that makes one unit of a displacement channel.
 DEFAULT_DISPLACEMENT_SCALE_MM = 1.0
 
@@ -111,8 +114,9 @@ class InputSpec:
 
     @property
     def name(self) -> str:
-        return next(n for n, kinds in INPUT_SETS.items() if kinds == self.kinds) if self.kinds in INPUT_SETS.values() \
-            else "+".join(self.kinds)
+        exact = [n for n in INPUT_SETS if InputSpec.named(n) == self]
+        same_kinds = [n for n, kinds in INPUT_SETS.items() if kinds == self.kinds]
+        return (exact or same_kinds or ["+".join(self.kinds)])[0]
 
     def channel_of(self, kind: str) -> int | None:
         """Index of the first channel of ``kind`` in the stacked input, None when the spec lacks it."""

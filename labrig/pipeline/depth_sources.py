@@ -74,6 +74,12 @@ class DepthSource(Protocol):
         from (M, 2) px and, when ``needs_counts``, its signed event counts per grid cell (else None)."""
         return None
 
+    def count_events(self, events: npt.NDArray) -> npt.NDArray[np.float32] | None:
+        """A window's signed event counts per grid cell as :meth:`observe` takes them, when the source counts
+        them its own way (every event once and in order); None: the front stage's
+        :func:`~labrig.pipeline.brightness.signed_counts` with the setup's thresholds."""
+        return None
+
     def depth_mm(self, sae_grid: npt.NDArray[np.float32] | None, t0_us: int, t1_us: int,
                  n_events: int) -> npt.NDArray[np.float32]: ...
 
@@ -188,6 +194,9 @@ class ModelDepth(DepthSource):
         self.markers(positions_px, rest_px)
         if counts is not None:
             self.counts(counts, t1_us)
+
+    def count_events(self, events: npt.NDArray) -> npt.NDArray[np.float32] | None:
+        return self.integrator.count(events) if self.integrator is not None else None
 
     def markers(self, positions_px: npt.NDArray[np.float64], rest_px: npt.NDArray[np.float64]) -> None:
         """This window's tracked marker positions (M, 2) px and the rest they are measured from."""

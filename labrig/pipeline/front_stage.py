@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,11 +63,14 @@ class FrontStage:
     ``depth_window_us``: the span the SAE covers, ending at each window's end (None: the window itself);
     ``needs_sae`` / ``needs_counts``: what the depth source takes; ``keep_sae``: the SAE on every window
     regardless (a viewer); ``depth_every_us``: the depth source runs only on the first window ending at
-    least this long after the last one it ran on (None: every window)."""
+    least this long after the last one it ran on (None: every window); ``counter``: the depth source's own count of
+    a window's events (:meth:`~labrig.pipeline.depth_sources.DepthSource.count_events`; None, or a None from it:
+    :func:`~labrig.pipeline.brightness.signed_counts` with the setup's thresholds)."""
 
     def __init__(self, setup: PipelineSetup, markers: MarkerStage, *, depth_window_us: float | None,
                  needs_sae: bool, needs_counts: bool, keep_sae: bool = False,
-                 depth_every_us: int | None = None) -> None:
+                 depth_every_us: int | None = None,
+                 counter: Callable[[Events], npt.NDArray[np.float32] | None] | None = None) -> None:
         if depth_every_us is not None and depth_every_us <= 0:
             raise ValueError(f"depth_every_us must be positive or None, not {depth_every_us}")
         self.setup = setup
@@ -77,6 +80,7 @@ class FrontStage:
         self.needs_counts = needs_counts
         self.keep_sae = keep_sae
         self.depth_every_us = depth_every_us
+        self.counter = counter
         self._index = 0
         self._recent: deque[Events] = deque()  # events of the depth source's span, a view per window
         self._depth_ran_us: int | None = None  # the end of the last window the depth source ran on
@@ -119,6 +123,9 @@ class FrontStage:
     def _counts(self, events: Events) -> npt.NDArray[np.float32] | None:
         if not self.needs_counts:
             return None
+        counts = self.counter(events) if self.counter is not None else None
+        if counts is not None:
+            return counts
         return brightness.signed_counts(events, self.setup.rig.roi, thresholds=self.setup.thresholds)
 
     def _depth_span(self, t0_us: int, t1_us: int, events: Events) -> tuple[int, int]:

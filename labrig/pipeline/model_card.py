@@ -211,7 +211,10 @@ class _Fields:
             raise self.fail("inputs.kinds", "a list of input names", kinds)
         self.positive("inputs.displacement_scale_mm", 1.0)
         for key, value in self.section("inputs.brightness").items():
-            if not _is_number(value):
+            if key == "dead_band":
+                if not isinstance(value, bool):
+                    raise self.fail(f"inputs.brightness.{key}", "true or false", value)
+            elif not _is_number(value):
                 raise self.fail(f"inputs.brightness.{key}", "a number", value)
         try:
             return InputSpec.from_card(self.data)

@@ -117,7 +117,8 @@ class Pipeline:
         rig = setup.rig
         self.front_stage = FrontStage(setup, MarkerStage.for_setup(setup, tracker_params, rest_params),
                                       depth_window_us=depth.window_us, needs_sae=depth.needs_sae,
-                                      needs_counts=depth.needs_counts, keep_sae=keep_sae, depth_every_us=depth_every_us)
+                                      needs_counts=depth.needs_counts, keep_sae=keep_sae, depth_every_us=depth_every_us,
+                                      counter=depth.count_events)
         self._rest_px, self._rest_mm = self.front_stage.markers.rest_px, setup.rest_mm()
         base = surface_params or ifem.SurfaceParams()
         self.surface_params = replace(base, youngs_modulus_mpa=setup.youngs_modulus_mpa,

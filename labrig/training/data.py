@@ -330,11 +330,14 @@ class WindowSampler:
             self._preload_left -= src.preload(self.window_us)
         t0, t1 = src.span_us
         start = float(self.rng.uniform(t0, max(t0, t1 - self.window_us)))
+        state = self.state_channels(k)
+        if state is not None:
+            start = state.window_end(start + self.window_us) - self.window_us
         extra, rate_hz = None, 0.0
         if self.noise is not None:
             rate_hz = self.noise.draw_hz(self.rng)
             extra = background_noise(src.roi, start, start + self.window_us, rate_hz, self.rng) if rate_hz else None
-        sample = src.window(start, self.window_us, k, extra, self.state_channels(k), self.rng, rate_hz)
+        sample = src.window(start, self.window_us, k, extra, state, self.rng, rate_hz)
         if self.shift is not None:
             sample = self.shift.apply(sample, *self.shift.draw(self.rng))
         if self.crop is not None:

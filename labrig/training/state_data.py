@@ -163,6 +163,17 @@ class BrightnessTrack:
     params: BrightnessParams
     thresholds: ContrastThresholds | None = None
 
+    def window_end(self, t_end_us: float) -> float:
+        """A training window's end: ``t_end_us``, or with the dead band undone (``params.dead_band``) the nearest step
+        end, where the cached counts hold exactly what the run-time integrator holds (its pixels' polarity memory
+        is not cached, so a window ending between steps would count its events without it)."""
+        if not self.params.dead_band or not len(self.t_us):
+            return t_end_us
+        k = int(np.clip(np.searchsorted(self.t_us, t_end_us), 1, len(self.t_us) - 1)) if len(self.t_us) > 1 else 0
+        if k > 0 and abs(t_end_us - self.t_us[k - 1]) <= abs(self.t_us[k] - t_end_us):
+            k -= 1
+        return float(self.t_us[k])
+
     def channel_at(self, t_end_us: float, events: npt.NDArray) -> F32:
         """The brightness channel at ``t_end_us``: the last step at or before it plus ``events``
         (the window's, host us) after that step."""
@@ -262,6 +273,10 @@ class StateChannels:
             self.camera = setup.camera
             self.raster = DisplacementRaster(setup.rest_px, setup.observed, setup.rig.roi)
             self.tracks = track_recording(recording, calibration_dir, cache_root)
+
+    def window_end(self, t_end_us: float) -> float:
+        """Where a training window meant to end at ``t_end_us`` ends (:meth:`BrightnessTrack.window_end`)."""
+        return self.brightness.window_end(t_end_us) if self.brightness is not None else t_end_us
 
     def __call__(self, t_end_us: float, previous_at: Callable[[int], F32] | None, rng: np.random.Generator,
                  events: npt.NDArray | None = None, noise_hz: float = 0.0) -> F32:
