@@ -221,20 +221,24 @@ def _tool_transforms(bag: Path, topic: str, reader: Any, pose_frame: str | None)
     one child frame). A :class:`LabrigError` that lists the child frames there are when the frame is not among
     them, or when none is given and there are several; and when the tool's transforms come from several parents."""
     store = M.typestore()
+    poses: list[tuple[Any, int]] = []
     by_child: dict[str, list[tuple[Any, int]]] = {}
     for connection, log_ns, raw in topic_messages(reader, topic):
         msg = store.deserialize_cdr(raw, connection.msgtype)
         if connection.msgtype == M.POSE_STAMPED:
-            by_child.setdefault("", []).append((msg, int(log_ns)))
+            poses.append((msg, int(log_ns)))
             continue
         for transform in (msg.transforms if connection.msgtype == M.TF_MESSAGE else (msg,)):
             child = str(transform.child_frame_id)
             kept = by_child.setdefault(child, [])
             if pose_frame is None or child == pose_frame:
                 kept.append((transform, int(log_ns)))
+    if not by_child:  # PoseStamped (resolve_topics refused --pose-frame for it), or no transforms at all
+        if pose_frame is not None:
+            raise LabrigError(f"{bag}: {topic} has no transform to the child frame {pose_frame!r} (--pose-frame); "
+                              "it holds no transforms")
+        return poses
     frames = sorted(by_child)
-    if frames == [""] or not frames:
-        return by_child.get("", [])
     listing = ", ".join(repr(f) for f in frames)
     if pose_frame is None:
         if len(frames) > 1:
