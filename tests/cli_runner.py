@@ -9,8 +9,11 @@ from labrig.cli import main
 
 
 class _Captured(Protocol):
-    out: str
-    err: str
+    @property
+    def out(self) -> str: ...
+
+    @property
+    def err(self) -> str: ...
 
 
 class _Capture(Protocol):

@@ -342,6 +342,29 @@ def test_session_listeners_get_every_chunk_and_a_failing_one_is_removed(rig: Rig
     assert isinstance(session.listener_error, RuntimeError) and session._listeners == (got.append,)
 
 
+def test_session_ft_listeners_get_every_sample_after_the_monitor_and_a_failing_one_is_removed(
+        rig: RigConfig, sphere: Indenter) -> None:
+    from labrig.devices.bota_stream import FtSample
+    from labrig.protocol.rigfile import DeviceConfig
+    from labrig.protocol.safety import SafetyLimits
+    from labrig.protocol.session import RigSession
+
+    session = RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere)  # not opened: samples handed in below
+    got: list[tuple[FtSample, float]] = []
+
+    def broken(sample: FtSample) -> None:
+        raise RuntimeError("listener bug")
+
+    session.add_ft_listener(broken)
+    session.add_ft_listener(lambda s: got.append((s, float(session.monitor.last_n[2]))))
+    samples = [FtSample(1250 * i, 10**9 + 1_250_000 * i, (0.0, 0.0, -0.1 * i), (0.0, 0.0, 0.0), 0, 25.0)
+               for i in range(5)]
+    for sample in samples:
+        session._on_ft(sample)
+    assert [s for s, _ in got] == samples and [fz for _, fz in got] == [s.force_n[2] for s in samples]  # monitor first
+    assert isinstance(session.listener_error, RuntimeError) and len(session._ft_listeners) == 1
+
+
 # -- the command ---------------------------------------------------------------------------------------
 
 
@@ -369,14 +392,15 @@ def _in_plane_mm(positions_px: np.ndarray, rig: RigConfig) -> np.ndarray:
 
 def test_live_run_during_a_probing_run_on_the_virtual_rig(tiny_model: Path, rig: RigConfig, tmp_path: Path) -> None:
     """Through the real drivers: the live pipeline keeps up, covers the run, tracks the commanded
-    shear; the F/T sensor is the reference (the untrained network's forces are not judged)."""
+    shear; the F/T sensor is the reference (the untrained network's forces are not judged). The live view
+    (--view-server) sends every F/T sample the session saw, the recording's among them."""
     from labrig.recording import Recording
 
     protocol = tmp_path / "quick.toml"
     protocol.write_text(QUICK_PROTOCOL)
     out, rec_path = tmp_path / "live.h5", tmp_path / "run.h5"
     result = _labrig("run", "--live", "--protocol", protocol, "--model", tiny_model, "--out", out,
-                     "--save-recording", rec_path, "--json")
+                     "--save-recording", rec_path, "--view-server", "--view-port", "0", "--json")
     assert result.returncode == 0, result.stderr
     assert "virtual rig" in result.stderr
     s = json.loads(result.stdout)
@@ -399,6 +423,11 @@ def test_live_run_during_a_probing_run_on_the_virtual_rig(tiny_model: Path, rig:
         t_host = camera.to_host_us(data["t1_us"])
         last_event_us = camera.to_host_us(rec.column("events", "t_device_us", rec.n_events - 1))[0]
         ft_fz = rec.column("ft", "force_n")[:, 2]
+        ft_host_us = rec.column("ft", "t_host_us")
+    # the live view got the F/T at the sensor's rate (800 Hz), not the run's 10 Hz progress reports
+    view = s["view_server"]
+    assert ft_host_us.size > 0.9 * 800 * (ft_host_us[-1] - ft_host_us[0]) / 1e6
+    assert view["wrenches_published"] >= ft_host_us.size and view["wrenches_skipped"] == 0
     assert t_host[0] < phases["approach"].t_start_us and t_host[-1] > last_event_us - 250_000
     # the F/T reference: the sphere pressed 0.8 mm; the comparison ran over the recorded windows
     c = s["ft_comparison"]

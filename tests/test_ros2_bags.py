@@ -47,6 +47,9 @@ def test_export_then_import_gives_the_recording_back(small_recording: Path, tmp_
     assert code == 0, err
     imported = json.loads(out)
     assert imported["event_encoding"] == "evt3" and imported["topics"]["events"] == topics.EVENTS
+    assert exported["cnc_status"] == exported["poses"] == imported["cnc_status"] == imported["poses"] > 0
+    assert exported["gcode_lines"] == imported["gcode_lines"] > 0
+    assert imported["topics"]["cnc_status"] == topics.CNC_STATUS and imported["topics"]["gcode"] == topics.GCODE
     with Recording(small_recording) as a, Recording(tmp_path / "back.h5") as b:
         for column, values in _events(a).items():
             assert np.array_equal(values, _events(b)[column]), column
@@ -60,12 +63,49 @@ def test_export_then_import_gives_the_recording_back(small_recording: Path, tmp_
         assert np.abs(fa["t_us"] - fb["t_us"]).max() <= 1  # the sample times, through each one's F/T clock model
         assert np.array_equal(a.column("cnc", "t_host_us"), b.column("cnc", "t_host_us"))
         assert np.allclose(a.column("cnc", "position_mm"), b.column("cnc", "position_mm"), rtol=0, atol=1e-9)
+        # the CNC's state and feed come back from /cnc/status, its G-code conversation from /cnc/gcode
+        assert b"Run" in set(a.column("cnc", "state").tolist()) and np.nanmax(a.column("cnc", "feed_mm_min")) == 48
+        assert np.array_equal(a.column("cnc", "state"), b.column("cnc", "state"))
+        assert np.array_equal(a.column("cnc", "feed_mm_min"), b.column("cnc", "feed_mm_min"))
+        assert a.rows("gcode") > 0 and all(np.array_equal(v, b.stream("gcode")[k]) for k, v in a.stream("gcode").items())
         assert a.phases() == b.phases() and len(a.phases()) > 3
         assert b.attrs["t0_host_ns"] == a.attrs["t0_host_ns"] and b.attrs["indenter"] == a.attrs["indenter"]
         assert b.attrs["indenter_definition"] == a.attrs["indenter_definition"] and b.attrs["rig"] == a.attrs["rig"]
         # the events' host times: the same camera clock model, fitted on the bag's packets
         ea, eb = a.events_between(0, 3e6), b.events_between(0, 3e6)
         assert ea.size == eb.size and np.abs(ea["t"] - eb["t"]).max() <= 1
+
+
+def test_the_cnc_status_and_gcode_are_topics_of_their_own(exported: Path, small_recording: Path) -> None:
+    """/cnc/status: one CncStatus per status report, at the pose's stamp, the state as GRBL reported it and the feed
+    in m/s; /cnc/gcode: the lines sent (direction 0) and the answers (1), each at its host time."""
+    from rosbags.rosbag2 import Reader
+
+    store = M.typestore()
+    got: dict[str, list[Any]] = {topics.CNC_STATUS: [], topics.POSE: [], topics.GCODE: []}
+    with Reader(exported) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        assert types[topics.CNC_STATUS] == M.CNC_STATUS and types[topics.GCODE] == M.GCODE_LINE
+        connections = [c for c in reader.connections if c.topic in got]
+        for connection, log_ns, raw in reader.messages(connections=connections):
+            msg = store.deserialize_cdr(raw, connection.msgtype)
+            got[connection.topic].append((log_ns, msg))
+    with Recording(small_recording) as rec:
+        t0, cnc, gcode = rec.attrs["t0_host_ns"], rec.stream("cnc"), rec.stream("gcode")
+    status, poses = got[topics.CNC_STATUS], got[topics.POSE]
+    assert len(status) == len(poses) == cnc["t_host_us"].size
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in status]
+    assert stamps == [t0 + 1000 * t for t in cnc["t_host_us"].tolist()] == [log for log, _ in status]
+    assert stamps == [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in poses]
+    assert [m.state for _, m in status] == [v.decode() for v in cnc["state"].tolist()]
+    assert all(m.header.frame_id == topics.CNC_FRAME for _, m in status)
+    np.testing.assert_allclose([m.feed_m_s for _, m in status], cnc["feed_mm_min"].astype(np.float64) / 60_000, rtol=1e-12)
+    assert max(m.feed_m_s for _, m in status) == pytest.approx(48 / 60_000)  # the synthetic run's 48 mm/min
+    lines = got[topics.GCODE]
+    assert [(m.direction, m.line) for _, m in lines] == [(d, v.decode()) for d, v in zip(gcode["direction"].tolist(),
+                                                                                          gcode["line"].tolist())]
+    assert [log for log, _ in lines] == [t0 + 1000 * t for t in gcode["t_host_us"].tolist()]
+    assert lines[0][1].line.startswith("G1 ") and lines[0][1].direction == 0 and lines[1][1].line == "ok"
 
 
 def test_the_packets_are_real_evt3(exported: Path, small_recording: Path) -> None:
@@ -110,10 +150,13 @@ def test_a_bag_folder_round_trips_too(small_recording: Path, tmp_path: Path) -> 
 
 
 def write_lab_bag(recording: Path, bag: Path, *, encoding: str = "evt3", storage: str = "mcap",
-                  epoch_ns: int = 1_700_000_000 * 10**9, usb_bytes: int = 8192) -> None:
+                  epoch_ns: int = 1_700_000_000 * 10**9, usb_bytes: int = 8192, pose_as: str = "PoseStamped") -> None:
     """A bag as a lab's ROS 2 stack records one (rosbags' Writer, its own type store): the camera as the
     Metavision driver publishes it (evt3 cut at USB-transfer boundaries, not at word groups; or mono), the F/T
-    as WrenchStamped, the CNC as PoseStamped in metres, every stamp on the system clock (epoch ns)."""
+    as WrenchStamped, the CNC in metres, every stamp on the system clock (epoch ns). ``pose_as``: the CNC as
+    ``PoseStamped`` on /arm/tool_pose, ``TransformStamped`` (child frame tool0) on /arm/tool_tf, or ``TFMessage``
+    on /tf as a robot's tf broadcaster sends it: machine -> tool0 among other frames (base_link -> machine,
+    machine -> camera_link), two transforms a message and a lone one between."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -172,13 +215,37 @@ def write_lab_bag(recording: Path, bag: Path, *, encoding: str = "evt3", storage
                 header=T["std_msgs/msg/Header"](stamp=stamp(epoch_ns + t_us * 1000), frame_id="bota"),
                 wrench=T["geometry_msgs/msg/Wrench"](force=v(*map(float, f)), torque=v(*map(float, tq))))
             writer.write(wrench, epoch_ns + t_host * 1000, store.serialize_cdr(msg, "geometry_msgs/msg/WrenchStamped"))
-        pose = writer.add_connection("/arm/tool_pose", "geometry_msgs/msg/PoseStamped", typestore=store)
-        for t_us, p in zip(cnc_t.tolist(), cnc_p):
-            msg = T["geometry_msgs/msg/PoseStamped"](
-                header=T["std_msgs/msg/Header"](stamp=stamp(epoch_ns + t_us * 1000), frame_id="machine"),
-                pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](*(float(v) / 1000 for v in p)),
-                                                 orientation=T["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0)))
-            writer.write(pose, epoch_ns + t_us * 1000, store.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
+        if pose_as == "PoseStamped":
+            pose = writer.add_connection("/arm/tool_pose", "geometry_msgs/msg/PoseStamped", typestore=store)
+            for t_us, p in zip(cnc_t.tolist(), cnc_p):
+                msg = T["geometry_msgs/msg/PoseStamped"](
+                    header=T["std_msgs/msg/Header"](stamp=stamp(epoch_ns + t_us * 1000), frame_id="machine"),
+                    pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](*(float(v) / 1000 for v in p)),
+                                                     orientation=T["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0)))
+                writer.write(pose, epoch_ns + t_us * 1000, store.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
+            return
+
+        def transform(t_ns: int, parent: str, child: str, xyz_m: Any) -> Any:
+            return T["geometry_msgs/msg/TransformStamped"](
+                header=T["std_msgs/msg/Header"](stamp=stamp(t_ns), frame_id=parent), child_frame_id=child,
+                transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](*map(float, xyz_m)),
+                                                           rotation=T["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0)))
+
+        tools = [(epoch_ns + t_us * 1000, transform(epoch_ns + t_us * 1000, "machine", "tool0", p / 1000))
+                 for t_us, p in zip(cnc_t.tolist(), cnc_p)]
+        if pose_as == "TransformStamped":
+            tool_tf = writer.add_connection("/arm/tool_tf", "geometry_msgs/msg/TransformStamped", typestore=store)
+            for t_ns, msg in tools:
+                writer.write(tool_tf, t_ns, store.serialize_cdr(msg, "geometry_msgs/msg/TransformStamped"))
+            return
+        tf = writer.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=store)
+        for k, (t_ns, tool) in enumerate(tools):
+            others = [transform(t_ns, "base_link", "machine", (0.1, 0.0, 0.5)), transform(t_ns, "machine", "camera_link",
+                                                                                         (0.0, 0.0, -0.03))]
+            writer.write(tf, t_ns, store.serialize_cdr(T["tf2_msgs/msg/TFMessage"](transforms=[others[k % 2], tool]),
+                                                       "tf2_msgs/msg/TFMessage"))
+            writer.write(tf, t_ns + 1000, store.serialize_cdr(T["tf2_msgs/msg/TFMessage"](transforms=[others[0]]),
+                                                              "tf2_msgs/msg/TFMessage"))
 
 
 @pytest.mark.parametrize(("encoding", "storage"), [("evt3", "mcap"), ("mono", "sqlite3")])
@@ -203,6 +270,46 @@ def test_a_labs_bag_imports(small_recording: Path, tmp_path: Path, encoding: str
     assert json.loads(out)["events"] == summary["events"] and json.loads(out)["ft_samples"] == summary["wrenches"]
 
 
+@pytest.mark.parametrize("pose_as", ["TFMessage", "TransformStamped"])
+def test_the_tool_pose_imports_from_tf_by_its_child_frame(small_recording: Path, tmp_path: Path, pose_as: str,
+                                                          monkeypatch: MP, capsys: Cap) -> None:
+    """A lab that records the tool only on /tf: --pose /tf --pose-frame tool0 takes the machine -> tool0 transforms
+    among the robot's others; a TransformStamped topic is taken as it is."""
+    bag = tmp_path / "lab.mcap"
+    write_lab_bag(small_recording, bag, pose_as=pose_as)
+    pose_topic = "/tf" if pose_as == "TFMessage" else "/arm/tool_tf"
+    code, out, err = run(monkeypatch, capsys, "import", bag, tmp_path / "lab.h5", "--pose", pose_topic, "--pose-frame",
+                         "tool0", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    with Recording(small_recording) as a, Recording(tmp_path / "lab.h5") as b:
+        assert summary["poses"] == a.rows("cnc") == b.rows("cnc") and summary["topics"]["pose"] == pose_topic
+        assert np.allclose(a.column("cnc", "position_mm"), b.column("cnc", "position_mm"), rtol=0, atol=1e-9)
+        assert np.array_equal(np.diff(a.column("cnc", "t_host_us")), np.diff(b.column("cnc", "t_host_us")))
+        assert b.attrs["extra_source_pose_frame"] == "tool0"
+
+
+def test_a_tf_pose_frame_that_is_not_there_lists_the_frames_that_are(small_recording: Path, tmp_path: Path,
+                                                                      monkeypatch: MP, capsys: Cap) -> None:
+    bag = tmp_path / "lab.mcap"
+    write_lab_bag(small_recording, bag, pose_as="TFMessage")
+    cases = [
+        (("--pose", "/tf", "--pose-frame", "tool_flange"),
+         "/tf has no transform to the child frame 'tool_flange' (--pose-frame); its child frames: 'camera_link', "
+         "'machine', 'tool0'"),
+        (("--pose", "/tf"), "/tf holds transforms to 3 child frames ('camera_link', 'machine', 'tool0'); choose the "
+                            "tool's with --pose-frame"),
+        (("--pose-frame", "tool0"), "--pose-frame tool0: "),  # /tf is never taken by itself
+        (("--pose", "/bota/wrench", "--pose-frame", "tool0"), "/bota/wrench is geometry_msgs/msg/WrenchStamped, not"),
+    ]
+    for args, expected in cases:
+        code, out, err = run(monkeypatch, capsys, "import", bag, tmp_path / "a.h5", *args)
+        assert code == 2, (args, out, err)
+        line = " ".join(err.split())
+        assert expected in line and "Traceback" not in err and err.strip().startswith("error:"), (args, err)
+        assert not list(tmp_path.glob("a.h5*")), args
+
+
 # -- one line for every bad input ----------------------------------------------------------------------
 
 
@@ -212,6 +319,8 @@ def test_bad_bags_and_topics_are_one_line(exported: Path, small_recording: Path,
     not_a_bag.write_text("hello")
     gap_bag = tmp_path / "gap"
     write_gap_bag(gap_bag)
+    two_parents = tmp_path / "two_parents.mcap"
+    write_gap_bag(two_parents, tool_parents=("machine", "world"))
     mono_bag = tmp_path / "evt2"
     write_lab_bag(small_recording, mono_bag, encoding="mono")
     _rename_encoding(mono_bag, tmp_path / "evt2.mcap")
@@ -224,6 +333,11 @@ def test_bad_bags_and_topics_are_one_line(exported: Path, small_recording: Path,
         (("export", small_recording, "--bag", exported), "exists; choose another name or pass --overwrite"),
         (("export", small_recording), "give one of --raw"),
         (("import", exported, tmp_path / "a.h5", "--indenter", "no-such-indenter"), "no-such-indenter"),
+        (("import", exported, tmp_path / "a.h5", "--pose-frame", "tool0"),
+         "--pose-frame applies to a topic of transforms (tf2_msgs/msg/TFMessage or geometry_msgs/msg/TransformStamped); "
+         "/cnc/pose is geometry_msgs/msg/PoseStamped"),
+        (("import", two_parents, tmp_path / "a.h5", "--pose", "/tf", "--pose-frame", "tool0"),
+         "/tf's transforms to 'tool0' come from 2 parent frames ('machine', 'world')"),
     ]
     for args, expected in cases:
         code, out, err = run(monkeypatch, capsys, *args)
@@ -244,8 +358,9 @@ def test_without_rosbags_the_commands_say_what_to_install(small_recording: Path,
     assert code == 2 and "pip install 'labrig[ros2]'" in err and len(err.strip().splitlines()) <= 2
 
 
-def write_gap_bag(path: Path) -> None:
-    """A minimal bag whose F/T stamps jump 5 s (the driver restarted, or the clock was set)."""
+def write_gap_bag(path: Path, tool_parents: tuple[str, ...] = ()) -> None:
+    """A minimal bag whose F/T stamps jump 5 s (the driver restarted, or the clock was set); with ``tool_parents``, a
+    /tf whose transforms to tool0 come from each of those parent frames in turn."""
     from labrig.eventtypes import EVENT_DTYPE
     from labrig.recording.ros2 import mapping
     from labrig.recording.ros2.bagfile import BagWriter
@@ -264,6 +379,16 @@ def write_gap_bag(path: Path) -> None:
         for i in range(5):
             t_ns = 10**9 + i * 10**6 + (5 * 10**9 if i >= 3 else 0)
             bag.write(topics.WRENCH, t_ns, mapping.wrench_stamped(bag.store, t_ns, "ft", (0, 0, 1), (0, 0, 0)))
+        if tool_parents:
+            bag.topic("/tf", M.TF_MESSAGE)
+            for i in range(4):
+                t_ns = 10**9 + i * 10**6
+                tool = M.typestore().types[M.TRANSFORM_STAMPED](
+                    header=mapping.header(bag.store, t_ns, tool_parents[i % len(tool_parents)]), child_frame_id="tool0",
+                    transform=bag.store.types["geometry_msgs/msg/Transform"](
+                        translation=mapping.vector3(bag.store, (0, 0, 0.01)),
+                        rotation=bag.store.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
+                bag.write("/tf", t_ns, bag.store.types[M.TF_MESSAGE](transforms=[tool]))
 
 
 def _trigger_dtype() -> np.dtype:

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from labrig.config import RigConfig
 from labrig.errors import LabrigError
+from labrig.indenters import Indenter
 from labrig.pipeline.ros2_messages import point_cloud_columns
 from labrig.pipeline.runtime import WindowResult
 from labrig.recording.ros2 import messages as M
@@ -162,3 +164,62 @@ def test_a_1_khz_pipeline_is_thinned_to_the_views_rate_before_it_costs_anything(
         assert len(offered) == sent and server.windows_thinned == 100 - sent
     with pytest.raises(LabrigError, match="the view's rate must be zero"):
         ViewServer(rest, max_rate_hz=-1.0)
+
+
+def test_every_ft_sample_reaches_the_view_at_the_sensors_rate(rig: RigConfig, sphere: Indenter) -> None:
+    """The Bota driver on its twin over a pty (800 Hz, as on the rig) feeds a rig session, whose F/T listener hands
+    every sample to the view: a client receives /ft_sensor/wrench at the sensor's rate, one message a sample stamped
+    with its own host time (moved to the system clock by one offset) and holding its reading, while every window of a
+    100 Hz pipeline still goes out."""
+    from labrig.devices.bota import BotaSensor, BotaSettings
+    from labrig.devices.bota_stream import FtSample
+    from labrig.live.view_server import ViewServer
+    from labrig.protocol.rigfile import DeviceConfig
+    from labrig.protocol.safety import SafetyLimits
+    from labrig.protocol.session import RigSession
+    from labrig.sim.bota_twin import BotaTwin, BotaTwinParams
+    from labrig.sim.serial_pty import TwinServer
+    from labrig.testing.foxglove_client import FoxgloveClient
+
+    session = RigSession(rig, DeviceConfig(), SafetyLimits(), indenter=sphere)  # not opened: the F/T alone, below
+    twin = BotaTwin(BotaTwinParams(boot_delay_us=50_000), wrench_at=lambda t_us: ((0.0, 0.0, -1e-6 * t_us), (0.0,) * 3))
+    ports = TwinServer({"ft": twin}).start()
+    samples: list[FtSample] = []
+    try:
+        deadline = time.monotonic() + 5
+        while twin.mode != "run" and time.monotonic() < deadline:
+            time.sleep(0.005)
+        sensor = BotaSensor(ports.paths["ft"], clock=session.clock, on_sample=session._on_ft, char_gap_s=0.001)
+        sensor.connect(boot_timeout_s=2.0)
+        sensor.configure(BotaSettings())  # the session's settings: 51200 / 64 = 800 Hz
+        with ViewServer(np.zeros((M_MARKERS, 3)), port=0) as server, FoxgloveClient(server.url, keep_payloads=True) as client:
+            session.add_ft_listener(server.ft_listener(session.clock))
+            session.add_ft_listener(samples.append)
+            sensor.start()
+            start = time.monotonic()
+            for i in range(150):  # 1.5 s of 10 ms windows alongside
+                server.publish(_window(i))
+                time.sleep(max(0.0, start + (i + 1) * 0.01 - time.monotonic()))
+            sensor.stop()
+            wrenches = client.topics[topics.WRENCH]
+            deadline = time.monotonic() + 5
+            while len(wrenches.arrivals_s) < len(samples) and time.monotonic() < deadline:
+                time.sleep(0.02)
+        sensor.close()
+    finally:
+        ports.stop()
+    stats = server.stats()
+    sample_host_ns = np.array([s.t_host_ns for s in samples], np.int64)
+    sensor_rate_hz = (len(samples) - 1) / ((sample_host_ns[-1] - sample_host_ns[0]) / 1e9)
+    assert len(samples) > 1000 and sensor_rate_hz == pytest.approx(800, rel=0.05)
+    assert stats.wrenches_published == len(samples) == len(wrenches.arrivals_s)
+    assert stats.wrenches_skipped == 0 and stats.windows_skipped == 0 and stats.windows_published == 150
+    assert wrenches.rate_hz() == pytest.approx(sensor_rate_hz, rel=0.1)  # as the client receives them
+    store = M.typestore()
+    msgs = [store.deserialize_cdr(p, M.WRENCH_STAMPED) for p in wrenches.payloads]
+    stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs], np.int64)
+    assert np.array_equal(stamps, wrenches.log_times_ns)
+    offset = stamps - sample_host_ns
+    assert np.all(offset == offset[0]) and abs(offset[0] - (time.time_ns() - time.monotonic_ns())) < 50_000_000
+    assert [m.wrench.force.z for m in msgs] == [s.force_n[2] for s in samples]
+    assert all(m.header.frame_id == topics.FT_FRAME for m in msgs)

@@ -12,13 +12,16 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.progress import TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from labrig.cli.console import IndentersOption, JsonOption, console, err_console, print_json, progress_bar
 from labrig.errors import LabrigError
+
+if TYPE_CHECKING:
+    from labrig.recording.ros2.bag_import import BagTopics
 
 OverwriteOption = Annotated[bool, typer.Option("--overwrite", help="Replace the output file if it exists.")]
 
@@ -48,8 +51,14 @@ def import_command(
     wrench: Annotated[str | None, typer.Option(help=(
         "Bag: the F/T sensor's geometry_msgs/msg/WrenchStamped topic (default: the bag's only one, if any)."))] = None,
     pose: Annotated[str | None, typer.Option(help=(
-        "Bag: the tool's PoseStamped or TransformStamped topic, machine frame (default: the bag's only one, if any)."))
-    ] = None,
+        "Bag: the tool's pose in the machine frame: a PoseStamped or TransformStamped topic (default: the bag's only "
+        "one, if any), or a tf2_msgs/msg/TFMessage topic such as /tf with --pose-frame."))] = None,
+    pose_frame: Annotated[str | None, typer.Option(help=(
+        "Bag: the tool's child frame (child_frame_id) among --pose's transforms (default: their only one)."))] = None,
+    cnc_status: Annotated[str | None, typer.Option(help=(
+        "Bag: labrig_msgs/msg/CncStatus topic, the CNC's state and feed (default: the bag's only one)."))] = None,
+    gcode: Annotated[str | None, typer.Option(help=(
+        "Bag: labrig_msgs/msg/GcodeLine topic, the CNC's G-code conversation (default: the bag's only one)."))] = None,
     phases: Annotated[str | None, typer.Option(help="Bag: labrig_msgs/msg/Phase topic (default: the bag's only one).")
                       ] = None,
     triggers: Annotated[str | None, typer.Option(help=(
@@ -68,13 +77,16 @@ def import_command(
     as_json: JsonOption = False,
 ) -> None:
     """Import a camera file or a ROS 2 bag into a labrig recording."""
+    from labrig.recording.ros2.bag_import import BagTopics
     from labrig.recording.ros2.bagfile import is_bag
 
-    bag_options = {"--events": events, "--wrench": wrench, "--pose": pose, "--phases": phases, "--triggers": triggers,
+    wanted = BagTopics(events=events, wrench=wrench, pose=pose, phases=phases, triggers=triggers, trigger_out=trigger_out,
+                       cnc_status=cnc_status, gcode=gcode, pose_frame=pose_frame)
+    bag_options = {"--events": events, "--wrench": wrench, "--pose": pose, "--pose-frame": pose_frame,
+                   "--cnc-status": cnc_status, "--gcode": gcode, "--phases": phases, "--triggers": triggers,
                    "--trigger-out": trigger_out, "--indenter": indenter, "--indenters": indenters, "--rig": rig}
     if is_bag(file):
-        _import_bag(file, output, events, wrench, pose, phases, triggers, trigger_out, indenter, indenters, rig, max_gap_s,
-                    overwrite, as_json)
+        _import_bag(file, output, wanted, indenter, indenters, rig, max_gap_s, overwrite, as_json)
         return
     if given := [flag for flag, value in bag_options.items() if value is not None]:
         raise LabrigError(f"{', '.join(given)} apply to a ROS 2 bag (an .mcap file or a bag folder); {file} is not one")
@@ -96,10 +108,9 @@ def import_command(
         console.print(f"[yellow]warning:[/] {summary.skipped_words} words of the RAW payload were not decoded")
 
 
-def _import_bag(bag: Path, output: Path, events: str | None, wrench: str | None, pose: str | None, phases: str | None,
-                triggers: str | None, trigger_out: str | None, indenter: str | None, indenters: Path | None,
+def _import_bag(bag: Path, output: Path, wanted: BagTopics, indenter: str | None, indenters: Path | None,
                 rig: Path | None, max_gap_s: float, overwrite: bool, as_json: bool) -> None:
-    from labrig.recording.ros2.bag_import import BagTopics, LabInputs, import_bag
+    from labrig.recording.ros2.bag_import import LabInputs, import_bag
 
     lab = LabInputs()
     if indenter is not None:
@@ -114,7 +125,6 @@ def _import_bag(bag: Path, output: Path, events: str | None, wrench: str | None,
 
         load_rig(rig)  # a bad rig file is one line now, not at groundtruth
         lab = LabInputs(lab.indenter, lab.indenter_toml, rig.read_text())
-    wanted = BagTopics(events, wrench, pose, phases, triggers, trigger_out)
     with _progress(f"import {bag.name}", as_json) as progress:
         summary = import_bag(bag, output, wanted, lab=lab, max_gap_s=max_gap_s, overwrite=overwrite, progress=progress)
     if as_json:
@@ -122,8 +132,9 @@ def _import_bag(bag: Path, output: Path, events: str | None, wrench: str | None,
         return
     console.print(
         f"[green]imported[/] {summary.events:,} events ({summary.event_encoding}), {summary.triggers} trigger edges, "
-        f"{summary.wrenches:,} wrenches, {summary.poses:,} poses and {summary.phases} phases "
-        f"({summary.duration_s:.3f} s) from {bag} into {output} in {summary.elapsed_s:.2f} s",
+        f"{summary.wrenches:,} wrenches, {summary.poses:,} poses ({summary.cnc_status:,} CNC status reports), "
+        f"{summary.gcode_lines:,} G-code lines and {summary.phases} phases ({summary.duration_s:.3f} s) from {bag} "
+        f"into {output} in {summary.elapsed_s:.2f} s",
         highlight=False,
     )
     for stream, topic in summary.topics.items():
@@ -189,8 +200,9 @@ def _export_bag(source: Path, bag: Path, packet_ms: float, overwrite: bool, as_j
         return
     console.print(
         f"[green]exported[/] {summary.events:,} events in {summary.event_packets:,} EVT 3.0 packets "
-        f"({summary.packet_ms_mean:.1f} ms each), {summary.wrenches:,} wrenches, {summary.poses:,} poses and "
-        f"{summary.phases} phases to {bag} ({summary.output_bytes / 1e6:.1f} MB)",
+        f"({summary.packet_ms_mean:.1f} ms each), {summary.wrenches:,} wrenches, {summary.poses:,} poses with the CNC's "
+        f"state and feed, {summary.gcode_lines:,} G-code lines and {summary.phases} phases to {bag} "
+        f"({summary.output_bytes / 1e6:.1f} MB)",
         highlight=False,
     )
 

@@ -15,7 +15,6 @@ import os
 import tempfile
 import threading
 from collections import deque
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -39,7 +38,7 @@ from labrig.pipeline.windows import WindowSpec
 from labrig.protocol import apply_overrides, load_protocol
 from labrig.protocol.files import DEFAULT_PROTOCOL
 from labrig.protocol.rigfile import DeviceConfig, device_config
-from labrig.protocol.runner import ProbeRunner, RunProgress
+from labrig.protocol.runner import ProbeRunner
 from labrig.protocol.safety import StopRequest
 from labrig.protocol.session import RigSession
 from labrig.protocol.spec import ProtocolError
@@ -241,15 +240,9 @@ def _with_probe(o: LiveOptions, rig: RigConfig, devices: DeviceConfig, pipe: run
     view = LiveView(f"labrig run --live: {spec.indenter} probing run on the {where}", None, None,
                     ft_axes_in_gel(None, calibration_dir)[0])
     sink.view = view
-    progress: Callable[[RunProgress], None] = view.on_progress
-    if sink.server is not None:
-        server = sink.server
-
-        def progress(p: RunProgress) -> None:  # the table, and the F/T's tared reading on the live view
-            view.on_progress(p)
-            server.publish_wrench(p.force_n)
-
-    runner = ProbeRunner.for_session(session, stop=stop, progress=progress)
+    if sink.server is not None:  # every F/T sample on the live view, at the sensor's rate, each at its own time
+        session.add_ft_listener(sink.server.ft_listener(session.clock))
+    runner = ProbeRunner.for_session(session, stop=stop, progress=view.on_progress)
     runner.check(spec)  # refuse an unsafe plan before the rig starts
     keep = o.save_recording
     with tempfile.TemporaryDirectory(prefix="labrig-live-") as folder:

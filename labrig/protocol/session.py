@@ -16,6 +16,8 @@ drivers; it also writes the rig's truth into each recording.
 Chunk listeners (:meth:`RigSession.add_chunk_listener`) see every camera chunk too, whether
 a recording is current or not, after the recording got it: the live pipeline
 (``labrig run --live``) reads the same stream this way instead of opening the camera twice.
+F/T listeners (:meth:`RigSession.add_ft_listener`) see every F/T sample the same way, at the
+sensor's rate (the live view's ``/ft_sensor/wrench``).
 """
 
 from __future__ import annotations
@@ -90,7 +92,8 @@ class RigSession:
         self.last_camera_ns = 0  # host time the newest chunk arrived
         self.last_camera_device_us = -1  # camera time of its newest event
         self._listeners: tuple[Callable[[EventChunk], None], ...] = ()
-        #: The first exception a chunk listener raised (that listener was removed; recording went on).
+        self._ft_listeners: tuple[Callable[[FtSample], None], ...] = ()
+        #: The first exception a chunk or F/T listener raised (that listener was removed; recording went on).
         self.listener_error: BaseException | None = None
 
     @classmethod
@@ -197,6 +200,27 @@ class RigSession:
                     self.listener_error = exc
                 self.remove_chunk_listener(listener)
 
+    def add_ft_listener(self, listener: Callable[[FtSample], None]) -> None:
+        """Hand every F/T sample (tared, sensor axes, stamped on :attr:`clock`) to ``listener`` as well, on the
+        sensor's reader thread, after the safety monitor and the current recording (if any) got it: at the sensor's
+        rate (800 Hz), so ``listener`` must return at once. One that raises is removed and its exception kept in
+        :attr:`listener_error`; neither the monitor nor the recording is affected."""
+        with self._lock:
+            self._ft_listeners = (*self._ft_listeners, listener)
+
+    def remove_ft_listener(self, listener: Callable[[FtSample], None]) -> None:
+        with self._lock:
+            self._ft_listeners = tuple(f for f in self._ft_listeners if f is not listener)
+
+    def _notify_ft_listeners(self, sample: FtSample) -> None:
+        for listener in self._ft_listeners:
+            try:
+                listener(sample)
+            except Exception as exc:  # a listener's bug must not stop the monitor or the recording
+                if self.listener_error is None:
+                    self.listener_error = exc
+                self.remove_ft_listener(listener)
+
     # -- recordings ---------------------------------------------------------------------------
 
     def begin(self, writer: RecordingWriter) -> None:
@@ -281,6 +305,8 @@ class RigSession:
                 gap_us = (sample.t_device_us - self._last_ft_device_us) & 0xFFFFFFFF
                 self.ft_max_gap_us = max(self.ft_max_gap_us, gap_us)
             self._last_ft_device_us = sample.t_device_us
+        if self._ft_listeners:
+            self._notify_ft_listeners(sample)
 
     def _on_cnc(self, sample: StatusSample) -> None:
         writer = self._writer

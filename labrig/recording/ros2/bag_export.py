@@ -3,8 +3,9 @@
 Every message is stamped on the recording's host clock (``t0_host_ns`` + its host time): the camera's
 packets with the receive time of their first recorded packet (as the Metavision driver stamps them) and
 logged at their last one's (when the driver would publish); the F/T samples with their sample time
-through the recording's F/T clock model, logged at their receive time; CNC poses, phases and trigger
-edges at their host times. The recording's root metadata (indenter, rig, protocol, gel, source) travels
+through the recording's F/T clock model, logged at their receive time; the CNC's status reports (its pose
+on ``/cnc/pose``, its state and feed on ``/cnc/status``), its G-code conversation (``/cnc/gcode``),
+phases and trigger edges at their host times. The recording's root metadata (indenter, rig, protocol, gel, source) travels
 as JSON on ``/labrig/recording`` so that a labrig bag imports back whole.
 """
 
@@ -51,6 +52,8 @@ class BagExportSummary:
     triggers: int
     wrenches: int
     poses: int
+    cnc_status: int
+    gcode_lines: int
     phases: int
     trigger_out: int
     messages: int
@@ -91,13 +94,15 @@ def export_bag(recording: Path, output: Path, *, packet_us: int = DEFAULT_PACKET
         n_packets, span_us, n_triggers = _export_events(rec, bag, t0, packet_us, report)
         n_wrenches = _export_ft(rec, bag, t0)
         n_poses = _export_cnc(rec, bag, t0)
+        n_gcode = _export_gcode(rec, bag, t0)
         n_phases = _export_phases(rec, bag, t0)
         n_out = _export_trigger_out(rec, bag, t0)
         n_events = rec.n_events
     return BagExportSummary(
         recording=str(recording), output=str(output), events=n_events, event_packets=n_packets,
         packet_ms_mean=span_us / n_packets / 1000 if n_packets else 0.0, triggers=n_triggers, wrenches=n_wrenches,
-        poses=n_poses, phases=n_phases, trigger_out=n_out, messages=bag.messages, output_bytes=bag.bytes_written,
+        poses=n_poses, cnc_status=n_poses, gcode_lines=n_gcode, phases=n_phases, trigger_out=n_out,
+        messages=bag.messages, output_bytes=bag.bytes_written,
         elapsed_s=time.perf_counter() - start)
 
 
@@ -165,15 +170,31 @@ def _export_ft(rec: Recording, bag: BagWriter, t0: int) -> int:
 
 
 def _export_cnc(rec: Recording, bag: BagWriter, t0: int) -> int:
+    """Each status report twice, at its receive time: the position on ``/cnc/pose`` (a standard PoseStamped that
+    Foxglove and RViz draw) and the state and feed on ``/cnc/status``. Returns the reports."""
     if not rec.rows("cnc"):
         return 0
-    t_host = rec.column("cnc", "t_host_us")
-    position = rec.column("cnc", "position_mm")
+    cnc = rec.stream("cnc")
     bag.topic(topics.POSE, M.POSE_STAMPED)
-    for t_us, p in zip(t_host.tolist(), position):
+    bag.topic(topics.CNC_STATUS, M.CNC_STATUS)
+    for t_us, p, state, feed in zip(cnc["t_host_us"].tolist(), cnc["position_mm"], cnc["state"].tolist(),
+                                    cnc["feed_mm_min"].tolist()):
         t_ns = mapping.host_ns(t0, t_us)
         bag.write(topics.POSE, t_ns, mapping.pose_stamped(bag.store, t_ns, topics.CNC_FRAME, p))
-    return int(t_host.size)
+        bag.write(topics.CNC_STATUS, t_ns, mapping.cnc_status(bag.store, t_ns, topics.CNC_FRAME, state, feed))
+    return int(cnc["t_host_us"].size)
+
+
+def _export_gcode(rec: Recording, bag: BagWriter, t0: int) -> int:
+    """The G-code conversation on ``/cnc/gcode``, each line at the host time it was sent or received."""
+    if not rec.rows("gcode"):
+        return 0
+    rows = rec.stream("gcode")
+    bag.topic(topics.GCODE, M.GCODE_LINE)
+    for t_us, direction, line in zip(rows["t_host_us"].tolist(), rows["direction"].tolist(), rows["line"].tolist()):
+        t_ns = mapping.host_ns(t0, t_us)
+        bag.write(topics.GCODE, t_ns, mapping.gcode_line(bag.store, t_ns, topics.CNC_FRAME, direction, line))
+    return int(rows["t_host_us"].size)
 
 
 def _export_phases(rec: Recording, bag: BagWriter, t0: int) -> int:

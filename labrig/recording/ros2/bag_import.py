@@ -9,8 +9,10 @@ What each topic becomes (docs/ros2.md):
 * a ``trigger``-encoded ``EventPacket`` topic (older drivers): the camera's trigger edges;
 * a ``WrenchStamped`` topic: the ``ft`` stream (the F/T sensor's reading, in its own axes); the header
   stamp is the sample's clock (``t_device_us``), the log time its receive time (``t_host_us``);
-* a ``PoseStamped`` or ``TransformStamped`` topic: the ``cnc`` stream (the tool reference point in the
-  machine frame, m -> mm), at its header stamps;
+* a ``PoseStamped`` or ``TransformStamped`` topic, or a ``TFMessage`` topic (``/tf``) with the tool's child
+  frame: the ``cnc`` stream (the tool reference point in the machine frame, m -> mm), at its header stamps;
+* labrig's ``CncStatus`` topic: the ``cnc`` stream's state and feed, each pose taking the latest report
+  stamped at or before it; labrig's ``GcodeLine`` topic: the ``gcode`` stream;
 * labrig's ``Phase`` and ``TriggerEdge`` topics: ``phases`` and ``trigger_out``; ``/labrig/recording``:
   the root metadata a labrig bag carries (its time origin, indenter, rig, protocol, gel).
 
@@ -46,19 +48,28 @@ NS_PER_US = 1000
 STEP_BACK_TOLERANCE_NS = 1_000_000
 #: Events put into the recording writer but not yet written, at most (backpressure).
 MAX_IN_FLIGHT_EVENTS = 1 << 22
+#: The pose topics taken by themselves (the bag's one of these types); a ``TFMessage`` topic only when named.
 POSE_TYPES = (M.POSE_STAMPED, M.TRANSFORM_STAMPED)
+#: The streams read whole before the events (everything but the camera), in the order they are read.
+SMALL_STREAMS = ("wrench", "pose", "cnc_status", "gcode", "phases", "trigger_out")
 
 
 @dataclass(frozen=True)
 class BagTopics:
-    """The topics to take (None: the bag's one topic of the type, where it has exactly one; else none)."""
+    """The topics to take (None: the bag's one topic of the type, where it has exactly one; else none).
+
+    ``pose_frame``: the tool's child frame, for a pose topic of transforms (a ``TFMessage`` such as ``/tf``, or
+    ``TransformStamped``): only the transforms to it are taken (None: the topic's one child frame)."""
 
     events: str | None = None
     wrench: str | None = None
-    pose: str | None = None
+    pose: str | None = None  # PoseStamped, TransformStamped, or a TFMessage topic (never chosen by itself)
     phases: str | None = None
     triggers: str | None = None  # a trigger-encoded EventPacket topic (older drivers); never chosen by itself
     trigger_out: str | None = None
+    cnc_status: str | None = None
+    gcode: str | None = None
+    pose_frame: str | None = None
 
 
 @dataclass(frozen=True)
@@ -73,6 +84,8 @@ class BagImportSummary:
     triggers: int
     wrenches: int
     poses: int
+    cnc_status: int
+    gcode_lines: int
     phases: int
     trigger_out: int
     duration_s: float
@@ -109,7 +122,7 @@ def import_bag(bag: Path, output: Path, wanted: BagTopics = BagTopics(), *, lab:
     reader = open_bag(bag)
     try:
         chosen = resolve_topics(bag, _topic_types(reader), wanted)
-        small = _read_small_topics(reader, chosen)
+        small = _read_small_topics(bag, reader, chosen, wanted.pose_frame)
         meta = _metadata(reader)
         first_event_ns, width, height = _first_packet(reader, chosen["events"])
         if width and height:
@@ -119,7 +132,8 @@ def import_bag(bag: Path, output: Path, wanted: BagTopics = BagTopics(), *, lab:
                 check_stamps(chosen[name], small[name]["stamp_ns"], max_gap_s)
         check_overlap(chosen, small, first_event_ns, max_gap_s)
         t0 = int(meta["t0_host_ns"]) if "t0_host_ns" in meta else _earliest(small, first_event_ns, reader)
-        summary = _write(bag, output, reader, chosen, small, meta, lab, t0, max_gap_s, overwrite, progress or _no_progress)
+        summary = _write(bag, output, reader, chosen, small, meta, lab, t0, max_gap_s, overwrite, progress or _no_progress,
+                         wanted.pose_frame)
     finally:
         reader.close()
     return BagImportSummary(**{**summary, "elapsed_s": time.perf_counter() - start})
@@ -141,7 +155,8 @@ def resolve_topics(bag: Path, available: dict[str, str], wanted: BagTopics) -> d
     """stream -> topic for the topics given or found; a :class:`LabrigError` for one missing or of another type."""
     kinds: dict[str, tuple[tuple[str, ...], str]] = {
         "events": ((M.EVENT_PACKET,), "--events"), "wrench": ((M.WRENCH_STAMPED,), "--wrench"),
-        "pose": (POSE_TYPES, "--pose"), "phases": ((M.PHASE,), "--phases"),
+        "pose": ((*POSE_TYPES, M.TF_MESSAGE), "--pose"), "cnc_status": ((M.CNC_STATUS,), "--cnc-status"),
+        "gcode": ((M.GCODE_LINE,), "--gcode"), "phases": ((M.PHASE,), "--phases"),
         "triggers": ((M.EVENT_PACKET,), "--triggers"), "trigger_out": ((M.TRIGGER_EDGE,), "--trigger-out")}
     listing = ", ".join(f"{t} ({m})" for t, m in sorted(available.items())) or "none"
     chosen: dict[str, str] = {}
@@ -156,6 +171,8 @@ def resolve_topics(bag: Path, available: dict[str, str], wanted: BagTopics) -> d
             continue
         if stream == "triggers":
             continue
+        if stream == "pose":
+            types = POSE_TYPES  # /tf holds every frame of the robot: taken only when named
         candidates = sorted(t for t, m in available.items() if m in types and t not in chosen.values())
         if len(candidates) == 1:
             chosen[stream] = candidates[0]
@@ -166,26 +183,77 @@ def resolve_topics(bag: Path, available: dict[str, str], wanted: BagTopics) -> d
         raise LabrigError(f"{bag} has no {M.EVENT_PACKET} topic (the camera's events); its topics: {listing}")
     if chosen.get("triggers") == chosen["events"]:
         raise LabrigError(f"{bag}: --triggers and --events name the same topic {chosen['events']}")
+    if wanted.pose_frame is not None:
+        if "pose" not in chosen:
+            raise LabrigError(f"--pose-frame {wanted.pose_frame}: {bag} has no pose topic taken; name the topic of "
+                              f"transforms with --pose (e.g. --pose /tf)")
+        if available[chosen["pose"]] == M.POSE_STAMPED:
+            raise LabrigError(f"--pose-frame applies to a topic of transforms ({M.TF_MESSAGE} or "
+                              f"{M.TRANSFORM_STAMPED}); {chosen['pose']} is {M.POSE_STAMPED}, which has no child frame")
     return chosen
 
 
-def _read_small_topics(reader: Any, chosen: dict[str, str]) -> dict[str, dict[str, Any]]:
+def _read_small_topics(bag: Path, reader: Any, chosen: dict[str, str], pose_frame: str | None
+                       ) -> dict[str, dict[str, Any]]:
     """Every topic but the events, as arrays: stamps and log times (ns) and the values."""
     store = M.typestore()
     out: dict[str, dict[str, Any]] = {}
-    for stream in ("wrench", "pose", "phases", "trigger_out"):
+    for stream in SMALL_STREAMS:
         if stream not in chosen:
             continue
         rows: dict[str, list[Any]] = {"stamp_ns": [], "log_ns": [], "values": []}
-        for connection, log_ns, raw in topic_messages(reader, chosen[stream]):
-            msg = store.deserialize_cdr(raw, connection.msgtype)
+        stamped = _tool_transforms(bag, chosen[stream], reader, pose_frame) if stream == "pose" else (
+            (store.deserialize_cdr(raw, connection.msgtype), int(log_ns))
+            for connection, log_ns, raw in topic_messages(reader, chosen[stream]))
+        for msg, log_ns in stamped:
             rows["stamp_ns"].append(mapping.stamp_ns(msg.header.stamp))
-            rows["log_ns"].append(int(log_ns))
+            rows["log_ns"].append(log_ns)
             rows["values"].append(_values(stream, msg))
-        stamps, logs = np.array(rows["stamp_ns"], np.int64), np.array(rows["log_ns"], np.int64)
+        stamps, log_times = np.array(rows["stamp_ns"], np.int64), np.array(rows["log_ns"], np.int64)
         order = np.argsort(stamps, kind="stable")  # the bag gives them in log-time order; a sample goes where its stamp puts it
-        out[stream] = {"stamp_ns": stamps[order], "log_ns": logs[order], "values": [rows["values"][i] for i in order]}
+        out[stream] = {"stamp_ns": stamps[order], "log_ns": log_times[order], "values": [rows["values"][i] for i in order]}
     return out
+
+
+def _tool_transforms(bag: Path, topic: str, reader: Any, pose_frame: str | None) -> list[tuple[Any, int]]:
+    """(pose message, log time ns) of the tool on a pose topic: every ``PoseStamped``; the ``TransformStamped``
+    messages, alone or in a ``TFMessage`` (``/tf``), whose ``child_frame_id`` is ``pose_frame`` (None: the topic's
+    one child frame). A :class:`LabrigError` that lists the child frames there are when the frame is not among
+    them, or when none is given and there are several; and when the tool's transforms come from several parents."""
+    store = M.typestore()
+    poses: list[tuple[Any, int]] = []
+    by_child: dict[str, list[tuple[Any, int]]] = {}
+    for connection, log_ns, raw in topic_messages(reader, topic):
+        msg = store.deserialize_cdr(raw, connection.msgtype)
+        if connection.msgtype == M.POSE_STAMPED:
+            poses.append((msg, int(log_ns)))
+            continue
+        for transform in (msg.transforms if connection.msgtype == M.TF_MESSAGE else (msg,)):
+            child = str(transform.child_frame_id)
+            kept = by_child.setdefault(child, [])
+            if pose_frame is None or child == pose_frame:
+                kept.append((transform, int(log_ns)))
+    if not by_child:  # PoseStamped (resolve_topics refused --pose-frame for it), or no transforms at all
+        if pose_frame is not None:
+            raise LabrigError(f"{bag}: {topic} has no transform to the child frame {pose_frame!r} (--pose-frame); "
+                              "it holds no transforms")
+        return poses
+    frames = sorted(by_child)
+    listing = ", ".join(repr(f) for f in frames)
+    if pose_frame is None:
+        if len(frames) > 1:
+            raise LabrigError(f"{bag}: {topic} holds transforms to {len(frames)} child frames ({listing}); choose the "
+                              "tool's with --pose-frame")
+        pose_frame = frames[0]
+    if pose_frame not in by_child:
+        raise LabrigError(f"{bag}: {topic} has no transform to the child frame {pose_frame!r} (--pose-frame); "
+                          f"its child frames: {listing}")
+    kept = by_child[pose_frame]
+    parents = sorted({str(msg.header.frame_id) for msg, _ in kept})
+    if len(parents) > 1:
+        raise LabrigError(f"{bag}: {topic}'s transforms to {pose_frame!r} come from {len(parents)} parent frames "
+                          f"({', '.join(repr(p) for p in parents)}); labrig takes the tool's pose in one frame")
+    return kept
 
 
 def _values(stream: str, msg: Any) -> Any:
@@ -193,6 +261,10 @@ def _values(stream: str, msg: Any) -> Any:
         return mapping.wrench_values(msg)
     if stream == "pose":
         return mapping.position_mm(msg), mapping.is_rotated(msg)
+    if stream == "cnc_status":
+        return mapping.cnc_status_values(msg)
+    if stream == "gcode":
+        return mapping.gcode_values(msg)
     if stream == "phases":
         return msg.name, mapping.stamp_ns(msg.end)
     return int(msg.polarity), mapping.stamp_ns(msg.latest) if msg.latest_known else None
@@ -263,12 +335,15 @@ def _span(small: dict[str, dict[str, Any]], stream: str) -> int:
     return int(stamps[-1] - stamps[0]) if stamps.size else 0
 
 
-def _lab_metadata(meta: dict[str, Any], lab: LabInputs, bag: Path, chosen: dict[str, str]) -> RecordingMetadata:
+def _lab_metadata(meta: dict[str, Any], lab: LabInputs, bag: Path, chosen: dict[str, str],
+                  pose_frame: str | None = None) -> RecordingMetadata:
     """The recording's metadata: the labrig bag's own, with what the command line gives on top."""
     extra: dict[str, str | int | float | bool] = {
         k[len("extra_"):]: v for k, v in meta.items() if k.startswith("extra_") and isinstance(v, str | int | float | bool)}
     extra.update({"source_bag": str(bag), "source_format": "ros2-bag", "source_topics": json.dumps(chosen, sort_keys=True),
                   "host_time": "the bag's header stamps and log times, ns, less t0_host_ns"})
+    if pose_frame is not None:
+        extra["source_pose_frame"] = pose_frame
     return RecordingMetadata(
         indenter=lab.indenter or str(meta.get("indenter", "")),
         indenter_toml=lab.indenter_toml or (str(meta.get("indenter_definition", "")) if not lab.indenter else ""),
@@ -278,9 +353,9 @@ def _lab_metadata(meta: dict[str, Any], lab: LabInputs, bag: Path, chosen: dict[
 
 def _write(bag: Path, output: Path, reader: Any, chosen: dict[str, str], small: dict[str, dict[str, Any]],
            meta: dict[str, Any], lab: LabInputs, t0: int, max_gap_s: float, overwrite: bool,
-           progress: Progress) -> dict[str, Any]:
+           progress: Progress, pose_frame: str | None) -> dict[str, Any]:
     clock = ManualClock(t0)
-    writer = RecordingWriter(output, _lab_metadata(meta, lab, bag, chosen), clock=clock, overwrite=overwrite,
+    writer = RecordingWriter(output, _lab_metadata(meta, lab, bag, chosen, pose_frame), clock=clock, overwrite=overwrite,
                              wake_on_put=False)
     warnings: list[str] = []
     writer.open()
@@ -303,7 +378,8 @@ def _write(bag: Path, output: Path, reader: Any, chosen: dict[str, str], small: 
     return {
         "source": str(bag), "output": str(output), "topics": dict(chosen), "event_encoding": camera["encoding"],
         "events": camera["events"], "triggers": n_triggers, "wrenches": counts["wrench"], "poses": counts["pose"],
-        "phases": counts["phases"], "trigger_out": counts["trigger_out"],
+        "cnc_status": counts["cnc_status"], "gcode_lines": counts["gcode"], "phases": counts["phases"],
+        "trigger_out": counts["trigger_out"],
         "duration_s": (camera["last_ns"] - camera["first_ns"]) / 1e9 if camera["events"] else 0.0,
         "width_px": camera["width"], "height_px": camera["height"], "skipped_words": camera["skipped_words"],
         "output_bytes": output.stat().st_size, "warnings": tuple(warnings)}
@@ -390,7 +466,7 @@ def _put_trigger_topic(reader: Any, writer: RecordingWriter, topic: str) -> int:
 
 def _put_small(writer: RecordingWriter, small: dict[str, dict[str, Any]], t0: int, warnings: list[str],
                chosen: dict[str, str]) -> dict[str, int]:
-    counts = dict.fromkeys(("wrench", "pose", "phases", "trigger_out"), 0)
+    counts = dict.fromkeys(SMALL_STREAMS, 0)
     if "wrench" in small and small["wrench"]["stamp_ns"].size:
         s = small["wrench"]
         device_us = ((s["stamp_ns"] - s["stamp_ns"].min()) // NS_PER_US) % (1 << 32)
@@ -405,10 +481,20 @@ def _put_small(writer: RecordingWriter, small: dict[str, dict[str, Any]], t0: in
         position = np.array([v[0] for v in s["values"]], np.float64)
         if any(v[1] for v in s["values"]):
             warnings.append(f"{chosen['pose']} turns the tool; labrig keeps its position only (the CNC translates)")
-        n = position.shape[0]
-        _put(writer, "cnc", t_host_us=(s["stamp_ns"] - t0) // NS_PER_US, position_mm=position,
-             feed_mm_min=np.full(n, np.nan, np.float32), state=np.full(n, b"", "S16"))
-        counts["pose"] = n
+        state, feed = cnc_status_at(s["stamp_ns"], small.get("cnc_status"))
+        _put(writer, "cnc", t_host_us=(s["stamp_ns"] - t0) // NS_PER_US, position_mm=position, feed_mm_min=feed,
+             state=state)
+        counts["pose"] = position.shape[0]
+    if "cnc_status" in small:
+        counts["cnc_status"] = int(small["cnc_status"]["stamp_ns"].size)
+        if "pose" not in small and counts["cnc_status"]:
+            warnings.append(f"{chosen['cnc_status']} is left out: the CNC's state and feed go with its pose, and no "
+                            "pose topic was taken (--pose)")
+    if "gcode" in small and small["gcode"]["stamp_ns"].size:
+        s = small["gcode"]
+        _put(writer, "gcode", t_host_us=(s["stamp_ns"] - t0) // NS_PER_US,
+             direction=np.array([v[0] for v in s["values"]], np.uint8), line=np.array([v[1] for v in s["values"]], "S128"))
+        counts["gcode"] = int(s["stamp_ns"].size)
     if "phases" in small:
         s = small["phases"]
         for start_ns, (name, end_ns) in zip(s["stamp_ns"].tolist(), s["values"]):
@@ -423,3 +509,18 @@ def _put_small(writer: RecordingWriter, small: dict[str, dict[str, Any]], t0: in
              polarity=np.array([v[0] for v in s["values"]], np.uint8), t_latest_host_us=latest)
         counts["trigger_out"] = int(s["stamp_ns"].size)
     return counts
+
+
+def cnc_status_at(pose_stamp_ns: npt.NDArray[np.int64], status: dict[str, Any] | None
+                  ) -> tuple[npt.NDArray[Any], npt.NDArray[np.float32]]:
+    """(state S16, feed mm/min) of each pose: the latest ``CncStatus`` stamped at or before it (a labrig bag stamps
+    both with the report's receive time); ``b""`` and NaN where no report came before, or none was taken."""
+    n = pose_stamp_ns.size
+    state, feed = np.full(n, b"", "S16"), np.full(n, np.nan, np.float32)
+    if status is None or not status["stamp_ns"].size:
+        return state, feed
+    latest = np.searchsorted(status["stamp_ns"], pose_stamp_ns, side="right") - 1
+    known = latest >= 0
+    state[known] = np.array([status["values"][i][0] for i in latest[known]], "S16")
+    feed[known] = np.array([status["values"][i][1] for i in latest[known]], np.float32)
+    return state, feed

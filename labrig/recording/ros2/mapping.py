@@ -19,6 +19,9 @@ from labrig.recording.ros2 import messages as M
 NS_PER_S = 1_000_000_000
 NS_PER_US = 1000
 MM_PER_M = 1000.0
+S_PER_MIN = 60.0
+#: A CNC state or a G-code line: ASCII in the recording, UTF-8 strings in ROS; what is not ASCII is replaced.
+TEXT_ENCODING = "utf-8"
 #: ``t_latest_host_us`` when the latest time of a trigger edge is not known (the recording's int64 max).
 UNKNOWN_LATEST_US = np.iinfo(np.int64).max
 
@@ -82,6 +85,21 @@ def trigger_edge(store: Any, t_ns: int, polarity: int, t_latest_ns: int | None) 
                                        latest=time_msg(store, 0 if t_latest_ns is None else t_latest_ns))
 
 
+def cnc_status(store: Any, t_ns: int, frame_id: str, state: bytes | str, feed_mm_min: float) -> Any:
+    """A ``CncStatus``: the controller's ``state`` as reported and its feed rate (mm/min in, m/s out)."""
+    return store.types[M.CNC_STATUS](header=header(store, t_ns, frame_id), state=_text(state),
+                                     feed_m_s=float(feed_mm_min) / (MM_PER_M * S_PER_MIN))
+
+
+def gcode_line(store: Any, t_ns: int, frame_id: str, direction: int, line: bytes | str) -> Any:
+    """A ``GcodeLine``: ``direction`` 0 sent to the controller, 1 received from it."""
+    return store.types[M.GCODE_LINE](header=header(store, t_ns, frame_id), direction=int(direction), line=_text(line))
+
+
+def _text(value: bytes | str) -> str:
+    return value.decode(TEXT_ENCODING, errors="replace") if isinstance(value, bytes) else str(value)
+
+
 def string(store: Any, text: str) -> Any:
     return store.types[M.STRING](data=text)
 
@@ -107,3 +125,13 @@ def is_rotated(msg: Any, tolerance: float = 1e-6) -> bool:
     q = msg.pose.orientation if hasattr(msg, "pose") else msg.transform.rotation
     norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
     return norm > 0 and abs(abs(q.w) / norm - 1.0) > tolerance
+
+
+def cnc_status_values(msg: Any) -> tuple[bytes, float]:
+    """(state, feed mm/min) of a ``CncStatus``, as the recording's ``cnc`` stream keeps them."""
+    return str(msg.state).encode(TEXT_ENCODING), float(msg.feed_m_s) * MM_PER_M * S_PER_MIN
+
+
+def gcode_values(msg: Any) -> tuple[int, bytes]:
+    """(direction, line) of a ``GcodeLine``, as the recording's ``gcode`` stream keeps them."""
+    return int(msg.direction), str(msg.line).encode(TEXT_ENCODING)

@@ -2,9 +2,10 @@
 
 The standard messages (``std_msgs``, ``geometry_msgs``, ``sensor_msgs``) come with rosbags' ROS 2
 Humble store. ``event_camera_msgs/msg/EventPacket`` is not in it: its ``.msg`` text below is the
-package's own, verbatim. labrig's two messages of its own (a protocol phase, a trigger edge sent to the
-camera) have no standard equivalent; they are defined here in the same ``.msg`` language, so any MCAP
-reader (Foxglove, ``ros2 bag``) decodes them from the schema the bag carries.
+package's own, verbatim. labrig's messages of its own (a protocol phase, a trigger edge sent to the
+camera, the CNC controller's status report and its G-code conversation) have no standard equivalent; they
+are defined here in the same ``.msg`` language, so any MCAP reader (Foxglove, ``ros2 bag``) decodes them
+from the schema the bag carries. ``tf2_msgs/msg/TFMessage`` (``/tf``) is read, never written.
 """
 
 from __future__ import annotations
@@ -58,9 +59,32 @@ bool latest_known               # false: the latest time is not known
 builtin_interfaces/Time latest  # the latest host time the edge can have happened
 """
 
+CNC_STATUS = "labrig_msgs/msg/CncStatus"
+#: A status report of the CNC's controller (the recording's ``cnc`` stream less the position, which
+#: ``/cnc/pose`` carries as a standard PoseStamped at the same stamp).
+CNC_STATUS_MSG = """\
+# A status report of the CNC's controller (GRBL's answer to '?'), as labrig records it.
+std_msgs/Header header  # stamp: the host time the report was received; frame_id: the machine frame
+string state            # the controller's state as reported: Idle, Run, Jog, Hold:0, Hold:1, Alarm, Door:0, Home, Check, Sleep
+float64 feed_m_s        # the current feed rate, m/s (GRBL reports mm/min); NaN: not reported
+"""
+
+GCODE_LINE = "labrig_msgs/msg/GcodeLine"
+#: A line of the conversation with the CNC's controller (the recording's ``gcode`` stream): the moves
+#: commanded and the controller's answers.
+GCODE_LINE_MSG = """\
+# A line of the G-code conversation with the CNC's controller: a command sent, or the controller's answer.
+std_msgs/Header header  # stamp: the host time the line was sent or received
+uint8 SENT=0
+uint8 RECEIVED=1
+uint8 direction         # SENT: to the controller; RECEIVED: from it
+string line             # the line, without its terminator (ASCII)
+"""
+
 WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 POINT_FIELD = "sensor_msgs/msg/PointField"
 IMAGE = "sensor_msgs/msg/Image"
@@ -77,13 +101,15 @@ def require_rosbags() -> None:
 
 @cache
 def typestore() -> Any:
-    """rosbags' ROS 2 Humble type store with EventPacket and labrig's own messages registered (built once)."""
+    """rosbags' ROS 2 Humble type store (``tf2_msgs`` included) with EventPacket and labrig's own messages
+    registered (built once)."""
     require_rosbags()
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     types: dict[str, Any] = {}
-    for text, name in ((EVENT_PACKET_MSG, EVENT_PACKET), (PHASE_MSG, PHASE), (TRIGGER_EDGE_MSG, TRIGGER_EDGE)):
+    for text, name in ((EVENT_PACKET_MSG, EVENT_PACKET), (PHASE_MSG, PHASE), (TRIGGER_EDGE_MSG, TRIGGER_EDGE),
+                       (CNC_STATUS_MSG, CNC_STATUS), (GCODE_LINE_MSG, GCODE_LINE)):
         types.update(get_types_from_msg(text, name))
     store.register(types)
     return store

@@ -12,6 +12,8 @@ from __future__ import annotations
 EVENTS = "/event_camera/events"
 WRENCH = "/ft_sensor/wrench"
 POSE = "/cnc/pose"
+CNC_STATUS = "/cnc/status"
+GCODE = "/cnc/gcode"
 PHASES = "/labrig/phases"
 TRIGGER_OUT = "/labrig/trigger_out"
 RECORDING = "/labrig/recording"
