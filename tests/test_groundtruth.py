@@ -323,3 +323,26 @@ def test_cli_uses_the_indenter_a_recording_carries_and_counts_failures(probe: Pa
     assert by_name["dome.h5"]["status"] == "written" and by_name["dome.h5"]["contact_model"] == "numerical"
     assert by_name["orphan.h5"]["status"] == "failed" and "--indenters" in by_name["orphan.h5"]["reason"]
     assert summary["failed"] == 1 and "1 of 2 recordings failed" in result.stderr
+
+
+def test_a_press_deeper_than_its_indenters_max_depth_gets_tables_that_reach_it(probe: Path, tmp_path: Path) -> None:
+    """A pin's or a texture's contact comes at a depth, so a press can reach past the travel its protocol asked
+    for, and past the indenter's ``max_depth_mm``: the tables are built as deep as the press went."""
+    import shutil
+
+    from labrig.groundtruth.generate import TABLE_REACH_STEP_MM
+    from labrig.indenters import indenter_toml
+
+    shallow = dataclasses.replace(load_indenter("sphere"), name="shallow-sphere", max_depth_mm=0.6)
+    shutil.copy(probe, tmp_path / "deep.h5")
+    with h5py.File(tmp_path / "deep.h5", "r+") as f:
+        f.attrs["indenter"] = "shallow-sphere"
+        f.attrs["indenter_definition"] = indenter_toml(shallow)
+    gt = generate(tmp_path / "deep.h5", table_options={"cache_dir": tmp_path / "tables"})
+    deepest = int(np.argmax(gt.indentation_mm))
+    assert gt.indentation_mm[deepest] == pytest.approx(1.0, abs=0.03)
+    assert gt.depth_mm[deepest].max() == pytest.approx(gt.indentation_mm[deepest], abs=0.01)
+    reaches = {json.loads(str(np.load(p)["meta"]))["spec"]["max_depth_mm"] for p in (tmp_path / "tables").rglob("*.npz")}
+    assert min(reaches) == pytest.approx(0.6)  # the indenter's, on which the depth at contact is found
+    reach = max(reaches)
+    assert reach >= gt.indentation_mm.max() and reach / TABLE_REACH_STEP_MM == pytest.approx(round(reach / TABLE_REACH_STEP_MM))

@@ -133,6 +133,34 @@ def depth_at_force(force_of_depth: Callable[[float], float], force_n: float, max
     return 0.5 * (lo + hi)
 
 
+#: The depth tables of a press that reaches past its indenter's ``max_depth_mm`` go this much deeper at a time (mm),
+#: so that the presses of a campaign share a few tables.
+TABLE_REACH_STEP_MM = 0.25
+
+
+def _force_curve(model: ContactModel, lab: LabInputs) -> Callable[[float], float]:
+    """The normal force (N) at a depth (mm), with the gel's stiffening."""
+    h = lab.gel.thickness_mm
+    return lambda d: model.force_n(d) * (1.0 + lab.stiffening * d / h)
+
+
+def deepest_indentation_mm(t_us: npt.ArrayLike, track: ToolTrack, phases: list[Phase], indenter: Indenter,
+                           lab: LabInputs, force_model: ContactModel, contact_force_n: float) -> float:
+    """The deepest indentation (mm) :func:`kinematics` gives at ``t_us``, without the contact model's fields: the
+    depth at contact plus the tip's deepest travel below the contact point (below the surface without an approach
+    phase). A press whose contact came at a depth (a pin's or a texture's small area under the approach's
+    contact force) reaches past the travel the protocol asked for."""
+    machine_to_gel = lab.gel_pose.inverse()
+    offset = np.asarray(indenter.tool_offset_mm, dtype=np.float64)
+    tip_z = machine_to_gel.apply(track(np.asarray(t_us, dtype=np.int64)) + offset)[:, 2]
+    t_contact = _phase_end(phases, "approach")
+    if t_contact is None:
+        return float(max(-tip_z.min(initial=0.0), 0.0))
+    contact_z = machine_to_gel.apply(track([t_contact])[0] + offset)[2]
+    d0 = depth_at_force(_force_curve(force_model, lab), contact_force_n, indenter.max_depth_mm)
+    return float(d0 + max(contact_z - tip_z.min(initial=contact_z), 0.0))
+
+
 def kinematics(t_us: npt.ArrayLike, track: ToolTrack, phases: list[Phase], indenter: Indenter, lab: LabInputs,
                model: ContactModel, contact_force_n: float, force_model: ContactModel | None = None) -> Kinematics:
     """Indentation and contact centre at ``t_us`` (see the module docstring)."""
@@ -141,9 +169,7 @@ def kinematics(t_us: npt.ArrayLike, track: ToolTrack, phases: list[Phase], inden
     offset = np.asarray(indenter.tool_offset_mm, dtype=np.float64)
     tip = machine_to_gel.apply(track(t) + offset)
     t_contact = _phase_end(phases, "approach")
-    fm = force_model or model
-    h = lab.gel.thickness_mm
-    force_curve = lambda d: fm.force_n(d) * (1.0 + lab.stiffening * d / h)  # noqa: E731
+    force_curve = _force_curve(force_model or model, lab)
     if t_contact is not None:
         contact_tip = machine_to_gel.apply(track([t_contact])[0] + offset)
         d0 = depth_at_force(force_curve, contact_force_n, indenter.max_depth_mm)
@@ -244,10 +270,14 @@ def generate(
         ft = rec.ft() if rec.rows("ft") else {}
     times = _output_times(ft.get("t_us"), cnc_t, rate_hz)
     options = dict(table_options or {})
-    model = turned_model(choose_model(indenter, lab.gel, elastic, method, **options), indenter, lab.gel_pose)
-    force_model = choose_model(indenter, lab.gel, "layer", "numerical", **options)
     t_contact = _phase_end(phases, "approach")
     contact_force = approach_force_n(ft, t_contact) if t_contact is not None else 0.0
+    force_model = choose_model(indenter, lab.gel, "layer", "numerical", **options)
+    reach = deepest_indentation_mm(times, track, phases, indenter, lab, force_model, contact_force)
+    if reach > options.get("max_depth_mm", indenter.max_depth_mm):  # the tables reach as deep as this press went
+        options["max_depth_mm"] = TABLE_REACH_STEP_MM * float(np.ceil(reach / TABLE_REACH_STEP_MM + 1e-9))
+        force_model = choose_model(indenter, lab.gel, "layer", "numerical", **options)
+    model = turned_model(choose_model(indenter, lab.gel, elastic, method, **options), indenter, lab.gel_pose)
     kin = kinematics(times, track, phases, indenter, lab, model, contact_force, force_model)
     grid_px = network_grid_pixels(lab.rig, GRID_SHAPE)
     grid_gel = network_grid_gel_mm(lab.rig, lab.camera, GRID_SHAPE)
