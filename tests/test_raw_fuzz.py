@@ -102,3 +102,28 @@ def test_garbage_files(tmp_path_factory: object, head: bytes, payload: bytes, fm
         return
     assert raw.format in ("EVT3", "EVT2")
     assert raw.skipped_words >= 0 and raw.events.dtype.names == ("x", "y", "p", "t")
+
+
+@FUZZ
+@given(st.binary(max_size=4096), st.integers(1, 2048), st.integers(1, 2048))
+def test_evt3_event_count_bounds_what_any_words_decode_to(data: bytes, width: int, height: int) -> None:
+    """The pass that sizes an EVT3 decode's one buffer counts at least the events the word loop writes."""
+    from labrig.devices.raw import _evt3_kernels
+
+    words = np.frombuffer(data[: len(data) // 2 * 2], "<u2")
+    out = Evt3Decoder(width, height).decode_all(data)
+    assert _evt3_kernels.count_events(words) >= out.events.size
+
+
+def test_a_whole_evt3_file_of_vectors_decodes_into_one_buffer(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Vectors pack up to 12 events a word: sized by its count, the buffer never grows and is never joined."""
+    from labrig.devices.raw import make_header, stream
+
+    events = synthetic_events(200_000, 200_000, run_fraction=1.0, seed=1)
+    path = tmp_path / "vectors.raw"
+    path.write_bytes(make_header("EVT3", 1280, 720) + encode_evt3(events))
+    assert path.stat().st_size / 2 < 0.8 * events.size  # more events than words: vectors
+    joined = []
+    monkeypatch.setattr(stream.np, "concatenate", lambda parts, *a, **k: joined.append(len(parts)) or np.hstack(parts))
+    decoded = read_raw(path)
+    assert joined == [] and np.array_equal(decoded.events, events)

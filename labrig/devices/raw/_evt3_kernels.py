@@ -174,6 +174,24 @@ def decode(words, pos, state, width, height, ev, n_ev, tr, n_tr, runs):
 
 
 @njit(cache=True, nogil=True)
+def count_events(words):
+    """The most CD events ``words`` can decode to: one per ADDR_X, one per set bit of a vector (events that
+    :func:`decode` drops, before the first TIME_HIGH, after EM_Y or outside the geometry, are counted)."""
+    n = 0
+    for i in range(words.shape[0]):
+        w = np.int64(words[i])
+        typ = w >> 12
+        if typ == T_ADDR_X:
+            n += 1
+        elif typ == T_VECT_12 or typ == T_VECT_8:  # noqa: SIM109 - plain compares in the numba loop
+            v = w & (0xFFF if typ == T_VECT_12 else 0xFF)
+            while v:
+                v &= v - 1
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
 def _put(out, k, word):
     if k < out.shape[0]:
         out[k] = word

@@ -41,6 +41,13 @@ class Evt3Decoder(StreamDecoder):
 
         return _evt3_kernels.decode
 
+    def _capacity(self, words: npt.NDArray[Any]) -> int:
+        """The events ``words`` hold at most (a pass that counts them): the word loop fills one buffer, never
+        grows it, and a whole file's events are never copied into a joined array."""
+        from labrig.devices.raw import _evt3_kernels
+
+        return int(_evt3_kernels.count_events(words)) + 64
+
 
 def encode_evt3(
     events: npt.NDArray[Any],

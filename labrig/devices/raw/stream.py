@@ -204,13 +204,14 @@ class StreamDecoder:
 
     def _decode_words(self, words: npt.NDArray[Any], offset: int) -> Decoded:
         """Decode ``words`` (first word at byte ``offset``)."""
-        ev = np.empty(self._capacity(words.shape[0]), EVENT_DTYPE)
+        ev = np.empty(self._capacity(words), EVENT_DTYPE)
         n_first, more, triggers = self._run(words, offset, self.state, self._runs, ev)
         events = _trim(ev, n_first) if not more else np.concatenate([ev[:n_first], *more])
         return Decoded(events, _trim(triggers, triggers.shape[0]))
 
-    def _capacity(self, n_words: int) -> int:
-        """Events buffer for ``n_words`` words: exact for one event per word at most, else a guess (it grows)."""
+    def _capacity(self, words: npt.NDArray[Any]) -> int:
+        """Events buffer for ``words``: exact for one event per word at most, else a guess (it grows)."""
+        n_words = int(words.shape[0])
         return n_words if self.max_events_per_word == 1 else n_words + 64
 
     def _run(
