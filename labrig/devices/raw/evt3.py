@@ -26,6 +26,10 @@ from labrig.devices.raw.stream import StreamDecoder
 TIME_HIGH_EVERY = 512
 #: Default smallest run written as a vector triplet (4 words); shorter runs are ADDR_X words.
 VECTOR_MIN = 5
+#: Words, evenly spread, that a decode's buffer is sized on; when they hold more than CAPACITY_COUNT_ABOVE events a
+#: word, all the words are counted.
+CAPACITY_SAMPLE_WORDS = 65_536
+CAPACITY_COUNT_ABOVE = 0.9
 
 
 class Evt3Decoder(StreamDecoder):
@@ -42,10 +46,16 @@ class Evt3Decoder(StreamDecoder):
         return _evt3_kernels.decode
 
     def _capacity(self, words: npt.NDArray[Any]) -> int:
-        """The events ``words`` hold at most (a pass that counts them): the word loop fills one buffer, never
-        grows it, and a whole file's events are never copied into a joined array."""
+        """Events buffer for ``words``: the word count while an even sample of them holds fewer events than words,
+        else the events they hold at most (a pass that counts them), so that a vector-rich stream's word loop fills
+        one buffer instead of growing a second and joining the two."""
         from labrig.devices.raw import _evt3_kernels
 
+        n_words = int(words.shape[0])
+        stride = max(1, n_words // CAPACITY_SAMPLE_WORDS)
+        estimate = int(_evt3_kernels.count_events(words[::stride])) * stride  # a word's count needs no other word
+        if estimate <= CAPACITY_COUNT_ABOVE * n_words:
+            return n_words + 64
         return int(_evt3_kernels.count_events(words)) + 64
 
 
