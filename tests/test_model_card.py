@@ -72,6 +72,8 @@ BAD_CARDS: list[tuple[dict[str, Any], str]] = [
     ({"inputs": {"kinds": ["sae", "colour"]}}, "'inputs': depth-network inputs must start with sae"),
     ({"inputs": {"kinds": ["sae"], "displacement_scale_mm": 0}}, "'inputs.displacement_scale_mm' must be a positive"),
     ({"inputs": {"kinds": ["sae", "brightness"], "brightness": {"tau_s": "30"}}}, "'inputs.brightness.tau_s' must be"),
+    ({"inputs": {"kinds": ["sae", "brightness"], "brightness": {"dead_band": 1}}},
+     "'inputs.brightness.dead_band' must be true or false"),
     ({"architecture": {"width": "4"}}, "'architecture.width' must be a positive integer, not '4'"),
     ({"architecture": {"width": 4, "pools": 6}}, "'architecture': input"),
     ({"loss": "contact"}, "'loss' must be an object, not 'contact'"),

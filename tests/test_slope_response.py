@@ -85,6 +85,18 @@ def test_the_reference_light_turns_one_lights_shading_into_the_others() -> None:
     assert reference_light(np.array([-3.0]), 1.0, 4.0, floor_ln=-2.5)[0] == pytest.approx(-2.5)  # 1 + 4(e^-3 - 1) < 0
 
 
+def test_brightening_only_leaves_a_markers_darkening_as_it_is() -> None:
+    """A darkening is a marker leaving its place: the shading cannot make it, and one light's does not scale it."""
+    change = np.array([-2.0, -0.3, 0.0, 0.4])
+    for gain in (1.0, 4.0):
+        converted = reference_light(change, gain, 2.4, brightening_only=True)
+        assert np.allclose(converted[:2], change[:2]) and converted[2] == 0.0
+        assert converted[3] == pytest.approx(np.log1p((2.4 / gain) * np.expm1(0.4)), rel=1e-5)
+        assert not np.allclose(reference_light(change, gain, 2.4)[:2], change[:2])  # the shading's model scales them
+    params = BrightnessParams(reference_slope_gain=2.4, brightening_only=True, dead_band=True)
+    assert BrightnessParams.from_card(params.to_card()) == params
+
+
 def test_the_channel_changes_the_light_only_when_the_network_and_the_calibration_both_ask() -> None:
     counts = np.zeros(GRID_SHAPE, np.float32)
     counts[40:50, 50:60] = 30.0

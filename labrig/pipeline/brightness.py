@@ -87,6 +87,10 @@ def dim_light_warning(slope_gain: float | None) -> str | None:
 RELEASE_SETTLE = 0.1
 
 
+#: The brightness settings that are switches (true or false on a card), the others being numbers.
+BOOLEAN_KEYS = ("dead_band", "brightening_only")
+
+
 @dataclass(frozen=True)
 class BrightnessParams:
     """The integrator's leak ``tau_s`` (s), the channel's unit ``scale_events_per_px`` (reference events per
@@ -113,6 +117,9 @@ class BrightnessParams:
     ``reference_slope_gain`` (dimensionless; None: the light as it is): the slope gain the channel is
     expressed in (:func:`reference_light`).
 
+    ``brightening_only``: under the reference light, only a brightening is converted (:func:`reference_light`): a
+    darkening is a marker leaving its place, which the light's shape does not scale.
+
     ``dead_band``: count the events through :class:`~labrig.pipeline.dead_band.PolarityMemory`, which takes off
     the half dead band a pixel whose last event was OFF reads high (an undone press's ghost)."""
 
@@ -126,6 +133,7 @@ class BrightnessParams:
     moving_ratio: float | None = None
     reference_slope_gain: float | None = None
     dead_band: bool = False
+    brightening_only: bool = False
 
     def __post_init__(self) -> None:
         if not (self.tau_s > 0 and self.scale_events_per_px > 0 and self.clip > 0 and self.floor_events_per_px > 0):
@@ -152,8 +160,9 @@ class BrightnessParams:
             card["moving_ratio"] = self.moving_ratio
         if self.reference_slope_gain is not None:
             card["reference_slope_gain"] = self.reference_slope_gain
-        if self.dead_band:
-            card["dead_band"] = True
+        for flag in BOOLEAN_KEYS:
+            if getattr(self, flag):
+                card[flag] = True
         return card
 
     @classmethod
@@ -161,7 +170,8 @@ class BrightnessParams:
         keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px", "release_fraction",
                 "release_s", "moving_ratio", "reference_slope_gain")
         section = section or {}
-        return cls(**{k: float(v) for k, v in section.items() if k in keys}, dead_band=bool(section.get("dead_band")))
+        return cls(**{k: float(v) for k, v in section.items() if k in keys},
+                   **{k: bool(section.get(k)) for k in BOOLEAN_KEYS})
 
 
 class BrightnessIntegrator:
@@ -306,14 +316,18 @@ def box_mean_3x3(values: F32) -> F32:
 
 
 def reference_light(change_ln: npt.ArrayLike, slope_gain: float, reference_slope_gain: float,
-                    floor_ln: float = -4.0) -> F32:
+                    floor_ln: float = -4.0, brightening_only: bool = False) -> F32:
     """(rows, cols) float32: a log-intensity change (ln) under a light of ``slope_gain`` expressed under the
     reference light's ``reference_slope_gain``: ``ln(1 + (g_ref / g)(e^L - 1))``, exact for the slope
     shading ``1 + g |grad d|``; an argument at or below zero (a darkening the reference light cannot make)
-    gives ``floor_ln``."""
+    gives ``floor_ln``. ``brightening_only``: a darkening (L < 0), which the shading cannot make (a marker
+    that left its place), stays as it is."""
     change = np.asarray(change_ln, np.float64)
     inside = 1.0 + (reference_slope_gain / slope_gain) * np.expm1(change)
-    return np.log(np.maximum(inside, math.exp(floor_ln))).astype(np.float32)
+    converted = np.log(np.maximum(inside, math.exp(floor_ln)))
+    if brightening_only:
+        converted = np.where(change < 0.0, change, converted)
+    return converted.astype(np.float32)
 
 
 def brightness_channel(counts: F32, pixels_per_cell: float, params: BrightnessParams,
@@ -325,6 +339,6 @@ def brightness_channel(counts: F32, pixels_per_cell: float, params: BrightnessPa
     if params.reference_slope_gain is not None and slope_gain is not None:
         floor_ln = -2.0 * params.clip * params.scale_events_per_px * NOMINAL_THRESHOLD_LN
         change = reference_light(change * np.float32(NOMINAL_THRESHOLD_LN), slope_gain, params.reference_slope_gain,
-                                 floor_ln) / np.float32(NOMINAL_THRESHOLD_LN)
+                                 floor_ln, params.brightening_only) / np.float32(NOMINAL_THRESHOLD_LN)
     out = change / np.float32(params.scale_events_per_px)
     return np.clip(out, -params.clip, params.clip).astype(np.float32)

@@ -34,6 +34,7 @@ from typing import Any
 from labrig.errors import LabrigError, ModelCardError
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline.anchor import AnchorParams
+from labrig.pipeline.brightness import BOOLEAN_KEYS
 from labrig.pipeline.depth_inputs import InputSpec
 from labrig.pipeline.sae import UNET_SHAPE
 
@@ -211,7 +212,7 @@ class _Fields:
             raise self.fail("inputs.kinds", "a list of input names", kinds)
         self.positive("inputs.displacement_scale_mm", 1.0)
         for key, value in self.section("inputs.brightness").items():
-            if key == "dead_band":
+            if key in BOOLEAN_KEYS:
                 if not isinstance(value, bool):
                     raise self.fail(f"inputs.brightness.{key}", "true or false", value)
             elif not _is_number(value):
