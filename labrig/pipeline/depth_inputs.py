@@ -54,8 +54,9 @@ HOLD_BRIGHTNESS = BrightnessParams(tau_s=36_000.0, rest_tau_s=0.5, floor_events_
                                    release_s=0.2, moving_ratio=2.0, reference_slope_gain=REFERENCE_SLOPE_GAIN)
 #: The same, counted with the pixels' dead band undone (:mod:`labrig.pipeline.dead_band`): a press undone leaves
 #: no ghost of its last band, which a dim light expressed under the reference light would magnify; with no ghost
-#: to keep out, the hold's floor sits lower, holding the shallow flanks a dim light brightens less.
-BAND_BRIGHTNESS = replace(HOLD_BRIGHTNESS, dead_band=True, floor_events_per_px=0.12)
+#: to keep out, the hold's floor sits lower, holding the shallow flanks a dim light brightens less; and only a
+#: brightening is expressed under the reference light (a marker's darkening is not the shading's).
+BAND_BRIGHTNESS = replace(HOLD_BRIGHTNESS, dead_band=True, floor_events_per_px=0.12, brightening_only=True)
 INPUT_BRIGHTNESS = {"sae+bright-hold": HOLD_BRIGHTNESS, "sae+bright-band": BAND_BRIGHTNESS}
 #: Gel-plane displacement (mm) that makes one unit of a displacement channel.
 DEFAULT_DISPLACEMENT_SCALE_MM = 1.0
