@@ -457,6 +457,20 @@ def test_fine_tuning_starts_from_the_network_and_says_what_it_gained(campaign: P
     assert isinstance(bare.exception, LabrigError) and "no torch weights" in str(bare.exception)
     nothing = runner.invoke(app, ["train", str(campaign), "--init", str(tmp_path / "nothing.onnx")])
     assert isinstance(nothing.exception, LabrigError) and "no network" in str(nothing.exception)
+    other = runner.invoke(app, ["train", str(campaign), "--init", str(tmp_path / "base.onnx"), "--inputs", "sae+disp"])
+    assert isinstance(other.exception, LabrigError) and "not which" in str(other.exception)
+
+
+def test_a_fine_tune_may_learn_its_channels_made_another_way(campaign: Path, tmp_path: Path) -> None:
+    """``--init`` with ``--inputs`` of the same kinds: the brightness counted with the dead band undone."""
+    base = train(campaign, TrainConfig(steps=4, val_every=0, checkpoint_every=4, inputs="sae+bright-hold", **TINY),
+                 tmp_path / "hold", show_progress=False)
+    assert not base["inputs"]["brightness"].get("dead_band")
+    config = TrainConfig.from_init(str(tmp_path / "hold.onnx"), "sae+bright-band", steps=2, val_every=0,
+                                   checkpoint_every=2, **{k: v for k, v in TINY.items() if k != "width"})
+    tuned = train(campaign, config, tmp_path / "band", show_progress=False)
+    assert tuned["inputs"]["brightness"]["dead_band"] is True and tuned["init"]["model"] == "hold"
+    assert "--inputs sae+bright-band" in tuned["reproduce"] and f"--init {tmp_path / 'hold.onnx'}" in tuned["reproduce"]
 
 
 def test_a_patch_holds_the_contact_and_stays_in_register(campaign: Path) -> None:

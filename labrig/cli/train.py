@@ -67,7 +67,8 @@ def train_command(
              "Default: sae.")] = None,
     init: Annotated[str | None, typer.Option(
         help="Fine-tune this network instead of starting from fresh weights: a bundled one (default) or the .onnx of "
-             "one you trained (its card and NAME.ckpt.pt beside it). Its width, pools, window and inputs are kept; "
+             "one you trained (its card and NAME.ckpt.pt beside it). Its width, pools, window and inputs are kept "
+             "(--inputs may name a set of the same channels made another way, which it then learns to read); "
              "the card says what it gained on the data's val split.")] = None,
     calibration: Annotated[Path | None, typer.Option(
         help="Calibration folder (camera, marker map) for the tracker behind the displacement channels (default: "
@@ -91,10 +92,10 @@ def train_command(
             settings[name] = value
     shape: dict[str, Any] = {"width": width, "pools": pools, "window_ms": window_ms, "inputs": inputs}
     if init is not None:
-        given = [f"--{k.replace('_', '-')}" for k, v in shape.items() if v is not None]
+        given = [f"--{k.replace('_', '-')}" for k, v in shape.items() if v is not None and k != "inputs"]
         if given:
-            raise LabrigError(f"--init keeps the network's shape and inputs: leave out {', '.join(given)}")
-        config = TrainConfig.from_init(init, **settings)
+            raise LabrigError(f"--init keeps the network's shape: leave out {', '.join(given)}")
+        config = TrainConfig.from_init(init, inputs, **settings)
     else:
         config = TrainConfig(**{k: v for k, v in shape.items() if v is not None}, **settings)
     config.check()

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -170,8 +171,9 @@ class BrightnessParams:
         keys = ("tau_s", "scale_events_per_px", "clip", "rest_tau_s", "floor_events_per_px", "release_fraction",
                 "release_s", "moving_ratio", "reference_slope_gain")
         section = section or {}
-        return cls(**{k: float(v) for k, v in section.items() if k in keys},
-                   **{k: bool(section.get(k)) for k in BOOLEAN_KEYS})
+        numbers: dict[str, Any] = {k: float(v) for k, v in section.items() if k in keys}
+        switches: dict[str, Any] = {k: bool(section.get(k)) for k in BOOLEAN_KEYS}
+        return cls(**numbers, **switches)
 
 
 class BrightnessIntegrator:

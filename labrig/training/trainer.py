@@ -92,11 +92,16 @@ class TrainConfig:
     crop_cells: int = 0
 
     @classmethod
-    def from_init(cls, init: str, **settings: Any) -> TrainConfig:
-        """A config that fine-tunes ``init``: its architecture, window and inputs, the other ``settings`` as given."""
+    def from_init(cls, init: str, inputs: str | None = None, **settings: Any) -> TrainConfig:
+        """A config that fine-tunes ``init``: its architecture, window and inputs, the other ``settings`` as given.
+        ``inputs``: another input set of the same channels (the same kinds, their settings changed: a state channel
+        counted another way), which the network is then fine-tuned to read."""
         net = initial_network(init)
-        return cls(width=net.width, pools=net.pools, window_ms=net.window_ms, inputs=net.inputs, init=str(init),
-                   **settings)
+        if inputs is not None and InputSpec.named(inputs).kinds != InputSpec.named(net.inputs).kinds:
+            raise LabrigError(f"--init {init} takes {net.inputs}: --inputs may change only how its channels are "
+                                  f"made, not which ({inputs} has others)")
+        return cls(width=net.width, pools=net.pools, window_ms=net.window_ms, inputs=inputs or net.inputs,
+                   init=str(init), **settings)
 
     def check(self) -> None:
         if self.loss not in LOSSES:
@@ -368,7 +373,9 @@ def _initial(config: TrainConfig, scale_mm: float) -> Any:
 
     net = initial_network(config.init)
     mismatched = [f"{key} {getattr(net, key)!r} (not {getattr(config, key)!r})"
-                  for key in ("width", "pools", "window_ms", "inputs") if getattr(net, key) != getattr(config, key)]
+                  for key in ("width", "pools", "window_ms") if getattr(net, key) != getattr(config, key)]
+    if InputSpec.named(net.inputs).kinds != config.input_spec.kinds:
+        mismatched.append(f"inputs {net.inputs!r} (not {config.inputs!r}, whose channels are others)")
     if mismatched:
         raise LabrigError(f"--init {config.init}: the network has {', '.join(mismatched)}; fine-tuning keeps them")
     if abs(net.scale_mm - scale_mm) > 1e-9:
@@ -429,8 +436,7 @@ def _reproduce(data_dir: str | Path | Sequence[str | Path], c: TrainConfig, out:
     if c.noise_hz > 0:
         parts += ["--noise-hz", f"{c.noise_hz:g}"]
     if c.inputs != "sae":
-        if c.init is None:
-            parts += ["--inputs", c.inputs]
+        parts += ["--inputs", c.inputs]  # a fine-tune may read its network's channels made another way
         if c.calibration_dir not in (None, "calibration", DEFAULT_CALIBRATION_DIR) and "disp" in c.inputs:
             parts += ["--calibration", str(c.calibration_dir)]
     if c.val_every != 200 or c.val_windows != 128:
