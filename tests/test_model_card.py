@@ -34,7 +34,7 @@ def test_the_bundled_cards_parse(name: str) -> None:
     assert card.training_campaign and card.command.startswith(("labrig train", "python tools/depth_sweep.py"))
     assert card.contact_anchor == AnchorParams() and not card.noise_trained
     assert card.sees_brightness == (name == "default")
-    assert card.inputs == (InputSpec.named("sae+bright-hold") if name == "default" else InputSpec())
+    assert card.inputs == (InputSpec.named("sae+bright-band") if name == "default" else InputSpec())
 
 
 def test_a_card_round_trips_through_write_card(tmp_path: Path) -> None:

@@ -69,19 +69,20 @@ LEAK_STEP_US = 10_000
 #: in. Any fixed value would serve; this one is the reference sensor's as the calibration press measures it
 #: (:mod:`labrig.protocol.light_calibration`), so that sensor's channel is about unchanged.
 REFERENCE_SLOPE_GAIN = 2.4
-#: A light whose slope gain is under this (dimensionless) brightens a dent's shallow flanks by less than one
-#: contrast threshold: the channel grows coarse and the brightness networks' normal force error more than doubles
-#: (the stress grid's LED slope gain axis, docs/depthnet.md). Warned, not refused.
-DIM_LIGHT_SLOPE_GAIN = 1.8
+#: A light whose slope gain is under this (dimensionless) is dimmer than any the brightness networks were checked on
+#: (the stress grid's LED slope gain axis, docs/depthnet.md, from 1.0, where the bundled network's normal force error
+#: is already 1.9x the reference light's): a dent's shallow flanks brighten the membrane by less than one contrast
+#: threshold. Warned, not refused.
+DIM_LIGHT_SLOPE_GAIN = 1.0
 
 
 def dim_light_warning(slope_gain: float | None) -> str | None:
     """One line for a light too dim in its slope response for the brightness channel (None: fine or not measured)."""
     if slope_gain is None or slope_gain >= DIM_LIGHT_SLOPE_GAIN:
         return None
-    return (f"the light's slope gain is {slope_gain:.2f}, under {DIM_LIGHT_SLOPE_GAIN:g}: a dent's shallow flanks "
-            "brighten the membrane by less than one contrast threshold and the normal force error more than doubles "
-            "(docs/depthnet.md); light the gel at a more grazing angle or lower the contrast thresholds (biases)")
+    return (f"the light's slope gain is {slope_gain:.2f}, under {DIM_LIGHT_SLOPE_GAIN:g}: dimmer than any light the "
+            "estimator was checked on, and a dent's shallow flanks brighten the membrane by less than one contrast "
+            "threshold (docs/depthnet.md); light the gel at a more grazing angle or lower the contrast thresholds (biases)")
 
 
 #: The release waits while the held change still falls by more than this fraction of itself (the gel unloading).
