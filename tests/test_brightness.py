@@ -88,9 +88,20 @@ def test_the_card_round_trips_the_brightness_settings() -> None:
         BrightnessParams(tau_s=0.0)
 
 
+def _stepped(rec, roi: Roi, params: BrightnessParams, windows: int) -> tuple[BrightnessIntegrator, int]:  # type: ignore[no-untyped-def]
+    """An integrator stepped over the recording's first ``windows`` 10 ms windows, and the last one's end (us)."""
+    from labrig.pipeline.windows import recording_windows
+
+    integrator = BrightnessIntegrator(roi, params)
+    for k, (_t0, t1, events) in enumerate(recording_windows(rec, window_us=10_000)):
+        integrator.add_events(events, t1)
+        if k == windows - 1:
+            break
+    return integrator, t1
+
+
 def test_the_training_track_gives_the_run_time_channel(tmp_path, small_recording) -> None:  # type: ignore[no-untyped-def]
     """The cached 10 ms steps plus a window's own events equal the integrator stepped over the recording."""
-    from labrig.pipeline.windows import recording_windows
     from labrig.recording import Recording
     from labrig.training.state_data import brightness_recording
 
@@ -99,11 +110,7 @@ def test_the_training_track_gives_the_run_time_channel(tmp_path, small_recording
     again = brightness_recording(small_recording, params, None, cache_root=tmp_path)  # from the cache
     assert np.array_equal(np.asarray(track.counts), np.asarray(again.counts))
     with Recording(small_recording) as rec:
-        integrator = BrightnessIntegrator(track.roi, params)
-        for k, (_t0, t1, events) in enumerate(recording_windows(rec, window_us=10_000)):
-            integrator.add_events(events, t1)
-            if k == 150:
-                break
+        integrator, t1 = _stepped(rec, track.roi, params, windows=151)
         t_mid = t1 + 4_000  # inside the next step: the track's step plus the window's own events
         window = rec.events_between(t_mid - 10_000, t_mid)
         integrator.add_events(rec.events_between(t1, t_mid), t_mid)
@@ -114,7 +121,6 @@ def test_the_training_track_gives_the_run_time_channel(tmp_path, small_recording
 
 def test_with_the_dead_band_training_windows_end_on_the_tracks_steps(tmp_path, small_recording) -> None:  # type: ignore[no-untyped-def]
     """The pixels' polarity memory is not cached: a window ends on a step, where the track is the run-time state."""
-    from labrig.pipeline.windows import recording_windows
     from labrig.recording import Recording
     from labrig.training.state_data import brightness_recording
 
@@ -124,11 +130,7 @@ def test_with_the_dead_band_training_windows_end_on_the_tracks_steps(tmp_path, s
     assert brightness_recording(small_recording, BrightnessParams(), None, cache_root=tmp_path).window_end(
         1_504_000.0) == 1_504_000.0
     with Recording(small_recording) as rec:
-        integrator = BrightnessIntegrator(track.roi, params)
-        for k, (_t0, t1, events) in enumerate(recording_windows(rec, window_us=10_000)):
-            integrator.add_events(events, t1)
-            if k == 150:
-                break
+        integrator, t1 = _stepped(rec, track.roi, params, windows=151)
         end = track.window_end(t1 + 1_000)
         window = rec.events_between(end - 10_000, end)
     assert end == t1

@@ -339,7 +339,7 @@ def test_session_listeners_get_every_chunk_and_a_failing_one_is_removed(rig: Rig
     session.add_chunk_listener(got.append)
     session._pump_camera()  # the pump's loop, here until the fake camera ends
     assert len(got) == 3 and session.camera_events == 300
-    assert isinstance(session.listener_error, RuntimeError) and session._listeners == (got.append,)
+    assert isinstance(session.listener_error, RuntimeError) and session._listeners.callbacks == (got.append,)
 
 
 def test_session_ft_listeners_get_every_sample_after_the_monitor_and_a_failing_one_is_removed(
@@ -362,7 +362,7 @@ def test_session_ft_listeners_get_every_sample_after_the_monitor_and_a_failing_o
     for sample in samples:
         session._on_ft(sample)
     assert [s for s, _ in got] == samples and [fz for _, fz in got] == [s.force_n[2] for s in samples]  # monitor first
-    assert isinstance(session.listener_error, RuntimeError) and len(session._ft_listeners) == 1
+    assert isinstance(session.listener_error, RuntimeError) and len(session._ft_listeners.callbacks) == 1
 
 
 # -- the command ---------------------------------------------------------------------------------------

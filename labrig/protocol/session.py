@@ -28,7 +28,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -53,6 +53,41 @@ NS_PER_US = 1000
 #: status queries seconds late, which a real controller never does. Its driver waits this long (s)
 #: before calling a line or a report lost (hardware keeps GRBL's own deadlines).
 TWIN_PATIENCE_S = 10.0
+
+
+
+T = TypeVar("T")
+
+
+class Listeners(Generic[T]):
+    """Callbacks handed every item of one stream (camera chunks, F/T samples) on its reader thread, in the order
+    added. One that raises is removed: :meth:`notify` returns its exception (the first of the call), and the
+    stream goes on."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.callbacks: tuple[Callable[[T], None], ...] = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.callbacks)
+
+    def add(self, callback: Callable[[T], None]) -> None:
+        with self._lock:
+            self.callbacks = (*self.callbacks, callback)
+
+    def remove(self, callback: Callable[[T], None]) -> None:
+        with self._lock:
+            self.callbacks = tuple(f for f in self.callbacks if f is not callback)
+
+    def notify(self, item: T) -> BaseException | None:
+        error: BaseException | None = None
+        for callback in self.callbacks:
+            try:
+                callback(item)
+            except Exception as exc:  # a listener's bug must not stop the stream or its recording
+                error = error or exc
+                self.remove(callback)
+        return error
 
 
 class RigSession:
@@ -91,8 +126,8 @@ class RigSession:
         self._last_ft_device_us: int | None = None
         self.last_camera_ns = 0  # host time the newest chunk arrived
         self.last_camera_device_us = -1  # camera time of its newest event
-        self._listeners: tuple[Callable[[EventChunk], None], ...] = ()
-        self._ft_listeners: tuple[Callable[[FtSample], None], ...] = ()
+        self._listeners: Listeners[EventChunk] = Listeners()
+        self._ft_listeners: Listeners[FtSample] = Listeners()
         #: The first exception a chunk or F/T listener raised (that listener was removed; recording went on).
         self.listener_error: BaseException | None = None
 
@@ -184,42 +219,24 @@ class RigSession:
         current recording (if any) got it. ``listener`` must return at once (queue the chunk,
         drop it when full): the pump also feeds the recording. One that raises is removed and its
         exception kept in :attr:`listener_error`; the recording is not affected."""
-        with self._lock:
-            self._listeners = (*self._listeners, listener)
+        self._listeners.add(listener)
 
     def remove_chunk_listener(self, listener: Callable[[EventChunk], None]) -> None:
-        with self._lock:
-            self._listeners = tuple(f for f in self._listeners if f is not listener)
-
-    def _notify_listeners(self, chunk: EventChunk) -> None:
-        for listener in self._listeners:
-            try:
-                listener(chunk)
-            except Exception as exc:  # a listener's bug must not stop the recording
-                if self.listener_error is None:
-                    self.listener_error = exc
-                self.remove_chunk_listener(listener)
+        self._listeners.remove(listener)
 
     def add_ft_listener(self, listener: Callable[[FtSample], None]) -> None:
         """Hand every F/T sample (tared, sensor axes, stamped on :attr:`clock`) to ``listener`` as well, on the
         sensor's reader thread, after the safety monitor and the current recording (if any) got it: at the sensor's
         rate (800 Hz), so ``listener`` must return at once. One that raises is removed and its exception kept in
         :attr:`listener_error`; neither the monitor nor the recording is affected."""
-        with self._lock:
-            self._ft_listeners = (*self._ft_listeners, listener)
+        self._ft_listeners.add(listener)
 
     def remove_ft_listener(self, listener: Callable[[FtSample], None]) -> None:
-        with self._lock:
-            self._ft_listeners = tuple(f for f in self._ft_listeners if f is not listener)
+        self._ft_listeners.remove(listener)
 
-    def _notify_ft_listeners(self, sample: FtSample) -> None:
-        for listener in self._ft_listeners:
-            try:
-                listener(sample)
-            except Exception as exc:  # a listener's bug must not stop the monitor or the recording
-                if self.listener_error is None:
-                    self.listener_error = exc
-                self.remove_ft_listener(listener)
+    def _listener_failed(self, error: BaseException | None) -> None:
+        if error is not None and self.listener_error is None:
+            self.listener_error = error
 
     # -- recordings ---------------------------------------------------------------------------
 
@@ -306,7 +323,7 @@ class RigSession:
                 self.ft_max_gap_us = max(self.ft_max_gap_us, gap_us)
             self._last_ft_device_us = sample.t_device_us
         if self._ft_listeners:
-            self._notify_ft_listeners(sample)
+            self._listener_failed(self._ft_listeners.notify(sample))
 
     def _on_cnc(self, sample: StatusSample) -> None:
         writer = self._writer
@@ -344,4 +361,4 @@ class RigSession:
             if writer is not None:
                 put_chunk(writer, chunk)
             if self._listeners:
-                self._notify_listeners(chunk)
+                self._listener_failed(self._listeners.notify(chunk))
