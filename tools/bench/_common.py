@@ -250,3 +250,25 @@ def bench_main(
         print_json(figures)
     else:
         render(figures)
+
+
+def raw_replay_rig(folder: Path, rig: Any) -> Path:
+    """A rig file in ``folder`` whose camera replays, as an EVT3 RAW file at 1x, a simulated press of ``rig`` (6 mm
+    sphere, 1 mm deep, 0.5 mm shear at 3 mm/s, seed 5): the live benchmarks' camera. Not timed."""
+    import re
+
+    from labrig.indenters import load_indenter
+    from labrig.recording.convert import export_raw
+    from labrig.sim.live import record_live
+    from labrig.sim.motion import probing_path
+
+    h5, raw = folder / "press.h5", folder / "press.raw"
+    sphere = load_indenter("sphere")
+    tool = probing_path(rig, sphere, depth_mm=1.0, shear_mm=0.5, normal_speed_mm_s=3.0, shear_speed_mm_s=3.0,
+                        wait_s=0.1)
+    record_live(h5, rig, sphere, tool, seed=5, realtime=False)
+    export_raw(h5, raw)
+    text = re.sub(r'(?m)^camera\s*=\s*"sim"', 'camera = "raw"', rig.path.read_text(), count=1)
+    rig_file = folder / "rig.toml"
+    rig_file.write_text(re.sub(r'(?m)^camera_path\s*=\s*""', f'camera_path = "{raw}"', text, count=1))
+    return rig_file

@@ -20,20 +20,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
-from _common import bench_main, emit
+from _common import bench_main, emit, raw_replay_rig
 
 from labrig.config import load_rig
-from labrig.indenters import load_indenter
-from labrig.recording.convert import export_raw
-from labrig.sim.live import record_live
-from labrig.sim.motion import probing_path
 
 ROOT = Path(__file__).resolve().parents[2]
 #: (name, labrig run options) of the window settings.
@@ -77,15 +72,7 @@ def run(sources: str = "raw,virtual", progress: bool = True) -> dict[str, Any]:
         if "raw" in wanted:
             if progress:
                 print("simulating the press and exporting it to EVT3 ...", flush=True)
-            h5, raw = folder / "press.h5", folder / "press.raw"
-            tool = probing_path(rig, load_indenter("sphere"), depth_mm=1.0, shear_mm=0.5, normal_speed_mm_s=3.0,
-                                shear_speed_mm_s=3.0, wait_s=0.1)
-            record_live(h5, rig, load_indenter("sphere"), tool, seed=5, realtime=False)
-            export_raw(h5, raw)
-            text = rig.path.read_text()
-            rig_file = folder / "rig.toml"
-            text = re.sub(r'(?m)^camera\s*=\s*"sim"', 'camera = "raw"', text, count=1)
-            rig_file.write_text(re.sub(r'(?m)^camera_path\s*=\s*""', f'camera_path = "{raw}"', text, count=1))
+            rig_file = raw_replay_rig(folder, rig)
             for name, options in WINDOWS:
                 key = f"raw replay 1x / {name}"
                 if progress:

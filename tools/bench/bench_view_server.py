@@ -31,13 +31,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from _common import bench_main, emit
+from _common import bench_main, emit, raw_replay_rig
 
 from labrig.config import load_rig
-from labrig.indenters import load_indenter
-from labrig.recording.convert import export_raw
-from labrig.sim.live import record_live
-from labrig.sim.motion import probing_path
 from labrig.testing.foxglove_client import FoxgloveClient
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -112,14 +108,7 @@ def run(repeats: int = 2, windows: str = "both", progress: bool = True) -> dict[
         rig = load_rig()
         if progress:
             print("simulating the press and exporting it to EVT3 ...", flush=True)
-        h5, raw = folder / "press.h5", folder / "press.raw"
-        tool = probing_path(rig, load_indenter("sphere"), depth_mm=1.0, shear_mm=0.5, normal_speed_mm_s=3.0,
-                            shear_speed_mm_s=3.0, wait_s=0.1)
-        record_live(h5, rig, load_indenter("sphere"), tool, seed=5, realtime=False)
-        export_raw(h5, raw)
-        text = re.sub(r'(?m)^camera\s*=\s*"sim"', 'camera = "raw"', rig.path.read_text(), count=1)
-        rig_file = folder / "rig.toml"
-        rig_file.write_text(re.sub(r'(?m)^camera_path\s*=\s*""', f'camera_path = "{raw}"', text, count=1))
+        rig_file = raw_replay_rig(folder, rig)
         base = ["--rig", str(rig_file), "--calibration", str(rig.path.parent), "--seconds", "30"]
         for name, options in wanted:
             runs: dict[bool, list[dict[str, Any]]] = {False: [], True: []}
