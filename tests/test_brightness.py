@@ -354,6 +354,28 @@ def test_the_release_starts_again_once_an_undone_press_has_settled() -> None:
     assert integrator.held_total == 0 and not integrator.counts.any()
 
 
+def test_the_release_does_not_wait_on_the_window_length() -> None:
+    """The same press seen in half-second steps (a gel at rest fills a fixed-count window slowly): its unloading,
+    a quarter of the dent or more per step, is not a release; then a fall of a sixth over one step is settling, and
+    the press is released."""
+    integrator = BrightnessIntegrator(ROI, _released())
+    integrator.add_events(_dent_events(8), 10_000)
+    empty = np.zeros(0, dtype=EVENT_DTYPE)
+    t = 10_000
+    for _ in range(120):  # 60 s still
+        t += 500_000
+        integrator.add_events(empty, t)
+    for n_off in (2, 2, 2, 1):  # unloading down to the dead band's one event per pixel
+        t += 500_000
+        integrator.add_events(_dent_off_events(n_off), t)
+        assert integrator.held_total > 0, "released while the press was still being undone"
+    settling = _dent_off_events(1)
+    settling = settling[settling["y"] < 310]  # a sixth of the dent's rows
+    t += 500_000
+    integrator.add_events(settling, t)
+    assert integrator.held_total == 0 and not integrator.counts.any()
+
+
 def test_a_press_undone_by_less_than_the_release_fraction_is_held() -> None:
     """Half of the dent taken back (a shallower hold, or the indenter sheared away from part of it) is not a release."""
     integrator = BrightnessIntegrator(ROI, _released())

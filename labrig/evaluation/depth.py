@@ -98,7 +98,7 @@ def evaluate_depth(task: DepthTask) -> DepthResult:
         window_ms=model.window_ms, model=model.name, infer_ms=float(np.median(seconds) * 1e3) if seconds else float("nan"))
 
 
-evaluate_depth.cache_version = "8"  # type: ignore[attr-defined]  # 8: the marker diameter through the run's camera; 7: the contrast thresholds weigh the brightness events; 6: neighbours' moves; 5: the tracker (rest gate, displacement inputs); 2: stateful networks through the pipeline; 3: brightness networks (no hold, no gate); 4: the force evaluation's windows
+evaluate_depth.cache_version = "9"  # type: ignore[attr-defined]  # 9: the release settles whatever the step length; 8: the marker diameter through the run's camera; 7: the contrast thresholds weigh the brightness events; 6: neighbours' moves; 5: the tracker (rest gate, displacement inputs); 2: stateful networks through the pipeline; 3: brightness networks (no hold, no gate); 4: the force evaluation's windows
 
 
 def _pipeline_depth(task: DepthTask, t1_us: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.float32], list[float]]:

@@ -177,7 +177,7 @@ def measure_scene(task: StressTask | dict[str, Any]) -> SceneMeasurement:
     return SceneMeasurement(facts, by_tracker, by_method, by_depth)
 
 
-measure_scene.cache_version = "17"  # type: ignore[attr-defined]  # 17: the light's slope response calibrated with the thresholds; 16: the marker diameter through the run's camera; 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
+measure_scene.cache_version = "18"  # type: ignore[attr-defined]  # 18: the release settles whatever the step length; 17: the light's slope response calibrated with the thresholds; 16: the marker diameter through the run's camera; 15: the camera's response and light knobs, the events calibration; 14: the contrast thresholds weigh the brightness events; 13: the true depth between solves; 12: neighbours' moves; 11: lopsided gates follow neighbours, lag correction; 10: the paper tracker's polarity guard
 
 
 def window_key(window_ms: float) -> str:

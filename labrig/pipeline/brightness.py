@@ -85,7 +85,8 @@ def dim_light_warning(slope_gain: float | None) -> str | None:
             "threshold (docs/depthnet.md); light the gel at a more grazing angle or lower the contrast thresholds (biases)")
 
 
-#: The release waits while the held change still falls by more than this fraction of itself (the gel unloading).
+#: The release waits while the held change still falls by more than this fraction of itself per ``release_s``
+#: (the gel unloading), averaged over the time it has been under the release fraction.
 RELEASE_SETTLE = 0.1
 
 
@@ -262,14 +263,19 @@ class BrightnessIntegrator:
 
     def _released(self, held_total: float, dt_s: float) -> bool:
         """Whether the held change, ``held_total`` (reference events) now, has stayed under ``release_fraction``
-        of its peak for ``release_s`` without falling by more than :data:`RELEASE_SETTLE` of itself (the
-        gel still unloading), ``dt_s`` being the time since the last step."""
+        of its peak for ``release_s``, falling meanwhile by no more than :data:`RELEASE_SETTLE` of itself per
+        ``release_s`` (faster: the gel still unloading), ``dt_s`` being the time since the last step.
+
+        The allowed fall grows with the time spent under the fraction, so the answer does not depend on how
+        long the steps are: a window of half a second at rest carries the same slow fall as fifty of 10 ms."""
         self.held_total = held_total
         self._held_peak = max(self._held_peak, held_total)
         assert self.params.release_fraction is not None
+        allowed = RELEASE_SETTLE * max(1.0, (self._undone_s + dt_s) / self.params.release_s) \
+            if self.params.release_s > 0 else RELEASE_SETTLE
         if not held_total < self.params.release_fraction * self._held_peak:
             self._undone_s = self._undone_from = 0.0
-        elif self._undone_from == 0.0 or held_total < (1.0 - RELEASE_SETTLE) * self._undone_from:
+        elif self._undone_from == 0.0 or held_total < (1.0 - allowed) * self._undone_from:
             self._undone_s, self._undone_from = 0.0, held_total
         else:
             self._undone_s += dt_s
