@@ -473,5 +473,7 @@ def test_a_light_too_dim_in_its_slope_response_is_warned_with_what_to_do() -> No
     from labrig.pipeline.brightness import DIM_LIGHT_SLOPE_GAIN, dim_light_warning
 
     assert dim_light_warning(None) is None and dim_light_warning(DIM_LIGHT_SLOPE_GAIN) is None
+    assert dim_light_warning(DIM_LIGHT_SLOPE_GAIN - 0.002) is None, "a light measured as the one checked, to print"
+    assert dim_light_warning(DIM_LIGHT_SLOPE_GAIN - 0.01) is not None
     line = dim_light_warning(0.8)
     assert line is not None and "0.80" in line and "grazing" in line and "\n" not in line

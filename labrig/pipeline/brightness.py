@@ -78,7 +78,7 @@ DIM_LIGHT_SLOPE_GAIN = 1.0
 
 def dim_light_warning(slope_gain: float | None) -> str | None:
     """One line for a light too dim in its slope response for the brightness channel (None: fine or not measured)."""
-    if slope_gain is None or slope_gain >= DIM_LIGHT_SLOPE_GAIN:
+    if slope_gain is None or round(slope_gain, 2) >= DIM_LIGHT_SLOPE_GAIN:  # as printed: 0.998 is the 1.0 checked
         return None
     return (f"the light's slope gain is {slope_gain:.2f}, under {DIM_LIGHT_SLOPE_GAIN:g}: dimmer than any light the "
             "estimator was checked on, and a dent's shallow flanks brighten the membrane by less than one contrast "
