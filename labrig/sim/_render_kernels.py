@@ -16,15 +16,17 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def shade_compose(
-    rect, shade_rect, nodes, nx, base, tx, ty, gain, shade, lum, pad, reported, led, rel, changed, values
+    rect, shade_rect, nodes, grid, gel_x, gel_y, gain, shade, lum, pad, reported, led, rel, changed, values
 ):  # type: ignore[no-untyped-def]
     """Re-shade ``shade_rect`` and compose ``rect`` (both x0, x1, y0, y1 in ROI pixels); return the changed count.
 
     Shading (ROI, in place): ``1 + gain * slope`` inside ``shade_rect`` (may be
     empty), the slope interpolated bilinearly from ``nodes`` (flat node slopes,
-    ``nx`` per row, followed by at least nx + 2 zeros) at each pixel's
-    lower-left node ``base`` (pixels off the grid point into the zeros) and
-    fractional offsets ``tx``, ``ty`` (as :meth:`GridLookup.sample`).
+    ``nx`` per row) at each pixel's rest gel point (``gel_x``, ``gel_y``, mm,
+    ROI-shaped) on the grid ``grid`` = (x0, x1, nx, y0, y1, ny) (mm, nodes; as
+    :meth:`~labrig.sim.shading.GridLookup.build` and ``sample``: 0 off the grid).
+    The weights are computed per pixel here rather than tabulated per grid
+    position, since a sliding contact's grid moves at every render.
     Composition over ``rect``: ``led * min(shade * lum, 1)`` (``led`` the LED ring's level, 1 full,
     0 off; ``lum`` is the canvas, the ROI at offset ``pad``); a pixel whose intensity
     moved by more than ``rel * (old + new + 1e-3)`` is updated in ``reported``
@@ -33,19 +35,29 @@ def shade_compose(
     """
     x0, x1, y0, y1 = rect
     sx0, sx1, sy0, sy1 = shade_rect
+    gx0, gx1, fnx, gy0, gy1, fny = grid
+    nx, ny = int(fnx), int(fny)
     count = 0
     for i in range(y0, y1):
         if sy0 <= i < sy1 and sx1 > sx0:
-            b_row, tx_row, ty_row, s_row = base[i, sx0:sx1], tx[i, sx0:sx1], ty[i, sx0:sx1], shade[i, sx0:sx1]
+            px_row, py_row, s_row = gel_x[i, sx0:sx1], gel_y[i, sx0:sx1], shade[i, sx0:sx1]
             for j in range(sx1 - sx0):
-                b = b_row[j]
-                t = tx_row[j]
+                fx = (px_row[j] - gx0) / (gx1 - gx0) * (nx - 1)
+                fy = (py_row[j] - gy0) / (gy1 - gy0) * (ny - 1)
+                if not (fx >= 0 and fx <= nx - 1 and fy >= 0 and fy <= ny - 1):
+                    s_row[j] = 1.0
+                    continue
+                ix = min(max(int(np.floor(fx)), 0), nx - 2)
+                iy = min(max(int(np.floor(fy)), 0), ny - 2)
+                t = min(max(fx - ix, 0.0), 1.0)
+                u = min(max(fy - iy, 0.0), 1.0)
+                b = iy * nx + ix
                 low = nodes[b]
                 low += (nodes[b + 1] - low) * t
                 high = nodes[b + nx]
                 high += (nodes[b + nx + 1] - high) * t
                 high -= low
-                high *= ty_row[j]
+                high *= u
                 low += high
                 low *= gain
                 low += 1.0
@@ -784,7 +796,7 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
     z2 = np.zeros((2, 2))
-    shade_compose((0, 1, 0, 1), (0, 1, 0, 1), np.zeros(8), 2, np.zeros((2, 2), np.int32), z2, z2.copy(), 1.0,
+    shade_compose((0, 1, 0, 1), (0, 1, 0, 1), np.zeros(8), (0.0, 1.0, 2.0, 0.0, 1.0, 2.0), z2, z2.copy(), 1.0,
                   np.ones((2, 2)), np.zeros((4, 4)), 1, np.zeros((2, 2)), True, 1e-4,
                   np.zeros((1, 1), np.bool_), np.zeros((1, 1)))
     sensor_block(0, 0, 2, np.ones((1, 1), np.bool_), np.zeros((1, 1)), 1e-3, np.zeros(4), np.zeros(4), np.ones(4),

@@ -72,7 +72,7 @@ MIN_REL_CHANGE = 1e-3
 _JACOBIAN_STEP_MM = 1e-4
 #: Stand-ins for the kernel when nothing is re-shaded.
 _NO_NODES = np.zeros(8)
-_NO_LOOKUP = (np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 1)))
+_NO_GRID = (0.0, 1.0, 2.0, 0.0, 1.0, 2.0)
 #: Gel boxes whose pixel boxes a renderer keeps (cleared when full).
 _PIXEL_BOX_CACHE = 4096
 
@@ -187,9 +187,9 @@ class Renderer:
         self._shade_key: tuple[float, float, int, float, float, int] | None = None
         self._shade_nodes: Array | None = None
         self._pixel_gel_xy: Array | None = None
+        self._pixel_gel_planes: tuple[Array, Array] | None = None
         self._lookup_key: tuple[float, float, int, float, float, int] | None = None
         self._lookup: GridLookup | None = None
-        self._kernel_base = np.zeros((1, 1), dtype=np.int32)
         self._pixel_boxes: dict[tuple[float, float, float, float], Rect | None] = {}
         self._centres, self._axes_px = self._project(rest)
         self._origins = patch_origins(self._centres, self.half_px)
@@ -205,7 +205,7 @@ class Renderer:
     def prepare_shading(self) -> None:
         """Compute now what the first re-shade would (the pixels' rest points on the gel, the compiled pixel
         loops), e.g. before serving live."""
-        self._gel_xy()
+        self._gel_planes()
         _k.warm_up()
 
     @property
@@ -379,15 +379,19 @@ class Renderer:
             self._pixel_gel_xy = cached
         return self._pixel_gel_xy
 
+    def _gel_planes(self) -> tuple[Array, Array]:
+        """The rest gel points of :meth:`_gel_xy` as two ROI-shaped planes (x, y mm), for the compiled loop."""
+        if self._pixel_gel_planes is None:
+            xy = self._gel_xy().reshape(self.roi.height_px, self.roi.width_px, 2)
+            self._pixel_gel_planes = (np.ascontiguousarray(xy[..., 0]), np.ascontiguousarray(xy[..., 1]))
+        return self._pixel_gel_planes
+
     def _grid_lookup(self, depth: DepthField) -> GridLookup:
         """Bilinear weights of every ROI pixel's rest gel point on the depth field's grid, cached per grid position."""
         key = depth.grid_key()
         if self._lookup is None or self._lookup_key != key:
             self._lookup = GridLookup.build(key, self._gel_xy()).reshape(self.roi.height_px, self.roi.width_px)
             self._lookup_key = key
-            # For the kernel: pixels off the grid point at the block of zeros after the last node.
-            base = self._lookup.base
-            self._kernel_base = np.where(base < 0, key[2] * key[5], base).astype(np.int32)
         return self._lookup
 
     def _sample(self, depth: DepthField, rect: Rect) -> Array:
@@ -489,15 +493,14 @@ class Renderer:
         x0, x1, y0, y1 = rect
         changed = np.empty((y1 - y0, x1 - x0), dtype=bool)
         values = np.empty((y1 - y0, x1 - x0))
+        gel_x, gel_y = self._gel_planes()
         if shade_rect is not None and self._depth is not None:
-            lookup = self._grid_lookup(self._depth)
-            base, tx, ty, nx = self._kernel_base, lookup.tx, lookup.ty, lookup.nx
-            nodes = np.zeros(self._depth.slope.size + nx + 2)  # the zeros: pixels off the grid read them
-            nodes[: self._depth.slope.size] = self._depth.slope.ravel()
+            x0_mm, x1_mm, nx, y0_mm, y1_mm, ny = self._depth.grid_key()
+            grid = (x0_mm, x1_mm, float(nx), y0_mm, y1_mm, float(ny))
+            nodes = np.ascontiguousarray(self._depth.slope, dtype=np.float64).ravel()
         else:
-            shade_rect, nodes, nx = (0, 0, 0, 0), _NO_NODES, 2
-            base, tx, ty = _NO_LOOKUP
-        _k.shade_compose(rect, shade_rect, nodes, nx, base, tx, ty, float(self.lighting.slope_gain), self._shade,
+            shade_rect, nodes, grid = (0, 0, 0, 0), _NO_NODES, _NO_GRID
+        _k.shade_compose(rect, shade_rect, nodes, grid, gel_x, gel_y, float(self.lighting.slope_gain), self._shade,
                          self._lum.reshape(self._canvas_shape), self._pad, self._reported, self._led,
                          float(self.min_rel_change), changed, values)
         return PixelBlock(y0, x0, changed, values)
