@@ -14,19 +14,37 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _bilinear(nodes, nx, b, t, u):  # type: ignore[no-untyped-def]
+    """The node values' bilinear blend at lower-left node ``b`` (flat, ``nx`` per row), offsets ``t``, ``u``
+    (as :meth:`~labrig.sim.shading.GridLookup.sample`, operation for operation)."""
+    low = nodes[b]
+    low += (nodes[b + 1] - low) * t
+    high = nodes[b + nx]
+    high += (nodes[b + nx + 1] - high) * t
+    high -= low
+    high *= u
+    low += high
+    return low
+
+
 @njit(cache=True, nogil=True)
 def shade_compose(
-    rect, shade_rect, nodes, grid, gel_x, gel_y, gain, shade, lum, pad, reported, led, rel, changed, values
+    rect, shade_rect, nodes, nx, base, tx, ty, grid, gel_x, gel_y, gain, shade, lum, pad, reported, led, rel, changed,
+    values
 ):  # type: ignore[no-untyped-def]
     """Re-shade ``shade_rect`` and compose ``rect`` (both x0, x1, y0, y1 in ROI pixels); return the changed count.
 
     Shading (ROI, in place): ``1 + gain * slope`` inside ``shade_rect`` (may be
     empty), the slope interpolated bilinearly from ``nodes`` (flat node slopes,
-    ``nx`` per row) at each pixel's rest gel point (``gel_x``, ``gel_y``, mm,
-    ROI-shaped) on the grid ``grid`` = (x0, x1, nx, y0, y1, ny) (mm, nodes; as
-    :meth:`~labrig.sim.shading.GridLookup.build` and ``sample``: 0 off the grid).
-    The weights are computed per pixel here rather than tabulated per grid
-    position, since a sliding contact's grid moves at every render.
+    ``nx`` per row, followed by at least nx + 2 zeros). The weights come from a
+    table when ``base`` is ROI-shaped: each pixel's lower-left node ``base``
+    (pixels off the grid point into the zeros) and fractional offsets ``tx``,
+    ``ty`` (as :meth:`~labrig.sim.shading.GridLookup.sample`); otherwise they are
+    computed here from each pixel's rest gel point (``gel_x``, ``gel_y``, mm,
+    ROI-shaped) on ``grid`` = (x0, x1, nx, y0, y1, ny) (mm, nodes), as
+    :meth:`~labrig.sim.shading.GridLookup.build` would (a sliding contact's grid
+    moves at every render, and a table for every ROI pixel would be rebuilt each time).
     Composition over ``rect``: ``led * min(shade * lum, 1)`` (``led`` the LED ring's level, 1 full,
     0 off; ``lum`` is the canvas, the ROI at offset ``pad``); a pixel whose intensity
     moved by more than ``rel * (old + new + 1e-3)`` is updated in ``reported``
@@ -35,11 +53,16 @@ def shade_compose(
     """
     x0, x1, y0, y1 = rect
     sx0, sx1, sy0, sy1 = shade_rect
-    gx0, gx1, fnx, gy0, gy1, fny = grid
-    nx, ny = int(fnx), int(fny)
+    tabulated = base.shape[0] == shade.shape[0] and base.shape[1] == shade.shape[1]
+    gx0, gx1, _, gy0, gy1, fny = grid
+    ny = int(fny)
     count = 0
     for i in range(y0, y1):
-        if sy0 <= i < sy1 and sx1 > sx0:
+        if sy0 <= i < sy1 and sx1 > sx0 and tabulated:
+            b_row, tx_row, ty_row, s_row = base[i, sx0:sx1], tx[i, sx0:sx1], ty[i, sx0:sx1], shade[i, sx0:sx1]
+            for j in range(sx1 - sx0):
+                s_row[j] = 1.0 + gain * _bilinear(nodes, nx, b_row[j], tx_row[j], ty_row[j])
+        elif sy0 <= i < sy1 and sx1 > sx0:
             px_row, py_row, s_row = gel_x[i, sx0:sx1], gel_y[i, sx0:sx1], shade[i, sx0:sx1]
             for j in range(sx1 - sx0):
                 fx = (px_row[j] - gx0) / (gx1 - gx0) * (nx - 1)
@@ -51,17 +74,7 @@ def shade_compose(
                 iy = min(max(int(np.floor(fy)), 0), ny - 2)
                 t = min(max(fx - ix, 0.0), 1.0)
                 u = min(max(fy - iy, 0.0), 1.0)
-                b = iy * nx + ix
-                low = nodes[b]
-                low += (nodes[b + 1] - low) * t
-                high = nodes[b + nx]
-                high += (nodes[b + nx + 1] - high) * t
-                high -= low
-                high *= u
-                low += high
-                low *= gain
-                low += 1.0
-                s_row[j] = low
+                s_row[j] = 1.0 + gain * _bilinear(nodes, nx, iy * nx + ix, t, u)
         s_row, l_row, r_row = shade[i, x0:x1], lum[i + pad, x0 + pad : x1 + pad], reported[i, x0:x1]
         c_row, v_row = changed[i - y0], values[i - y0]
         for j in range(x1 - x0):
@@ -796,9 +809,9 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels on tiny inputs."""
     f8, i8 = np.float64, np.int64
     z2 = np.zeros((2, 2))
-    shade_compose((0, 1, 0, 1), (0, 1, 0, 1), np.zeros(8), (0.0, 1.0, 2.0, 0.0, 1.0, 2.0), z2, z2.copy(), 1.0,
-                  np.ones((2, 2)), np.zeros((4, 4)), 1, np.zeros((2, 2)), True, 1e-4,
-                  np.zeros((1, 1), np.bool_), np.zeros((1, 1)))
+    shade_compose((0, 1, 0, 1), (0, 1, 0, 1), np.zeros(8), 2, np.zeros((2, 2), np.int32), z2, z2.copy(),
+                  (0.0, 1.0, 2.0, 0.0, 1.0, 2.0), z2, z2.copy(), 1.0, np.ones((2, 2)), np.zeros((4, 4)), 1,
+                  np.zeros((2, 2)), True, 1e-4, np.zeros((1, 1), np.bool_), np.zeros((1, 1)))
     sensor_block(0, 0, 2, np.ones((1, 1), np.bool_), np.zeros((1, 1)), 1e-3, np.zeros(4), np.zeros(4), np.ones(4),
                  -np.ones(4), np.zeros(4), 10.0, 0.0, np.zeros(4, np.bool_), 0.5, 0.25, 0.25, 1e-4, np.zeros(1, i8),
                  np.zeros(1, f8), np.zeros(1, f8), np.zeros(1, i8))

@@ -72,6 +72,7 @@ MIN_REL_CHANGE = 1e-3
 _JACOBIAN_STEP_MM = 1e-4
 #: Stand-ins for the kernel when nothing is re-shaded.
 _NO_NODES = np.zeros(8)
+_NO_LOOKUP = (np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 1)))
 _NO_GRID = (0.0, 1.0, 2.0, 0.0, 1.0, 2.0)
 #: Gel boxes whose pixel boxes a renderer keeps (cleared when full).
 _PIXEL_BOX_CACHE = 4096
@@ -190,6 +191,8 @@ class Renderer:
         self._pixel_gel_planes: tuple[Array, Array] | None = None
         self._lookup_key: tuple[float, float, int, float, float, int] | None = None
         self._lookup: GridLookup | None = None
+        self._kernel_base = np.zeros((1, 1), dtype=np.int32)
+        self._last_shade_key: tuple[float, float, int, float, float, int] | None = None
         self._pixel_boxes: dict[tuple[float, float, float, float], Rect | None] = {}
         self._centres, self._axes_px = self._project(rest)
         self._origins = patch_origins(self._centres, self.half_px)
@@ -392,6 +395,9 @@ class Renderer:
         if self._lookup is None or self._lookup_key != key:
             self._lookup = GridLookup.build(key, self._gel_xy()).reshape(self.roi.height_px, self.roi.width_px)
             self._lookup_key = key
+            # For the kernel: pixels off the grid point at the block of zeros after the last node.
+            base = self._lookup.base
+            self._kernel_base = np.where(base < 0, key[2] * key[5], base).astype(np.int32)
         return self._lookup
 
     def _sample(self, depth: DepthField, rect: Rect) -> Array:
@@ -494,14 +500,23 @@ class Renderer:
         changed = np.empty((y1 - y0, x1 - x0), dtype=bool)
         values = np.empty((y1 - y0, x1 - x0))
         gel_x, gel_y = self._gel_planes()
+        base, tx, ty = _NO_LOOKUP
         if shade_rect is not None and self._depth is not None:
-            x0_mm, x1_mm, nx, y0_mm, y1_mm, ny = self._depth.grid_key()
+            key = self._depth.grid_key()
+            x0_mm, x1_mm, nx, y0_mm, y1_mm, ny = key
             grid = (x0_mm, x1_mm, float(nx), y0_mm, y1_mm, float(ny))
-            nodes = np.ascontiguousarray(self._depth.slope, dtype=np.float64).ravel()
+            # A grid that stays put (a contact whose anchor holds) gets a table of every pixel's weights; one that
+            # moves at each render (a sliding contact) has them computed in the loop, for the pixels it re-shades.
+            if key == self._lookup_key or key == self._last_shade_key:
+                lookup = self._grid_lookup(self._depth)
+                base, tx, ty = self._kernel_base, lookup.tx, lookup.ty
+            self._last_shade_key = key
+            nodes = np.zeros(self._depth.slope.size + nx + 2)  # the zeros: pixels off the grid read them
+            nodes[: self._depth.slope.size] = self._depth.slope.ravel()
         else:
-            shade_rect, nodes, grid = (0, 0, 0, 0), _NO_NODES, _NO_GRID
-        _k.shade_compose(rect, shade_rect, nodes, grid, gel_x, gel_y, float(self.lighting.slope_gain), self._shade,
-                         self._lum.reshape(self._canvas_shape), self._pad, self._reported, self._led,
+            shade_rect, nodes, nx, grid = (0, 0, 0, 0), _NO_NODES, 2, _NO_GRID
+        _k.shade_compose(rect, shade_rect, nodes, nx, base, tx, ty, grid, gel_x, gel_y, float(self.lighting.slope_gain),
+                         self._shade, self._lum.reshape(self._canvas_shape), self._pad, self._reported, self._led,
                          float(self.min_rel_change), changed, values)
         return PixelBlock(y0, x0, changed, values)
 
