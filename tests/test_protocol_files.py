@@ -392,7 +392,8 @@ depth_mm = [2.45]
 
 def test_a_held_force_and_its_loop_are_read_and_checked(tmp_path: Path, rig: RigConfig,
                                                         indenters: dict[str, Indenter]) -> None:
-    from labrig.protocol.feedback import EVENTS_STALE_AFTER_S
+    from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, VIRTUAL_RIG_EVENTS_STALE_AFTER_S
+    from labrig.protocol.files import on_virtual_camera
     from labrig.protocol.force_loop import ForceLoopParams
 
     def on_events_text(path: Path) -> str:
@@ -418,6 +419,13 @@ max_speed_mm_s = 1.5
     assert on_events.feedback == "events" and on_events.control.stale_after_s == EVENTS_STALE_AFTER_S
     told = load_protocol(_write(tmp_path, "told.toml", on_events_text(good) + "stale_after_s = 0.05\n"), rig, indenters)
     assert told.control.stale_after_s == 0.05
+    # The embedded virtual rig's camera runs late on a small host: its events loop waits longer unless told.
+    virtual, note = on_virtual_camera(on_events, on_events_text(good))
+    assert virtual.control.stale_after_s == VIRTUAL_RIG_EVENTS_STALE_AFTER_S > EVENTS_STALE_AFTER_S
+    assert note is not None and "stale_after_s" in note and "\n" not in note
+    assert virtual.control.max_speed_mm_s == on_events.control.max_speed_mm_s
+    assert on_virtual_camera(told, on_events_text(good) + "stale_after_s = 0.05\n") == (told, None)
+    assert on_virtual_camera(spec, good.read_text()) == (spec, None)  # the F/T loop: unchanged
     bad = _write(tmp_path, "bad.toml", """
 [probe]
 indenter = "sphere"

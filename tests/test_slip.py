@@ -55,6 +55,36 @@ def test_the_dense_field_tells_slip_when_the_share_at_friction_persists() -> Non
     assert math.isnan(detector.share_at_friction(np.zeros((156, 3))))  # no contact: no share
 
 
+def test_a_tangential_force_that_stops_rising_while_the_tool_shears_on_tells_slip() -> None:
+    """Sticking, |Ft| rises 2 N/mm with the travel; sliding, it stays flat under friction at most markers (the
+    estimated field alone never tells it). The stall is told once the last 0.1 mm of travel is flat; a flat |Ft| far
+    under friction (a light stick) is not slip; a tool that has stopped adds nothing; with the stall off, never."""
+    field = _field(10, 2)
+
+    def shear(params: SlipParams, peak_n: float) -> float | None:
+        """The travel (mm) at which slip is told, |Ft| = min(2 x, peak_n) at 2 N normal, mu 1; None: never."""
+        detector = SlipDetector(1.0, params)
+        for k, x in enumerate(np.arange(0.0, 1.0, 0.02)):  # a reading every 0.02 mm (10 ms at 2 mm/s)
+            ft = min(2.0 * x, peak_n)
+            if detector.update(_reading(k + 1, field, (ft, 0.0, -2.0)), travel_mm=float(x)).slipping:
+                return float(x)
+        return None
+
+    told = shear(SlipParams(persist=2), 1.2)  # flat from 0.6 mm at 0.6 of friction
+    assert told is not None and 0.64 <= told <= 0.74, told
+    assert shear(SlipParams(persist=2), 0.4) is None  # flat from 0.2 mm at 0.2 of friction
+    assert shear(SlipParams(persist=2, stall_ratio=None), 1.2) is None
+    detector = SlipDetector(1.0, SlipParams(persist=1))
+    for k in range(10):
+        detector.update(_reading(k + 1, field, (0.04 * k, 0.0, -2.0)), travel_mm=0.02 * k)
+    steady = detector.last.stiffness_ratio
+    assert steady == pytest.approx(1.0)
+    for k in range(10, 30):  # the tool has stopped: readings at the same place say nothing new of the slope
+        assert detector.update(_reading(k + 1, field, (1.2, 0.0, -2.0)), travel_mm=0.18).stiffness_ratio == steady
+    with pytest.raises(ValueError, match="stall_ratio"):
+        SlipParams(stall_ratio=1.5)
+
+
 def test_the_net_force_tells_slip_by_its_friction_ratio_and_press_asks_for_enough_normal_force() -> None:
     detector = SlipDetector(0.8, SlipParams(net_ratio=0.95, persist=1, press_ratio=0.5))
     check = detector.update(_reading(1, None, (1.0, 0.0, -2.0)))
@@ -144,6 +174,21 @@ def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: R
     run = control_run(result.path)
     assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
     assert abs(run.slip_onset_error_ms) <= 50.0, run.slip_onset_error_ms
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("indenter", ["cylinder", "ridge"])
+def test_on_the_event_sensor_the_stall_tells_a_sliding_flat_punch_and_ridge(rig: RigConfig, tmp_path: Path,
+                                                                           indenter: str) -> None:
+    """Their estimated fields never reach friction at most markers (the share cue alone never told them); the stall of
+    the estimated |Ft| does, within 100 ms of the true onset (the estimate runs a window and its delivery late)."""
+    shape = load_indenters()[indenter]
+    spec = replace(SLIDING, indenter=indenter, feedback="events", control=ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S))
+    result = record_virtual(spec, tmp_path / f"{indenter}.h5", rig, shape, seed=1)
+    assert result.exit_status == "complete", result.reason
+    run = control_run(result.path)
+    assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
+    assert 0.0 <= run.slip_onset_error_ms <= 100.0, run.slip_onset_error_ms
 
 
 @pytest.mark.slow

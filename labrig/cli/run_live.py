@@ -36,7 +36,7 @@ from labrig.pipeline.run_summary import WindowLog, window_summary
 from labrig.pipeline.view import write_view
 from labrig.pipeline.windows import WindowSpec
 from labrig.protocol import apply_overrides, load_protocol
-from labrig.protocol.files import DEFAULT_PROTOCOL
+from labrig.protocol.files import DEFAULT_PROTOCOL, on_virtual_camera
 from labrig.protocol.rigfile import DeviceConfig, device_config
 from labrig.protocol.runner import ProbeRunner
 from labrig.protocol.safety import StopRequest
@@ -233,6 +233,9 @@ def _with_probe(o: LiveOptions, rig: RigConfig, devices: DeviceConfig, pipe: run
     if devices.virtual:
         err_console.print(f"no hardware configured: one probing run ({spec.indenter}, {protocol_path.name}) on the "
                           "virtual rig (embedded), the live pipeline reading its camera")
+        spec, note = on_virtual_camera(spec, protocol_path.read_text())
+        if note is not None:
+            err_console.print(note, markup=False)
     stop = StopRequest()
     session = RigSession.for_rig(rig, indenters[spec.indenter], indenters_path=DEFAULT_INDENTERS,
                                  shear_directions_deg=[spec.shear_direction_deg])

@@ -26,7 +26,7 @@ from typing import Any
 from labrig.config import RigConfig
 from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
-from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, FEEDBACKS
+from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, FEEDBACKS, VIRTUAL_RIG_EVENTS_STALE_AFTER_S
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.rigfile import device_config
 from labrig.protocol.safety import SpeedLimits, depth_problem
@@ -211,7 +211,8 @@ PROTOCOL_KEYS: dict[str, dict[str, str]] = {
               "hold_force_n": "shear_hold_force_n", "force_n": "shear_force_n"},
     "slip": {"action": "slip_action", "share": "slip.share", "at_friction": "slip.at_friction",
              "net_ratio": "slip.net_ratio", "persist": "slip.persist", "press_ratio": "slip.press_ratio",
-             "friction": "slip.friction"},
+             "friction": "slip.friction", "stall_ratio": "slip.stall_ratio", "stall_span_mm": "slip.stall_span_mm",
+             "stall_friction_ratio": "slip.stall_friction_ratio"},
     "release": {"force_n": "release_force_n", "hold_s": "release_hold_s"},
     "retract": {"height_mm": "retract_height_mm", "speed_mm_s": "retract_speed_mm_s"},
     "control": {
@@ -245,6 +246,9 @@ _FIELD_SIGN: dict[str, str] = {
     "slip.press_ratio": "fraction",
     "slip.persist": "count",
     "slip.friction": "positive",
+    "slip.stall_ratio": "fraction",
+    "slip.stall_span_mm": "positive",
+    "slip.stall_friction_ratio": "fraction",
     "press_hold_s": "positive",
     "control.stiffness_n_per_mm": "positive",
     "control.max_speed_mm_s": "positive",
@@ -368,6 +372,19 @@ def _parse_protocol(path: Path, problems: _Problems) -> _ProtocolFile:
     if "indenter" not in pf.values and not (isinstance(data.get("probe"), dict) and "indenter" in data["probe"]):
         problems.add((pf.path, locator.line("probe")), "probe.indenter", 'missing; name the indenter, e.g. indenter = "sphere"')
     return pf
+
+
+def on_virtual_camera(spec: ProbeSpec, protocol_text: str) -> tuple[ProbeSpec, str | None]:
+    """``spec`` as run against the embedded virtual rig's camera: an events loop whose protocol does not set
+    ``[control] stale_after_s`` waits :data:`~labrig.protocol.feedback.VIRTUAL_RIG_EVENTS_STALE_AFTER_S` for a
+    reading instead of the real camera's default; and the line that says so (None: unchanged)."""
+    if spec.feedback != "events" or "stale_after_s" in tomllib.loads(protocol_text).get("control", {}):
+        return spec, None
+    control = dataclasses.replace(spec.control, stale_after_s=VIRTUAL_RIG_EVENTS_STALE_AFTER_S)
+    return dataclasses.replace(spec, control=control), (
+        f"the virtual rig renders its camera on this host and falls behind real time where the scene is dear: the "
+        f"events loop waits {VIRTUAL_RIG_EVENTS_STALE_AFTER_S:g} s for a reading before it stops as stalled (a real "
+        f"camera: {EVENTS_STALE_AFTER_S:g} s; [control] stale_after_s sets it)")
 
 
 def _build_spec(values: Mapping[str, Any]) -> ProbeSpec:

@@ -226,7 +226,7 @@ class HeldMove:
         segment has been handed out, or once it ended early (:attr:`ended_by`)."""
         if (self.done >= self.segments and self._progress_mm >= self._lateral_mm) or self.ended_by is not None:
             return None
-        if contact is not None and self._ends_on(t_s, contact):
+        if contact is not None and self._ends_on(t_s, contact, here_mm if reading_mm is None else reading_mm):
             return None
         p = self.loop.params
         at_reading = self.place_mm(here_mm if reading_mm is None else reading_mm)
@@ -253,16 +253,22 @@ class HeldMove:
             return min(self._lateral_speed_mm_s, TANGENTIAL_FINE_SPEED_MM_S)
         return self._lateral_speed_mm_s
 
-    def _ends_on(self, t_s: float, contact: ContactReading) -> bool:
-        """Whether ``contact`` ends the move (a tangential target reached, a slip to stop at); a slip to press
-        against raises the loop's target."""
+    def travel_mm(self, position_mm: npt.ArrayLike) -> float:
+        """How far a machine position is along the move's lateral path from the start (mm)."""
+        if self._lateral_mm <= 0:
+            return 0.0
+        return float((np.asarray(position_mm, np.float64) - self.start) @ self.lateral) / self._lateral_mm
+
+    def _ends_on(self, t_s: float, contact: ContactReading, reading_mm: npt.ArrayLike) -> bool:
+        """Whether ``contact`` (measured with the tool at ``reading_mm``) ends the move (a tangential target reached,
+        a slip to stop at); a slip to press against raises the loop's target."""
         self.contact = contact
         if self.until_tangential_n is not None and contact.tangential_n >= self.until_tangential_n:
             self.ended_by = "tangential force"
             return True
         if self.slip is None or self.slip_detector is None:
             return False
-        self.slip_check = self.slip_detector.update(contact)
+        self.slip_check = self.slip_detector.update(contact, self.travel_mm(reading_mm))
         if not self.slip_check.slipping:
             return False
         if self.slipped_at_s is None:

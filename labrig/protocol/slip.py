@@ -12,7 +12,15 @@ patch is at the limit, when the net tangential force reaches ``mu`` times the no
 * **From the net force** (the F/T sensor, which has no field): the contact slips when ``|Ft| / (mu |Fn|)`` reaches
   ``net_ratio``.
 
-Either must hold in ``persist`` fresh readings in a row. What a held shear does then is the protocol's
+* **From the tangential force's stall** (either source, given the tool's travel along the shear at each reading's
+  time): sticking, the tangential force rises in proportion to the travel (the contact's tangential stiffness);
+  sliding as a whole, it stops rising while the tool shears on. The contact slips when the slope of |Ft| against the
+  travel over the last ``stall_span_mm`` has fallen to ``stall_ratio`` of the steepest it has been in this move,
+  with the net force at least ``stall_friction_ratio`` of friction (a stick that has hardly loaded is not a slide).
+  It needs no estimate of friction's share per marker, so it tells a flat punch or a ridge whose estimated field
+  never reaches friction at every marker.
+
+A cue must hold in ``persist`` fresh readings in a row. What a held shear does then is the protocol's
 ``[slip] action`` (:data:`SLIP_ACTIONS`): record it, stop the shear where it is, or press harder until the
 tangential force is ``press_ratio`` of friction again.
 """
@@ -43,9 +51,16 @@ class SlipParams:
     contact_fraction: float = 0.1  # a marker is in contact with at least this share of the largest normal force
     min_marker_n: float = 0.02  # ... and at least this much (N)
     friction: float | None = None  # Coulomb coefficient indenter-gel; None: the rig file's [gel] friction
+    stall_ratio: float | None = 0.1  # the stall: d|Ft|/d(travel) down to this share of its steepest; None: off
+    stall_span_mm: float = 0.1  # ... fitted over this much of the latest travel (mm)
+    stall_friction_ratio: float = 0.5  # ... with |Ft| / (mu |Fn|) at least this
 
     def __post_init__(self) -> None:
-        for name in ("share", "at_friction", "net_ratio", "press_ratio", "contact_fraction"):
+        if self.stall_ratio is not None and not (math.isfinite(self.stall_ratio) and 0 < self.stall_ratio < 1):
+            raise ValueError(f"stall_ratio must be in (0, 1), not {self.stall_ratio}")
+        if not (math.isfinite(self.stall_span_mm) and self.stall_span_mm > 0):
+            raise ValueError(f"stall_span_mm must be a positive number (mm), not {self.stall_span_mm}")
+        for name in ("share", "at_friction", "net_ratio", "press_ratio", "contact_fraction", "stall_friction_ratio"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 < value <= 1):
                 raise ValueError(f"{name} must be in (0, 1], not {value}")
@@ -78,11 +93,13 @@ class ContactReading:
 @dataclass(frozen=True)
 class SlipCheck:
     """One reading's verdict: ``share`` of the contact's markers at friction (nan without the field),
-    ``friction_ratio`` = |Ft| / (mu |Fn|) of the net force, and whether the contact ``slipping`` (persisting)."""
+    ``friction_ratio`` = |Ft| / (mu |Fn|) of the net force, ``stiffness_ratio`` = d|Ft|/d(travel) now over its
+    steepest in the move (nan: not measured), and whether the contact ``slipping`` (persisting)."""
 
     share: float
     friction_ratio: float
     slipping: bool
+    stiffness_ratio: float = math.nan
 
 
 class SlipDetector:
@@ -96,8 +113,13 @@ class SlipDetector:
         self.last = SlipCheck(math.nan, math.nan, False)
         self._run = 0
         self._seen_ns: int | None = None
+        self._travel_mm: list[float] = []  # the stall's readings: the tool's travel along the shear (mm) ...
+        self._tangential_n: list[float] = []  # ... and |Ft| (N)
+        self._steepest_n_per_mm = 0.0
 
-    def update(self, reading: ContactReading) -> SlipCheck:
+    def update(self, reading: ContactReading, travel_mm: float | None = None) -> SlipCheck:
+        """One reading's verdict; ``travel_mm``: how far the tool had sheared when it was measured (mm; None: no
+        stall cue)."""
         if reading.t_host_ns == self._seen_ns:
             return self.last
         self._seen_ns = reading.t_host_ns
@@ -106,9 +128,28 @@ class SlipDetector:
         ratio = reading.tangential_n / (self.friction * normal) if normal > 0 else math.nan
         share = self.share_at_friction(reading.marker_forces_n) if reading.marker_forces_n is not None else math.nan
         says = share >= p.share if not math.isnan(share) else ratio >= p.net_ratio
+        stiffness = self._stiffness_ratio(travel_mm, reading.tangential_n) if travel_mm is not None else math.nan
+        if p.stall_ratio is not None and stiffness <= p.stall_ratio and ratio >= p.stall_friction_ratio:
+            says = True
         self._run = self._run + 1 if says else 0
-        self.last = SlipCheck(share, ratio, self._run >= p.persist)
+        self.last = SlipCheck(share, ratio, self._run >= p.persist, stiffness)
         return self.last
+
+    def _stiffness_ratio(self, travel_mm: float, tangential_n: float) -> float:
+        """The least-squares slope of |Ft| against the travel over the last ``stall_span_mm`` (a reading counts once
+        the tool has moved on since the last), over the steepest such slope so far; nan until the span is covered."""
+        span = self.params.stall_span_mm
+        if self._travel_mm and travel_mm <= self._travel_mm[-1] + 1e-3 * span:
+            return self.last.stiffness_ratio  # the tool has not moved on: nothing new about the slope
+        self._travel_mm.append(float(travel_mm))
+        self._tangential_n.append(float(tangential_n))
+        x = np.asarray(self._travel_mm)
+        recent = x >= travel_mm - span
+        if recent.sum() < 3 or travel_mm - x[recent].min() < 0.8 * span:
+            return math.nan
+        slope = float(np.polyfit(x[recent], np.asarray(self._tangential_n)[recent], 1)[0])
+        self._steepest_n_per_mm = max(self._steepest_n_per_mm, slope)
+        return slope / self._steepest_n_per_mm if self._steepest_n_per_mm > 0 else math.nan
 
     def share_at_friction(self, marker_forces_n: npt.ArrayLike) -> float:
         """The share of the contact's markers whose |Ft| reaches ``at_friction * mu * Fn`` (nan: no contact)."""
