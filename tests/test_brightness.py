@@ -329,16 +329,24 @@ def _dent_off_events(n_per_px: int) -> np.ndarray:
     return off
 
 
-def test_the_release_starts_again_once_an_undone_press_has_settled() -> None:
-    """A dent of 8 events per pixel held 60 s is kept; undone over 1 s down to the dead band's one event per pixel,
-    it is not released while it still falls, and is released (zero) once it has stayed that low for 0.2 s."""
+def _held_a_minute(step_us: int) -> tuple[BrightnessIntegrator, int]:
+    """An integrator with the release, holding a dent of 8 events per pixel still for 60 s in steps of ``step_us``;
+    and the time it has reached (us)."""
     integrator = BrightnessIntegrator(ROI, _released())
     integrator.add_events(_dent_events(8), 10_000)
     empty = np.zeros(0, dtype=EVENT_DTYPE)
     t = 10_000
-    for _ in range(6000):  # 60 s still
-        t += 10_000
+    for _ in range(60_000_000 // step_us):
+        t += step_us
         integrator.add_events(empty, t)
+    return integrator, t
+
+
+def test_the_release_starts_again_once_an_undone_press_has_settled() -> None:
+    """A dent of 8 events per pixel held 60 s is kept; undone over 1 s down to the dead band's one event per pixel,
+    it is not released while it still falls, and is released (zero) once it has stayed that low for 0.2 s."""
+    integrator, t = _held_a_minute(10_000)
+    empty = np.zeros(0, dtype=EVENT_DTYPE)
     held = integrator.held_total
     assert held > 0 and integrator.counts.max() > 0
     for _ in range(7):  # unloading: one event per pixel off every 150 ms
@@ -358,13 +366,7 @@ def test_the_release_does_not_wait_on_the_window_length() -> None:
     """The same press seen in half-second steps (a gel at rest fills a fixed-count window slowly): its unloading,
     a quarter of the dent or more per step, is not a release; then a fall of a sixth over one step is settling, and
     the press is released."""
-    integrator = BrightnessIntegrator(ROI, _released())
-    integrator.add_events(_dent_events(8), 10_000)
-    empty = np.zeros(0, dtype=EVENT_DTYPE)
-    t = 10_000
-    for _ in range(120):  # 60 s still
-        t += 500_000
-        integrator.add_events(empty, t)
+    integrator, t = _held_a_minute(500_000)
     for n_off in (2, 2, 2, 1):  # unloading down to the dead band's one event per pixel
         t += 500_000
         integrator.add_events(_dent_off_events(n_off), t)
