@@ -136,3 +136,28 @@ def test_shift_plan_moves_the_current_motion_in_time() -> None:
         shifted = run(shift_us)
         assert shifted.positions_at(t + shift_us) == pytest.approx(reference.positions_at(t), abs=1e-9)
     assert run(-5e6).segments()[0].t_start_us == pytest.approx(1e6 - 5e6)  # nothing before the motion to protect
+
+
+def test_a_long_run_of_jogs_keeps_every_position_and_looks_it_up_the_same_either_way() -> None:
+    """Hundreds of short moves (a force loop's jogs every 10 ms) grow the history past its first allocation; every
+    time reads the same position from the vectorised and the one-time lookup, and from a table built afresh from
+    the segments (history and plan alike)."""
+    tl = MotionTimeline(FAST)
+    t_us, x = 1e6, 0.0
+    for k in range(300):
+        b = make_block((x, 0, 0), (x + 0.02 * (1 + k % 3), 0.01 * (k % 2), 0), 600, FAST)
+        assert b is not None
+        x = b.end_mm[0]
+        tl.append(b, t_us)
+        if k == 0:
+            tl.start(t_us)
+        t_us += 10_000
+        tl.advance(t_us)
+        tl.position_at(t_us)  # lookups between the moves, as the twins' samplers make them
+    times = np.linspace(0.5e6, t_us + 0.5e6, 997)
+    vectorised = tl.positions_at(times)
+    one_by_one = np.array([tl.position_at(float(t)) for t in times])
+    afresh = positions_at(tl.segments(), times, (0.0, 0.0, 0.0))
+    assert len(tl.segments(include_plan=False)) > 16  # past the table's first allocation
+    np.testing.assert_array_equal(vectorised, one_by_one)
+    np.testing.assert_array_equal(vectorised, afresh)

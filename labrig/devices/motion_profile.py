@@ -272,13 +272,33 @@ def positions_at(
     return SegmentTable.from_segments(segments, initial_mm).positions_at(t_us)
 
 
+def _row_of(seg: Segment) -> tuple[float, ...]:
+    return (seg.t_start_us, seg.duration_us, *seg.start_mm, *seg.unit, seg.v_start_mm_s, seg.accel_mm_s2)
+
+
+def _position_in(starts: list[float], listed: list[list[float]], t_us: float,
+                 before: tuple[float, ...]) -> tuple[float, float, float]:
+    """The position (mm) at ``t_us`` on rows given as Python floats (``starts`` their start times), ``before``
+    ahead of the first."""
+    i = bisect.bisect_right(starts, t_us) - 1
+    if i < 0:
+        return before[0], before[1], before[2]
+    t0, duration, x, y, z, ux, uy, uz, v0, accel = listed[i]
+    tau = min(max(t_us - t0, 0.0), duration) / US_PER_S
+    dist = v0 * tau + 0.5 * accel * tau * tau
+    return x + ux * dist, y + uy * dist, z + uz * dist
+
+
 class SegmentTable:
-    """Segments as columns for vectorised evaluation (append-only, amortised)."""
+    """Segments as columns for vectorised evaluation, and as Python floats for one-time lookups (append-only:
+    amortised growth, so a table that gains a row every few milliseconds for minutes never copies itself whole)."""
 
     def __init__(self, initial_mm: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
         self.initial_mm = tuple(float(x) for x in initial_mm)
-        self._rows: list[tuple[float, ...]] = []
-        self._cache: npt.NDArray[np.float64] | None = None
+        self._buf = np.zeros((16, 10))
+        self._n = 0
+        self._starts: list[float] = []  # each row's start (us), for bisect
+        self._listed: list[list[float]] = []  # each row as Python floats
 
     @classmethod
     def from_segments(cls, segments: Sequence[Segment], initial_mm: Sequence[float] = (0.0, 0.0, 0.0)) -> SegmentTable:
@@ -288,25 +308,44 @@ class SegmentTable:
         return table
 
     def __len__(self) -> int:
-        return len(self._rows)
+        return self._n
 
     def append(self, seg: Segment) -> None:
-        self._rows.append((seg.t_start_us, seg.duration_us, *seg.start_mm, *seg.unit, seg.v_start_mm_s, seg.accel_mm_s2))
+        if self._n == len(self._buf):
+            grown = np.zeros((2 * len(self._buf), 10))
+            grown[: self._n] = self._buf[: self._n]
+            self._buf = grown
+        self._set(self._n, seg)
+        self._n += 1
 
     def replace(self, index: int, seg: Segment) -> None:
-        self._rows[index] = (seg.t_start_us, seg.duration_us, *seg.start_mm, *seg.unit, seg.v_start_mm_s, seg.accel_mm_s2)
-        self._cache = None
+        if not 0 <= index < self._n:
+            raise IndexError(f"segment row {index} of {self._n}")
+        self._set(index, seg)
+
+    def _set(self, index: int, seg: Segment) -> None:
+        self._buf[index] = _row_of(seg)
+        row = self._buf[index].tolist()
+        if index == len(self._listed):
+            self._starts.append(row[0])
+            self._listed.append(row)
+        else:
+            self._starts[index] = row[0]
+            self._listed[index] = row
 
     def _array(self) -> npt.NDArray[np.float64]:
-        if self._cache is None or len(self._cache) != len(self._rows):
-            self._cache = np.asarray(self._rows, dtype=np.float64).reshape(-1, 10)
-        return self._cache
+        """The rows (K, 10), a view: valid until the next :meth:`append` or :meth:`replace`."""
+        return self._buf[: self._n]
+
+    def position_of(self, t_us: float) -> tuple[float, float, float]:
+        """The position (mm) at one host time, as Python floats (the same arithmetic as :meth:`positions_of_rows`)."""
+        return _position_in(self._starts, self._listed, t_us, self.initial_mm)
 
     def positions_at(self, t_us: npt.ArrayLike, extra: Sequence[Segment] = ()) -> npt.NDArray[np.float64]:
         """Positions (N, 3) mm at ``t_us``, with ``extra`` segments (a live plan) after the table's."""
         rows = self._array()
         if extra:
-            more = np.asarray([(s.t_start_us, s.duration_us, *s.start_mm, *s.unit, s.v_start_mm_s, s.accel_mm_s2) for s in extra])
+            more = np.asarray([_row_of(s) for s in extra])
             rows = np.concatenate([rows, more]) if len(rows) else more
         return self.positions_of_rows(rows, t_us)
 
@@ -315,7 +354,7 @@ class SegmentTable:
         rows = self._array()
         if not extra:
             return rows
-        more = np.asarray([(s.t_start_us, s.duration_us, *s.start_mm, *s.unit, s.v_start_mm_s, s.accel_mm_s2) for s in extra])
+        more = np.asarray([_row_of(s) for s in extra])
         return np.concatenate([rows, more]) if len(rows) else more
 
     def positions_of_rows(self, rows: npt.NDArray[np.float64], t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -401,10 +440,9 @@ class MotionTimeline:
         self._state = "idle"
         self._flush_on_stop = False
         self._cycle_row = 0  # first history row of the motion since the last rest
-        # positions_at's rows (history + plan) and what they were made of (the history array, the plan's pieces).
-        self._rows = np.zeros((0, 10))
-        self._rows_key: tuple[npt.NDArray[np.float64], list[_Piece]] | None = None
-        self._rows_lists: tuple[list[float], list[list[float]]] | None = None  # position_at's view of the rows
+        # the plan's rows (as an array and as Python floats) and the pieces they were made of
+        self._plan_rows: tuple[npt.NDArray[np.float64], list[float], list[list[float]]] | None = None
+        self._plan_key: list[_Piece] = []
 
     # -- queries -----------------------------------------------------------------
 
@@ -450,34 +488,31 @@ class MotionTimeline:
 
     def positions_at(self, t_us: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Positions (N, 3) mm at ``t_us``: history, then the current plan (which later events may change)."""
-        return self._history.positions_of_rows(self._current_rows(), t_us)
+        t = np.atleast_1d(np.asarray(t_us, dtype=np.float64))
+        out = self._history.positions_of_rows(self._history._array(), t)
+        rows = self._planned()[0]
+        if len(rows):  # the plan starts where the history ends: a time from its start on is the plan's
+            late = t >= rows[0, 0]
+            if late.any():
+                out[late] = self._history.positions_of_rows(rows, t[late])
+        return out
 
     def position_at(self, t_us: float) -> tuple[float, float, float]:
         """:meth:`positions_at` for one time, as Python floats (kHz samplers; the same arithmetic)."""
-        rows = self._current_rows()
-        if self._rows_lists is None:
-            listed = rows.tolist()
-            self._rows_lists = ([r[0] for r in listed], listed)
-        starts, listed = self._rows_lists
-        i = bisect.bisect_right(starts, t_us) - 1
-        if i < 0:
-            x, y, z = self._history.initial_mm
-            return x, y, z
-        t0, duration, x, y, z, ux, uy, uz, v0, accel = listed[i]
-        tau = min(max(t_us - t0, 0.0), duration) / US_PER_S
-        dist = v0 * tau + 0.5 * accel * tau * tau
-        return x + ux * dist, y + uy * dist, z + uz * dist
+        _, starts, listed = self._planned()
+        if starts and t_us >= starts[0]:
+            return _position_in(starts, listed, t_us, self._history.initial_mm)
+        return self._history.position_of(t_us)
 
-    def _current_rows(self) -> npt.NDArray[np.float64]:
-        """The history's rows followed by the plan's (kept while neither changes)."""
-        history = self._history._array()
-        key = self._rows_key
-        if key is None or key[0] is not history or len(key[1]) != len(self._plan) or any(
-                a is not b for a, b in zip(key[1], self._plan)):
-            self._rows = self._history.with_extra([p.segment() for p in self._plan])
-            self._rows_key = (history, list(self._plan))
-            self._rows_lists = None
-        return self._rows
+    def _planned(self) -> tuple[npt.NDArray[np.float64], list[float], list[list[float]]]:
+        """The plan's rows (kept while the plan does not change)."""
+        if self._plan_rows is None or len(self._plan_key) != len(self._plan) or any(
+                a is not b for a, b in zip(self._plan_key, self._plan)):
+            rows = np.asarray([_row_of(p.segment()) for p in self._plan], dtype=np.float64).reshape(-1, 10)
+            listed = rows.tolist()
+            self._plan_rows = (rows, [r[0] for r in listed], listed)
+            self._plan_key = list(self._plan)
+        return self._plan_rows
 
     # -- operations ----------------------------------------------------------------
 
