@@ -17,7 +17,9 @@ contact's slope field.
 Sampling cost: the pixels' gel points are fixed, so the bilinear weights of
 every pixel on a grid (:class:`GridLookup`) are computed once per grid
 position (a contact keeps its grid while its anchor stays put); the renderer
-applies them in a fused loop (:mod:`labrig.sim._render_kernels`).
+applies them in a fused loop (:mod:`labrig.sim._render_kernels`). A grid that
+moves at every render (a sliding contact) has the weights computed in that
+loop instead, for the pixels it re-shades, by the same arithmetic.
 """
 
 from __future__ import annotations
