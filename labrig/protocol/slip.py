@@ -56,8 +56,8 @@ class SlipParams:
     stall_friction_ratio: float = 0.5  # ... with |Ft| / (mu |Fn|) at least this
 
     def __post_init__(self) -> None:
-        if self.stall_ratio is not None and not (math.isfinite(self.stall_ratio) and 0 < self.stall_ratio < 1):
-            raise ValueError(f"stall_ratio must be in (0, 1), not {self.stall_ratio}")
+        if self.stall_ratio is not None and not (math.isfinite(self.stall_ratio) and 0 < self.stall_ratio <= 1):
+            raise ValueError(f"stall_ratio must be in (0, 1], not {self.stall_ratio}")
         if not (math.isfinite(self.stall_span_mm) and self.stall_span_mm > 0):
             raise ValueError(f"stall_span_mm must be a positive number (mm), not {self.stall_span_mm}")
         for name in ("share", "at_friction", "net_ratio", "press_ratio", "contact_fraction", "stall_friction_ratio"):
