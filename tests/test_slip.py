@@ -189,6 +189,10 @@ def test_on_the_event_sensor_the_stall_tells_a_sliding_flat_punch_and_ridge(rig:
     run = control_run(result.path)
     assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
     assert 0.0 <= run.slip_onset_error_ms <= 100.0, run.slip_onset_error_ms
+    with Recording(result.path) as rec:  # the stall is recorded: the slope's share of its steepest, where it told
+        told = rec.column("control", "slipping") > 0
+        ratio = rec.column("control", "stiffness_ratio")
+    assert told.any() and np.nanmin(ratio[told]) <= SlipParams().stall_ratio  # type: ignore[operator]
 
 
 @pytest.mark.slow

@@ -309,6 +309,7 @@ CONTROL_STREAM = StreamSpec(
         Column("tangential_n", "<f4", "N", "the reading's tangential force |Ft| on the gel (nan: not read)"),
         Column("slip_share", "<f4", "", "share of the contact's markers at friction (nan: no dense field, no reflex)"),
         Column("friction_ratio", "<f4", "", "|Ft| / (friction |Fn|) of the reading (nan: no slip reflex)"),
+        Column("stiffness_ratio", "<f4", "", "d|Ft|/d(travel) over its steepest in the move: the stall (nan: not yet)"),
         Column("slipping", "u1", "", "1: the slip reflex tells the contact slips"),
     ),
     chunk_rows=1024,

@@ -39,6 +39,7 @@ def put_control(writer: RecordingWriter, t_host_ns: int, held: HeldMove, reading
                tangential_n=math.nan if held.contact is None else held.contact.tangential_n,
                slip_share=math.nan if check is None else check.share,
                friction_ratio=math.nan if check is None else check.friction_ratio,
+               stiffness_ratio=math.nan if check is None else check.stiffness_ratio,
                slipping=int(check is not None and check.slipping))
 
 
