@@ -143,11 +143,11 @@ class SlipDetector:
             return self.last.stiffness_ratio  # the tool has not moved on: nothing new about the slope
         self._travel_mm.append(float(travel_mm))
         self._tangential_n.append(float(tangential_n))
-        x = np.asarray(self._travel_mm)
-        recent = x >= travel_mm - span
-        if recent.sum() < 3 or travel_mm - x[recent].min() < 0.8 * span:
+        while self._travel_mm[0] < travel_mm - span:  # only the latest span is fitted
+            del self._travel_mm[0], self._tangential_n[0]
+        if len(self._travel_mm) < 3 or travel_mm - self._travel_mm[0] < 0.8 * span:
             return math.nan
-        slope = float(np.polyfit(x[recent], np.asarray(self._tangential_n)[recent], 1)[0])
+        slope = float(np.polyfit(self._travel_mm, self._tangential_n, 1)[0])
         self._steepest_n_per_mm = max(self._steepest_n_per_mm, slope)
         return slope / self._steepest_n_per_mm if self._steepest_n_per_mm > 0 else math.nan
 
