@@ -15,7 +15,7 @@ from labrig.errors import LabrigError
 from labrig.eventtypes import EVENT_DTYPE
 from labrig.physics.grid import GRID_SHAPE
 from labrig.pipeline import depth_sources, run_setup
-from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel, signed_counts
+from labrig.pipeline.brightness import BrightnessIntegrator, BrightnessParams, brightness_channel, map_median, signed_counts
 from labrig.pipeline.depth_inputs import InputSpec, network_input
 from labrig.pipeline.sae import sae_grid
 
@@ -479,3 +479,12 @@ def test_a_light_too_dim_in_its_slope_response_is_warned_with_what_to_do() -> No
     assert dim_light_warning(DIM_LIGHT_SLOPE_GAIN - 0.01) is not None
     line = dim_light_warning(0.8)
     assert line is not None and "0.80" in line and "grazing" in line and "\n" not in line
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.sampled_from([0.0, -1.5, 2.0, 3.25]) | st.floats(-1e3, 1e3, width=32), min_size=1, max_size=60))
+def test_map_median_is_numpys_median(values: list[float]) -> None:
+    """Odd and even sizes, ties and repeated zeros: the same float32 value as ``np.median``."""
+    map_ = np.array(values, np.float32)
+    assert map_median(map_) == np.float32(np.median(map_))
+    assert map_median(map_.reshape(1, -1)) == np.float32(np.median(map_))

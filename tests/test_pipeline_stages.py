@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from labrig.config import RigConfig
 from labrig.eventtypes import EVENT_DTYPE
@@ -88,6 +90,29 @@ def test_forces_net_force_and_contact_location(rig: RigConfig) -> None:
     assert loc is not None
     assert np.allclose(loc.position_px, network_grid_pixels(rig)[31, 71])
     assert np.allclose(loc.position_mm, camera.backproject_to_plane(loc.position_px[None])[0, :2])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.0, 0.01, 0.3]), st.sampled_from([0.0, 0.2, 0.5]))
+def test_contact_location_is_the_weighted_centre_of_its_definition(rig: RigConfig, seed: int, threshold_mm: float,
+                                                                   core_fraction: float) -> None:
+    """The compiled core against its definition in numpy: the summed depth over the threshold, and the centre of
+    mass of ``max(depth - core_fraction * peak, 0)`` over the contact cells, as the network grid's pixel."""
+    rng = np.random.default_rng(seed)
+    depth = (rng.random((90, 112)) - rng.random()) * rng.random() * 2
+    camera = true_camera(rig)
+    loc = contact_location(depth, rig.roi, camera, threshold_mm, core_fraction)
+    contact = np.where(depth > threshold_mm, depth, 0.0)
+    if contact.sum() <= 0:
+        assert loc is None
+        return
+    w = np.where(contact > 0, np.maximum(contact - core_fraction * contact.max(), 0.0), 0.0)
+    rows, cols = np.indices(depth.shape)
+    r, c = (w * rows).sum() / w.sum(), (w * cols).sum() / w.sum()
+    assert loc is not None and loc.weight_mm == pytest.approx(contact.sum(), rel=1e-12)
+    lower = network_grid_pixels(rig)[int(r), int(c)]
+    step = network_grid_pixels(rig)[1, 1] - network_grid_pixels(rig)[0, 0]
+    assert np.allclose(loc.position_px, lower + step * [c - int(c), r - int(r)], atol=1e-9)
 
 
 def test_contact_location_is_the_dents_core_not_its_faint_residue(rig: RigConfig) -> None:

@@ -310,10 +310,11 @@ def map_median(values: F32) -> np.float32:
     """The median of a float32 map (``np.median``'s value; the maps hold no NaN, so none is looked for)."""
     flat = values.ravel()
     k = flat.size // 2
+    ordered = np.partition(flat, k)
     if flat.size % 2:
-        return np.float32(np.partition(flat, k)[k])
-    middle = np.partition(flat, (k - 1, k))
-    return np.float32((middle[k - 1] + middle[k]) / 2)
+        return np.float32(ordered[k])
+    # the lower middle is the largest of the k below: numpy's partition at two kth values costs ten times one
+    return np.float32((ordered[:k].max() + ordered[k]) / 2)
 
 
 def box_mean_3x3(values: F32) -> F32:

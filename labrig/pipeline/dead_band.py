@@ -34,7 +34,7 @@ from numba import njit
 from labrig.calibration.event_thresholds_file import ContrastThresholds
 from labrig.config import Roi
 from labrig.errors import LabrigError
-from labrig.physics.grid import GRID_SHAPE, grid_cells_of_pixels
+from labrig.physics.grid import GRID_SHAPE
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -44,21 +44,33 @@ NONE, ON, OFF = 0, 1, -1
 
 
 @njit(cache=True, nogil=True)
-def _count(pixel: npt.NDArray[np.int64], cell: npt.NDArray[np.int64], on: npt.NDArray[np.bool_], on_weight: F64,
-           off_weight: F64, half_band: F64, last: npt.NDArray[np.int8], out: F64) -> None:
-    """Add each event's weight to its cell of ``out``, and the half band when its pixel's last polarity turns
-    OFF (subtracted) or turns back ON from OFF (added); ``last`` is updated in place. ``off_weight`` is negative."""
-    for i in range(pixel.shape[0]):
-        c = cell[i]
-        was_off = last[pixel[i]] == OFF
-        if on[i]:
+def _count(x_px, y_px, polarity, x0_px, y0_px, width_px, height_px, rows, cols, on_weight, off_weight, half_band,  # type: ignore[no-untyped-def]
+           last, out):
+    """Add each event inside the ROI to its grid cell of ``out`` (:func:`~labrig.physics.grid.grid_cells_of_pixels`'s
+    cell): its polarity's weight, and the half band when its pixel's last polarity turns OFF (subtracted) or turns
+    back ON from OFF (added); ``last`` (ROI pixels, row-major) is updated in place. ``off_weight`` is negative."""
+    col_scale = cols / width_px
+    row_scale = rows / height_px
+    for i in range(x_px.shape[0]):
+        x = np.int64(x_px[i]) - x0_px
+        y = np.int64(y_px[i]) - y0_px
+        if x < 0 or y < 0:
+            continue
+        c_col = np.int64((x + 0.5) * col_scale)
+        c_row = np.int64((y + 0.5) * row_scale)
+        if c_col >= cols or c_row >= rows:
+            continue
+        c = c_row * cols + c_col
+        pixel = y * width_px + x
+        was_off = last[pixel] == OFF
+        if polarity[i] > 0:
             out[c] += on_weight[c]
-            last[pixel[i]] = ON
+            last[pixel] = ON
             if was_off:
                 out[c] += half_band[c]
         else:
             out[c] += off_weight[c]
-            last[pixel[i]] = OFF
+            last[pixel] = OFF
             if not was_off:
                 out[c] -= half_band[c]
 
@@ -94,12 +106,9 @@ class PolarityMemory:
         out = np.zeros(self.grid_shape[0] * self.grid_shape[1], np.float64)
         if len(events):
             roi = self.roi
-            cell, inside = grid_cells_of_pixels(events["x"], events["y"], roi.x0_px, roi.y0_px, roi.width_px,
-                                                roi.height_px, self.grid_shape)
-            x = events["x"][inside].astype(np.int64) - roi.x0_px
-            y = events["y"][inside].astype(np.int64) - roi.y0_px
-            _count(y * roi.width_px + x, cell[inside], events["p"][inside] > 0, self.on_weight, self.off_weight,
-                   self.half_band, self.last, out)
+            _count(events["x"], events["y"], events["p"], roi.x0_px, roi.y0_px, roi.width_px, roi.height_px,
+                   self.grid_shape[0], self.grid_shape[1], self.on_weight, self.off_weight, self.half_band, self.last,
+                   out)
         return out.reshape(self.grid_shape).astype(np.float32)
 
     def reset(self) -> None:

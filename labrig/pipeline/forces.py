@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 from labrig.config import Roi
 from labrig.physics.camera import CameraModel
@@ -117,20 +118,48 @@ def contact_location(depth_map_mm: npt.ArrayLike, roi: Roi, camera: CameraModel,
     """The dent's core on the network grid: the centre of mass of ``depth - core_fraction * peak`` where positive.
 
     Only depth above ``threshold_mm`` counts as contact (None without any). Subtracting a fraction of
-    the peak keeps a network's shallow skirt and far, faint residue out of the centre: on the paper
-    campaign's validation split (bundled network) the error was 4.30 px with ``core_fraction`` 0,
-    3.20 / 3.16 / 3.27 px with 0.1 / 0.2 / 0.3. ``weight_mm`` is the summed depth above the threshold.
+    the peak keeps a network's shallow skirt and far, faint residue out of the centre (docs/pipeline.md
+    says how the fraction was chosen). ``weight_mm`` is the summed depth above the threshold.
     """
-    d = np.asarray(depth_map_mm, np.float64)
-    contact = np.where(d > threshold_mm, d, 0.0)
-    total = float(contact.sum())
+    d = np.ascontiguousarray(depth_map_mm, np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth map of shape {d.shape}, expected (rows, cols)")
+    total, r, c = _contact_core(d, float(threshold_mm), float(core_fraction))
     if total <= 0:
         return None
-    w = np.where(contact > 0, np.maximum(contact - core_fraction * float(contact.max()), 0.0), 0.0)
-    core = float(w.sum())
     rows, cols = d.shape
-    r = float((w.sum(axis=1) * np.arange(rows)).sum() / core)
-    c = float((w.sum(axis=0) * np.arange(cols)).sum() / core)
     px = np.array([roi.x0_px - 0.5 + (c + 0.5) * roi.width_px / cols, roi.y0_px - 0.5 + (r + 0.5) * roi.height_px / rows])
-    mm = camera.backproject_to_plane(px[None], 0.0)[0, :2]
+    mm = camera.backproject_to_planes(px[None], 0.0)[0, :2]
     return ContactLocation(px, mm, total)
+
+
+@njit(cache=True, nogil=True)
+def _contact_core(d, threshold_mm, core_fraction):  # type: ignore[no-untyped-def]
+    """(summed depth above ``threshold_mm``, core's centre row, core's centre column) of a float64 map; the
+    core weighs each contact cell by ``max(depth - core_fraction * peak, 0)``; rows and columns are nan
+    when the core is empty."""
+    rows, cols = d.shape
+    total = 0.0
+    peak = 0.0
+    for i in range(rows):
+        for j in range(cols):
+            v = d[i, j]
+            if v > threshold_mm:
+                total += v
+                if v > peak:
+                    peak = v
+    floor = core_fraction * peak
+    core = 0.0
+    r = 0.0
+    c = 0.0
+    for i in range(rows):
+        for j in range(cols):
+            v = d[i, j]
+            if v > threshold_mm and v > 0.0 and v > floor:
+                w = v - floor
+                core += w
+                r += w * i
+                c += w * j
+    if core <= 0.0:
+        return total, np.nan, np.nan
+    return total, r / core, c / core
