@@ -9,8 +9,9 @@ from labrig.config import RigConfig, rig_with
 from labrig.frames import matrix_to_rotvec, rotvec_to_matrix
 from labrig.physics.camera import CameraModel
 from labrig.physics.target import DotGridTarget, target_pose
+from labrig.sim import _render_kernels as _k
 from labrig.sim.optics import Renderer
-from labrig.sim.shading import DepthField
+from labrig.sim.shading import DepthField, GridLookup
 from labrig.sim.stepping import image_velocity_px_s, step_us
 from labrig.sim.target import render_target
 from labrig.sim.truth_config import sim_config, true_camera
@@ -199,6 +200,42 @@ def test_a_slowly_growing_dent_stays_within_the_reported_change(rig: RigConfig) 
     relative = np.abs(lazy.image - full) / np.maximum(full, 1e-3)
     assert relative.max() <= 2.5 * lazy.min_rel_change + 1e-9
     assert lazy_px < eager_px
+
+
+def test_translate_nodes_reads_the_grid_at_the_translated_nodes() -> None:
+    rng = np.random.default_rng(5)
+    values = rng.random((7, 9))
+    out = np.empty_like(values)
+    _k.translate_nodes(values, 2.0, -1.0, out)  # whole nodes: the grid shifted, zeros where it ran off
+    assert np.array_equal(out[1:, :7], values[:-1, 2:]) and not out[0].any() and not out[:, 7:].any()
+    _k.translate_nodes(values, 0.3, 0.45, out)
+    grid = (0.0, 8.0, 9, 0.0, 6.0, 7)
+    jj, ii = np.mgrid[0:7, 0:9]
+    nodes = np.stack([ii.ravel() + 0.3, jj.ravel() + 0.45], axis=1)
+    assert np.allclose(out.ravel(), GridLookup.build(grid, nodes).sample(values, slice(None)), rtol=0.0, atol=1e-12)
+
+
+def test_a_sliding_dent_is_shaded_on_the_grid_it_left(rig: RigConfig) -> None:
+    # A field whose grid moves a fraction of a node per render (a sliding contact) is resampled onto the grid
+    # shown: the renderer re-shades around the nodes whose slope moved, not the whole slope box, and stays within
+    # the change filter plus the shading bound of the full render of the caller's own field.
+    rest = rig.markers.rest_positions_mm()
+    renderer = Renderer(rig)
+    renderer.render(rest, bump(0.3, (0.0, 0.0)))
+    whole = blocks = 0
+    for k in range(1, 13):
+        field = bump(0.3, (0.016 * k, 0.0))
+        update = renderer.render(rest, field)
+        assert update.block is not None
+        blocks += update.block.changed.size
+        whole += renderer.roi.width_px * renderer.roi.height_px
+    full = renderer.render_full(rest, field)
+    relative = np.abs(renderer.image - full) / np.maximum(full, 1e-3)
+    assert relative.max() <= 2.5 * renderer.min_rel_change + 1e-9
+    assert blocks < 0.5 * whole
+    far = bump(0.3, (1.5, 0.0))  # more than FIXED_GRID_DRIFT_NODES away: taken as it is
+    renderer.render(rest, far)
+    assert renderer.image is not None and np.array_equal(renderer.render_full(rest, far) > 0, full > 0)
 
 
 def test_led_off_is_dark(rig: RigConfig) -> None:

@@ -633,6 +633,27 @@ def clear_noise(pix, t, noise_pix, noise_t, noise_last, refractory, mark, keep):
 
 
 @njit(cache=True, nogil=True)
+def translate_nodes(values, dx_nodes, dy_nodes, out):  # type: ignore[no-untyped-def]
+    """``out[j, i]``: ``values`` (ny, nx) interpolated bilinearly at node (i + ``dx_nodes``, j + ``dy_nodes``) of its
+    own grid (:func:`_bilinear`'s arithmetic), 0 off it: a grid's values seen from the same grid translated."""
+    ny, nx = values.shape
+    flat = np.zeros(values.size + nx + 2)
+    flat[: values.size] = values.ravel()
+    for j in range(ny):
+        fy = j + dy_nodes
+        for i in range(nx):
+            fx = i + dx_nodes
+            if not (fx >= 0 and fx <= nx - 1 and fy >= 0 and fy <= ny - 1):
+                out[j, i] = 0.0
+                continue
+            ix = min(max(int(np.floor(fx)), 0), nx - 2)
+            iy = min(max(int(np.floor(fy)), 0), ny - 2)
+            t = min(max(fx - ix, 0.0), 1.0)
+            u = min(max(fy - iy, 0.0), 1.0)
+            out[j, i] = _bilinear(flat, nx, iy * nx + ix, t, u)
+
+
+@njit(cache=True, nogil=True)
 def slope_magnitude(depth, dx, dy, out):  # type: ignore[no-untyped-def]
     """|grad depth| at the nodes of a (ny, nx) grid into ``out``: central differences, one-sided at the
     edges (as np.gradient; the numpy code's arithmetic, operation for operation)."""

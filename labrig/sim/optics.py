@@ -29,9 +29,14 @@ and, per call:
 * re-shades, for a new depth field, the pixels whose shading may have
   changed: the whole slope box when it or the grid moved, else the pixels
   around the nodes whose slope moved by more than ``shade_tol`` since those
-  nodes were last used (so a pixel's shading is never more than
-  ``2 * slope_gain * shade_tol`` off: by default ``min_rel_change``, the smallest change the
-  renderer reports; ``shade_tol=0`` re-shades on any change);
+  nodes were last used. A grid translated by a few nodes (a sliding contact's
+  field moves with it) counts as unmoved: its slope resampled onto the grid
+  it left picks the nodes, and the pixels around them take their slope from
+  the new grid (:data:`FIXED_GRID_DRIFT_NODES`). So a pixel's shading is never more than
+  ``2 * slope_gain * shade_tol`` off (on a translated grid, plus the resampling's error where
+  nodes were left alone: small where the slope is smooth, which is where they are left): by
+  default ``min_rel_change``, the smallest change the renderer reports; ``shade_tol=0``
+  re-shades on any change);
 * reports the pixels whose intensity changed by more than ``min_rel_change``
   of its value: the re-shaded rectangle as a dense :class:`~labrig.sim.pixels.PixelBlock`
   (mask and values, no index lists) and the marker rims outside it as flat indices.
@@ -76,6 +81,8 @@ _NO_LOOKUP = (np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 1
 _NO_GRID = (0.0, 1.0, 2.0, 0.0, 1.0, 2.0)
 #: Gel boxes whose pixel boxes a renderer keeps (cleared when full).
 _PIXEL_BOX_CACHE = 4096
+#: How far (grid nodes, either axis) a translated depth grid is shown on the grid it left before it is taken as is.
+FIXED_GRID_DRIFT_NODES = 10.0
 
 
 class RenderUpdate:
@@ -183,7 +190,10 @@ class Renderer:
         self._shade = np.ones((h, w))
         self._reported = np.zeros((h, w))
         # Shading state: the slope box (ROI rect), the grid, the node slopes last used, the pixels' grid weights.
+        # The field the re-shade's bookkeeping follows (the caller's, or it resampled onto the grid it moved from),
+        # and the caller's last field, whose slope shades the pixels.
         self._depth: DepthField | None = None
+        self._source: DepthField | None = None
         self._shade_box: Rect | None = None
         self._shade_key: tuple[float, float, int, float, float, int] | None = None
         self._shade_nodes: Array | None = None
@@ -225,7 +235,10 @@ class Renderer:
         ``led``: the LED ring's level (1 full, 0 off; True and False mean those); None keeps it.
         """
         touched = self._move_markers(np.asarray(marker_xyz_mm, dtype=np.float64))
-        rect, shade = self._reshade(depth) if depth is not self._depth else (None, None)
+        rect, shade = None, None
+        if depth is not self._source:
+            self._source = depth
+            rect, shade = self._reshade(self._on_shown_grid(depth))
         if led is not None and _led_level(led) != self._led:
             self._led = _led_level(led)
             rect = (0, self.roi.width_px, 0, self.roi.height_px)
@@ -441,6 +454,32 @@ class Renderer:
             return None
         return bx0, bx1, by0, by1
 
+    def _on_shown_grid(self, depth: DepthField | None) -> DepthField | None:
+        """``depth``, or, when its grid is the shown field's translated by at most :data:`FIXED_GRID_DRIFT_NODES`
+        nodes (a sliding contact's field moves with it), its depth and slope resampled onto the shown grid.
+
+        On one grid the re-shade can keep to the nodes whose slope moved (:meth:`_reshade`); a grid that moves at
+        every render would re-shade its whole slope box, which in a shear is most of the ROI. The resampled field
+        only chooses what to re-shade; the pixels re-shaded take their slope from ``depth`` on its own grid."""
+        shown = self._depth
+        if depth is None or shown is None:
+            return depth
+        x0, x1, nx, y0, y1, ny = depth.grid_key()
+        sx0, sx1, snx, sy0, sy1, sny = shown.grid_key()
+        if (x0, y0) == (sx0, sy0) or (nx, ny) != (snx, sny) or not np.isclose(x1 - x0, sx1 - sx0, rtol=1e-9, atol=0.0) \
+                or not np.isclose(y1 - y0, sy1 - sy0, rtol=1e-9, atol=0.0):
+            return depth
+        dx_nodes = (sx0 - x0) / (x1 - x0) * (nx - 1)
+        dy_nodes = (sy0 - y0) / (y1 - y0) * (ny - 1)
+        if max(abs(dx_nodes), abs(dy_nodes)) > FIXED_GRID_DRIFT_NODES:
+            return depth
+        depth_mm, slope = np.empty_like(depth.depth_mm, dtype=np.float64), np.empty_like(depth.slope)
+        _k.translate_nodes(np.ascontiguousarray(depth.depth_mm, dtype=np.float64), dx_nodes, dy_nodes, depth_mm)
+        _k.translate_nodes(depth.slope, dx_nodes, dy_nodes, slope)
+        moved = DepthField(shown.x_mm, shown.y_mm, depth_mm)
+        moved.__dict__["slope"] = slope  # the field's own slope resampled, not one of the resampled depth
+        return moved
+
     def _reshade(self, depth: DepthField | None) -> tuple[Rect | None, Rect | None]:
         """Take a new depth field: (ROI rect to compose, rect within it to re-shade from the field; None if none).
 
@@ -501,18 +540,19 @@ class Renderer:
         values = np.empty((y1 - y0, x1 - x0))
         gel_x, gel_y = self._gel_planes()
         base, tx, ty = _NO_LOOKUP
-        if shade_rect is not None and self._depth is not None:
-            key = self._depth.grid_key()
+        field = self._source  # the caller's field shades the pixels; the one shown may be it on the grid it left
+        if shade_rect is not None and field is not None:
+            key = field.grid_key()
             x0_mm, x1_mm, nx, y0_mm, y1_mm, ny = key
             grid = (x0_mm, x1_mm, float(nx), y0_mm, y1_mm, float(ny))
             # A grid that stays put (a contact whose anchor holds) gets a table of every pixel's weights; one that
             # moves at each render (a sliding contact) has them computed in the loop, for the pixels it re-shades.
             if key == self._lookup_key or key == self._last_shade_key:
-                lookup = self._grid_lookup(self._depth)
+                lookup = self._grid_lookup(field)
                 base, tx, ty = self._kernel_base, lookup.tx, lookup.ty
             self._last_shade_key = key
-            nodes = np.zeros(self._depth.slope.size + nx + 2)  # the zeros: pixels off the grid read them
-            nodes[: self._depth.slope.size] = self._depth.slope.ravel()
+            nodes = np.zeros(field.slope.size + nx + 2)  # the zeros: pixels off the grid read them
+            nodes[: field.slope.size] = field.slope.ravel()
         else:
             shade_rect, nodes, nx, grid = (0, 0, 0, 0), _NO_NODES, 2, _NO_GRID
         _k.shade_compose(rect, shade_rect, nodes, nx, base, tx, ty, grid, gel_x, gel_y, float(self.lighting.slope_gain),
