@@ -237,8 +237,9 @@ class Renderer:
         touched = self._move_markers(np.asarray(marker_xyz_mm, dtype=np.float64))
         rect, shade = None, None
         if depth is not self._source:
-            self._source = depth
-            rect, shade = self._reshade(self._on_shown_grid(depth))
+            previous, self._source = self._source, depth
+            if depth is None or not depth.same_as(previous):  # a new object for the same field changes nothing
+                rect, shade = self._reshade(self._on_shown_grid(depth))
         if led is not None and _led_level(led) != self._led:
             self._led = _led_level(led)
             rect = (0, self.roi.width_px, 0, self.roi.height_px)
