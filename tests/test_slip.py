@@ -17,7 +17,7 @@ from labrig.indenters import Indenter, load_indenters
 from labrig.protocol.feedback import EVENTS_STALE_AFTER_S
 from labrig.protocol.files import load_protocol
 from labrig.protocol.force_loop import ForceLoop, ForceLoopParams, HeldMove
-from labrig.protocol.slip import ContactReading, SlipDetector, SlipParams, SlipReflex
+from labrig.protocol.slip import ContactReading, SlipCheck, SlipDetector, SlipParams, SlipReflex
 from labrig.protocol.spec import ApproachSpec, ProbeSpec, ProtocolError
 from labrig.protocol.virtual_run import record_virtual
 from labrig.recording import Recording
@@ -85,6 +85,55 @@ def test_a_tangential_force_that_stops_rising_while_the_tool_shears_on_tells_sli
         SlipParams(stall_ratio=1.5)
 
 
+def test_a_contact_field_that_stops_following_the_tool_tells_slip() -> None:
+    """Sticking, the contact's markers are dragged 0.8 mm per mm of travel; sliding from 0.6 mm, they stay where they
+    are while the estimated |Ft| keeps rising (as a late estimate's does). The field's stall is told within its
+    0.05 mm span and two readings; markers off the contact (under a tenth of the largest normal force) do not count;
+    with the cue off, the rising |Ft| never tells it."""
+    rng = np.random.default_rng(3)
+
+    def shear(params: SlipParams) -> float | None:
+        detector = SlipDetector(1.0, params)
+        for k, x in enumerate(np.arange(0.0, 1.0, 0.02)):
+            forces = _field(10, 2)
+            moved = np.zeros((156, 3))
+            moved[:10, 0] = 0.8 * min(x, 0.6) + rng.normal(0.0, 0.002, 10)
+            moved[10:, 0] = 5.0  # far off the contact: ignored
+            reading = ContactReading(k + 1, np.array([2.0 * x, 0.0, -2.0]), forces, moved)
+            if detector.update(reading, travel_mm=float(x)).slipping:
+                return float(x)
+        return None
+
+    told = shear(SlipParams(persist=2))
+    assert told is not None and 0.62 <= told <= 0.68, told
+    assert shear(SlipParams(persist=2, follow_ratio=None)) is None
+    detector = SlipDetector(1.0)
+    forces, moved = _field(10, 2), np.zeros((156, 3))
+    moved[:10, :2] = (0.3, 0.4)
+    moved[10:, :2] = 9.0
+    assert detector.contact_displacement_mm(forces, moved) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="follow_span_mm"):
+        SlipParams(follow_span_mm=0.0)
+
+
+def test_each_cue_must_persist_on_its_own() -> None:
+    """A share at friction in one reading and a stall in the next are two cues told once each: not slip."""
+    travel = np.arange(0.0, 0.4, 0.02)
+    tangential = np.minimum(2.0 * travel, 0.4)  # flat from 0.2 mm at 0.67 of friction (mu 0.3, 2 N)
+
+    def shear(share_at: int | None, readings: int) -> SlipCheck:
+        detector = SlipDetector(0.3, SlipParams(persist=2))
+        for k in range(readings):
+            field = _field(10, 10 if k == share_at else 2, mu=0.3)
+            check = detector.update(_reading(k + 1, field, (float(tangential[k]), 0.0, -2.0)), travel_mm=float(travel[k]))
+        return check
+
+    first = next(n for n in range(1, len(travel)) if shear(None, n).stiffness_ratio <= 0.1)
+    assert shear(None, first + 1).slipping  # the stall alone, twice: slip
+    both = shear(first - 2, first)  # the share one reading before the stall's first
+    assert both.stiffness_ratio <= 0.1 and not both.slipping
+
+
 def test_the_net_force_tells_slip_by_its_friction_ratio_and_press_asks_for_enough_normal_force() -> None:
     detector = SlipDetector(0.8, SlipParams(net_ratio=0.95, persist=1, press_ratio=0.5))
     check = detector.update(_reading(1, None, (1.0, 0.0, -2.0)))
@@ -131,10 +180,10 @@ def _protocol(tmp_path: Path, text: str) -> Path:
 
 def test_the_protocol_keys_of_slip_tangential_targets_and_release(tmp_path: Path) -> None:
     spec = load_protocol(_protocol(tmp_path, '[shear]\ndistance_mm = 2.0\nforce_n = 1.2\n[slip]\naction = "press"\n'
-                                             'share = 0.8\npersist = 3\nfriction = 0.7\n'
+                                             'share = 0.8\npersist = 3\nfriction = 0.7\nfollow_span_mm = 0.08\n'
                                              '[release]\nforce_n = 1.0\nhold_s = 0.4\n'))
     assert spec.shear_force_n == 1.2 and spec.slip_action == "press"
-    assert spec.slip == SlipParams(share=0.8, persist=3, friction=0.7)
+    assert spec.slip == SlipParams(share=0.8, persist=3, friction=0.7, follow_span_mm=0.08)
     assert spec.release_force_n == 1.0 and spec.release_hold_s == 0.4 and spec.holds_force
 
 
@@ -178,21 +227,25 @@ def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: R
 
 @pytest.mark.slow
 @pytest.mark.parametrize("indenter", ["cylinder", "ridge"])
-def test_on_the_event_sensor_the_stall_tells_a_sliding_flat_punch_and_ridge(rig: RigConfig, tmp_path: Path,
-                                                                           indenter: str) -> None:
-    """Their estimated fields never reach friction at most markers (the share cue alone never told them); the stall of
-    the estimated |Ft| does, within 100 ms of the true onset (the estimate runs a window and its delivery late)."""
+def test_on_the_event_sensor_a_stall_tells_a_sliding_flat_punch_and_ridge_within_50_ms(rig: RigConfig, tmp_path: Path,
+                                                                                        indenter: str) -> None:
+    """Their estimated fields never reach friction at most markers (the share cue alone never told them); a stall
+    does (the estimated |Ft|'s, or the contact's markers no longer following the tool), within 50 ms of the true
+    onset."""
     shape = load_indenters()[indenter]
     spec = replace(SLIDING, indenter=indenter, feedback="events", control=ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S))
     result = record_virtual(spec, tmp_path / f"{indenter}.h5", rig, shape, seed=1)
     assert result.exit_status == "complete", result.reason
     run = control_run(result.path)
     assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
-    assert 0.0 <= run.slip_onset_error_ms <= 100.0, run.slip_onset_error_ms
-    with Recording(result.path) as rec:  # the stall is recorded: the slope's share of its steepest, where it told
+    assert abs(run.slip_onset_error_ms) <= 50.0, run.slip_onset_error_ms
+    with Recording(result.path) as rec:  # the stalls are recorded: each slope's share of its steepest
         told = rec.column("control", "slipping") > 0
-        ratio = rec.column("control", "stiffness_ratio")
-    assert told.any() and np.nanmin(ratio[told]) <= SlipParams().stall_ratio  # type: ignore[operator]
+        stall = np.fmin(rec.column("control", "stiffness_ratio"), rec.column("control", "following_ratio"))
+        age_us = rec.column("control", "reading_age_us")
+    assert told.any() and np.nanmin(stall[told]) <= 0.1
+    # the camera renders 10 ms behind where a loop reads it: a window's estimate is read within about 20 ms
+    assert np.median(age_us) <= 21_000, np.median(age_us)
 
 
 @pytest.mark.slow

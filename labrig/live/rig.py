@@ -167,7 +167,8 @@ class ProbeStream:
                 return
             t_ns = round((result.t1_us + offset_us) * 1000)
         estimate.publish(Estimate(t_ns, np.asarray(result.net_force_n, np.float64),
-                                  np.asarray(result.forces_n, np.float64)))
+                                  np.asarray(result.forces_n, np.float64),
+                                  np.asarray(result.displacement_mm, np.float64)))
 
     def outcome(self) -> RunResult:
         if self._error is not None:

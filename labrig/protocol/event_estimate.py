@@ -52,4 +52,5 @@ class EventEstimator:
         for window in self.windower.push(chunk.events, chunk.t_host_ns):
             result = self.pipeline.process(window.t0_us, window.t1_us, window.events)
             self.feedback.publish(Estimate(self.to_host_ns(window.t1_us), np.asarray(result.net_force_n, np.float64),
-                                           np.asarray(result.forces_n, np.float64)))
+                                           np.asarray(result.forces_n, np.float64),
+                                           np.asarray(result.displacement_mm, np.float64)))

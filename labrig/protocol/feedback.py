@@ -54,12 +54,13 @@ class ForceReading(Protocol):
 
 @dataclass(frozen=True)
 class Estimate:
-    """One pipeline window's forces on the gel (gel frame, N; a press: Fz < 0), measured at ``t_host_ns`` (the
-    window's end, host ns)."""
+    """One pipeline window's forces on the gel (gel frame, N; a press: Fz < 0) and its markers' displacements from
+    rest (gel frame, mm), measured at ``t_host_ns`` (the window's end, host ns)."""
 
     t_host_ns: int
     net_force_n: F64  # (3,)
     marker_forces_n: F64  # (M, 3)
+    marker_displacements_mm: F64 | None = None  # (M, 3)
 
 
 class EstimateFeedback:
@@ -90,4 +91,5 @@ class EstimateFeedback:
         newest = self.newest
         if newest is None:
             return None
-        return ContactReading(newest.t_host_ns, newest.net_force_n, newest.marker_forces_n)
+        return ContactReading(newest.t_host_ns, newest.net_force_n, newest.marker_forces_n,
+                              newest.marker_displacements_mm)

@@ -212,7 +212,8 @@ PROTOCOL_KEYS: dict[str, dict[str, str]] = {
     "slip": {"action": "slip_action", "share": "slip.share", "at_friction": "slip.at_friction",
              "net_ratio": "slip.net_ratio", "persist": "slip.persist", "press_ratio": "slip.press_ratio",
              "friction": "slip.friction", "stall_ratio": "slip.stall_ratio", "stall_span_mm": "slip.stall_span_mm",
-             "stall_friction_ratio": "slip.stall_friction_ratio"},
+             "stall_friction_ratio": "slip.stall_friction_ratio", "follow_ratio": "slip.follow_ratio",
+             "follow_span_mm": "slip.follow_span_mm"},
     "release": {"force_n": "release_force_n", "hold_s": "release_hold_s"},
     "retract": {"height_mm": "retract_height_mm", "speed_mm_s": "retract_speed_mm_s"},
     "control": {
@@ -249,6 +250,8 @@ _FIELD_SIGN: dict[str, str] = {
     "slip.stall_ratio": "fraction",
     "slip.stall_span_mm": "positive",
     "slip.stall_friction_ratio": "fraction",
+    "slip.follow_ratio": "fraction",
+    "slip.follow_span_mm": "positive",
     "press_hold_s": "positive",
     "control.stiffness_n_per_mm": "positive",
     "control.max_speed_mm_s": "positive",

@@ -310,6 +310,8 @@ CONTROL_STREAM = StreamSpec(
         Column("slip_share", "<f4", "", "share of the contact's markers at friction (nan: no dense field, no reflex)"),
         Column("friction_ratio", "<f4", "", "|Ft| / (friction |Fn|) of the reading (nan: no slip reflex)"),
         Column("stiffness_ratio", "<f4", "", "d|Ft|/d(travel) over its steepest in the move: the stall (nan: not yet)"),
+        Column("following_ratio", "<f4", "",
+               "d|u_t|/d(travel) of the contact's markers over its steepest: the field's stall (nan: no field)"),
         Column("slipping", "u1", "", "1: the slip reflex tells the contact slips"),
     ),
     chunk_rows=1024,

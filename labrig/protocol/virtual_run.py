@@ -62,7 +62,7 @@ from labrig.protocol.spec import ProbeSpec
 from labrig.recording import RecordingMetadata, RecordingWriter
 from labrig.recording.schema import EXIT_ABORTED, EXIT_COMPLETE
 from labrig.sim.live import put_truth_rows, truth_rows
-from labrig.sim.offline import OfflineRig, OfflineSinks
+from labrig.sim.offline import CAMERA_LOOP_RENDER_LAG_US, RENDER_LAG_US, OfflineRig, OfflineSinks
 from labrig.sim.truth import truth_streams
 
 F64 = npt.NDArray[np.float64]
@@ -119,7 +119,8 @@ class _VirtualRun:
         self.writer: RecordingWriter | None = None
         self.grid_gel: F64 | None = None
         self.devices = OfflineRig(rig, indenter, seed=seed, start_tool_mm=plan.approach_start_mm, sinks=OfflineSinks(
-            ft=self._on_ft, cnc=self._on_cnc, gcode=self._on_gcode, camera=self._on_chunk, rig_chunk=self._on_rig_chunk))
+            ft=self._on_ft, cnc=self._on_cnc, gcode=self._on_gcode, camera=self._on_chunk, rig_chunk=self._on_rig_chunk),
+            render_lag_us=RENDER_LAG_US if pipeline is None else CAMERA_LOOP_RENDER_LAG_US)
         self.monitor = ForceMonitor(limits, on_trip=self.devices.feed_hold)
         self.estimator = None if pipeline is None else EventEstimator(pipeline, EstimateFeedback(),
                                                                       self.devices.host_ns_of_camera)

@@ -14,9 +14,11 @@ as long as the CPU needs and its content never depends on load or wall time:
   frames it finds then; samples are tared as the driver tares. Its boot text goes through the
   driver's receiver; once it streams, frames are read whole (:meth:`BotaTwin.read_frames`: the
   receiver's frames at the same reads, without encoding and decoding their bytes).
-* Camera: the rig renders ``RENDER_LAG_US`` behind the host clock (its solves in the known past,
-  as live) in chunks; each chunk's events and trigger edges, in camera time, arrive at the host
-  time the chunk was handed over.
+* Camera: the rig renders ``render_lag_us`` behind the host clock (its solves in the known past)
+  in chunks; each chunk's events and trigger edges, in camera time, arrive at the host time the
+  chunk was handed over. The default, ``RENDER_LAG_US``, is the live world's; a run whose loop
+  reads the camera renders ``CAMERA_LOOP_RENDER_LAG_US`` behind, so its events arrive about as soon
+  as a real camera's would (at the cost of solves twice as often at rest).
 
 Times: host us = the manual clock's ns // 1000; world time (the rig's) = host us - ``origin_us``,
 ``PRE_ROLL_US`` after power-on, when the recording starts (:meth:`OfflineRig.power_on`). Machine coordinates: GRBL's homed
@@ -55,6 +57,9 @@ STATUS_POLL_US = 100_000
 FT_READ_US = 1_000
 #: The renderer's lag behind the host clock and its chunk, us (as the live world).
 RENDER_LAG_US = 30_000
+#: The lag where a run's loop reads the camera, us: a chunk then arrives at most 20 ms after its
+#: first event, near a real EVK4's delivery (milliseconds) rather than the live virtual rig's.
+CAMERA_LOOP_RENDER_LAG_US = 10_000
 RENDER_CHUNK_US = 10_000
 #: The F/T twin's boot time in virtual time, us (it only delays the first samples).
 FT_BOOT_US = 50_000
@@ -92,13 +97,14 @@ class OfflineRig:
     """GRBL, Bota and the camera around one :class:`VirtualRig`, stepped by the caller on a manual clock."""
 
     def __init__(self, rig: RigConfig, indenter: Indenter, *, seed: int, start_tool_mm: npt.ArrayLike,
-                 sinks: OfflineSinks, clock: ManualClock | None = None) -> None:
+                 sinks: OfflineSinks, clock: ManualClock | None = None, render_lag_us: int = RENDER_LAG_US) -> None:
         self.clock = clock or ManualClock(1_000_000_000_000)
         self.sinks = sinks
         limits = machine_limits(rig)
         start = quantize_mm(np.asarray(start_tool_mm, dtype=np.float64).tolist(), limits.steps_per_mm)
         self.timeline = MotionTimeline(limits, start, self.now_us)
-        self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=RENDER_LAG_US * 2 // 3)
+        self.render_lag_us = int(render_lag_us)
+        self.rig = VirtualRig(rig, indenter, seed=seed, max_solve_interval_us=self.render_lag_us * 2 // 3)
         self.track = self.rig.bind(self._tool_world, self._tool_at)
         self.bota = BotaTwin(BotaTwinParams(filter=FilterSetup(sinc_length=64), boot_delay_us=FT_BOOT_US,
                                             clock_offset_us=FT_CLOCK_ORIGIN_US, clock_drift_ppm=FT_CLOCK_DRIFT_PPM,
@@ -268,7 +274,7 @@ class OfflineRig:
         return status
 
     def _render(self, now_us: int) -> None:
-        target = now_us - self.origin_us - RENDER_LAG_US
+        target = now_us - self.origin_us - self.render_lag_us
         if target - self.rig.t_us < RENDER_CHUNK_US:
             return
         self.render_to(target)
