@@ -119,9 +119,10 @@ class SlipCheck:
 
 
 class TravelSlope:
-    """The least-squares slope of a reading against the tool's travel over the latest ``span_mm`` of it, over the
-    steepest such slope so far in the move: 1 while the reading rises with the travel as steeply as it has, 0 once
-    it stops rising. A reading counts once the tool has moved on since the last; nan until the span is covered."""
+    """The least-squares slope of a reading against the tool's travel over the latest ``span_mm`` of it (or over the
+    last three readings, where readings come further apart: a live pipeline that skipped windows), over the steepest
+    such slope so far in the move: 1 while the reading rises with the travel as steeply as it has, 0 once it stops
+    rising. A reading counts once the tool has moved on since the last; nan until the span is covered."""
 
     def __init__(self, span_mm: float) -> None:
         self.span_mm = float(span_mm)
@@ -136,7 +137,7 @@ class TravelSlope:
             return self.ratio  # the tool has not moved on: nothing new about the slope
         self._travel_mm.append(float(travel_mm))
         self._values.append(float(value))
-        while self._travel_mm[0] < travel_mm - span:  # only the latest span is fitted
+        while len(self._travel_mm) > 3 and self._travel_mm[0] < travel_mm - span:  # the latest span, 3 readings at least
             del self._travel_mm[0], self._values[0]
         if len(self._travel_mm) < 3 or travel_mm - self._travel_mm[0] < 0.6 * span:
             self.ratio = math.nan
