@@ -17,6 +17,14 @@ an end point the motion controller plans to stop at (GRBL decelerates to rest at
 machine's acceleration limit cannot carry the tool past it; the executor keeps the goal within what the machine
 can reach in the next segments (:class:`HeldMove`).
 
+A reading above the target backs the tool off by what that reading asks, ``e / k``, and no further until a reading
+shows the unloading (falls by at least :data:`UNLOADING_SEEN` of what ``k`` says the back-off took off), the load
+grows, or the tool presses back in; the held moves of one contact carry this on from one to the next. An event
+camera cannot see a dent partly undone: its pixels fire once their brightness has changed by a contrast threshold,
+and a small unloading changes the membrane's shading by less, so an estimate that reads a little high keeps reading
+so while the tool backs off; a loop that believed it each time would walk the true force down without end. A
+feedback that sees the unloading (the F/T sensor, a large release) moves on at once.
+
 Trips, each a stop with one line saying why (the executor then stops the motion and retracts):
 
 * **stalled**: the newest reading is older than ``stale_after_s`` (a camera lost, a pipeline behind);
@@ -47,6 +55,8 @@ STIFFNESS_MARGIN = 1.25
 #: CNC's deceleration from the shear speed (2 mm/s at 10 mm/s**2: 0.2 mm) would carry the force well past it.
 TANGENTIAL_APPROACH_FRACTION = 0.5
 TANGENTIAL_FINE_SPEED_MM_S = 0.3
+#: A back-off is seen once the reading has fallen by this share of what the stiffness says it took off.
+UNLOADING_SEEN = 0.5
 
 
 @dataclass(frozen=True)
@@ -96,6 +106,8 @@ class ForceLoop:
         self.stopped: str | None = None
         self.stiffness_n_per_mm = self.params.stiffness_n_per_mm
         self._anchor: tuple[float, float] | None = None  # (place mm, force N) the secant is measured from
+        self._backoff: tuple[float, float, float] | None = None  # a back-off's reading: place mm, force N, and the
+        # place it asked for (mm): the tool goes no further out until a reading shows the unloading
         self._clipped_since_s: float | None = None
         self._last_sign = 0
         self._crossings: deque[float] = deque()
@@ -117,7 +129,7 @@ class ForceLoop:
             return self._stop(place_mm, error, f"the force feedback stalled: the newest reading is "
                                                f"{age_s * 1e3:.0f} ms old (more than {p.stale_after_s * 1e3:.0f} ms)")
         k = self._stiffness(place_mm, float(force_n))
-        wanted = place_mm + error / k
+        wanted = max(place_mm + error / k, self._backoff_limit(place_mm, float(force_n), error, k))
         goal = min(max(wanted, reach_mm[0]), reach_mm[1])
         clipped = goal != wanted
         if clipped:
@@ -143,6 +155,37 @@ class ForceLoop:
             self.stiffness_n_per_mm = max(self.params.stiffness_n_per_mm, STIFFNESS_MARGIN * secant)
             self._anchor = (place_mm, force_n)
         return self.stiffness_n_per_mm
+
+    def continue_from(self, earlier: ForceLoop, offset_mm: float) -> None:
+        """Carry on from ``earlier``, the loop of the move before on the same contact: the stiffness it measured
+        and, for the same target, the back-off it is in. Places run from each move's start: ``earlier``'s place
+        ``p`` is ``p + offset_mm`` in this loop's."""
+        self.stiffness_n_per_mm = earlier.stiffness_n_per_mm
+        if earlier._anchor is not None:
+            self._anchor = (earlier._anchor[0] + offset_mm, earlier._anchor[1])
+        if earlier._backoff is not None and earlier.target_n == self.target_n:
+            place, force, limit = earlier._backoff
+            self._backoff = (place + offset_mm, force, limit + offset_mm)
+
+    def _backoff_limit(self, place_mm: float, force_n: float, error: float, k: float) -> float:
+        """How far out (mm along the normal) the tool may go on this reading: where the reading that began the
+        back-off asked for (its place + e / k), until a reading shows the unloading (it fell by UNLOADING_SEEN of
+        what ``k`` says the back-off took off since), or it has risen by its excess over the target and by more than
+        the readings' scatter (``oscillation_band_n``: a load that grows), or the tool has pressed back in a
+        baseline beyond where the back-off began; then from this reading. -inf: no limit (the reading is not above
+        the target)."""
+        if self._backoff is not None:
+            from_place, from_force, _ = self._backoff
+            backed_mm = from_place - place_mm
+            seen = backed_mm >= STIFFNESS_BASELINE_MM and from_force - force_n >= UNLOADING_SEEN * k * backed_mm
+            risen = force_n - from_force >= max(from_force - self.target_n, self.params.oscillation_band_n)
+            if seen or risen or backed_mm <= -STIFFNESS_BASELINE_MM:
+                self._backoff = None
+        if error >= 0:
+            return -math.inf
+        if self._backoff is None:
+            self._backoff = (place_mm, force_n, place_mm + error / k)
+        return self._backoff[2]
 
     def _oscillating(self, t_s: float, error: float) -> bool:
         p = self.params
@@ -178,12 +221,15 @@ class HeldMove:
     early: once the tangential force reaches ``until_tangential_n`` (N; :attr:`ended_by` "tangential force"), or
     when ``slip``'s detector tells the contact slips (:attr:`slipped_at_s`) and its action is "stop" (ended_by
     "slip"); the action "press" raises the loop's target instead (:meth:`SlipDetector.press_target_n`, at most the
-    reflex's ``press_limit_n``), and "report" only records it."""
+    reflex's ``press_limit_n``), and "report" only records it.
+
+    ``follows``: the held move just before on the same contact (the press before a wait, a wait before a shear),
+    whose loop this one carries on from (:meth:`ForceLoop.continue_from`)."""
 
     def __init__(self, start_mm: npt.ArrayLike, target_mm: npt.ArrayLike, normal: npt.ArrayLike,
                  speed_mm_s: float, loop: ForceLoop, deepest_mm: npt.ArrayLike | None = None, *,
                  accel_mm_s2: float = 10.0, duration_s: float = 0.0, until_tangential_n: float | None = None,
-                 slip: SlipReflex | None = None) -> None:
+                 slip: SlipReflex | None = None, follows: HeldMove | None = None) -> None:
         if not (math.isfinite(accel_mm_s2) and accel_mm_s2 > 0):
             raise ValueError(f"the acceleration must be a positive number (mm/s**2), not {accel_mm_s2}")
         self.start = np.asarray(start_mm, np.float64)
@@ -191,6 +237,8 @@ class HeldMove:
         delta = np.asarray(target_mm, np.float64) - self.start
         self.lateral = delta - (delta @ self.normal) * self.normal
         self.loop = loop
+        if follows is not None and np.allclose(follows.normal, self.normal):
+            loop.continue_from(follows.loop, float((follows.start - self.start) @ self.normal))
         self.accel_mm_s2 = float(accel_mm_s2)
         segment_s = loop.params.segment_s
         lateral_mm = float(np.linalg.norm(self.lateral))

@@ -157,6 +157,7 @@ class ProbeRunner:
         self._output_level = 0
         self._plan: ProbePlan | None = None
         self._contact: F64 | None = None
+        self._last_held: HeldMove | None = None  # the held move before, on this contact
         self._hold_on_halt = False
         self._last_report = (0.0, 0)
         # A twin on a loaded host may stall for seconds; a real machine's moves keep their margin.
@@ -256,6 +257,7 @@ class ProbeRunner:
                     raise _Abort("stopped by the user (Ctrl-C)", hold=False)
                 self._phase(step.name, recovering=step.recovering)
             case Move():
+                self._last_held = None  # the tool leaves the held moves' contact state
                 self._move(step.target_mm, step.speed_mm_s)
             case MoveUntil():
                 return self._move_until(step)
@@ -267,6 +269,7 @@ class ProbeRunner:
                 return np.asarray(self.grbl.status().position_mm, dtype=np.float64)
             case Contact():
                 self._contact = np.asarray(step.position_mm, dtype=np.float64)
+                self._last_held = None  # a new contact
             case Halt():
                 self._halt()
             case Retreat():
@@ -301,7 +304,8 @@ class ProbeRunner:
         here = np.asarray(self.grbl.status().position_mm, dtype=np.float64)
         held = HeldMove(here, step.target_mm, step.normal, step.speed_mm_s, ForceLoop(step.hold.target_n, step.hold.params),
                         step.deepest_mm, accel_mm_s2=self.grbl.limits.accel_along_mm_s2(step.normal),
-                        duration_s=step.duration_s, until_tangential_n=step.until_tangential_n, slip=step.slip)
+                        duration_s=step.duration_s, until_tangential_n=step.until_tangential_n, slip=step.slip,
+                        follows=self._last_held)
         period_s = step.hold.params.segment_s
         clock = self.session.clock
         feedback: ForceReading = self.session.monitor
@@ -339,6 +343,7 @@ class ProbeRunner:
                 time.sleep(max(0.0, next_s - time.monotonic()))
             else:
                 next_s = time.monotonic()
+        self._last_held = held
         self._wait_motion(move_limit_s(0.0, step.speed_mm_s))
         return None
 

@@ -116,6 +116,7 @@ class _VirtualRun:
         self.plan, self.rig, self.indenter, self.limits, self.seed = plan, rig, indenter, limits, seed
         self.on_step = on_step
         self.contact: F64 | None = None
+        self._last_held: HeldMove | None = None  # the held move before, on this contact
         self.writer: RecordingWriter | None = None
         self.grid_gel: F64 | None = None
         self.devices = OfflineRig(rig, indenter, seed=seed, start_tool_mm=plan.approach_start_mm, sinks=OfflineSinks(
@@ -214,6 +215,7 @@ class _VirtualRun:
             case Phase():
                 self._phase(step.name)
             case Move():
+                self._last_held = None  # the tool leaves the held moves' contact state
                 self._move(step.target_mm, step.speed_mm_s)
             case MoveUntil():
                 reached = self.monitor.arm(step.until.kind, step.until.threshold_n, d.jog_cancel,
@@ -230,6 +232,7 @@ class _VirtualRun:
                 return np.asarray(d.timeline.position_mm, dtype=np.float64)
             case Contact():
                 self.contact = np.asarray(step.position_mm, dtype=np.float64)
+                self._last_held = None  # a new contact
             case Halt():
                 d.feed_hold()
                 d.dwell(500_000)
@@ -248,7 +251,8 @@ class _VirtualRun:
         held = HeldMove(timeline.tail_mm, step.target_mm, step.normal, step.speed_mm_s,
                         ForceLoop(step.hold.target_n, step.hold.params), step.deepest_mm,
                         accel_mm_s2=timeline.limits.accel_along_mm_s2(step.normal), duration_s=step.duration_s,
-                        until_tangential_n=step.until_tangential_n, slip=step.slip)
+                        until_tangential_n=step.until_tangential_n, slip=step.slip,
+                        follows=self._last_held)
         segment_us = round(step.hold.params.segment_s * US)
         queued = 0
         while True:
@@ -276,6 +280,7 @@ class _VirtualRun:
             if queued >= 2:  # one segment ahead
                 d.dwell(segment_us, stop=self._tripped)
                 self._check_trip()
+        self._last_held = held
         self._wait(move_limit_s(0.0, step.speed_mm_s))
         return None
 
