@@ -50,7 +50,7 @@ def test_the_dense_field_tells_slip_when_the_share_at_friction_persists() -> Non
     assert not detector.update(_reading(2, _field(10, 9))).slipping  # once is not yet
     assert not detector.update(_reading(2, _field(10, 9))).slipping  # the same reading again counts once
     check = detector.update(_reading(3, _field(10, 10)))
-    assert check.slipping and check.share == 1.0
+    assert check.slipping and check.share == 1.0 and check.cue == "share"
     assert not detector.update(_reading(4, _field(10, 5))).slipping  # a stick breaks the run
     assert math.isnan(detector.share_at_friction(np.zeros((156, 3))))  # no contact: no share
 
@@ -101,7 +101,9 @@ def test_a_contact_field_that_stops_following_the_tool_tells_slip() -> None:
             moved[:10, 0] = 0.8 * min(x, 0.6) + rng.normal(0.0, 0.002, 10)
             moved[10:, 0] = 5.0  # far off the contact: ignored
             reading = ContactReading(k + 1, np.array([2.0 * x, 0.0, -2.0]), forces, moved)
-            if detector.update(reading, travel_mm=float(x)).slipping:
+            check = detector.update(reading, travel_mm=float(x))
+            if check.slipping:
+                assert check.cue == "field stall"
                 return float(x)
         return None
 
@@ -141,7 +143,8 @@ def test_the_net_force_tells_slip_by_its_friction_ratio_and_press_asks_for_enoug
     detector = SlipDetector(0.8, SlipParams(net_ratio=0.95, persist=1, press_ratio=0.5))
     check = detector.update(_reading(1, None, (1.0, 0.0, -2.0)))
     assert not check.slipping and check.friction_ratio == pytest.approx(1.0 / 1.6) and math.isnan(check.share)
-    assert detector.update(_reading(2, None, (0.0, 1.55, -2.0))).slipping
+    told = detector.update(_reading(2, None, (0.0, 1.55, -2.0)))
+    assert told.slipping and told.cue == "net ratio"
     assert detector.press_target_n(_reading(3, None, (1.2, 0.0, -2.0))) == pytest.approx(1.2 / (0.5 * 0.8))
 
 
@@ -226,6 +229,7 @@ def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: R
     run = control_run(result.path)
     assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
     assert abs(run.slip_onset_error_ms) <= 50.0, run.slip_onset_error_ms
+    assert run.slip_cue == ("net ratio" if feedback == "ft" else "share")  # recorded with the control rows
 
 
 @pytest.mark.slow

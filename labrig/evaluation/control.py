@@ -110,6 +110,7 @@ class ControlRun:
     target_series_n: npt.NDArray[np.float64]  # the target in force at those times (nan outside held phases)
     slip_told_s: float = math.nan  # Shear's slip reflex first told slip, s from the origin (nan: never, no reflex)
     slip_onset_s: float = math.nan  # the sim's true onset of gross slip in Shear, s from the origin (nan: none)
+    slip_cue: str = ""  # the cue that first told it (labrig.protocol.slip.SLIP_CUES; "": never, or not recorded)
 
     @property
     def slip_onset_error_ms(self) -> float:
@@ -128,7 +129,7 @@ def control_run(path: str | Path, forces: ForceResult | None = None) -> ControlR
         phases = rec.phases()
         feedback = str(rec.attrs.get("extra_control_feedback", "ft"))
         truth = rec.stream("truth/contact") if "truth/contact" in rec.streams else None
-    slip_told_us, slip_onset_us = _slip_times(control, truth, phases)
+    slip_told_us, slip_onset_us, slip_cue = _slip_times(control, truth, phases)
     c_t, c_target = control["t_host_us"].astype(np.int64), control["target_n"].astype(np.float64)
     t_us = ft["t_host_us"].astype(np.int64)
     fz = np.abs(ft["force_n"][:, 2] - ft["force_n"][:TARE_SAMPLES, 2].mean()).astype(np.float64)
@@ -166,26 +167,32 @@ def control_run(path: str | Path, forces: ForceResult | None = None) -> ControlR
         origin_us=origin_us,
         phases_s=tuple((p.name, (p.t_start_us - origin_us) / 1e6, (p.t_end_us - origin_us) / 1e6) for p in phases),
         t_s=(t_us - origin_us) / 1e6, ft_fz_n=fz, target_series_n=target_series,
-        slip_told_s=(slip_told_us - origin_us) / 1e6, slip_onset_s=(slip_onset_us - origin_us) / 1e6)
+        slip_told_s=(slip_told_us - origin_us) / 1e6, slip_onset_s=(slip_onset_us - origin_us) / 1e6,
+        slip_cue=slip_cue)
 
 
 def _slip_times(control: Mapping[str, npt.NDArray[Any]], truth: Mapping[str, npt.NDArray[Any]] | None,
-                phases: Sequence[Phase]) -> tuple[float, float]:
-    """In the first Shear: when the reflex first told slip and when the contact truly began to slide (host us;
-    nan where not)."""
+                phases: Sequence[Phase]) -> tuple[float, float, str]:
+    """In the first Shear: when the reflex first told slip, when the contact truly began to slide (host us; nan
+    where not), and the cue that told it ("" where not recorded)."""
     shear = next((p for p in phases if p.name == "shear"), None)
     if shear is None:
-        return math.nan, math.nan
+        return math.nan, math.nan, ""
     told = onset = math.nan
+    cue = ""
     if "slipping" in control:
         t = control["t_host_us"].astype(np.int64)
-        hits = t[(t >= shear.t_start_us) & (t <= shear.t_end_us) & (control["slipping"] > 0)]
-        told = float(hits[0]) if hits.size else math.nan
+        hits = np.flatnonzero((t >= shear.t_start_us) & (t <= shear.t_end_us) & (control["slipping"] > 0))
+        if hits.size:
+            told = float(t[hits[0]])
+            if "slip_cue" in control:
+                raw = control["slip_cue"][hits[0]]
+                cue = raw.decode() if isinstance(raw, bytes) else str(raw)
     if truth is not None and "sliding" in truth:
         t = truth["t_host_us"].astype(np.int64)
         hits = t[(t >= shear.t_start_us) & (t <= shear.t_end_us) & (truth["sliding"] > 0)]
         onset = float(hits[0]) if hits.size else math.nan
-    return told, onset
+    return told, onset, cue
 
 
 def _rms(errors: Sequence[npt.NDArray[np.float64]]) -> float:

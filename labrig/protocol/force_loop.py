@@ -361,6 +361,7 @@ CONTROL_STREAM = StreamSpec(
         Column("following_ratio", "<f4", "",
                "d|u_t|/d(travel) of the contact's markers over its steepest: the field's stall (nan: no field)"),
         Column("slipping", "u1", "", "1: the slip reflex tells the contact slips"),
+        Column("slip_cue", "S16", "", "the cue that tells it: share, net ratio, force stall, field stall (empty: none)"),
     ),
     chunk_rows=1024,
     description="the force loop's commands (feedback, command, segment)",

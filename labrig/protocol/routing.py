@@ -41,7 +41,7 @@ def put_control(writer: RecordingWriter, t_host_ns: int, held: HeldMove, reading
                friction_ratio=math.nan if check is None else check.friction_ratio,
                stiffness_ratio=math.nan if check is None else check.stiffness_ratio,
                following_ratio=math.nan if check is None else check.following_ratio,
-               slipping=int(check is not None and check.slipping))
+               slipping=int(check is not None and check.slipping), slip_cue="" if check is None else check.cue)
 
 
 def put_ft(writer: RecordingWriter, sample: FtSample) -> bool:

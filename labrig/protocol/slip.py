@@ -43,6 +43,9 @@ F64 = npt.NDArray[np.float64]
 
 #: What a held shear does when its contact slips: record it only, stop the shear there, or raise the held force.
 SLIP_ACTIONS = ("report", "stop", "press")
+#: The cues that tell slip: the dense field's share at friction, the net force's friction ratio, the stall of |Ft|
+#: against the travel, the stall of the contact's tracked displacement.
+SLIP_CUES = ("share", "net ratio", "force stall", "field stall")
 
 
 @dataclass(frozen=True)
@@ -109,13 +112,15 @@ class SlipCheck:
     """One reading's verdict: ``share`` of the contact's markers at friction (nan without the field),
     ``friction_ratio`` = |Ft| / (mu |Fn|) of the net force, ``stiffness_ratio`` = d|Ft|/d(travel) now over its
     steepest in the move, ``following_ratio`` = the same of the contact's tangential displacement (nan: not measured),
-    and whether the contact ``slipping`` (persisting)."""
+    whether the contact ``slipping`` (persisting), and the ``cue`` that tells it (one of :data:`SLIP_CUES`; "" while
+    it does not)."""
 
     share: float
     friction_ratio: float
     slipping: bool
     stiffness_ratio: float = math.nan
     following_ratio: float = math.nan
+    cue: str = ""
 
 
 class TravelSlope:
@@ -185,7 +190,9 @@ class SlipDetector:
                 loaded and p.stall_ratio is not None and stiffness <= p.stall_ratio,
                 loaded and p.follow_ratio is not None and following <= p.follow_ratio)
         self._runs = tuple(run + 1 if cue else 0 for run, cue in zip(self._runs, says, strict=True))
-        self.last = SlipCheck(share, ratio, max(self._runs) >= p.persist, stiffness, following)
+        names = ("share" if not math.isnan(share) else "net ratio", "force stall", "field stall")
+        cue = next((name for name, run in zip(names, self._runs, strict=True) if run >= p.persist), "")
+        self.last = SlipCheck(share, ratio, bool(cue), stiffness, following, cue)
         return self.last
 
     def _contact(self, marker_forces_n: npt.ArrayLike) -> tuple[F64, npt.NDArray[np.bool_]] | None:

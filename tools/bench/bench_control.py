@@ -128,7 +128,7 @@ def _slip_run(folder: Path, indenter: str, force_n: float, shear_mm: float, feed
             "slid": slid, "told": told,
             "onset_s": run.slip_onset_s - shear[1] if slid else None,
             "told_s": run.slip_told_s - shear[1] if told else None,
-            "onset_error_ms": run.slip_onset_error_ms if slid and told else None,
+            "onset_error_ms": run.slip_onset_error_ms if slid and told else None, "cue": run.slip_cue or None,
             "false_trip": told and not slid}
 
 
@@ -201,9 +201,11 @@ def render(f: dict[str, Any]) -> None:
 
     emit(f"The slip reflex: held shears at {SHEAR_SPEED_MM_S:g} mm/s, when it told slip against the true onset of gross "
          "slip (virtual rig, virtual time)",
-         ["indenter", "held N", "shear mm", "feedback", "slid at ms", "told at ms", "told - onset ms", "false trip"],
+         ["indenter", "held N", "shear mm", "feedback", "slid at ms", "told at ms", "told - onset ms", "cue",
+          "false trip"],
          [[r["indenter"], f"{r['held_n']:g}", f"{r['shear_mm']:g}", r["feedback"], ms(r["onset_s"]), ms(r["told_s"]),
-           "" if r["onset_error_ms"] is None else f"{r['onset_error_ms']:+.0f}", "yes" if r["false_trip"] else ""]
+           "" if r["onset_error_ms"] is None else f"{r['onset_error_ms']:+.0f}", r["cue"] or "",
+           "yes" if r["false_trip"] else ""]
           for r in f["slip_rows"]],
          ["times from Shear's start; targets: within 50 ms of the onset, no false trip in a shear that sticks. events: "
           "the share of the estimate's contact markers at friction, or its tracked contact ceasing to follow the "
