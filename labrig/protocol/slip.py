@@ -23,8 +23,9 @@ patch is at the limit, when the net tangential force reaches ``mu`` times the no
   are dragged along with the tool; sliding as a whole, they stay where friction holds them while the tool shears on.
   The contact slips when the slope of the contact's tangential displacement (its markers' displacements weighted by
   their normal force) against the travel over the last ``follow_span_mm`` has fallen to ``follow_ratio`` of its
-  steepest, with the same friction gate. The markers are tracked in every window, so this slope turns with the
-  slide itself, before a force computed from them has settled.
+  steepest, with the same friction gate. The markers are tracked in every window, so where they stop with the
+  slide this slope turns at once; a sliding edge can drag the tracked markers near it along, and then it turns
+  late.
 
 Each cue must hold on its own in ``persist`` fresh readings in a row. What a held shear does then is the protocol's
 ``[slip] action`` (:data:`SLIP_ACTIONS`): record it, stop the shear where it is, or press harder until the
@@ -190,7 +191,8 @@ class SlipDetector:
                 loaded and p.stall_ratio is not None and stiffness <= p.stall_ratio,
                 loaded and p.follow_ratio is not None and following <= p.follow_ratio)
         self._runs = tuple(run + 1 if cue else 0 for run, cue in zip(self._runs, says, strict=True))
-        names = ("share" if not math.isnan(share) else "net ratio", "force stall", "field stall")
+        share_cue, net_cue, force_cue, field_cue = SLIP_CUES
+        names = (share_cue if not math.isnan(share) else net_cue, force_cue, field_cue)
         cue = next((name for name, run in zip(names, self._runs, strict=True) if run >= p.persist), "")
         self.last = SlipCheck(share, ratio, bool(cue), stiffness, following, cue)
         return self.last
