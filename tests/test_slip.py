@@ -237,16 +237,15 @@ def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: R
 def test_on_the_event_sensor_a_stall_tells_a_sliding_flat_punch_and_ridge(rig: RigConfig, tmp_path: Path,
                                                                          indenter: str) -> None:
     """Their estimated fields never reach friction at most markers (the share cue alone never told them); a stall
-    does (the estimated |Ft|'s, or the contact's markers no longer following the tool), within 200 ms of the true
-    onset: the normal force held, the sliding rim drags the tracked markers along and the estimated |Ft| keeps
-    rising for a while after the contact slides."""
+    does (the estimated |Ft|'s, or the contact's markers no longer following the tool), within 100 ms of the true
+    onset: the normal force held, the estimate flattens a window or more after the contact slides."""
     shape = load_indenters()[indenter]
     spec = replace(SLIDING, indenter=indenter, feedback="events", control=ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S))
     result = record_virtual(spec, tmp_path / f"{indenter}.h5", rig, shape, seed=1)
     assert result.exit_status == "complete", result.reason
     run = control_run(result.path)
     assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
-    assert 0.0 <= run.slip_onset_error_ms <= 200.0, run.slip_onset_error_ms
+    assert 0.0 <= run.slip_onset_error_ms <= 100.0, run.slip_onset_error_ms
     with Recording(result.path) as rec:  # the stalls are recorded: each slope's share of its steepest
         told = rec.column("control", "slipping") > 0
         stall = np.fmin(rec.column("control", "stiffness_ratio"), rec.column("control", "following_ratio"))

@@ -31,6 +31,7 @@ distances to the (up to 8) neighbours hold the grid together.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -113,6 +114,10 @@ class TrackerParams:
     # A gate whose one polarity outnumbers the other more than this cannot place its dot: the dot makes the mean
     # move of its updated 4-neighbours instead; None: off
     lopsided_ratio: float | None = 10.0
+    # A gate whose patch around it holds ON and OFF events alike (within 2 x) at least this densely as the gate
+    # itself cannot place its dot either: a dot's own events lie in its gate, an edge translating across the patch (a
+    # sliding flat punch's rim) makes both polarities everywhere (a pressing edge's shading makes one); None: off
+    flood_ratio: float | None = 0.3
     # Report each dot at the window's end, not at its events' mean time: moved on by its velocity (its last two
     # centroids, averaged with its neighbours'), the step shrunk where the centroids moved less than this; None: off
     lag_noise_px: float | None = 1.0
@@ -476,23 +481,44 @@ class Tracker(_PatchTracker):
         self._centroid_t_us = np.where(updated & (count > 0), t_mean, np.nan)  # no update: no velocity next time
         return reported
 
-    def _follow_when_lopsided(self, out: Array, updated: BoolArray, counts: Array, ratio: float) -> None:
-        """In place: the dots whose gates are lopsided (``counts`` (M, 2) OFF / ON events before the
-        polarity guard: one polarity more than ``ratio`` x the other) make this window's mean move of
-        their 4-neighbours that updated (at least two; else they stay), and are not updated. A moving
-        dot makes ON and OFF events alike; a gate flooded with one polarity is seeing the membrane's
-        slope shading (a flat punch's or a ridge's edge passing), whose trimmed remainder still drags
-        the dot. Without its own say, the gel's smooth motion is the best guess; following the
-        neighbours' moves, not their displacement, keeps the dot's own history (a dot under a
-        slipping contact has moved differently from its neighbours)."""
-        p = self.params
+    def _lopsided(self, counts: Array) -> BoolArray:
+        """The dots whose gates are lopsided (``counts`` (M, 2) OFF / ON events before the polarity guard: one
+        polarity more than ``lopsided_ratio`` x the other). A moving dot makes ON and OFF events alike; a gate flooded
+        with one polarity is seeing the membrane's slope shading (a flat punch's or a ridge's edge passing), whose
+        trimmed remainder still drags the dot."""
+        ratio = self.params.lopsided_ratio
+        if ratio is None:
+            return np.zeros(len(counts), np.bool_)
         n_off, n_on = counts[:, 0], counts[:, 1]
-        total = n_off + n_on
-        lopsided = ((np.maximum(n_on, n_off) > ratio * np.maximum(np.minimum(n_on, n_off), 1.0))
-                    & (total >= p.min_events) & self.observed)
-        if not lopsided.any():
-            return
-        good = updated & ~lopsided
+        return ((np.maximum(n_on, n_off) > ratio * np.maximum(np.minimum(n_on, n_off), 1.0))
+                & (n_off + n_on >= self.params.min_events) & self.observed)
+
+    def _flooded(self, counts: Array, gate2: float) -> BoolArray:
+        """The dots whose patches, outside their gates, hold ON and OFF events alike (within 2 x) at least
+        ``flood_ratio`` x as densely as the gates (``counts`` (M, 2): the gates' events). A dot's own events lie in
+        its gate (outside it a moving dot's patch sees the sensor's noise, a hundredth of the gate's density); an
+        edge translating across the patch (a sliding flat punch's rim) makes both polarities everywhere, which
+        neither the guard nor the lopsided test sees, and the gate follows the edge. A pressing edge's shading makes
+        one polarity: not this."""
+        ratio = self.params.flood_ratio
+        if ratio is None or not gate2:
+            return np.zeros(len(counts), np.bool_)
+        gate_px2 = math.pi * gate2
+        rects = self._painted
+        outside_px2 = np.maximum((rects[:, 1] - rects[:, 0]) * (rects[:, 3] - rects[:, 2]) - gate_px2, 1.0)
+        off, on = self._outside[:, 0], self._outside[:, 1]
+        balanced = np.minimum(off, on) * 3.0 >= np.maximum(off, on)
+        inside = counts.sum(axis=1)
+        return (balanced & ((off + on) / outside_px2 >= ratio * inside / gate_px2)
+                & (inside >= self.params.min_events) & self.observed)
+
+    def _follow_neighbours_moves(self, out: Array, updated: BoolArray, blind: BoolArray) -> None:
+        """In place: the dots whose gates cannot place them (``blind``: :meth:`_lopsided`, :meth:`_flooded`) make
+        this window's mean move of their 4-neighbours that updated (at least two; else they stay), and are not
+        updated. Without its own say, the gel's smooth motion is the best guess; following the neighbours' moves,
+        not their displacement, keeps the dot's own history (a dot under a slipping contact has moved differently
+        from its neighbours)."""
+        good = updated & ~blind
         step = out - self.positions_px  # this window's moves
         acc = np.zeros_like(out)
         n = np.zeros(len(out))
@@ -501,11 +527,11 @@ class Tracker(_PatchTracker):
             ok = (j >= 0) & good[np.maximum(j, 0)]
             acc[ok] += step[j[ok]]
             n[ok] += 1
-        move = lopsided & (n >= 2)
+        move = blind & (n >= 2)
         out[move] = self.positions_px[move] + acc[move] / n[move, None]
-        stay = lopsided & ~move
+        stay = blind & ~move
         out[stay] = self.positions_px[stay]
-        updated[lopsided] = False
+        updated[blind] = False
 
     @property
     def patches_px(self) -> npt.NDArray[np.int64]:
@@ -537,8 +563,10 @@ class Tracker(_PatchTracker):
             _centroids_and_prior(centre, self._sums, self._prior, self.rest_px, float(p.min_events),
                                  float(p.min_each_polarity), p.polarity_balance, lam, out, updated)
             centre = out.copy()
-        if p.lopsided_ratio is not None and len(events):
-            self._follow_when_lopsided(out, updated, polarity_counts, float(p.lopsided_ratio))
+        if len(events):
+            blind = self._lopsided(polarity_counts) | self._flooded(polarity_counts, gate2)
+            if blind.any():
+                self._follow_neighbours_moves(out, updated, blind)
         reported = out  # the tracker keeps its centroids (a dot that stops is where its events put it)
         if p.lag_noise_px is not None:
             end = float(events["t"][-1]) if t_end_us is None and len(events) else t_end_us
