@@ -94,6 +94,11 @@ def grid_neighbours(rows: int, cols: int, connectivity: int = 4) -> npt.NDArray[
     return out
 
 
+#: A flooded patch holds ON and OFF events alike, within this ratio: an edge translating across it makes both, a
+#: pressing edge's slope shading one.
+FLOOD_POLARITY_RATIO = 3.0
+
+
 @dataclass(frozen=True)
 class TrackerParams:
     """The paper's tracker: defaults as published (3x diameter patches, lambda = 0.2)."""
@@ -114,8 +119,8 @@ class TrackerParams:
     # A gate whose one polarity outnumbers the other more than this cannot place its dot: the dot makes the mean
     # move of its updated 4-neighbours instead; None: off
     lopsided_ratio: float | None = 10.0
-    # A gate whose patch around it holds ON and OFF events alike (within 2 x) at least this densely as the gate
-    # itself cannot place its dot either: a dot's own events lie in its gate, an edge translating across the patch (a
+    # A gate whose patch around it holds ON and OFF events alike (within FLOOD_POLARITY_RATIO) at least this densely
+    # as the gate itself cannot place its dot either: a dot's own events lie in its gate, an edge translating across the patch (a
     # sliding flat punch's rim) makes both polarities everywhere (a pressing edge's shading makes one); None: off
     flood_ratio: float | None = 0.3
     # Report each dot at the window's end, not at its events' mean time: moved on by its velocity (its last two
@@ -494,8 +499,8 @@ class Tracker(_PatchTracker):
                 & (n_off + n_on >= self.params.min_events) & self.observed)
 
     def _flooded(self, counts: Array, gate2: float) -> BoolArray:
-        """The dots whose patches, outside their gates, hold ON and OFF events alike (within 2 x) at least
-        ``flood_ratio`` x as densely as the gates (``counts`` (M, 2): the gates' events). A dot's own events lie in
+        """The dots whose patches, outside their gates, hold ON and OFF events alike (within FLOOD_POLARITY_RATIO)
+        at least ``flood_ratio`` x as densely as the gates (``counts`` (M, 2): the gates' events). A dot's own events lie in
         its gate (outside it a moving dot's patch sees the sensor's noise, a hundredth of the gate's density); an
         edge translating across the patch (a sliding flat punch's rim) makes both polarities everywhere, which
         neither the guard nor the lopsided test sees, and the gate follows the edge. A pressing edge's shading makes
@@ -507,7 +512,7 @@ class Tracker(_PatchTracker):
         rects = self._painted
         outside_px2 = np.maximum((rects[:, 1] - rects[:, 0]) * (rects[:, 3] - rects[:, 2]) - gate_px2, 1.0)
         off, on = self._outside[:, 0], self._outside[:, 1]
-        balanced = np.minimum(off, on) * 3.0 >= np.maximum(off, on)
+        balanced = np.minimum(off, on) * FLOOD_POLARITY_RATIO >= np.maximum(off, on)
         inside = counts.sum(axis=1)
         return (balanced & ((off + on) / outside_px2 >= ratio * inside / gate_px2)
                 & (inside >= self.params.min_events) & self.observed)
