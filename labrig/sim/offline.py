@@ -18,7 +18,7 @@ as long as the CPU needs and its content never depends on load or wall time:
   in chunks; each chunk's events and trigger edges, in camera time, arrive at the host time the
   chunk was handed over. The default, ``RENDER_LAG_US``, is the live world's; a run whose loop
   reads the camera renders ``CAMERA_LOOP_RENDER_LAG_US`` behind, so its events arrive about as soon
-  as a real camera's would (at the cost of solves twice as often at rest).
+  as a real camera's would (at the cost of solves three times as often at rest: every 6.7 ms, not 20).
 
 Times: host us = the manual clock's ns // 1000; world time (the rig's) = host us - ``origin_us``,
 ``PRE_ROLL_US`` after power-on, when the recording starts (:meth:`OfflineRig.power_on`). Machine coordinates: GRBL's homed
