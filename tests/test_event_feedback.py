@@ -14,7 +14,7 @@ from labrig.config import RigConfig
 from labrig.evaluation.control import control_run
 from labrig.indenters import Indenter
 from labrig.protocol.event_estimate import EventEstimator
-from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, Estimate, EstimateFeedback
+from labrig.protocol.feedback import EVENTS_LOOP_DEFAULTS, EVENTS_STALE_AFTER_S, Estimate, EstimateFeedback
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.protocol.virtual_run import record_virtual
@@ -22,7 +22,7 @@ from labrig.recording import Recording
 
 HELD = ProbeSpec(
     "sphere", force_n=3.0, press_hold_s=0.8, wait_s=0.3, shear_mm=0.0, normal_speed_mm_s=2.0, feedback="events",
-    control=ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S),
+    control=ForceLoopParams(**EVENTS_LOOP_DEFAULTS),
     approach=ApproachSpec(start_height_mm=0.4, speed_mm_s=1.0, contact_force_n=0.1, max_travel_mm=1.5),
     retract_height_mm=1.0,
 )
@@ -43,6 +43,7 @@ def test_a_held_press_on_the_event_estimate_holds_the_estimate(rig: RigConfig, s
     assert result.exit_status == "complete", result.reason
     with Recording(result.path) as rec:
         assert rec.attrs["extra_control_feedback"] == "events"
+        assert rec.attrs["extra_control_reading_noise_n"] == EVENTS_LOOP_DEFAULTS["reading_noise_n"]
         control = rec.stream("control")
         t_ft = rec.column("ft", "t_host_us")
         fz = np.abs(rec.column("ft", "force_n")[:, 2] - rec.column("ft", "force_n")[:100, 2].mean())

@@ -21,12 +21,14 @@ NORMAL = (0.0, 0.0, -1.0)  # pressing in is -z
 def _run(loop: ForceLoop, seconds: float, *, delay_s: float = 0.005, accel_mm_s2: float = 50.0,
          stiffness: float = HERTZ_N_PER_MM_1_5, power: float = 1.5, unload_mm_s: float = 0.0,
          max_force_n: float = math.inf, stall_after_s: float = math.inf, deepest_mm: float = -3.0,
-         lateral_mm: float = 0.0, stamped_late: bool = True) -> tuple[np.ndarray, np.ndarray, list[str | None]]:
+         lateral_mm: float = 0.0, stamped_late: bool = True, scatter_n: float = 0.0, seed: int = 0
+         ) -> tuple[np.ndarray, np.ndarray, list[str | None]]:
     """A held move of ``seconds`` from the contact point (z 0) on a gel ``F = stiffness d**power`` (``unload_mm_s``:
     the load drifts off, a shear unloading the normal): segments sent every ``segment_s`` one ahead into GRBL's
     planner (acceleration ``accel_mm_s2``), the loop reading the force ``delay_s`` ago (and nothing new after
-    ``stall_after_s``; ``stamped_late`` False: the readings claim to be fresh). Returns times (s), true forces (N,
-    every 0.5 ms) and the stops."""
+    ``stall_after_s``; ``stamped_late`` False: the readings claim to be fresh; ``scatter_n``: each reading off by a
+    normal draw of this sigma). Returns times (s), true forces (N, every 0.5 ms) and the stops."""
+    rng = np.random.default_rng(seed)
     limits = MachineLimits(accel_mm_s2=(accel_mm_s2,) * 3)
     timeline = MotionTimeline(limits, (0.0, 0.0, 0.0), 0.0)
     held = HeldMove((0.0, 0.0, 0.0), (lateral_mm, 0.0, 0.0), NORMAL, 1.0 if lateral_mm else 2.0, loop,
@@ -42,7 +44,8 @@ def _run(loop: ForceLoop, seconds: float, *, delay_s: float = 0.005, accel_mm_s2
     while True:
         seen_s = min(max(t_us / 1e6 - delay_s, 0.0), stall_after_s)
         stamp_s = seen_s if stamped_late else t_us / 1e6
-        out = held.next_segment(t_us / 1e6, force(seen_s), timeline.position_at(t_us), stamp_s,
+        reading = force(seen_s) + scatter_n * rng.standard_normal()
+        out = held.next_segment(t_us / 1e6, reading, timeline.position_at(t_us), stamp_s,
                                 timeline.position_at(stamp_s * 1e6))
         stops.append(out if isinstance(out, str) else None)
         if out is None or isinstance(out, str):
@@ -122,6 +125,16 @@ def test_targets_and_delays_a_lab_uses_settle(target: float, delay_ms: float) ->
     assert abs(f[-1] - target) < 0.02 * target
 
 
+def test_an_error_well_beyond_the_scatter_is_acted_on_whole() -> None:
+    told, clean = ForceLoop(5.0, ForceLoopParams(reading_noise_n=0.15)), ForceLoop(5.0)
+    for loop in (told, clean):
+        loop.update(0.0, 0.0, 0.0)
+    far = told.update(0.01, 2.0, 0.0).goal_mm, clean.update(0.01, 2.0, 0.0).goal_mm
+    assert far[0] == pytest.approx(far[1], rel=0.01)
+    near = told.update(0.02, 4.9, 0.0).goal_mm, clean.update(0.02, 4.9, 0.0).goal_mm
+    assert 0 < near[0] < 0.5 * near[1]
+
+
 def test_step_response_reads_a_first_order_curve() -> None:
     tau = 0.1
     t = np.linspace(-0.1, 2.0, 21001)
@@ -195,6 +208,20 @@ def test_a_reading_that_cannot_see_the_unloading_backs_the_tool_off_once() -> No
     assert blind[-50:] == [blind[-1]] * 50
     honest = _hold_on(ForceLoop(5.0), lambda true, peak: true, place_mm=0.3)
     assert abs(honest[-1] - 5.0) < 0.01
+
+
+def test_a_scattered_reading_that_cannot_see_the_unloading_does_not_walk_the_force_down() -> None:
+    """The same blind estimate, its readings scattered by 0.15 N (1 sigma) as an event estimate's are: a reading
+    that fell by chance would pass for the unloading and start the next back-off, reading after reading, till the
+    tool lifts off. Told the scatter (twice the readings' sigma: a back-off's first reading may itself be high),
+    the loop calls a fall an unloading only once it stands out of the scatter."""
+    def lowest(told_n: float, seed: int) -> float:
+        rng = np.random.default_rng(seed)
+        loop = ForceLoop(5.0, ForceLoopParams(reading_noise_n=told_n))
+        return min(_hold_on(loop, lambda true, peak: peak + 0.3 + 0.15 * rng.standard_normal(), steps=200))
+
+    assert all(lowest(0.3, seed) >= 5.0 - 20.0 * (0.3 + 3 * 0.15) / 8.0 for seed in range(6))
+    assert np.mean([lowest(0.0, seed) for seed in range(6)]) < 0.0
 
 
 def test_the_next_held_move_carries_the_back_off_on_for_the_same_target() -> None:

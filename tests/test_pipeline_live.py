@@ -544,6 +544,7 @@ def test_a_live_probing_run_holds_its_force_on_the_live_estimate(tmp_path: Path)
     """Through the real drivers with ``feedback = "events"``: the live pipeline's estimate (the bundled network)
     is the loop's feedback; the run completes and the F/T sensor, the reference, sees the target held."""
     from labrig.evaluation.control import control_run
+    from labrig.protocol.feedback import EVENTS_READING_NOISE_N
     from labrig.recording import Recording
 
     protocol = tmp_path / "held.toml"
@@ -557,6 +558,7 @@ def test_a_live_probing_run_holds_its_force_on_the_live_estimate(tmp_path: Path)
     assert s["probe"]["exit_status"] == "complete", s["probe"]["reason"]
     with Recording(rec_path) as rec:
         assert rec.attrs["extra_control_feedback"] == "events"
+        assert rec.attrs["extra_control_reading_noise_n"] == EVENTS_READING_NOISE_N  # the events default, recorded
         ages_ms = rec.column("control", "reading_age_us") / 1e3
     assert 0 < np.median(ages_ms) < 500
     run = control_run(rec_path)

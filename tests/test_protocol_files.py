@@ -392,7 +392,7 @@ depth_mm = [2.45]
 
 def test_a_held_force_and_its_loop_are_read_and_checked(tmp_path: Path, rig: RigConfig,
                                                         indenters: dict[str, Indenter]) -> None:
-    from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, VIRTUAL_RIG_EVENTS_STALE_AFTER_S
+    from labrig.protocol.feedback import EVENTS_READING_NOISE_N, EVENTS_STALE_AFTER_S, VIRTUAL_RIG_EVENTS_STALE_AFTER_S
     from labrig.protocol.files import on_virtual_camera
     from labrig.protocol.force_loop import ForceLoopParams
 
@@ -417,8 +417,12 @@ max_speed_mm_s = 1.5
     assert spec.control == ForceLoopParams(stiffness_n_per_mm=12.0, max_speed_mm_s=1.5)
     on_events = load_protocol(_write(tmp_path, "events.toml", on_events_text(good)), rig, indenters)
     assert on_events.feedback == "events" and on_events.control.stale_after_s == EVENTS_STALE_AFTER_S
+    assert on_events.control.reading_noise_n == EVENTS_READING_NOISE_N > spec.control.reading_noise_n == 0.0
     told = load_protocol(_write(tmp_path, "told.toml", on_events_text(good) + "stale_after_s = 0.05\n"), rig, indenters)
-    assert told.control.stale_after_s == 0.05
+    assert told.control.stale_after_s == 0.05 and told.control.reading_noise_n == EVENTS_READING_NOISE_N
+    quiet = load_protocol(_write(tmp_path, "quiet.toml", on_events_text(good) + "reading_noise_n = 0\n"), rig,
+                          indenters)
+    assert quiet.control.reading_noise_n == 0.0 and quiet.control.stale_after_s == EVENTS_STALE_AFTER_S
     # The embedded virtual rig's camera runs late on a small host: its events loop waits longer unless told.
     virtual, note = on_virtual_camera(on_events, on_events_text(good))
     assert virtual.control.stale_after_s == VIRTUAL_RIG_EVENTS_STALE_AFTER_S > EVENTS_STALE_AFTER_S
@@ -439,6 +443,7 @@ hold_force_n = 400.0
 feedback = "camera"
 stiffness_n_per_mm = -1.0
 gain = 2
+reading_noise_n = -0.1
 """)
     with pytest.raises(ProtocolError) as exc:
         load_protocol(bad, rig, indenters)
@@ -446,6 +451,7 @@ gain = 2
     assert 'must be "ft" (the F/T sensor) or "events"' in problems[(10, "control.feedback")]
     assert "must be positive" in problems[(11, "control.stiffness_n_per_mm")]
     assert "unknown key" in problems[(12, "control.gain")]
+    assert "must not be negative" in problems[(13, "control.reading_noise_n")]
     text = str(exc.value)
     assert "distance_mm = 0 has none" in text and "max_normal_force_n" in text
     assert "give [normal] force_n instead of depth_mm, or drop hold_s" in text

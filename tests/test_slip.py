@@ -14,7 +14,7 @@ import pytest
 from labrig.config import RigConfig
 from labrig.evaluation.control import control_run
 from labrig.indenters import Indenter, load_indenters
-from labrig.protocol.feedback import EVENTS_STALE_AFTER_S
+from labrig.protocol.feedback import EVENTS_LOOP_DEFAULTS
 from labrig.protocol.files import load_protocol
 from labrig.protocol.force_loop import ForceLoop, ForceLoopParams, HeldMove
 from labrig.protocol.slip import ContactReading, SlipCheck, SlipDetector, SlipParams, SlipReflex
@@ -222,7 +222,7 @@ def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: R
                                                                           tmp_path: Path, feedback: str) -> None:
     """Held at 1.5 N, the sphere's contact slides as a whole during the 2 mm shear (the sim's truth); the reflex
     reads the F/T's net force or the estimate's dense field and tells it within 50 ms."""
-    control = ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S) if feedback == "events" else ForceLoopParams()
+    control = ForceLoopParams(**EVENTS_LOOP_DEFAULTS) if feedback == "events" else ForceLoopParams()
     result = record_virtual(replace(SLIDING, feedback=feedback, control=control), tmp_path / f"{feedback}.h5",
                             rig, sphere, seed=1)
     assert result.exit_status == "complete", result.reason
@@ -240,7 +240,7 @@ def test_on_the_event_sensor_a_stall_tells_a_sliding_flat_punch_and_ridge(rig: R
     does (the estimated |Ft|'s, or the contact's markers no longer following the tool), within 100 ms of the true
     onset: the normal force held, the estimate flattens a window or more after the contact slides."""
     shape = load_indenters()[indenter]
-    spec = replace(SLIDING, indenter=indenter, feedback="events", control=ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S))
+    spec = replace(SLIDING, indenter=indenter, feedback="events", control=ForceLoopParams(**EVENTS_LOOP_DEFAULTS))
     result = record_virtual(spec, tmp_path / f"{indenter}.h5", rig, shape, seed=1)
     assert result.exit_status == "complete", result.reason
     run = control_run(result.path)

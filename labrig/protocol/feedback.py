@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -36,6 +36,15 @@ EVENTS_STALE_AFTER_S = 0.15
 #: uses the tool's place at each reading's time, so a late reading slows it without making it overshoot, and the F/T
 #: limits still trip within one sample.
 VIRTUAL_RIG_EVENTS_STALE_AFTER_S = 0.5
+#: The scatter the force loop allows an event estimate unless the protocol says otherwise (N, 1 sigma; ``[control]
+#: reading_noise_n``): an error this small earns half the move a clean reading's would, and a back-off's unloading
+#: is believed once the readings have fallen by twice it. The estimate's window-to-window scatter grows with the
+#: motion and its errors persist for windows, so this is the top of its range, not its rest scatter.
+EVENTS_READING_NOISE_N = 0.3
+#: The force loop's settings (``ForceLoopParams`` fields) for ``feedback = "events"`` unless the protocol says
+#: otherwise.
+EVENTS_LOOP_DEFAULTS: dict[str, Any] = {"stale_after_s": EVENTS_STALE_AFTER_S,
+                                        "reading_noise_n": EVENTS_READING_NOISE_N}
 
 
 class ForceReading(Protocol):

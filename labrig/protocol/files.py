@@ -26,7 +26,12 @@ from typing import Any
 from labrig.config import RigConfig
 from labrig.dataset import SPLITS
 from labrig.indenters import Indenter
-from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, FEEDBACKS, VIRTUAL_RIG_EVENTS_STALE_AFTER_S
+from labrig.protocol.feedback import (
+    EVENTS_LOOP_DEFAULTS,
+    EVENTS_STALE_AFTER_S,
+    FEEDBACKS,
+    VIRTUAL_RIG_EVENTS_STALE_AFTER_S,
+)
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.rigfile import device_config
 from labrig.protocol.safety import SpeedLimits, depth_problem
@@ -223,6 +228,7 @@ PROTOCOL_KEYS: dict[str, dict[str, str]] = {
         "segment_s": "control.segment_s",
         "stale_after_s": "control.stale_after_s",
         "saturation_s": "control.saturation_s",
+        "reading_noise_n": "control.reading_noise_n",
     },
 }
 # How each numeric field may be: "positive", "nonneg" or "any".
@@ -258,6 +264,7 @@ _FIELD_SIGN: dict[str, str] = {
     "control.segment_s": "positive",
     "control.stale_after_s": "positive",
     "control.saturation_s": "positive",
+    "control.reading_noise_n": "nonneg",
     "approach.start_height_mm": "nonneg",
     "approach.speed_mm_s": "positive",
     "approach.contact_force_n": "positive",
@@ -399,7 +406,7 @@ def _build_spec(values: Mapping[str, Any]) -> ProbeSpec:
     if slip:
         top["slip"] = SlipParams(**slip)
     if top.get("feedback") == "events":
-        control.setdefault("stale_after_s", EVENTS_STALE_AFTER_S)
+        control = {**EVENTS_LOOP_DEFAULTS, **control}
     if control:
         top["control"] = ForceLoopParams(**control)
     if top.get("depth_mm") is None and top.get("force_n") is None:

@@ -25,6 +25,12 @@ and a small unloading changes the membrane's shading by less, so an estimate tha
 so while the tool backs off; a loop that believed it each time would walk the true force down without end. A
 feedback that sees the unloading (the F/T sensor, a large release) moves on at once.
 
+A scattered feedback (``reading_noise_n``, its sigma in N: the event estimate's) is trusted in proportion to how
+far an error stands out of it: the loop acts on ``e**3 / (e**2 + s**2)`` instead of ``e``, the whole of a large
+error (a step is as fast) and half of one as large as the scatter, so the tool does not chase every window's
+error; and a fall counts as a back-off's unloading only once it exceeds twice the scatter (a back-off begun on a
+reading high by chance would otherwise pass the next ordinary reading for the unloading, and walk on).
+
 Trips, each a stop with one line saying why (the executor then stops the motion and retracts):
 
 * **stalled**: the newest reading is older than ``stale_after_s`` (a camera lost, a pipeline behind);
@@ -57,6 +63,8 @@ TANGENTIAL_APPROACH_FRACTION = 0.5
 TANGENTIAL_FINE_SPEED_MM_S = 0.3
 #: A back-off is seen once the reading has fallen by this share of what the stiffness says it took off.
 UNLOADING_SEEN = 0.5
+#: ... and by this many times the feedback's scatter: one reading high by chance that began a back-off is no unloading.
+UNLOADING_SCATTERS = 2.0
 
 
 @dataclass(frozen=True)
@@ -71,6 +79,7 @@ class ForceLoopParams:
     oscillation_band_n: float = 0.5  # error swings under this are not counted as oscillation
     oscillation_crossings: int = 4  # sign changes of the error (each over the band) ...
     oscillation_window_s: float = 1.0  # ... within this long trip the loop
+    reading_noise_n: float = 0.0  # the feedback's scatter at rest (1 sigma): an error this small earns half its move
 
     def __post_init__(self) -> None:
         for name in ("stiffness_n_per_mm", "segment_s", "max_speed_mm_s", "stale_after_s", "saturation_s",
@@ -78,6 +87,8 @@ class ForceLoopParams:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, not {value}")
+        if not (math.isfinite(self.reading_noise_n) and self.reading_noise_n >= 0):
+            raise ValueError(f"reading_noise_n must be zero or a positive number (N), not {self.reading_noise_n}")
         if self.oscillation_crossings < 2 or self.oscillation_band_n < 0:
             raise ValueError("oscillation_crossings must be at least 2 and oscillation_band_n not negative")
 
@@ -129,7 +140,8 @@ class ForceLoop:
             return self._stop(place_mm, error, f"the force feedback stalled: the newest reading is "
                                                f"{age_s * 1e3:.0f} ms old (more than {p.stale_after_s * 1e3:.0f} ms)")
         k = self._stiffness(place_mm, float(force_n))
-        wanted = max(place_mm + error / k, self._backoff_limit(place_mm, float(force_n), error, k))
+        correction = self._trusted_n(error)
+        wanted = max(place_mm + correction / k, self._backoff_limit(place_mm, float(force_n), correction, k))
         goal = min(max(wanted, reach_mm[0]), reach_mm[1])
         clipped = goal != wanted
         if clipped:
@@ -144,6 +156,16 @@ class ForceLoop:
                                            f"times within {p.oscillation_window_s:g} s by more than "
                                            f"{p.oscillation_band_n:g} N; raise stiffness_n_per_mm")
         return LoopCommand(goal, error, k, clipped)
+
+    def _trusted_n(self, error: float) -> float:
+        """The part of the error ``error`` (N) the loop acts on: ``e**3 / (e**2 + s**2)`` with ``s`` the feedback's
+        scatter (``reading_noise_n``). An error well above the scatter is acted on whole (a step is as fast as a
+        clean feedback's); one within it in proportion to how far it stands out, so the scatter reaches the force
+        only in part while readings that agree still close the rest."""
+        noise = self.params.reading_noise_n
+        if noise == 0:
+            return error
+        return error * error * error / (error * error + noise * noise)
 
     def _stiffness(self, place_mm: float, force_n: float) -> float:
         """The stiffness to assume (N/mm): the setting, or more if the secant since the anchor reading says so."""
@@ -168,16 +190,18 @@ class ForceLoop:
             self._backoff = (place + offset_mm, force, limit + offset_mm)
 
     def _backoff_limit(self, place_mm: float, force_n: float, error: float, k: float) -> float:
-        """How far out (mm along the normal) the tool may go on this reading: where the reading that began the
-        back-off asked for (its place + e / k), until a reading shows the unloading (it fell by UNLOADING_SEEN of
-        what ``k`` says the back-off took off since), or it has risen by its excess over the target and by more than
-        the readings' scatter (``oscillation_band_n``: a load that grows), or the tool has pressed back in a
-        baseline beyond where the back-off began; then from this reading. -inf: no limit (the reading is not above
-        the target)."""
+        """How far out (mm along the normal) the tool may go on this reading (``error``: the error acted on, N):
+        where the reading that began the back-off asked for (its place + e / k), until a reading shows the unloading
+        (it fell by UNLOADING_SEEN of what ``k`` says the back-off took off since, and by UNLOADING_SCATTERS times
+        ``reading_noise_n``), or it has risen by its excess over the target and by more than ``oscillation_band_n``
+        (a load that grows), or the tool has pressed back in a baseline beyond where the back-off began; then from
+        this reading. -inf: no limit (the reading is not above the target)."""
         if self._backoff is not None:
             from_place, from_force, _ = self._backoff
             backed_mm = from_place - place_mm
-            seen = backed_mm >= STIFFNESS_BASELINE_MM and from_force - force_n >= UNLOADING_SEEN * k * backed_mm
+            fall_n = from_force - force_n
+            seen = (backed_mm >= STIFFNESS_BASELINE_MM and fall_n >= UNLOADING_SEEN * k * backed_mm
+                    and fall_n >= UNLOADING_SCATTERS * self.params.reading_noise_n)
             risen = force_n - from_force >= max(from_force - self.target_n, self.params.oscillation_band_n)
             if seen or risen or backed_mm <= -STIFFNESS_BASELINE_MM:
                 self._backoff = None

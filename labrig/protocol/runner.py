@@ -514,8 +514,7 @@ class ProbeRunner:
         info = {"virtual_rig": self.session.virtual, "made_by": "drivers", "seed": self.session.seed,
                 "location_mm": list(spec.location_mm),
                 "tare_n_nm": list(self.session.tare_n), "calibration": _calibration_files(self.rig), **(extra or {})}
-        if spec.holds_force:
-            info["control_feedback"] = spec.feedback
+        info.update(spec.control_record())
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      indenter_toml=indenter_toml(self.indenter), extra=info)
         streams = truth_streams(len(self.rig.markers.rest_positions_mm())) if self.session.virtual else ()

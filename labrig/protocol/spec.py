@@ -12,7 +12,7 @@ Down, Wait, Shear, Wait, Shear Opposite, Wait, Normal Up, retract. A run with
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from labrig.dataset import SPLITS
@@ -133,6 +133,15 @@ class ProbeSpec:
     @property
     def has_shear(self) -> bool:
         return self.shear_mm > 0
+
+    def control_record(self) -> dict[str, str | float | int]:
+        """What a recording of this probe keeps of its force loop, as the metadata's extra keys: the feedback
+        (``control_feedback``) and every setting of the loop (``control_<field>``, units in the names), defaults
+        included; empty when no force is held."""
+        if not self.holds_force:
+            return {}
+        return {"control_feedback": self.feedback,
+                **{f"control_{name}": value for name, value in asdict(self.control).items()}}
 
     def phases(self) -> tuple[str, ...]:
         """Phase names in order; ``"wait"`` appears once per wait."""

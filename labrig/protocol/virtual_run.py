@@ -175,8 +175,7 @@ class _VirtualRun:
         self.monitor.peak_n = np.zeros(3)
         info = {"virtual_rig": True, "made_by": MADE_BY_VIRTUAL_TIME, "seed": self.seed,
                 "location_mm": list(self.plan.spec.location_mm), "tare_n_nm": list(tare), **extra}
-        if self.plan.spec.holds_force:
-            info["control_feedback"] = self.plan.spec.feedback
+        info.update(self.plan.spec.control_record())
         metadata = RecordingMetadata(indenter=self.indenter.name, protocol_toml=protocol_toml, rig_toml=self.rig.text,
                                      indenter_toml=indenter_toml(self.indenter), extra=info)
         writer = RecordingWriter(out, metadata, clock=d.clock, flush_interval_s=WRITER_FLUSH_S, wake_on_put=False,

@@ -44,7 +44,7 @@ from _common import bench_main, emit
 from labrig.config import DEFAULT_RIG, RigConfig, load_rig, parse_rig
 from labrig.evaluation.control import control_run, hold_rms_n, step_response
 from labrig.indenters import load_indenter
-from labrig.protocol.feedback import EVENTS_STALE_AFTER_S, FEEDBACKS
+from labrig.protocol.feedback import EVENTS_LOOP_DEFAULTS, FEEDBACKS
 from labrig.protocol.force_loop import ForceLoopParams
 from labrig.protocol.spec import ApproachSpec, ProbeSpec
 from labrig.protocol.virtual_run import record_virtual
@@ -69,7 +69,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def _spec(indenter: str, force_n: float, feedback: str) -> ProbeSpec:
-    control = ForceLoopParams(stale_after_s=EVENTS_STALE_AFTER_S) if feedback == "events" else ForceLoopParams()
+    control = ForceLoopParams(**EVENTS_LOOP_DEFAULTS) if feedback == "events" else ForceLoopParams()
     return ProbeSpec(indenter, force_n=force_n, press_hold_s=PRESS_HOLD_S, wait_s=0.3, shear_mm=SHEAR_MM,
                      shear_speed_mm_s=SHEAR_SPEED_MM_S, feedback=feedback, control=control,
                      approach=replace(ApproachSpec(), start_height_mm=0.5, max_travel_mm=2.0))
