@@ -210,6 +210,19 @@ def test_a_reading_that_cannot_see_the_unloading_backs_the_tool_off_once() -> No
     assert abs(honest[-1] - 5.0) < 0.01
 
 
+def test_on_the_step_a_late_reading_within_the_scatter_holds_the_tool_still_rather_than_turning_it_back() -> None:
+    """A reading 0.4 N short, taken 0.04 mm back along the step: the whole error asks 0.05 mm in from there (8 N/mm),
+    the part the scatter leaves 0.032 mm, behind the tool. On the step the tool holds still; once a reading has
+    reached the target the same reading turns it back."""
+    loop = ForceLoop(5.0, ForceLoopParams(reading_noise_n=0.3))
+    trusted_mm = 0.4**3 / (0.4**2 + 0.3**2) / 8.0
+    assert loop.update(0.0, 4.6, 0.0, place_now_mm=0.04).goal_mm == pytest.approx(0.04)
+    assert loop.update(0.01, 4.6, 0.0, place_now_mm=0.06).goal_mm == pytest.approx(0.05)  # past the whole goal
+    assert loop.update(0.02, 4.6, 0.0, place_now_mm=0.01).goal_mm == pytest.approx(trusted_mm)
+    loop.update(0.03, 5.01, 0.0)
+    assert loop.update(0.04, 4.6, 0.0, place_now_mm=0.04).goal_mm == pytest.approx(trusted_mm)
+
+
 def test_a_scattered_reading_that_cannot_see_the_unloading_does_not_walk_the_force_down() -> None:
     """The same blind estimate, its readings scattered by 0.15 N (1 sigma) as an event estimate's are: a reading
     that fell by chance would pass for the unloading and start the next back-off, reading after reading, till the

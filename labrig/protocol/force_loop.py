@@ -28,8 +28,11 @@ feedback that sees the unloading (the F/T sensor, a large release) moves on at o
 A scattered feedback (``reading_noise_n``, its sigma in N: the event estimate's) is trusted in proportion to how
 far an error stands out of it: the loop acts on ``e**3 / (e**2 + s**2)`` instead of ``e``, the whole of a large
 error (a step is as fast) and half of one as large as the scatter, so the tool does not chase every window's
-error; and a fall counts as a back-off's unloading only once it exceeds twice the scatter (a back-off begun on a
-reading high by chance would otherwise pass the next ordinary reading for the unloading, and walk on).
+error. On the step, until a reading has reached the target, the part left out may hold the tool still but never
+turn it back: a late reading taken further out on the way in asks less than the tool has already gone, and a
+shrunk goal behind the tool would stop it short of the target. And a fall counts as a back-off's unloading only
+once it exceeds twice the scatter (a back-off begun on a reading high by chance would otherwise pass the next
+ordinary reading for the unloading, and walk on).
 
 Trips, each a stop with one line saying why (the executor then stops the motion and retracts):
 
@@ -119,16 +122,19 @@ class ForceLoop:
         self._anchor: tuple[float, float] | None = None  # (place mm, force N) the secant is measured from
         self._backoff: tuple[float, float, float] | None = None  # a back-off's reading: place mm, force N, and the
         # place it asked for (mm): the tool goes no further out until a reading shows the unloading
+        self._approach: tuple[float, int] | None = None  # the target approached and the side its readings began on
+        self._reached_target: float | None = None  # the target a reading has reached
         self._clipped_since_s: float | None = None
         self._last_sign = 0
         self._crossings: deque[float] = deque()
 
     def update(self, t_s: float, force_n: float, place_mm: float, reading_t_s: float | None = None,
-               reach_mm: tuple[float, float] = (-math.inf, math.inf)) -> LoopCommand:
+               reach_mm: tuple[float, float] = (-math.inf, math.inf), place_now_mm: float | None = None
+               ) -> LoopCommand:
         """The command at time ``t_s`` (s, any fixed origin) from the newest reading ``force_n`` (N, pressing
         positive), taken at ``reading_t_s`` (default ``t_s``; -inf: no reading yet) with the tool at ``place_mm``
-        along the inward normal (mm, any fixed origin); the goal is cut to ``reach_mm`` (lowest, highest place
-        allowed). Once stopped, every later call stops too."""
+        along the inward normal (mm, any fixed origin) and now at ``place_now_mm`` (default: unknown); the goal is
+        cut to ``reach_mm`` (lowest, highest place allowed). Once stopped, every later call stops too."""
         p = self.params
         error = self.target_n - float(force_n)
         if self.stopped is not None:
@@ -141,6 +147,9 @@ class ForceLoop:
                                                f"{age_s * 1e3:.0f} ms old (more than {p.stale_after_s * 1e3:.0f} ms)")
         k = self._stiffness(place_mm, float(force_n))
         correction = self._trusted_n(error)
+        if not self._reached(error) and place_now_mm is not None:
+            still = place_now_mm - place_mm  # on the step, the scatter may hold the tool still, never turn it back
+            correction = min(max(k * still, min(correction, error)), max(correction, error))
         wanted = max(place_mm + correction / k, self._backoff_limit(place_mm, float(force_n), correction, k))
         goal = min(max(wanted, reach_mm[0]), reach_mm[1])
         clipped = goal != wanted
@@ -156,6 +165,18 @@ class ForceLoop:
                                            f"times within {p.oscillation_window_s:g} s by more than "
                                            f"{p.oscillation_band_n:g} N; raise stiffness_n_per_mm")
         return LoopCommand(goal, error, k, clipped)
+
+    def _reached(self, error: float) -> bool:
+        """Whether a reading has reached the target since the loop began or the target changed (``error``: this
+        reading's, N): the step to it is over."""
+        if self._reached_target != self.target_n:
+            side = 1 if error > 0 else -1
+            if self._approach is None or self._approach[0] != self.target_n:
+                self._approach = (self.target_n, side)
+            if error != 0 and side == self._approach[1]:
+                return False
+            self._reached_target = self.target_n
+        return True
 
     def _trusted_n(self, error: float) -> float:
         """The part of the error ``error`` (N) the loop acts on: ``e**3 / (e**2 + s**2)`` with ``s`` the feedback's
@@ -185,7 +206,10 @@ class ForceLoop:
         self.stiffness_n_per_mm = earlier.stiffness_n_per_mm
         if earlier._anchor is not None:
             self._anchor = (earlier._anchor[0] + offset_mm, earlier._anchor[1])
-        if earlier._backoff is not None and earlier.target_n == self.target_n:
+        if earlier.target_n != self.target_n:
+            return
+        self._approach, self._reached_target = earlier._approach, earlier._reached_target
+        if earlier._backoff is not None:
             place, force, limit = earlier._backoff
             self._backoff = (place + offset_mm, force, limit + offset_mm)
 
@@ -302,7 +326,8 @@ class HeldMove:
             return None
         p = self.loop.params
         at_reading = self.place_mm(here_mm if reading_mm is None else reading_mm)
-        command = self.loop.update(t_s, force_n, at_reading, reading_t_s, (-math.inf, self.max_place_mm))
+        command = self.loop.update(t_s, force_n, at_reading, reading_t_s, (-math.inf, self.max_place_mm),
+                                   self.place_mm(here_mm))
         self.last = command
         if command.stop is not None:
             return command.stop
