@@ -21,14 +21,12 @@ NORMAL = (0.0, 0.0, -1.0)  # pressing in is -z
 def _run(loop: ForceLoop, seconds: float, *, delay_s: float = 0.005, accel_mm_s2: float = 50.0,
          stiffness: float = HERTZ_N_PER_MM_1_5, power: float = 1.5, unload_mm_s: float = 0.0,
          max_force_n: float = math.inf, stall_after_s: float = math.inf, deepest_mm: float = -3.0,
-         lateral_mm: float = 0.0, stamped_late: bool = True, scatter_n: float = 0.0, seed: int = 0
-         ) -> tuple[np.ndarray, np.ndarray, list[str | None]]:
+         lateral_mm: float = 0.0, stamped_late: bool = True) -> tuple[np.ndarray, np.ndarray, list[str | None]]:
     """A held move of ``seconds`` from the contact point (z 0) on a gel ``F = stiffness d**power`` (``unload_mm_s``:
     the load drifts off, a shear unloading the normal): segments sent every ``segment_s`` one ahead into GRBL's
     planner (acceleration ``accel_mm_s2``), the loop reading the force ``delay_s`` ago (and nothing new after
-    ``stall_after_s``; ``stamped_late`` False: the readings claim to be fresh; ``scatter_n``: each reading off by a
-    normal draw of this sigma). Returns times (s), true forces (N, every 0.5 ms) and the stops."""
-    rng = np.random.default_rng(seed)
+    ``stall_after_s``; ``stamped_late`` False: the readings claim to be fresh). Returns times (s), true forces (N,
+    every 0.5 ms) and the stops."""
     limits = MachineLimits(accel_mm_s2=(accel_mm_s2,) * 3)
     timeline = MotionTimeline(limits, (0.0, 0.0, 0.0), 0.0)
     held = HeldMove((0.0, 0.0, 0.0), (lateral_mm, 0.0, 0.0), NORMAL, 1.0 if lateral_mm else 2.0, loop,
@@ -44,8 +42,7 @@ def _run(loop: ForceLoop, seconds: float, *, delay_s: float = 0.005, accel_mm_s2
     while True:
         seen_s = min(max(t_us / 1e6 - delay_s, 0.0), stall_after_s)
         stamp_s = seen_s if stamped_late else t_us / 1e6
-        reading = force(seen_s) + scatter_n * rng.standard_normal()
-        out = held.next_segment(t_us / 1e6, reading, timeline.position_at(t_us), stamp_s,
+        out = held.next_segment(t_us / 1e6, force(seen_s), timeline.position_at(t_us), stamp_s,
                                 timeline.position_at(stamp_s * 1e6))
         stops.append(out if isinstance(out, str) else None)
         if out is None or isinstance(out, str):

@@ -82,7 +82,7 @@ class ForceLoopParams:
     oscillation_band_n: float = 0.5  # error swings under this are not counted as oscillation
     oscillation_crossings: int = 4  # sign changes of the error (each over the band) ...
     oscillation_window_s: float = 1.0  # ... within this long trip the loop
-    reading_noise_n: float = 0.0  # the feedback's scatter at rest (1 sigma): an error this small earns half its move
+    reading_noise_n: float = 0.0  # the feedback's scatter (1 sigma): an error this small earns half its move
 
     def __post_init__(self) -> None:
         for name in ("stiffness_n_per_mm", "segment_s", "max_speed_mm_s", "stale_after_s", "saturation_s",
