@@ -341,7 +341,8 @@ def test_the_control_section_shows_each_held_run_and_charts_the_first(tmp_path: 
     fz = np.clip(t, 0.0, 0.6) / 0.6 * 5.0
     target = np.where(t >= 0.0, 5.0, np.nan)
     run = ControlRun("held.h5", 5.0, "ft", 0.48, 1.2, 0.7, 0.03, float("nan"), 100.0, 1_000_000,
-                     (("approach", -0.5, 0.0), ("normal_down", 0.0, 1.0), ("wait", 1.0, 3.0)), t, fz, target)
+                     (("approach", -0.5, 0.0), ("normal_down", 0.0, 1.0), ("wait", 1.0, 3.0)), t, fz, target,
+                     reading_scatter_n=0.02)
     report = Report("control")
     report.section("Forces")
     _control_section(report, SimpleNamespace(control=[run], forces=[]))  # type: ignore[arg-type]
@@ -351,5 +352,5 @@ def test_the_control_section_shows_each_held_run_and_charts_the_first(tmp_path: 
     results = json.loads((out / "results.json").read_text(encoding="utf-8"))
     row = results["tables"]["control"]["rows"][0]
     assert row["recording"] == "held.h5" and row["overshoot_pct"] == 1.2 and row["hold_rms_estimate_n"] is None
-    assert row["hold_rms_f_t_n"] == 0.03 and row["loop_rate_hz"] == 100.0
+    assert row["hold_rms_f_t_n"] == 0.03 and row["loop_rate_hz"] == 100.0 and row["reading_scatter_n"] == 0.02
     assert (out / "figures" / "control_series.png").stat().st_size > 0

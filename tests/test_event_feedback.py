@@ -57,6 +57,8 @@ def test_a_held_press_on_the_event_estimate_holds_the_estimate(rig: RigConfig, s
     assert abs(ft_at.mean() - 3.0) < 0.45
     run = control_run(result.path)  # labrig evaluate's control section: the F/T against the target
     assert run is not None and run.feedback == "events" and run.hold_rms_n_ft < 0.6
+    # the estimate's scatter about its own error: far above the F/T's (0.02 N), within what the loop is told
+    assert 0.03 < run.reading_scatter_n < EVENTS_LOOP_DEFAULTS["reading_noise_n"]
 
 
 def test_a_camera_that_stops_stalls_the_loop_which_stops_and_retracts(rig: RigConfig, sphere: Indenter,

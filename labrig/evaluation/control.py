@@ -9,6 +9,9 @@ phase is *held* when the loop commanded through at least half of it; its target 
 * the **hold**: the RMS of the F/T's |Fz| from the target over the held waits and shears (N);
 * the **estimate's hold**: the same for the pipeline's predicted |Fz| over the evaluation windows ending in those
   phases: what the event sensor would have fed the loop;
+* the **readings' scatter**: the loop's readings less the F/T's |Fz| over the span each reading covers, their
+  spread about its mean within each held wait and shear, pooled (N, 1 sigma): what ``[control] reading_noise_n``
+  stands for, measured on the lab's own sensor;
 * the loop's rate: its commands' median rate (Hz);
 * the **slip reflex** (a held Shear with ``[slip] action``): when it told slip, and, on the virtual rig, when the
   whole contact truly began to slide (``truth/contact`` ``sliding``, gross slip), and the difference (ms; negative:
@@ -35,6 +38,8 @@ from labrig.recording.reader import Phase
 #: F/T samples averaged for the tare (the approach starts clear of the gel).
 TARE_SAMPLES = 100
 HELD_AFTER_PRESS = ("wait", "shear", "shear_opposite")
+#: A reading stands for the force over this long before its time stamp (us): an estimate's window.
+READING_SPAN_US = 10_000
 
 
 @dataclass(frozen=True)
@@ -111,6 +116,7 @@ class ControlRun:
     slip_told_s: float = math.nan  # Shear's slip reflex first told slip, s from the origin (nan: never, no reflex)
     slip_onset_s: float = math.nan  # the sim's true onset of gross slip in Shear, s from the origin (nan: none)
     slip_cue: str = ""  # the cue that first told it (labrig.protocol.slip.SLIP_CUES; "": never, or not recorded)
+    reading_scatter_n: float = math.nan  # the loop's readings less the F/T, about their mean per held phase (1 sigma)
 
     @property
     def slip_onset_error_ms(self) -> float:
@@ -155,6 +161,7 @@ def control_run(path: str | Path, forces: ForceResult | None = None) -> ControlR
     later = [(p, target) for p, target in held if p.name in HELD_AFTER_PRESS]
     ft_errors = [fz[(t_us >= p.t_start_us) & (t_us < p.t_end_us)] - target for p, target in later]
     hold_ft = _rms(ft_errors)
+    scatter = _reading_scatter_n(control, t_us, fz, [p for p, _ in later])
     hold_estimate = float("nan")
     if forces is not None and len(forces.t1_us):
         predicted = np.abs(forces.predicted_n[:, 2])
@@ -168,7 +175,26 @@ def control_run(path: str | Path, forces: ForceResult | None = None) -> ControlR
         phases_s=tuple((p.name, (p.t_start_us - origin_us) / 1e6, (p.t_end_us - origin_us) / 1e6) for p in phases),
         t_s=(t_us - origin_us) / 1e6, ft_fz_n=fz, target_series_n=target_series,
         slip_told_s=(slip_told_us - origin_us) / 1e6, slip_onset_s=(slip_onset_us - origin_us) / 1e6,
-        slip_cue=slip_cue)
+        slip_cue=slip_cue, reading_scatter_n=scatter)
+
+
+def _reading_scatter_n(control: Mapping[str, npt.NDArray[Any]], t_us: npt.NDArray[np.int64],
+                       fz: npt.NDArray[np.float64], phases: Sequence[Phase]) -> float:
+    """The loop's readings less the F/T's mean |Fz| over the READING_SPAN_US before each reading's time, about
+    their mean within each of ``phases``, pooled: RMS, N (nan: fewer than three readings in every phase)."""
+    c_t = control["t_host_us"].astype(np.int64)
+    read_us = c_t - control["reading_age_us"].astype(np.int64)
+    summed = np.concatenate(([0.0], np.cumsum(fz)))
+    hi = np.searchsorted(t_us, read_us, side="right")
+    lo = np.searchsorted(t_us, read_us - READING_SPAN_US, side="right")
+    reference = np.where(hi > lo, (summed[hi] - summed[lo]) / np.maximum(hi - lo, 1), np.nan)
+    residual = control["feedback_n"].astype(np.float64) - reference
+    parts = []
+    for p in phases:
+        inside = residual[(c_t >= p.t_start_us) & (c_t < p.t_end_us) & np.isfinite(residual)]
+        if inside.size >= 3:
+            parts.append(inside - inside.mean())
+    return _rms(parts)
 
 
 def _slip_times(control: Mapping[str, npt.NDArray[Any]], truth: Mapping[str, npt.NDArray[Any]] | None,

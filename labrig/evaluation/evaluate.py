@@ -320,6 +320,7 @@ def headline(ev: Evaluation) -> dict[str, Any]:
                     "control_step_settling_s": _median([r.step_settling_s for r in runs]),
                     "control_hold_rms_n_ft": _median([r.hold_rms_n_ft for r in runs]),
                     "control_hold_rms_n_estimate": _median([r.hold_rms_n_estimate for r in runs]),
+                    "control_reading_scatter_n": _median([r.reading_scatter_n for r in runs]),
                     "control_slip_onset_error_ms": _median([r.slip_onset_error_ms for r in runs])})
     if ev.forces_truth:
         truth = {row["axis"]: row for row in tables.table3(ev.forces_truth)}

@@ -267,18 +267,22 @@ def _control_section(report: Report, ev: Evaluation) -> None:
     """The recordings whose normal force a force loop held: the step and the hold, the F/T as the reference."""
     report.add_table("control", "Forces held by the loop",
                      ["recording", "feedback", "target", "rise", "overshoot", "settling", "hold RMS (F/T)",
-                      "hold RMS (estimate)", "loop rate", "slip told - onset", "slip cue"],
+                      "hold RMS (estimate)", "reading scatter", "loop rate", "slip told - onset", "slip cue"],
                      [[r.recording, r.feedback, r.target_n, r.step_rise_s, r.step_overshoot_pct, r.step_settling_s,
-                       r.hold_rms_n_ft, r.hold_rms_n_estimate, r.loop_hz, r.slip_onset_error_ms, r.slip_cue]
+                       r.hold_rms_n_ft, r.hold_rms_n_estimate, r.reading_scatter_n, r.loop_hz, r.slip_onset_error_ms,
+                       r.slip_cue]
                       for r in ev.control],
                      caption="Runs with a held press or shear: the held Normal Down as a step from contact to the "
                              "target (10-90 % rise, overshoot, settling into 5 %, of the F/T's |Fz|), and the RMS "
                              "from the target over the held waits and shears of the F/T's |Fz| and of the "
-                             "pipeline's estimate (what the event sensor would have fed the loop); with a slip "
+                             "pipeline's estimate (what the event sensor would have fed the loop); the scatter of "
+                             "the loop's readings less the F/T about their mean in each held wait and shear (1 sigma: "
+                             "what [control] reading_noise_n stands for); with a slip "
                              "reflex, when it told slip in Shear less when the whole contact truly began to slide "
                              "(the virtual rig's truth; negative: told before), and the cue that told it.",
                      units={"target": "N", "rise": "s", "overshoot": "%", "settling": "s", "hold RMS (F/T)": "N",
-                            "hold RMS (estimate)": "N", "loop rate": "Hz", "slip told - onset": "ms"})
+                            "hold RMS (estimate)": "N", "reading scatter": "N", "loop rate": "Hz",
+                            "slip told - onset": "ms"})
     run = ev.control[0]
     forces = next((r for r in ev.forces if r.recording == run.recording), None)
     has_estimate = forces is not None and len(forces.t1_us) > 0

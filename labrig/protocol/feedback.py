@@ -38,8 +38,9 @@ EVENTS_STALE_AFTER_S = 0.15
 VIRTUAL_RIG_EVENTS_STALE_AFTER_S = 0.5
 #: The scatter the force loop allows an event estimate unless the protocol says otherwise (N, 1 sigma; ``[control]
 #: reading_noise_n``): an error this small earns half the move a clean reading's would, and a back-off's unloading
-#: is believed once the readings have fallen by twice it. The estimate's window-to-window scatter grows with the
-#: motion and its errors persist for windows, so this is the top of its range, not its rest scatter.
+#: is believed once the readings have fallen by twice it. The estimate's errors persist for windows, so this is
+#: several times the scatter ``labrig evaluate`` reports for a held run (``control_reading_scatter_n``), not that
+#: scatter itself.
 EVENTS_READING_NOISE_N = 0.3
 #: The force loop's settings (``ForceLoopParams`` fields) for ``feedback = "events"`` unless the protocol says
 #: otherwise.
