@@ -221,7 +221,8 @@ def test_a_slip_reflex_or_tangential_target_needs_a_held_shear(tmp_path: Path) -
 def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: RigConfig, sphere: Indenter,
                                                                           tmp_path: Path, feedback: str) -> None:
     """Held at 1.5 N, the sphere's contact slides as a whole during the 2 mm shear (the sim's truth); the reflex
-    reads the F/T's net force or the estimate's dense field and tells it within 50 ms."""
+    reads the F/T's net force or the estimate's dense field (its share at friction, or its markers no longer
+    following the tool) and tells it within 50 ms."""
     control = ForceLoopParams(**EVENTS_LOOP_DEFAULTS) if feedback == "events" else ForceLoopParams()
     result = record_virtual(replace(SLIDING, feedback=feedback, control=control), tmp_path / f"{feedback}.h5",
                             rig, sphere, seed=1)
@@ -229,7 +230,7 @@ def test_the_reflex_tells_a_sliding_sphere_within_50_ms_of_its_true_onset(rig: R
     run = control_run(result.path)
     assert run is not None and math.isfinite(run.slip_onset_s), "the contact never slid"
     assert abs(run.slip_onset_error_ms) <= 50.0, run.slip_onset_error_ms
-    assert run.slip_cue == ("net ratio" if feedback == "ft" else "share")  # recorded with the control rows
+    assert run.slip_cue in (("net ratio",) if feedback == "ft" else ("share", "field stall"))  # recorded too
 
 
 @pytest.mark.slow
