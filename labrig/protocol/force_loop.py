@@ -122,8 +122,7 @@ class ForceLoop:
         self._anchor: tuple[float, float] | None = None  # (place mm, force N) the secant is measured from
         self._backoff: tuple[float, float, float] | None = None  # a back-off's reading: place mm, force N, and the
         # place it asked for (mm): the tool goes no further out until a reading shows the unloading
-        self._approach: tuple[float, int] | None = None  # the target approached and the side its readings began on
-        self._reached_target: float | None = None  # the target a reading has reached
+        self._step: tuple[float, int] | None = None  # the target and the side its readings approach from (0: reached)
         self._clipped_since_s: float | None = None
         self._last_sign = 0
         self._crossings: deque[float] = deque()
@@ -169,14 +168,12 @@ class ForceLoop:
     def _reached(self, error: float) -> bool:
         """Whether a reading has reached the target since the loop began or the target changed (``error``: this
         reading's, N): the step to it is over."""
-        if self._reached_target != self.target_n:
-            side = 1 if error > 0 else -1
-            if self._approach is None or self._approach[0] != self.target_n:
-                self._approach = (self.target_n, side)
-            if error != 0 and side == self._approach[1]:
-                return False
-            self._reached_target = self.target_n
-        return True
+        side = 1 if error > 0 else -1
+        if self._step is None or self._step[0] != self.target_n:
+            self._step = (self.target_n, side)
+        if self._step[1] != 0 and (error == 0 or side != self._step[1]):
+            self._step = (self.target_n, 0)
+        return self._step[1] == 0
 
     def _trusted_n(self, error: float) -> float:
         """The part of the error ``error`` (N) the loop acts on: ``e**3 / (e**2 + s**2)`` with ``s`` the feedback's
@@ -201,14 +198,14 @@ class ForceLoop:
 
     def continue_from(self, earlier: ForceLoop, offset_mm: float) -> None:
         """Carry on from ``earlier``, the loop of the move before on the same contact: the stiffness it measured
-        and, for the same target, the back-off it is in. Places run from each move's start: ``earlier``'s place
-        ``p`` is ``p + offset_mm`` in this loop's."""
+        and, for the same target, whether a reading has reached it and the back-off it is in. Places run from each
+        move's start: ``earlier``'s place ``p`` is ``p + offset_mm`` in this loop's."""
         self.stiffness_n_per_mm = earlier.stiffness_n_per_mm
         if earlier._anchor is not None:
             self._anchor = (earlier._anchor[0] + offset_mm, earlier._anchor[1])
         if earlier.target_n != self.target_n:
             return
-        self._approach, self._reached_target = earlier._approach, earlier._reached_target
+        self._step = earlier._step
         if earlier._backoff is not None:
             place, force, limit = earlier._backoff
             self._backoff = (place + offset_mm, force, limit + offset_mm)
